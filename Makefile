@@ -1,0 +1,6 @@
+# Convenience wrappers; ./run does the work (and needs no make on a fresh machine).
+.PHONY: demo test bench
+demo:
+	./run demo
+test:
+	./run test

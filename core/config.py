@@ -1,0 +1,239 @@
+"""One typed configuration for the whole localizer, with the paper's defaults.
+
+Units inside the code are metres, seconds and radians. The paper quotes angles in degrees; those
+entries are converted here once, and the edges (CLI, GUI, reports) convert back for display.
+
+Load from YAML/TOML with :func:`load_config`; override single entries with ``section.key=value``
+strings (:func:`apply_overrides`), which is what ``--set`` on the CLI does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from .errors import LidarlocError
+
+DEG = math.pi / 180.0
+
+# Paper, Simulation section: Q = diag[0.5², 0.5², 0.1², (5°)², (2°)², (0.1°)², 0.1²,
+# (0.05°)², (0.05°)², (0.02°)², 0.001²] for [x, y, z, yaw, pitch, roll, v, yaw_rate,
+# pitch_rate, roll_rate, a]. Stored as standard deviations (square roots of the diagonal), SI units.
+PAPER_Q_STD = (
+    0.5, 0.5, 0.1,
+    5.0 * DEG, 2.0 * DEG, 0.1 * DEG,
+    0.1,
+    0.05 * DEG, 0.05 * DEG, 0.02 * DEG,
+    0.001,
+)
+STATE_NAMES = ("x", "y", "z", "yaw", "pitch", "roll", "v", "yaw_rate", "pitch_rate", "roll_rate", "a")
+# Which entries of the state are angles (or angular rates): the GUI and reports show them in degrees.
+ANGULAR_STATE = (False, False, False, True, True, True, False, True, True, True, False)
+
+
+@dataclass
+class MapConfig:
+    """Prior-map building (paper: the map is assembled from the drive's own scans and poses)."""
+
+    voxel_size: float = 0.2            # m, voxel grid of the global 3D map
+    road_normal_z: float = 0.75        # |n_z| above this = flat surface, removed for the BEV map
+    normal_radius: float = 0.6         # m, neighbourhood radius for normal estimation
+    normal_max_nn: int = 30
+    scan_max_range: float = 80.0       # m, map points farther from the sensor are noisier; dropped
+    scan_min_range: float = 2.5        # m, the car's own body
+
+
+@dataclass
+class PFConfig:
+    """Particle filter (paper: Particle filtering, Dynamic model, Sensor model, Simulation)."""
+
+    n_particles: int = 1000
+    scan_voxel: float = 0.5            # m, random-point-per-voxel down-sampling of each scan
+    d_max: float = 5.0                 # m, distance cap of the likelihood
+    sigma: float = 0.5                 # m, likelihood scale
+    lookup_resolution: float = 0.25    # m, δ of the nearest-distance lookup table
+    q_std: tuple = PAPER_Q_STD         # process-noise standard deviations, SI units, see PAPER_Q_STD
+    dt: float = 0.1                    # s, used when a sequence has no timestamps
+    v_max: float = 15.0                # m/s, initial speeds are uniform in [0, v_max]
+    init_yaw: float = math.pi          # rad, initial yaw uniform in ±init_yaw
+    init_pitch: float = 30.0 * DEG     # rad
+    init_roll: float = 10.0 * DEG      # rad
+    init_rate_std: float = 0.1         # rad/s, initial angular rates ~ N(0, 0.1²)
+    # "uniform_box": the paper's init, positions uniform in the map's 3D bounding box.
+    # "map_support": x, y only where the map has points, z = local ground + sensor height.
+    init_mode: str = "uniform_box"
+    sensor_height: float = 1.73        # m, KITTI's Velodyne above the road
+    resample_threshold: float = 0.5    # resample when N_eff < threshold · N
+
+
+@dataclass
+class S2MConfig:
+    """Scan-to-map matching (M3RSM on the bird's-eye view, then GICP in 3D)."""
+
+    enabled: bool = True
+    match_resolution: float = 1.0      # m, d_m: cell size of pyramid level L0
+    angle_step: float = 2.5 * DEG      # rad, d_θ
+    region_x: float = 25.0             # m, L_x: local search half-width in x
+    region_y: float = 25.0             # m, L_y: local search half-width in y
+    yaw_window: float = math.pi        # rad, local search yaw half-window (π = full circle)
+    binary_cells: bool = False         # L0 holds point counts (False) or occupancy (True)
+    gicp_max_corr: float = 2.0         # m, GICP correspondence distance
+    gicp_voxel: float = 0.5            # m
+    n_s2m: int = 2                     # scans between S2M start and landing in replay clock
+
+
+@dataclass
+class LocalizeConfig:
+    """Localization / false-positive / loss rules (paper: Simulation)."""
+
+    std_threshold: float = 10.0        # m, per-axis position std below this counts as converged
+    min_consecutive: int = 10          # scans the std must stay below the threshold
+    min_moved: float = 10.0            # m moved (from RPE) over that window …
+    min_turned: float = 30.0 * DEG     # … or rad turned
+    loss_std: float = 50.0             # m, after localization a larger std is a loss
+    clock: str = "replay"              # "replay" (deterministic) or "realtime"
+
+
+@dataclass
+class TownConfig:
+    """The built-in generated town and its simulated HDL-64E drive."""
+
+    seed: int = 0
+    size: float = 400.0                # m, side of the square town
+    n_scans: int = 1200                # scans in the default drive (10 Hz)
+    rate_hz: float = 10.0
+
+
+@dataclass
+class Config:
+    map: MapConfig = field(default_factory=MapConfig)
+    pf: PFConfig = field(default_factory=PFConfig)
+    s2m: S2MConfig = field(default_factory=S2MConfig)
+    localize: LocalizeConfig = field(default_factory=LocalizeConfig)
+    town: TownConfig = field(default_factory=TownConfig)
+    seed: int = 0
+
+    def validate(self) -> "Config":
+        """Raise LidarlocError on an impossible parameter; returns self for chaining."""
+        checks = [
+            (self.pf.n_particles >= 1, "pf.n_particles must be ≥ 1"),
+            (self.pf.scan_voxel > 0, "pf.scan_voxel must be > 0"),
+            (self.pf.d_max > 0, "pf.d_max must be > 0"),
+            (self.pf.sigma > 0, "pf.sigma must be > 0"),
+            (self.pf.lookup_resolution > 0, "pf.lookup_resolution must be > 0"),
+            (len(self.pf.q_std) == 11, "pf.q_std must have 11 entries"),
+            (all(q >= 0 and math.isfinite(q) for q in self.pf.q_std), "pf.q_std entries must be finite and ≥ 0"),
+            (0 < self.pf.resample_threshold <= 1, "pf.resample_threshold must be in (0, 1]"),
+            (self.pf.init_mode in ("uniform_box", "map_support"), "pf.init_mode must be uniform_box or map_support"),
+            (self.map.voxel_size > 0, "map.voxel_size must be > 0"),
+            (0 < self.map.road_normal_z <= 1, "map.road_normal_z must be in (0, 1]"),
+            (self.s2m.match_resolution > 0, "s2m.match_resolution must be > 0"),
+            (0 < self.s2m.angle_step <= math.pi, "s2m.angle_step must be in (0, π]"),
+            (self.s2m.region_x > 0 and self.s2m.region_y > 0, "s2m.region_x/region_y must be > 0"),
+            (self.s2m.n_s2m >= 1, "s2m.n_s2m must be ≥ 1"),
+            (self.localize.std_threshold > 0, "localize.std_threshold must be > 0"),
+            (self.localize.min_consecutive >= 1, "localize.min_consecutive must be ≥ 1"),
+            (self.localize.clock in ("replay", "realtime"), "localize.clock must be replay or realtime"),
+            (self.town.n_scans >= 1, "town.n_scans must be ≥ 1"),
+            (self.town.size >= 100, "town.size must be ≥ 100 m"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise LidarlocError(f"invalid configuration: {message}")
+        for section in (self.map, self.pf, self.s2m, self.localize, self.town):
+            for f in fields(section):
+                value = getattr(section, f.name)
+                if isinstance(value, float) and not math.isfinite(value):
+                    raise LidarlocError(f"invalid configuration: {f.name} is not finite")
+        return self
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _coerce(current: Any, raw: Any, key: str) -> Any:
+    """Convert a raw (string or parsed) value to the type of the current value."""
+    try:
+        if isinstance(current, bool):
+            if isinstance(raw, str):
+                if raw.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if raw.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError(raw)
+            return bool(raw)
+        if isinstance(current, int):
+            return int(raw)
+        if isinstance(current, float):
+            return float(raw)
+        if isinstance(current, tuple):
+            items = raw.split(",") if isinstance(raw, str) else list(raw)
+            return tuple(float(v) for v in items)
+        return str(raw)
+    except (TypeError, ValueError):
+        raise LidarlocError(f"invalid configuration: {key}={raw!r} is not a valid {type(current).__name__}") from None
+
+
+def update_from_dict(cfg: Config, data: dict, prefix: str = "") -> Config:
+    for key, raw in data.items():
+        name = f"{prefix}{key}"
+        if not hasattr(cfg, key):
+            raise LidarlocError(f"invalid configuration: unknown key '{name}'")
+        current = getattr(cfg, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(raw, dict):
+                raise LidarlocError(f"invalid configuration: '{name}' must be a table")
+            update_from_dict(current, raw, prefix=name + ".")
+        else:
+            setattr(cfg, key, _coerce(current, raw, name))
+    return cfg
+
+
+def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
+    """Apply ``section.key=value`` strings (e.g. ``pf.sigma=0.7``)."""
+    for item in overrides or []:
+        if "=" not in item:
+            raise LidarlocError(f"invalid override '{item}': expected section.key=value")
+        path, raw = item.split("=", 1)
+        parts = path.strip().split(".")
+        nested: dict = {}
+        node = nested
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = raw.strip()
+        update_from_dict(cfg, nested)
+    return cfg
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Defaults, then a YAML/TOML file (if given), then ``section.key=value`` overrides; validated."""
+    cfg = Config()
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise LidarlocError(f"{path}: config file not found")
+        try:
+            text = path.read_text()
+            if path.suffix.lower() == ".toml":
+                try:
+                    import tomllib
+                except ModuleNotFoundError:  # Python 3.10
+                    import tomli as tomllib  # type: ignore[no-redef]
+                data = tomllib.loads(text)
+            else:
+                import yaml
+
+                data = yaml.safe_load(text) or {}
+        except LidarlocError:
+            raise
+        except Exception as exc:  # parser errors differ per format; all are "unreadable config"
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise LidarlocError(f"{path}: unreadable config ({first})") from None
+        if not isinstance(data, dict):
+            raise LidarlocError(f"{path}: unreadable config (top level must be a mapping)")
+        update_from_dict(cfg, data)
+    apply_overrides(cfg, overrides)
+    return cfg.validate()

@@ -1,0 +1,39 @@
+"""Options every command shares: where the scans come from, and the configuration."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from lidarloc.core.config import Config, load_config
+from lidarloc.core.sequences.factory import SourceSpec
+
+_SRC = "Source (default: the built-in town)"
+_CFG = "Configuration"
+
+KittiOdometryOpt = Annotated[Optional[Path], typer.Option("--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=_SRC)]
+SequenceOpt = Annotated[Optional[str], typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=_SRC)]
+KittiRawOpt = Annotated[Optional[Path], typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=_SRC)]
+DateOpt = Annotated[Optional[str], typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=_SRC)]
+DriveOpt = Annotated[Optional[str], typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=_SRC)]
+TownSeedOpt = Annotated[int, typer.Option("--town-seed", help="Seed of the built-in generated town.", rich_help_panel=_SRC)]
+TrajectoryOpt = Annotated[Optional[Path], typer.Option("--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=_SRC)]
+CalibOpt = Annotated[Optional[Path], typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=_SRC)]
+ScansOpt = Annotated[Optional[int], typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=_SRC)]
+ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 (repeatable).", rich_help_panel=_CFG)]
+CacheOpt = Annotated[Optional[Path], typer.Option("--cache", help="Cache directory for maps and tables (default ~/.cache/lidarloc or $LIDARLOC_CACHE).", rich_help_panel=_CFG)]
+
+
+def source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans) -> SourceSpec:
+    return SourceSpec(kitti_odometry=kitti_odometry, sequence=sequence, kitti_raw=kitti_raw, date=date,
+                      drive=drive, town_seed=town_seed, trajectory=trajectory, calib=calib, scans=scans)
+
+
+def config_from(config: Path | None, overrides: list[str] | None, seed: int | None = None) -> Config:
+    cfg = load_config(config, overrides)
+    if seed is not None:
+        cfg.seed = seed
+    return cfg

@@ -1,0 +1,113 @@
+"""``lidarloc run``: localize over a sequence without a viewer and write the results to disk.
+
+Ctrl-C stops after the scan in progress and still writes everything computed so far.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from lidarloc.core.config import Config
+from lidarloc.core.geometry import pose_to_xyz_ypr, wrap_angle
+from lidarloc.core.localizer import Localizer
+from lidarloc.core.metrics import ScanLog, compute_metrics
+from lidarloc.core.results import write_events, write_json, write_kitti, write_records_csv, write_tum
+from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+
+def summarize(loc: Localizer, wall_s: float, late_scans: int | None = None, max_lag_ms: float | None = None) -> dict:
+    recs = loc.records
+    localized = np.array([r.localized for r in recs], dtype=bool)
+    err = np.array([np.nan if r.error_m is None else r.error_m for r in recs], dtype=float)
+    yaw_err = np.array([np.nan if r.gt_yaw is None else float(wrap_angle(r.yaw - r.gt_yaw)) for r in recs], dtype=float)
+    metrics = compute_metrics(ScanLog(localized, err, yaw_err))
+    first_loc = next((r.scan for r in recs if r.localized), None)
+    after = err[localized] if localized.any() else np.array([])
+    after = after[np.isfinite(after)]
+    pf_ms = np.array([r.pf_ms for r in recs], dtype=float)
+    s2m_ms = np.array([r.s2m_ms for r in recs if r.s2m_ms is not None], dtype=float)
+    kinds = [e.kind for e in loc.events]
+    return {
+        "source": loc.seq.name, "seed": loc.cfg.seed, "scans": len(recs), "clock": loc.cfg.localize.clock,
+        "s2m": loc.cfg.s2m.enabled, "particles": loc.cfg.pf.n_particles,
+        "localized_at_scan": first_loc,
+        "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
+        "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
+        "final_error_m": float(err[-1]) if len(err) and np.isfinite(err[-1]) else None,
+        "pf_ms_median": float(np.median(pf_ms)) if pf_ms.size else None,
+        "s2m_ms_median": float(np.median(s2m_ms)) if s2m_ms.size else None,
+        "scans_per_second": len(recs) / wall_s if wall_s > 0 else None,
+        "s2m_landed": kinds.count("s2m_accepted") + kinds.count("s2m_rejected"),
+        "s2m_accepted": kinds.count("s2m_accepted"),
+        "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        "late_scans": late_scans, "max_lag_ms": max_lag_ms,
+        "metrics": metrics,
+    }
+
+
+def write_outputs(loc: Localizer, out: Path, summary: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    recs = loc.records
+    times = np.array([r.time for r in recs])
+    poses = np.array(loc.est_trajectory).reshape(-1, 4, 4)
+    write_kitti(out / "trajectory_kitti.txt", poses)
+    write_tum(out / "trajectory_tum.txt", times, poses)
+    if loc.seq.has_poses and recs:
+        gt = np.array([loc.seq.pose(r.scan) for r in recs])
+        write_kitti(out / "groundtruth_kitti.txt", gt)
+        write_tum(out / "groundtruth_tum.txt", times, gt)
+    write_records_csv(out / "scans.csv", recs)
+    write_events(out / "events.json", loc.events)
+    write_json(out / "summary.json", summary)
+
+
+def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | None = None,
+                 console: Console | None = None, stop_after: int | None = None) -> tuple[dict, bool]:
+    """Run the localizer over the whole sequence; returns (summary, interrupted)."""
+    from .cli import progress_bar
+
+    console = console or Console(stderr=True)
+    seq = open_sequence(spec, cfg)
+    out.mkdir(parents=True, exist_ok=True)  # fail on an unwritable --out before the long part
+    with progress_bar() as bar:
+        task = bar.add_task("preparing map", total=100)
+        loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
+            task, description=f"preparing {stage}", completed=100 * f))
+    interrupted = False
+    realtime = cfg.localize.clock == "realtime"
+    late, max_lag = 0, 0.0
+    t_start = time.perf_counter()
+    try:
+        with progress_bar(transient=False) as bar:
+            task = bar.add_task(f"localizing {seq.name}", total=len(seq))
+            while not loc.done and (stop_after is None or loc.steps < stop_after):
+                if realtime:
+                    # Scans arrive at the sequence's own rate; a step that starts after its scan's
+                    # arrival time is late (we never drop scans, we count the lag).
+                    due = t_start + seq.timestamp(loc.k)
+                    now = time.perf_counter()
+                    if now < due:
+                        time.sleep(due - now)
+                    else:
+                        lag = (now - due) * 1000.0
+                        max_lag = max(max_lag, lag)
+                        late += lag > 100.0
+                snap = loc.step()
+                bar.update(task, completed=snap.scan_index + 1,
+                           description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
+    except KeyboardInterrupt:
+        interrupted = True
+        console.print("[yellow]interrupted: writing what was computed[/yellow]")
+    finally:
+        wall = time.perf_counter() - t_start
+        loc.close()
+        summary = summarize(loc, wall, late if realtime else None, max_lag if realtime else None)
+        summary["interrupted"] = interrupted
+        write_outputs(loc, out, summary)
+    console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "
+                  f"RMSE after {summary['rmse_after_localized_m']}, PF {summary['pf_ms_median']} ms median")
+    return summary, interrupted

@@ -1,0 +1,493 @@
+"""The localizer: the paper's blocks (PF, RPE, RS, S2M+SU) wired together, in threads.
+
+Data flow for scan k (paper, Fig. "block diagram"):
+
+- RS (road segmentation) and RPE (KISS-ICP relative poses) each get scan k on their own worker
+  thread as soon as it is read; the PF runs on the caller's thread meanwhile.
+- PF: predict (11-state model), weight (lookup-table likelihood), estimate.
+- SU: when an S2M job started at scan k₀ is due, its match (for scan k₀) is carried forward to
+  scan k with the RPE relative pose, written into the particle it started from, and that
+  particle is re-weighted. A failed or rejected match changes nothing.
+- PF resamples when N_eff < 50 %, protecting the S2M particle while a job is in flight.
+- S2M: if no job is in flight, the highest-weight particle's pose at k and the road-removed
+  scan k start a new local match on the S2M worker thread.
+
+Two clocks: ``replay`` lands every S2M result exactly ``n_s2m`` scans after it started (the
+step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime`` lands a
+result at the first scan after it finished.
+
+Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
+usual but protect the S2M particle's slot (the PF's ``protect`` argument), which keeps the
+particle intact without starving the filter of resampling while S2M runs back to back.
+
+Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
+KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
+detect the failed registration the same way); the filter itself learns nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .config import Config, DEG
+from .errors import LidarlocError
+from .geometry import euler_zyx, pose_matrix, pose_to_xyz_ypr, transform_points
+from .mapping import flat_surface_mask, load_or_build_map
+from .rules import LocalizationRules
+from .scanprep import voxel_downsample_random
+from .snapshot import Event, S2MView, Snapshot
+
+
+class BlockError(LidarlocError):
+    """A localizer block (thread) raised; the run stops with this one-line message."""
+
+
+@dataclass
+class ScanRecord:
+    """One row of the per-scan log (headless CSV, metrics A–E)."""
+
+    scan: int
+    time: float
+    x: float
+    y: float
+    z: float
+    yaw: float
+    pitch: float
+    roll: float
+    std_x: float
+    std_y: float
+    std_z: float
+    n_eff: float
+    localized: bool
+    error_m: float | None
+    gt_x: float | None
+    gt_y: float | None
+    gt_z: float | None
+    gt_yaw: float | None
+    pf_ms: float
+    s2m_ms: float | None
+    reinit: bool
+
+
+@dataclass
+class _S2MJob:
+    started_at: int
+    particle: int
+    generation: int
+    start_pose: np.ndarray
+    future: Future
+
+
+# Parameters the viewer may change live, with their validity checks.
+_LIVE_PARAMS = {
+    "d_max": lambda v: v > 0,
+    "sigma": lambda v: v > 0,
+    "q_std": lambda v: len(v) == 11 and all(math.isfinite(q) and q >= 0 for q in v),
+    "s2m_enabled": lambda v: isinstance(v, bool),
+    "region_x": lambda v: v > 0,
+    "region_y": lambda v: v > 0,
+    "match_resolution": lambda v: 0.1 <= v <= 10,
+    "angle_step": lambda v: 0 < v <= math.pi,
+    "n_particles": lambda v: int(v) == v and 1 <= v <= 200_000,
+    "scan_voxel": lambda v: 0.05 <= v <= 10,
+    "clock": lambda v: v in ("replay", "realtime"),
+}
+
+
+class Localizer:
+    def __init__(self, seq, cfg: Config, cache_root: Path | None = None,
+                 progress: Callable[[str, float], None] | None = None):
+        from .bev import load_or_build_pyramid
+        from .lookup import load_or_build_lookup
+        from .pf import ParticleFilter
+        from .rpe import RelativePoseEstimator
+        from .s2m import ScanToMapMatcher
+
+        self.seq, self.cfg = seq, cfg
+        self.n_scans = len(seq)
+        self._progress = progress or (lambda stage, frac: None)
+        self.prior_map, self.map_dir, _ = load_or_build_map(
+            seq, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n))
+        self._progress("lookup", 0.0)
+        self.lookup, _ = load_or_build_lookup(self.prior_map, self.map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max,
+                                              progress=lambda f: self._progress("lookup", f))
+        self._progress("pyramid", 0.0)
+        self.pyramid = load_or_build_pyramid(self.prior_map, self.map_dir, cfg.s2m)
+        self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, cfg.s2m)
+        self._progress("ready", 1.0)
+        self._RPE = RelativePoseEstimator
+        self._PF = ParticleFilter
+        bmin, bmax = self.prior_map.bounds
+        self._bounds = (np.asarray(bmin, float), np.asarray(bmax, float))
+        self._lock = threading.RLock()
+        self._rpe_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RPE")
+        self._rs_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RS")
+        self._s2m_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-S2M")
+        self._rebuild_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-rebuild")
+        self.rebuild_progress: float | None = None
+        self._pending_lookup: Future | None = None
+        self._pending_pyramid: Future | None = None
+        self._closed = False
+        self.restart(cfg.seed)
+
+    # ------------------------------------------------------------------------ lifecycle
+    def restart(self, seed: int | None = None) -> None:
+        """Back to scan 0 with a fresh filter (same map, lookup table and pyramid)."""
+        with self._lock:
+            if seed is not None:
+                self.cfg.seed = int(seed)
+            self._cancel_s2m()
+            self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
+                               map_points=self.prior_map.points)
+            self.pf.initialize()
+            self.rpe = self._RPE()
+            self.rules = LocalizationRules(self.cfg.localize)
+            self.k = 0                      # index of the next scan to process
+            self.steps = 0                  # scans processed since the start (kidnap skips don't count)
+            self.events: list[Event] = []
+            self.records: list[ScanRecord] = []
+            self.est_trajectory: list[np.ndarray] = []
+            self._s2m_job: _S2MJob | None = None
+            self._s2m_generation = 0
+            self._s2m_landed = 0
+            self._s2m_accepted = 0
+            self._last_s2m: S2MView | None = None
+            self._rpe_futures: dict[int, Future] = {}
+            self._rs_futures: dict[int, Future] = {}
+            self._rpe_origin = 0            # first scan the current KISS-ICP run has seen
+            self._prev_t: float | None = None
+            self._snapshot: Snapshot | None = None
+            self._snapshot = self._make_snapshot(-1, None, 0.0, None)
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            self._cancel_s2m()
+        for pool in (self._rpe_pool, self._rs_pool, self._s2m_pool, self._rebuild_pool):
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @property
+    def done(self) -> bool:
+        return self.k >= self.n_scans
+
+    # ------------------------------------------------------------------------ controls
+    def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
+        """Re-initialise the particles: globally, around a 4×4 pose, or inside (x0, y0, x1, y1)."""
+        with self._lock:
+            self._cancel_s2m()
+            if region is not None:
+                x0, y0, x1, y1 = region
+                region = (min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
+                if region[2] - region[0] <= 0 or region[3] - region[1] <= 0:
+                    raise LidarlocError("reset region must have a positive width and height")
+            self.pf.initialize(region=region, pose=pose)
+            self.rules.reset()
+            where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
+            self._event(self.k - 1, "reset", f"particles re-initialised {where}")
+
+    def kidnap(self, skip: int = 100) -> int:
+        """Jump the vehicle ``skip`` scans ahead without telling the filter; returns the new index."""
+        with self._lock:
+            if skip < 1:
+                raise LidarlocError("kidnap skip must be ≥ 1 scan")
+            target = min(self.k + skip, self.n_scans - 1)
+            self._cancel_s2m()
+            self._event(self.k - 1, "kidnap", f"vehicle moved from scan {self.k} to {target}")
+            self.k = target
+            self.rpe = self._RPE()
+            self._rpe_futures.clear()
+            self._rs_futures.clear()
+            self._rpe_origin = target
+            self._prev_t = None
+            return target
+
+    def set_params(self, **params) -> None:
+        """Live parameter changes, validated, effective from the next scan."""
+        with self._lock:
+            for name, value in params.items():
+                check = _LIVE_PARAMS.get(name)
+                if check is None:
+                    raise LidarlocError(f"unknown parameter '{name}'")
+                try:
+                    if isinstance(value, float) and not math.isfinite(value):
+                        raise ValueError
+                    ok = check(value)
+                except (TypeError, ValueError):
+                    ok = False
+                if not ok:
+                    raise LidarlocError(f"invalid value for {name}: {value!r}")
+            pf, s2m = self.cfg.pf, self.cfg.s2m
+            for name, value in params.items():
+                if name == "d_max":
+                    pf.d_max = float(value)
+                    if value > self.lookup.d_max_built + 1e-9:
+                        self._rebuild_lookup(float(value))
+                    self.pf.set_d_max(min(float(value), self.lookup.d_max_built))
+                elif name == "sigma":
+                    pf.sigma = float(value)
+                    self.pf.set_sigma(float(value))
+                elif name == "q_std":
+                    pf.q_std = tuple(float(q) for q in value)
+                    self.pf.set_q_std(pf.q_std)
+                elif name == "s2m_enabled":
+                    s2m.enabled = bool(value)
+                    if not value:
+                        self._cancel_s2m()
+                elif name in ("region_x", "region_y", "angle_step"):
+                    setattr(s2m, name, float(value))
+                elif name == "match_resolution":
+                    if abs(value - s2m.match_resolution) > 1e-9:
+                        s2m.match_resolution = float(value)
+                        self._rebuild_pyramid()
+                elif name == "n_particles":
+                    pf.n_particles = int(value)
+                    self._cancel_s2m()   # particle indices change
+                    self.pf.set_n_particles(int(value))
+                elif name == "scan_voxel":
+                    pf.scan_voxel = float(value)
+                elif name == "clock":
+                    self.cfg.localize.clock = value
+
+    def snapshot(self) -> Snapshot:
+        return self._snapshot
+
+    # ------------------------------------------------------------------------ one scan
+    def step(self) -> Snapshot:
+        """Process the next scan and return the new snapshot."""
+        with self._lock:
+            if self._closed:
+                raise LidarlocError("localizer is closed")
+            if self.done:
+                return self._snapshot
+            self._swap_rebuilt_tables()
+            k = self.k
+            scan = self.seq.scan(k)
+            t = self.seq.timestamp(k)
+            dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
+            self._prev_t = t
+            # RPE and RS start now and overlap with the PF work below.
+            self._rpe_futures[k] = self._rpe_pool.submit(self._rpe_add, self.rpe, k, scan, t)
+            self._rs_futures[k] = self._rs_pool.submit(self._road_removed, scan)
+            for old in [i for i in self._rs_futures if i < k - 5]:
+                del self._rs_futures[old]
+
+            # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
+            t0 = time.perf_counter()
+            rng = np.random.default_rng([self.cfg.seed, k, 1])
+            prepared = voxel_downsample_random(scan[:, :3], self.cfg.pf.scan_voxel, rng)
+            self.pf.predict(dt)
+            self.pf.update(prepared)
+            pf_s = time.perf_counter() - t0
+            s2m_ms = self._maybe_land_s2m(k, prepared)
+            t1 = time.perf_counter()
+            protect = self._s2m_job.particle if self._s2m_job is not None else None
+            self.pf.resample_if_needed(protect=protect)
+            est = self.pf.estimate()
+            pf_ms = (pf_s + time.perf_counter() - t1) * 1000.0
+
+            step_dist, yaw_odom = self._rpe_motion(k)
+            outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
+            reinit = False
+            if outcome.event is not None:
+                self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
+            if outcome.reinit:
+                self._cancel_s2m()
+                self.pf.initialize()
+                reinit = True
+                est = self.pf.estimate()
+            if self.cfg.s2m.enabled and self._s2m_job is None:
+                self._start_s2m(k, est.best_index)
+
+            self.k += 1
+            self.steps += 1
+            snap = self._make_snapshot(k, prepared, pf_ms, est)
+            self._record(k, t, est, snap, pf_ms, s2m_ms, reinit)
+            self._snapshot = snap
+            return snap
+
+    def run(self, n: int | None = None, should_stop: Callable[[], bool] | None = None) -> Snapshot:
+        """Process up to ``n`` scans (all remaining if None)."""
+        remaining = self.n_scans - self.k if n is None else n
+        for _ in range(remaining):
+            if self.done or (should_stop is not None and should_stop()):
+                break
+            self.step()
+        return self._snapshot
+
+    # ------------------------------------------------------------------------ blocks
+    def _rpe_add(self, rpe, k, scan, t):
+        rpe.add(k, scan, t)
+
+    def _road_removed(self, scan: np.ndarray) -> np.ndarray:
+        # RS block: flat surfaces removed, on a 0.25 m-downsampled scan (normals need neighbours,
+        # and the BEV matcher works at ≥ 1 m cells anyway).
+        pts = voxel_downsample_random(scan[:, :3], 0.25, np.random.default_rng(0))
+        return pts[~flat_surface_mask(pts, self.cfg.map)]
+
+    def _wait(self, future: Future, block: str, k: int):
+        try:
+            return future.result()
+        except LidarlocError:
+            raise
+        except Exception as exc:  # a block's failure surfaces once, clearly, in the caller's thread
+            self._event(k, "error", f"{block}: {exc}")
+            raise BlockError(f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}") from exc
+
+    def _rpe_motion(self, k: int) -> tuple[float, float]:
+        """Distance driven from k−1 to k and the odometry yaw at k (RPE, waits for scan k)."""
+        self._wait(self._rpe_futures[k], "RPE", k)
+        for old in [i for i in self._rpe_futures if i < k - 200]:
+            del self._rpe_futures[old]
+        T = self.rpe.odom_pose(k)
+        yaw = float(euler_zyx(T[:3, :3])[0])
+        if k - 1 < self._rpe_origin:
+            return 0.0, yaw
+        rel = self.rpe.relative(k - 1, k)
+        return float(np.linalg.norm(rel[:3, 3])), yaw
+
+    def _start_s2m(self, k: int, j: int) -> None:
+        start_pose = pose_matrix(*self.pf.states[j, :6])
+        rs = self._rs_futures[k]
+        self._s2m_generation += 1
+        future = self._s2m_pool.submit(self._run_s2m, rs, start_pose)
+        self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
+        self._event(k, "s2m_started", f"particle {j}")
+
+    def _run_s2m(self, rs_future: Future, start_pose: np.ndarray):
+        scan_bev = rs_future.result()
+        return self.matcher.match_local(scan_bev, start_pose, road_removed=True)
+
+    def _cancel_s2m(self) -> None:
+        job = getattr(self, "_s2m_job", None)
+        if job is not None:
+            job.future.cancel()  # if already running it finishes, and its result is ignored
+        self._s2m_job = None
+
+    def _maybe_land_s2m(self, k: int, prepared: np.ndarray) -> float | None:
+        job = self._s2m_job
+        if job is None:
+            return None
+        if self.cfg.localize.clock == "replay":
+            if k < job.started_at + self.cfg.s2m.n_s2m:
+                return None
+        elif not job.future.done():
+            return None
+        outcome = self._wait(job.future, "S2M", k)
+        self._s2m_job = None
+        self._s2m_landed += 1
+        accepted = bool(outcome.accepted)
+        pose_k = outcome.pose
+        reason = outcome.reason
+        if accepted:
+            # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
+            self._wait(self._rpe_futures[k], "RPE", k)
+            if job.started_at < self._rpe_origin:
+                accepted, reason = False, "odometry restarted since the match started"
+            else:
+                from .s2m import carry_forward
+
+                pose_k = carry_forward(outcome.pose, self.rpe, job.started_at, k)
+        if accepted:
+            state = self.pf.states[job.particle].copy()
+            state[:6] = pose_to_xyz_ypr(pose_k)
+            state[6] = self.rpe.speed(k)
+            state[7:10] = self.rpe.rates(k)
+            self.pf.set_particle(job.particle, state)
+            self.pf.reweight(job.particle, prepared)
+            self._s2m_accepted += 1
+        self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
+                    f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
+                    + (f" ({reason})" if reason and not accepted else ""))
+        scan_bev = self._rs_futures[job.started_at].result() if job.started_at in self._rs_futures else np.zeros((0, 3))
+        self._last_s2m = S2MView(
+            started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
+            start_score=float(outcome.start_score), pose=np.asarray(pose_k),
+            scan_world=transform_points(outcome.pose, scan_bev).astype(np.float32),
+            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
+        return float(outcome.ms)
+
+    # ------------------------------------------------------------------------ background rebuilds
+    def _rebuild_lookup(self, d_max: float) -> None:
+        from .lookup import load_or_build_lookup
+
+        if self._pending_lookup is not None and not self._pending_lookup.done():
+            return
+        self.rebuild_progress = 0.0
+
+        def build():
+            def progress(f):
+                self.rebuild_progress = float(f)
+            return load_or_build_lookup(self.prior_map, self.map_dir, self.cfg.pf.lookup_resolution, d_max,
+                                        progress=progress)[0]
+        self._pending_lookup = self._rebuild_pool.submit(build)
+
+    def _rebuild_pyramid(self) -> None:
+        from .bev import load_or_build_pyramid
+
+        self.rebuild_progress = 0.0
+        cfg = replace(self.cfg.s2m)
+        self._pending_pyramid = self._rebuild_pool.submit(load_or_build_pyramid, self.prior_map, self.map_dir, cfg)
+
+    def _swap_rebuilt_tables(self) -> None:
+        if self._pending_lookup is not None and self._pending_lookup.done():
+            fut, self._pending_lookup = self._pending_lookup, None
+            self.lookup = self._wait(fut, "lookup rebuild", self.k)
+            self.pf.set_lookup(self.lookup)
+            self.pf.set_d_max(min(self.cfg.pf.d_max, self.lookup.d_max_built))
+        if self._pending_pyramid is not None and self._pending_pyramid.done():
+            fut, self._pending_pyramid = self._pending_pyramid, None
+            from .s2m import ScanToMapMatcher
+
+            self.pyramid = self._wait(fut, "pyramid rebuild", self.k)
+            self._cancel_s2m()
+            self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, self.cfg.s2m)
+        if self._pending_lookup is None and self._pending_pyramid is None:
+            self.rebuild_progress = None
+
+    # ------------------------------------------------------------------------ outputs
+    def _event(self, k: int, kind: str, detail: str = "") -> None:
+        self.events.append(Event(int(k), kind, detail))
+
+    def _make_snapshot(self, k: int, prepared, pf_ms: float, est) -> Snapshot:
+        if est is None:
+            est = self.pf.estimate()
+        mean_T = est.pose
+        gt = self.seq.pose(k) if k >= 0 and self.seq.has_poses else None
+        err = None if gt is None else float(np.linalg.norm(mean_T[:3, 3] - gt[:3, 3]))
+        scan_world = (np.zeros((0, 3), np.float32) if prepared is None
+                      else transform_points(mean_T, prepared).astype(np.float32))
+        landed = max(self._s2m_landed, 1)
+        return Snapshot(
+            scan_index=k, n_scans=self.n_scans, timestamp=self.seq.timestamp(k) if k >= 0 else 0.0,
+            particles=self.pf.states.copy(), weights=self.pf.weights.copy(), best_index=int(est.best_index),
+            mean_pose=mean_T, cov_xyz=est.cov_xyz, std_xyz=est.std_xyz, ellipse_xy=tuple(est.ellipse_xy),
+            n_eff=float(est.n_eff), localized=self.rules.localized, localized_since=self.rules.localized_since,
+            scan_world=scan_world, gt_pose=gt, error_m=err, pf_ms=pf_ms, s2m=self._last_s2m,
+            s2m_running=self._s2m_job is not None, s2m_acceptance=self._s2m_accepted / landed,
+            events=tuple(self.events[-50:]), done=self.k >= self.n_scans)
+
+    def _record(self, k, t, est, snap: Snapshot, pf_ms, s2m_ms, reinit) -> None:
+        xyz_ypr = pose_to_xyz_ypr(est.pose)
+        gt = snap.gt_pose
+        gt_xyz_ypr = pose_to_xyz_ypr(gt) if gt is not None else [None] * 6
+        self.est_trajectory.append(est.pose)
+        self.records.append(ScanRecord(
+            scan=k, time=t, x=xyz_ypr[0], y=xyz_ypr[1], z=xyz_ypr[2], yaw=xyz_ypr[3], pitch=xyz_ypr[4],
+            roll=xyz_ypr[5], std_x=float(est.std_xyz[0]), std_y=float(est.std_xyz[1]), std_z=float(est.std_xyz[2]),
+            n_eff=float(est.n_eff), localized=snap.localized, error_m=snap.error_m,
+            gt_x=gt_xyz_ypr[0], gt_y=gt_xyz_ypr[1], gt_z=gt_xyz_ypr[2], gt_yaw=gt_xyz_ypr[3],
+            pf_ms=pf_ms, s2m_ms=s2m_ms, reinit=reinit))

@@ -1,0 +1,88 @@
+"""The paper's localization metrics A–E (Simulation section), from a per-scan log.
+
+All metrics are counts of scans from the start of the sequence ("number of scans until …"), so
+an event at 0-based scan index k counts k + 1 scans. A metric that is never met is ``None`` and
+counts as a failure in aggregates (never as missing data).
+
+- B: scans until the localization rule is first met.
+- A: scans spent not localized over the whole sequence (re-localization after false positives
+  and losses included).
+- C: first scan k where the rule holds (the localized flag is set at k) and the mean position is
+  within 5 m (3D Euclidean) of the truth for every scan in [k, k+10].
+- D: the same for [k, k+50]; E: as D with 2.5 m.
+- rmse_pos_after_D_m / rmse_yaw_after_D_deg: RMSE of position and yaw from D's scan to the end.
+
+A window that runs past the end of the sequence does not count as met (the condition must be
+observed for the whole window).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ScanLog:
+    """The columns metrics need; arrays of equal length, one entry per processed scan."""
+
+    localized: np.ndarray        # bool
+    error_m: np.ndarray          # float, |p_est − p_true| in 3D (NaN where no truth)
+    yaw_error_rad: np.ndarray | None = None
+
+
+def _first_window(localized: np.ndarray, ok: np.ndarray, length: int) -> int | None:
+    n = len(ok)
+    # run[i] = number of consecutive ok scans starting at i
+    run = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n - 1, -1, -1):
+        run[i] = run[i + 1] + 1 if ok[i] else 0
+    need = length + 1          # [k, k+length] inclusive
+    hits = np.flatnonzero(localized & (run[:n] >= need))
+    return int(hits[0]) if hits.size else None
+
+
+def compute_metrics(log: ScanLog) -> dict:
+    localized = np.asarray(log.localized, dtype=bool)
+    err = np.asarray(log.error_m, dtype=float)
+    first = np.flatnonzero(localized)
+    B = int(first[0]) + 1 if first.size else None
+    A = int((~localized).sum()) if first.size else None
+    ok5 = np.nan_to_num(err, nan=np.inf) <= 5.0
+    ok25 = np.nan_to_num(err, nan=np.inf) <= 2.5
+    kC = _first_window(localized, ok5, 10)
+    kD = _first_window(localized, ok5, 50)
+    kE = _first_window(localized, ok25, 50)
+    out = {"A": A, "B": B,
+           "C": None if kC is None else kC + 1,
+           "D": None if kD is None else kD + 1,
+           "E": None if kE is None else kE + 1,
+           "rmse_pos_after_D_m": None, "rmse_yaw_after_D_deg": None, "scans": int(len(localized))}
+    if kD is not None:
+        tail = err[kD:]
+        out["rmse_pos_after_D_m"] = float(np.sqrt(np.nanmean(tail**2)))
+        if log.yaw_error_rad is not None:
+            yaw = np.asarray(log.yaw_error_rad, float)[kD:]
+            out["rmse_yaw_after_D_deg"] = float(np.degrees(np.sqrt(np.nanmean(yaw**2))))
+    return out
+
+
+METRIC_KEYS = ("A", "B", "C", "D", "E")
+
+
+def aggregate(per_run: list[dict]) -> dict:
+    """Median, 75th percentile, max and success ratio of each metric; failures count as +∞
+    inside the percentiles (so a max of ``None`` in the JSON means some run never met it)."""
+    out = {"runs": len(per_run)}
+    for key in METRIC_KEYS + ("rmse_pos_after_D_m", "rmse_yaw_after_D_deg"):
+        values = np.array([np.inf if r.get(key) is None else float(r[key]) for r in per_run], dtype=float)
+        success = float(np.isfinite(values).mean()) if len(values) else 0.0
+
+        def stat(q):
+            if not len(values):
+                return None
+            v = float(np.percentile(values, q, method="higher"))
+            return v if np.isfinite(v) else None
+        out[key] = {"median": stat(50), "p75": stat(75), "max": stat(100), "success": success}
+    return out

@@ -82,7 +82,7 @@ def aggregate(per_run: list[dict]) -> dict:
         def stat(q):
             if not len(values):
                 return None
-            v = float(np.percentile(values, q, method="higher"))
+            v = float(np.percentile(values, q, method="inverted_cdf"))  # an observed value, never interpolated with ∞
             return v if np.isfinite(v) else None
         out[key] = {"median": stat(50), "p75": stat(75), "max": stat(100), "success": success}
     return out

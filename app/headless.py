@@ -80,6 +80,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
     interrupted = False
     realtime = cfg.localize.clock == "realtime"
     late, max_lag = 0, 0.0
+    console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
     t_start = time.perf_counter()
     try:
         with progress_bar(transient=False) as bar:

@@ -46,7 +46,7 @@ from .lidar_sim import LidarModel, MeshPart, RaycastLidar
 
 #: Bump whenever the generated geometry, the drive or the sensor model changes: it is part of
 #: :meth:`TownSequence.identity`, which keys the prior-map cache.
-TOWN_VERSION = 1
+TOWN_VERSION = 2
 
 SENSOR_HEIGHT = 1.73      # m, KITTI's Velodyne above the road
 LANE_OFFSET = 1.75        # m, right-hand traffic: the car drives this far right of the centre line
@@ -214,7 +214,7 @@ class _LanePath:
     edge: np.ndarray          # route edge each sample lies on (arcs: the incoming edge)
     on_arc: np.ndarray        # bool
     vertex_s: np.ndarray      # per route vertex: s where its turn starts (or where it is passed)
-    stop_back: np.ndarray     # per route vertex: along-lane offset of the corner beyond the node, minus the turn's tangent length
+    stop_back: np.ndarray     # per route vertex: (lane corner − node)·heading in, minus the turn's tangent length
 
 
 def _lane_path(route: np.ndarray) -> _LanePath:
@@ -263,11 +263,11 @@ def _lane_path(route: np.ndarray) -> _LanePath:
         length = float((b - a) @ d[k])
         if length < -1e-6:
             raise DataError("town: a street segment is too short for the turns at its ends")
-        length = max(length, 0.0)
-        n = max(1, int(math.ceil(length / DS)))
-        u = np.arange(n) / n * length
-        emit(a + u[:, None] * d[k], np.full(n, math.atan2(d[k, 1], d[k, 0])), 0.0, k, False, u)
-        s_now += length
+        if length > 1e-6:  # (turns that meet leave no straight between them)
+            n = max(1, int(math.ceil(length / DS)))
+            u = np.arange(n) / n * length
+            emit(a + u[:, None] * d[k], np.full(n, math.atan2(d[k, 1], d[k, 0])), 0.0, k, False, u)
+            s_now += length
         vertex_s[k + 1] = s_now
         if k + 1 < K - 1 and radius[k + 1] > 0:
             R, th = radius[k + 1], theta[k + 1]
@@ -1000,7 +1000,7 @@ def _populate(plan: _Plan, rng) -> _Solids:
                 else:
                     s += 2.0
 
-            # Street trees and lights on the sidewalk, near the curb.
+            # Street trees on the sidewalk, near the curb.
             curb_off = st.half_width + min(max(st.sidewalk * 0.45, 0.8), 1.5)
             if has_trees:
                 for u in np.arange(rng.uniform(2, 8), st.length, rng.uniform(7.0, 11.0)):
@@ -1008,6 +1008,7 @@ def _populate(plan: _Plan, rng) -> _Solids:
                     q = p + side * _left(t) * curb_off
                     if not near_junction(q, st.half_width + 6.0) and _point_free(plan, q[0], q[1], 0.6):
                         _tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
+        # Street lights (or utility poles) at the curb, on one side or alternating.
         light_kind = "light" if rng.random() < 0.7 else "utility"
         alternate = rng.random() < 0.5
         for k, u in enumerate(np.arange(rng.uniform(5, 20), st.length, rng.uniform(25.0, 40.0))):
@@ -1202,6 +1203,12 @@ def _quads(corner_index_grid_shape, i0, j0, di, dj):
     return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
 
 
+def _compact(vertices: np.ndarray, triangles: np.ndarray):
+    """Drop the vertices no triangle uses (the ground is cut from full vertex grids)."""
+    used, remap = np.unique(triangles, return_inverse=True)
+    return vertices[used], remap.reshape(triangles.shape)
+
+
 def _ground_parts(plan: _Plan, rng) -> list[MeshPart]:
     """Road-level ground (2 m quads wherever there is road), the raised level of sidewalks and
     lots (4 m quads where a block is all raised, 0.5 m quads along curbs) and vertical curbs."""
@@ -1217,7 +1224,7 @@ def _ground_parts(plan: _Plan, rng) -> list[MeshPart]:
     any_road = plan.road.reshape(nx // nb, nb, ny // nb, nb).any(axis=(1, 3))
     qi, qj = np.nonzero(any_road)
     tris = _quads(X.shape, qi, qj, 1, 1)
-    parts.append(MeshPart("road", node_vertices, tris, rng.uniform(0.12, 0.2, len(tris)).astype(np.float32)))
+    parts.append(MeshPart("road", *_compact(node_vertices, tris), rng.uniform(0.12, 0.2, len(tris)).astype(np.float32)))
 
     # Raised level on the cell-corner grid.
     xc = raster.x0 + np.arange(nx + 1) * CELL
@@ -1236,7 +1243,7 @@ def _ground_parts(plan: _Plan, rng) -> list[MeshPart]:
     first_j = np.concatenate([fj * bb, fj * bb, cj, cj])
     near = plan.dist_road[first_i, first_j] <= 3.0
     refl = np.where(near, rng.uniform(0.25, 0.32, len(tris)), rng.uniform(0.3, 0.5, len(tris))).astype(np.float32)
-    parts.append(MeshPart("sidewalk_lot", corner_vertices, tris, refl))
+    parts.append(MeshPart("sidewalk_lot", *_compact(corner_vertices, tris), refl))
 
     # Curbs: a vertical quad on every cell edge between road and raised ground.
     quads = []

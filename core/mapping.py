@@ -13,6 +13,7 @@ import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -173,12 +174,24 @@ def build_prior_map(seq, cfg: MapConfig, progress: Callable[[int, int], None] | 
         raise DataError(f"{seq.name}: a prior map needs ground-truth poses, and this sequence has none")
     acc = VoxelAccumulator(cfg.voxel_size)
     n = len(seq)
-    for i in range(n):
+
+    def load(i):
         pts = range_filter(seq.scan(i), cfg)[:, :3].astype(np.float64)
         T = poses[i]
-        acc.add(pts @ T[:3, :3].T + T[:3, 3])
-        if progress is not None:
-            progress(i + 1, n)
+        return pts @ T[:3, :3].T + T[:3, 3]
+
+    # Reading (or simulating) scans overlaps with the insertion: a small look-ahead on two
+    # threads keeps both cores busy while holding only a few scans in memory.
+    lookahead = 4
+    with ThreadPoolExecutor(2, thread_name_prefix="lidarloc-map") as pool:
+        pending = [pool.submit(load, i) for i in range(min(lookahead, n))]
+        for i in range(n):
+            pts = pending.pop(0).result()
+            if i + lookahead < n:
+                pending.append(pool.submit(load, i + lookahead))
+            acc.add(pts)
+            if progress is not None:
+                progress(i + 1, n)
     points = acc.points()
     if len(points) == 0:
         raise DataError(f"{seq.name}: the map is empty (no points within range)")

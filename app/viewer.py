@@ -48,6 +48,7 @@ EST_COLOR = (255, 150, 30)
 PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # weight ≈ 0
 PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # the highest weight
 BEV_COLOR = (255, 225, 90)
+RESET_COLOR = (255, 255, 255)
 
 DISPLAY_VOXEL = 0.5          # m, first try for the displayed map's voxel size …
 DISPLAY_MAX_POINTS = 1_500_000   # … grown until the map fits in this many points
@@ -63,7 +64,7 @@ SHIFT = "shift"
 
 def _height_lut() -> np.ndarray:
     """256-entry RGB ramp for map heights: slate blue (low) → light blue → warm white (high)."""
-    stops = np.array([[45, 60, 110], [70, 110, 180], [140, 175, 225], [245, 235, 215]], np.float32)
+    stops = np.array([[62, 80, 135], [80, 120, 190], [145, 180, 228], [245, 235, 215]], np.float32)
     t = np.linspace(0, 1, 256)
     pos = t * (len(stops) - 1)
     i = np.minimum(pos.astype(int), len(stops) - 2)
@@ -96,6 +97,13 @@ def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
         if len(out) <= max_points:
             return out, voxel
         voxel *= 1.5
+
+
+def shorten(text: str, limit: int = 70) -> str:
+    """One line of at most ``limit`` characters (the panel and labels are narrow; the localizer's
+    event log keeps the full text)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 1].rstrip() + "…"
 
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -336,6 +344,8 @@ class SceneView:
         self._s2m_scan = self._s2m_box = self._s2m_label = None
         self._s2m_shown = None
         self._est_frame = None
+        self._reset_hint = None
+        self._reset_hint_scan: int | None = None
         self.gt_line = ChunkedPolyline(scene, "/trajectory/ground_truth", GT_COLOR, 2.0)
         self.est_line = ChunkedPolyline(scene, "/trajectory/estimate", EST_COLOR, 2.0)
         self.display_voxel = DISPLAY_VOXEL
@@ -420,7 +430,31 @@ class SceneView:
         with self._lock:
             self._draw(snap, history)
 
+    def show_reset_area(self, scan_index: int, center=None, region=None, radius: float = 6.0) -> None:
+        """Outline where particles were just re-drawn (a circle round a point, or a rectangle),
+        until a scan after ``scan_index`` shows the particles themselves."""
+        with self._lock:
+            z = self.ground.z_default if self.ground is not None else 0.0
+            if region is not None:
+                x0, y0, x1, y1 = region
+                c = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32)
+            else:
+                th = np.linspace(0, 2 * np.pi, 49)[:-1]
+                c = np.stack([center[0] + radius * np.cos(th), center[1] + radius * np.sin(th),
+                              np.full_like(th, center[2] if len(center) > 2 else z)], axis=1).astype(np.float32)
+            segs = np.stack([c, np.roll(c, -1, axis=0)], axis=1)
+            if self._reset_hint is None:
+                self._reset_hint = self.scene.add_line_segments("/reset_area", segs, RESET_COLOR, thickness=3.0,
+                                                                thickness_units="screen")
+            else:
+                self._reset_hint.points = segs
+                self._reset_hint.visible = True
+            self._reset_hint_scan = scan_index
+
     def _draw(self, snap: Snapshot, history: History) -> None:
+        if self._reset_hint_scan is not None and snap.scan_index > self._reset_hint_scan:
+            self._reset_hint.visible = False
+            self._reset_hint_scan = None
         self._draw_particles(snap)
         self._draw_ellipse(snap)
         self._draw_scan(snap)
@@ -529,7 +563,7 @@ class SceneView:
                                                          thickness_units="screen", visible=vis)
         else:
             self._set(self._s2m_box, points=box, colors=np.asarray(color, np.uint8))
-        verdict = "accepted" if s.accepted else "rejected" + (f" ({s.reason})" if s.reason else "")
+        verdict = "accepted" if s.accepted else "rejected" + (f" ({shorten(s.reason, 60)})" if s.reason else "")
         text = (f"S2M: started at scan {s.started_at}, landed at {s.landed_at}\n{verdict}, "
                 f"score {s.score:.0f} (start {s.start_score:.0f}), {s.ms:.0f} ms")
         if self._s2m_label is None:
@@ -674,8 +708,8 @@ class Viewer:
         self._ready = threading.Event()
         self._clients: dict[int, _ClientState] = {}
         self._clients_lock = threading.Lock()
-        self._build_stage: str | None = "starting"
-        self._build_frac: float | None = 0.0
+        self._build_stage: str | None = "starting"     # Localizer construction stage, None once attached
+        self._build_frac: float | None = None
         self._startup_error: str | None = None
         self._message = ""
         self._status_text = ""
@@ -683,9 +717,7 @@ class Viewer:
         self._last_plot = 0.0
         self._last_draw = 0.0
         self._applied: dict = {}
-        self._pending_label = ""
         self._syncing = False           # set while the viewer itself writes GUI values
-        self.draw_ms: list[float] = []  # server-side cost of recent display updates
         self._build_gui()
         server.on_client_connect(self._on_connect)
         server.on_client_disconnect(self._on_disconnect)
@@ -883,7 +915,7 @@ class Viewer:
     def _overview(self) -> tuple[np.ndarray, np.ndarray]:
         """(camera position, look-at) of an oblique view of the whole map."""
         center, ext = self.scene.map_center, self.scene.map_extent
-        return center + np.array([0.0, -0.55 * ext, 0.75 * ext]), center
+        return center + np.array([0.0, -0.42 * ext, 0.6 * ext]), center
 
     def _set_initial_camera(self) -> None:
         position, look_at = self._overview()
@@ -941,8 +973,6 @@ class Viewer:
             self._update_status(snap)
             self._follow_cameras(snap)
             ms = (time.perf_counter() - t0) * 1000.0
-            self.draw_ms.append(ms)
-            del self.draw_ms[:-500]
             self._last_draw = time.perf_counter()
         elif snap is not None:
             self._update_status(snap)      # play/pause state may have changed
@@ -957,7 +987,7 @@ class Viewer:
             return
         if self._build_stage is not None:
             frac = self._build_frac
-            label = {"map": "Building the prior map", "lookup": "Building the distance lookup table",
+            label = {"starting": "Starting the localizer", "map": "Building the prior map", "lookup": "Building the distance lookup table",
                      "pyramid": "Building the BEV pyramid", "ready": "Ready"}.get(self._build_stage, self._build_stage)
             self._progress.visible = True
             self._progress.animated = frac is None
@@ -1016,7 +1046,7 @@ class Viewer:
         events = self.history.arrays()["events"]
         if events:
             lines += ["", "**Recent events**"]
-            lines += [f"- {e.scan}: {e.kind.replace('_', ' ')}" + (f" — {e.detail}" if e.detail else "")
+            lines += [f"- {e.scan}: {e.kind.replace('_', ' ')}" + (f" — {shorten(e.detail, 60)}" if e.detail else "")
                       for e in reversed(events)]
         return "\n".join(lines)
 
@@ -1110,6 +1140,9 @@ class Viewer:
 
     def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
         self.localizer.reset(pose=pose, region=region)
+        if pose is not None or region is not None:
+            last = self._latest.scan_index if self._latest is not None else -1
+            self.scene.show_reset_area(last, center=None if pose is None else pose[:3, 3], region=region)
         self.publish(self.localizer.snapshot())
         where = ("globally" if pose is None and region is None else
                  f"around ({pose[0, 3]:.1f}, {pose[1, 3]:.1f})" if pose is not None else
@@ -1335,21 +1368,20 @@ class Viewer:
         self._stopping.set()
         self._wake.set()
         if self.player is not None:
-            self.player.stop(timeout=0.8)
+            self.player.stop(timeout=0.5)
         if self._display.is_alive():
-            self._display.join(timeout=0.5)
+            self._display.join(timeout=0.3)
 
 
 class ViewerHandle:
     """What :func:`serve` returns: where the viewer is, and how to stop it."""
 
-    def __init__(self, viewer: Viewer, server: viser.ViserServer, host: str, builder: threading.Thread | None):
+    def __init__(self, viewer: Viewer, server: viser.ViserServer, host: str):
         self.viewer = viewer
         self.server = server
         self.port = int(server.get_port())
         shown = "localhost" if host in ("0.0.0.0", "::") else host
         self.url = f"http://{shown}:{self.port}"
-        self._builder = builder
         self._stopped = threading.Event()
 
     @property
@@ -1367,7 +1399,8 @@ class ViewerHandle:
 
     def stop(self) -> None:
         """Stop playback, the display and the server; close the localizer if the viewer built it.
-        Bounded: returns within ~2 s even if a scan is still being processed."""
+        Bounded: returns within ~1.2 s even if a scan is still being processed (that scan finishes
+        on its daemon thread; the localizer's own worker pools are joined by Python at exit)."""
         if self._stopped.is_set():
             return
         self.viewer.stop()
@@ -1376,7 +1409,7 @@ class ViewerHandle:
         if loc is not None and self.viewer.owns_localizer:
             closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
             closer.start()
-            closer.join(timeout=0.5)
+            closer.join(timeout=0.3)
         self._stopped.set()
 
 
@@ -1410,31 +1443,34 @@ def serve(localizer_factory_or_localizer, host: str = "127.0.0.1", port: int = 8
         server.stop()
         raise
     target = localizer_factory_or_localizer
-    builder = None
     if hasattr(target, "step") and hasattr(target, "snapshot"):
-        viewer.attach(target)
+        try:
+            viewer.attach(target)
+        except BaseException:
+            viewer.stop()
+            server.stop()
+            raise
     elif callable(target):
         def build():
+            loc = None
             try:
                 loc = _call_factory(target, viewer.build_progress)
+                viewer.owns_localizer = True
+                if viewer._stopping.is_set():      # stopped while building: nobody will show it
+                    loc.close()
+                    return
+                viewer.attach(loc)
             except LidarlocError as exc:
                 viewer.startup_failed(str(exc))
-                return
             except Exception as exc:
                 traceback.print_exc(file=sys.stderr)
                 viewer.startup_failed(f"{type(exc).__name__}: {exc}")
-                return
-            viewer.owns_localizer = True
-            if viewer._stopping.is_set():
-                loc.close()
-                return
-            viewer.attach(loc)
-        builder = threading.Thread(target=build, name="lidarloc-build", daemon=True)
-        builder.start()
+        threading.Thread(target=build, name="lidarloc-build", daemon=True).start()
     else:
+        viewer.stop()
         server.stop()
         raise LidarlocError("serve() needs a Localizer or a callable that returns one")
-    handle = ViewerHandle(viewer, server, host, builder)
+    handle = ViewerHandle(viewer, server, host)
     if open_browser:
         threading.Thread(target=webbrowser.open, args=(handle.url,), daemon=True).start()
     return handle

@@ -7,7 +7,6 @@ condition, none sleeps for a fixed time."""
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -23,7 +22,6 @@ STEP_TIMEOUT = 60_000
 
 pytestmark = pytest.mark.browser
 
-SCAN_RE = r"Scan (\d+) of \d+"
 JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+/); return m ? +m[1] : -1; })()"
 
 
@@ -39,11 +37,11 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def served():
+def served(tmp_path_factory):
     from lidarloc.app.viewer import serve
     from test_viewer import browser_localizer
 
-    loc = browser_localizer()
+    loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"))
     # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps.
     handle = serve(loc, port=0, autoplay=True, speed="2")
     yield handle
@@ -129,10 +127,14 @@ def test_viewer_in_chromium(browser, served):
     page.wait_for_function("document.body.innerText.includes('particles reset in x')", timeout=STEP_TIMEOUT)
     text = page.evaluate("document.body.innerText")
     x0, x1, y0, y1 = map(float, re.search(r"reset in x (-?\d+)…(-?\d+), y (-?\d+)…(-?\d+)", text).groups())
-    P = served.localizer.snapshot().particles
+    P = served.localizer.pf.states          # reset() re-draws the particles; snapshots show them from the next scan
     assert (P[:, 0] >= x0 - 1).all() and (P[:, 0] <= x1 + 1).all()
     assert (P[:, 1] >= y0 - 1).all() and (P[:, 1] <= y1 + 1).all()
+    assert served.viewer.scene._reset_hint.visible      # the reset area is outlined until the next scan
+    page.get_by_role("button", name="Step").click()
+    page.wait_for_function(f"{JS_SCAN} === {paused_at + 2}", timeout=STEP_TIMEOUT)
     page.screenshot(path=str(ARTIFACTS / "viewer-after-rect-reset.png"))
+    paused_at += 1
 
     # a second tab: same run, same counter, its own camera folder
     page2 = open_viewer(browser, served.url)
@@ -143,4 +145,18 @@ def test_viewer_in_chromium(browser, served):
         p.wait_for_function(f"{JS_SCAN} === {paused_at + 2}", timeout=STEP_TIMEOUT)
     page2.screenshot(path=str(ARTIFACTS / "viewer-second-tab.png"))
     page2.close()
+
+    # a typed invalid value is refused in the page (and the server lives on); a valid one is applied
+    page.get_by_text("Parameters", exact=True).click()
+    sigma = page.get_by_label("σ (m)")
+    sigma.fill("0")
+    page.get_by_role("button", name="Apply 1 change").click()
+    page.wait_for_function("document.body.innerText.includes('refused: invalid configuration: pf.sigma must be > 0')",
+                           timeout=STEP_TIMEOUT)
+    assert served.localizer.cfg.pf.sigma == 0.5
+    sigma.fill("0.7")
+    page.get_by_role("button", name="Apply 1 change").click()
+    page.wait_for_function("document.body.innerText.includes('applied from the next scan: σ (m)')",
+                           timeout=STEP_TIMEOUT)
+    assert served.localizer.cfg.pf.sigma == 0.7 and served.localizer.pf.sigma == 0.7
     page.close()

@@ -198,6 +198,10 @@ class Localizer:
             self.rules.reset()
             where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
+            # A paused viewer shows the new particles at once; the last scan stays as it was.
+            prev = self._snapshot
+            fresh = self._make_snapshot(prev.scan_index, None, prev.pf_ms, None)
+            self._snapshot = replace(fresh, scan_world=prev.scan_world)
 
     def kidnap(self, skip: int = 100) -> int:
         """Jump the vehicle ``skip`` scans ahead without telling the filter; returns the new index."""

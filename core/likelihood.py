@@ -1,0 +1,177 @@
+"""The scan likelihood of the sensor model (paper: Sensor model):
+
+    log p(y | x_i) = −Σ_j min(d_j², d_max²) / σ²,   d_j = L(R_i·X_j + p_i)
+
+for every particle i, with R_i = R(yaw, pitch, roll) (z-y-x Euler, geometry.rotation_zyx) and
+L the lookup table. One numba kernel, parallel over particles; each particle's sum runs
+sequentially in one thread, so the result does not depend on the thread count.
+
+:func:`log_likelihood` is the plain sum for every particle. The filter uses
+:func:`log_likelihood_floored`, which gives the same log-weights wherever they can matter and
+is several times faster: a particle whose log-weight (prior + log-likelihood) ends more than
+``margin`` (default 800) below the best particle's has a normalised weight below e^−800, which
+is exactly 0.0 in float64 (the smallest double is ≈ e^−745). Its sum is stopped as soon as the
+partial sum proves that, and its log-weight is set to the floor ``best − margin`` (so it stays
+finite, has weight 0.0 now, and can still regain weight on later scans like any other particle).
+The decision depends only on exact sums, never on thread timing, so results are deterministic.
+The scan is visited in a fixed scrambled order so that a partial sum is a fair sample of the
+whole scan (a scan's own order runs laser by laser).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .errors import LidarlocError
+from .lookup import LookupTable, lookup_code
+
+
+@nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
+def _log_likelihood(states, scan, origin, inv_res, brick_index, bricks, sq_cost, out):
+    m = scan.shape[0]
+    for i in nb.prange(states.shape[0]):
+        yaw, pitch, roll = states[i, 3], states[i, 4], states[i, 5]
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cr, sr = math.cos(roll), math.sin(roll)
+        r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+        r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+        r20, r21, r22 = -sp, cp * sr, cp * cr
+        tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
+        acc = 0.0
+        for j in range(m):
+            px = np.float64(scan[j, 0])
+            py = np.float64(scan[j, 1])
+            pz = np.float64(scan[j, 2])
+            code = lookup_code(r00 * px + r01 * py + r02 * pz + tx,
+                               r10 * px + r11 * py + r12 * pz + ty,
+                               r20 * px + r21 * py + r22 * pz + tz,
+                               origin, inv_res, brick_index, bricks)
+            acc += sq_cost[code]
+        out[i] = -acc
+
+
+@nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
+def _costs_until(states, scan, n_points, limit, origin, inv_res, brick_index, bricks, sq_cost, cost, complete):
+    """Σ sq_cost over the first ``n_points`` scan points per particle, stopping early once the
+    sum exceeds limit[i] (then complete[i] is False and cost[i] is the partial sum)."""
+    for i in nb.prange(states.shape[0]):
+        yaw, pitch, roll = states[i, 3], states[i, 4], states[i, 5]
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cr, sr = math.cos(roll), math.sin(roll)
+        r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+        r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+        r20, r21, r22 = -sp, cp * sr, cp * cr
+        tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
+        lim = limit[i]
+        acc = 0.0
+        done = True
+        for j in range(n_points):
+            px = np.float64(scan[j, 0])
+            py = np.float64(scan[j, 1])
+            pz = np.float64(scan[j, 2])
+            code = lookup_code(r00 * px + r01 * py + r02 * pz + tx,
+                               r10 * px + r11 * py + r12 * pz + ty,
+                               r20 * px + r21 * py + r22 * pz + tz,
+                               origin, inv_res, brick_index, bricks)
+            acc += sq_cost[code]
+            if acc > lim:
+                done = False
+                break
+        cost[i] = acc
+        complete[i] = done
+
+
+def scrambled_order(m: int) -> np.ndarray:
+    """A fixed permutation of range(m) that spreads consecutive indices over the whole scan
+    (golden-ratio stride, coprime with m)."""
+    if m <= 2:
+        return np.arange(m)
+    stride = max(1, int(round(m * 0.6180339887498949)))
+    while math.gcd(stride, m) != 1:
+        stride += 1
+    return (np.arange(m, dtype=np.int64) * stride) % m
+
+
+def squared_cost_table(lookup: LookupTable, d_max: float, sigma: float) -> np.ndarray:
+    """min(d², d_max²)/σ² for each of the 256 distance codes (code 255: a miss, = d_max)."""
+    d = np.minimum(np.arange(256, dtype=np.float64) * lookup.step, d_max)
+    d[255] = d_max
+    return d * d / (sigma * sigma)
+
+
+def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float,
+                   sigma: float) -> np.ndarray:
+    """(N,) float64 log-likelihoods of (N, ≥6) particle states for a prepared (M, 3) scan.
+
+    ``d_max`` above the table's built value is capped at it (the table knows nothing beyond).
+    """
+    d_max, sigma = float(d_max), float(sigma)
+    if not d_max > 0:
+        raise LidarlocError(f"d_max must be > 0, got {d_max}")
+    if not sigma > 0:
+        raise LidarlocError(f"sigma must be > 0, got {sigma}")
+    st = np.ascontiguousarray(states, dtype=np.float64)
+    if st.ndim != 2 or st.shape[1] < 6:
+        raise LidarlocError(f"states must be (N, ≥6); got shape {st.shape}")
+    pts = np.asarray(scan)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = np.ascontiguousarray(pts[:, :3], dtype=np.float32)
+    out = np.zeros(len(st), np.float64)
+    if len(st) == 0 or len(pts) == 0:
+        return out
+    cost = squared_cost_table(lookup, min(d_max, lookup.d_max_built), sigma)
+    _log_likelihood(st, pts, lookup.origin, lookup.inv_res, lookup.brick_index, lookup.bricks, cost, out)
+    return out
+
+
+FLOOR_MARGIN = 800.0   # > 745: e^−margin is 0.0 in float64
+
+
+def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float, sigma: float,
+                           prior_log_w: np.ndarray, margin: float = FLOOR_MARGIN) -> np.ndarray:
+    """Log-likelihoods as :func:`log_likelihood`, except that where prior_log_w + ll would end
+    more than ``margin`` below the best particle's, ll is raised to put it exactly at that floor
+    (see the module docstring). Returns (N,) float64."""
+    d_max, sigma = float(d_max), float(sigma)
+    if not (d_max > 0 and sigma > 0):
+        raise LidarlocError(f"d_max and sigma must be > 0, got {d_max}, {sigma}")
+    st = np.ascontiguousarray(states, dtype=np.float64)
+    prior = np.ascontiguousarray(prior_log_w, dtype=np.float64)
+    n = len(st)
+    pts = np.asarray(scan)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    m = len(pts)
+    if n == 0 or m == 0:
+        return np.zeros(n, np.float64)
+    pts = np.ascontiguousarray(pts[scrambled_order(m), :3], dtype=np.float32)
+    cost_table = squared_cost_table(lookup, min(d_max, lookup.d_max_built), sigma)
+    args = (lookup.origin, lookup.inv_res, lookup.brick_index, lookup.bricks, cost_table)
+    cost = np.empty(n, np.float64)
+    complete = np.empty(n, np.bool_)
+    no_limit = np.full(n, np.inf)
+    # 1. A cheap look at every particle (1/32 of the points) names a few likely-best ones …
+    n_sub = max(1, m // 32)
+    _costs_until(st, pts, n_sub, no_limit, *args, cost, complete)
+    guess = prior - cost * (m / n_sub)
+    top = np.argsort(-guess, kind="stable")[: min(4, n)]
+    # 2. … whose full sums give a value every particle must come within ``margin`` of …
+    top_cost = np.empty(len(top), np.float64)
+    top_complete = np.empty(len(top), np.bool_)
+    _costs_until(st[top], pts, m, no_limit[: len(top)], *args, top_cost, top_complete)
+    bound = float(np.max(prior[top] - top_cost))
+    # 3. … so the sum of particle i can stop once prior_i − partial > bound − margin fails.
+    limit = prior - bound + margin
+    _costs_until(st, pts, m, limit, *args, cost, complete)
+    value = np.where(complete, prior - cost, -np.inf)
+    floor = float(np.max(value)) - margin
+    ll = -cost
+    below = ~complete | (value < floor)
+    ll[below] = floor - prior[below]
+    return ll

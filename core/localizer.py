@@ -298,9 +298,10 @@ class Localizer:
             pf_s = time.perf_counter() - t0
             s2m_ms = self._maybe_land_s2m(k, prepared)
             t1 = time.perf_counter()
+            # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
+            est = self.pf.estimate()
             protect = self._s2m_job.particle if self._s2m_job is not None else None
             self.pf.resample_if_needed(protect=protect)
-            est = self.pf.estimate()
             pf_ms = (pf_s + time.perf_counter() - t1) * 1000.0
 
             step_dist, yaw_odom = self._rpe_motion(k)

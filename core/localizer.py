@@ -300,9 +300,7 @@ class Localizer:
             t1 = time.perf_counter()
             # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
             est = self.pf.estimate()
-            protect = self._s2m_job.particle if self._s2m_job is not None else None
-            self.pf.resample_if_needed(protect=protect)
-            pf_ms = (pf_s + time.perf_counter() - t1) * 1000.0
+            pf_s += time.perf_counter() - t1
 
             step_dist, yaw_odom = self._rpe_motion(k)
             outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
@@ -314,8 +312,16 @@ class Localizer:
                 self.pf.initialize()
                 reinit = True
                 est = self.pf.estimate()
-            if self.cfg.s2m.enabled and self._s2m_job is None:
-                self._start_s2m(k, est.best_index)
+            else:
+                # S2M starts from the highest-weight particle of this posterior; that slot is
+                # then protected through every resampling until the match lands.
+                if self.cfg.s2m.enabled and self._s2m_job is None:
+                    self._start_s2m(k, est.best_index)
+                t2 = time.perf_counter()
+                protect = self._s2m_job.particle if self._s2m_job is not None else None
+                self.pf.resample_if_needed(protect=protect)
+                pf_s += time.perf_counter() - t2
+            pf_ms = pf_s * 1000.0
 
             self.k += 1
             self.steps += 1

@@ -5,6 +5,8 @@ Ctrl-C stops after the scan in progress and still writes everything computed so 
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -65,6 +67,10 @@ def write_outputs(loc: Localizer, out: Path, summary: dict) -> None:
     write_json(out / "summary.json", summary)
 
 
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
 def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | None = None,
                  console: Console | None = None, stop_after: int | None = None) -> tuple[dict, bool]:
     """Run the localizer over the whole sequence; returns (summary, interrupted)."""
@@ -77,35 +83,40 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         task = bar.add_task("preparing map", total=100)
         loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
             task, description=f"preparing {stage}", completed=100 * f))
-    interrupted = False
     realtime = cfg.localize.clock == "realtime"
     late, max_lag = 0, 0.0
-    console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
+    # Ctrl-C sets a flag that the loop checks between scans: the scan in progress completes
+    # (state stays consistent) and everything computed so far is written.
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if _main_thread() else None
     t_start = time.perf_counter()
     try:
+        console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
         with progress_bar(transient=False) as bar:
             task = bar.add_task(f"localizing {seq.name}", total=len(seq))
-            while not loc.done and (stop_after is None or loc.steps < stop_after):
+            while not loc.done and not stop.is_set() and (stop_after is None or loc.steps < stop_after):
                 if realtime:
                     # Scans arrive at the sequence's own rate; a step that starts after its scan's
                     # arrival time is late (we never drop scans, we count the lag).
                     due = t_start + seq.timestamp(loc.k)
                     now = time.perf_counter()
                     if now < due:
-                        time.sleep(due - now)
-                    else:
-                        lag = (now - due) * 1000.0
-                        max_lag = max(max_lag, lag)
-                        late += lag > 100.0
+                        stop.wait(due - now)
+                        continue
+                    lag = (now - due) * 1000.0
+                    max_lag = max(max_lag, lag)
+                    late += lag > 100.0
                 snap = loc.step()
                 bar.update(task, completed=snap.scan_index + 1,
                            description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
-    except KeyboardInterrupt:
-        interrupted = True
-        console.print("[yellow]interrupted: writing what was computed[/yellow]")
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
         wall = time.perf_counter() - t_start
         loc.close()
+        interrupted = stop.is_set()
+        if interrupted:
+            console.print("[yellow]interrupted: writing what was computed[/yellow]")
         summary = summarize(loc, wall, late if realtime else None, max_lag if realtime else None)
         summary["interrupted"] = interrupted
         write_outputs(loc, out, summary)

@@ -95,6 +95,7 @@ class LocalizeConfig:
     min_turned: float = 30.0 * DEG     # … or rad turned
     loss_std: float = 50.0             # m, after localization a larger std is a loss
     clock: str = "replay"              # "replay" (deterministic) or "realtime"
+    rpe_process: bool = True           # run KISS-ICP in a child process (it holds the GIL)
 
 
 @dataclass

@@ -40,7 +40,7 @@ import numpy as np
 from .config import Config, DEG
 from .errors import LidarlocError
 from .geometry import euler_zyx, pose_matrix, pose_to_xyz_ypr, transform_points
-from .mapping import flat_surface_mask, load_or_build_map
+from .mapping import load_or_build_map
 from .rules import LocalizationRules
 from .scanprep import voxel_downsample_random
 from .snapshot import Event, S2MView, Snapshot
@@ -136,6 +136,7 @@ class Localizer:
         self._pending_lookup: Future | None = None
         self._pending_pyramid: Future | None = None
         self._closed = False
+        self._kiss_process = None
         self.restart(cfg.seed)
 
     # ------------------------------------------------------------------------ lifecycle
@@ -145,10 +146,12 @@ class Localizer:
             if seed is not None:
                 self.cfg.seed = int(seed)
             self._cancel_s2m()
+            if hasattr(self, "_rpe_futures"):
+                self._wait_rpe_idle()
             self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
                                map_points=self.prior_map.points)
             self.pf.initialize()
-            self.rpe = self._RPE()
+            self.rpe = self._new_rpe()
             self.rules = LocalizationRules(self.cfg.localize)
             self.k = 0                      # index of the next scan to process
             self.steps = 0                  # scans processed since the start (kidnap skips don't count)
@@ -173,6 +176,29 @@ class Localizer:
             self._cancel_s2m()
         for pool in (self._rpe_pool, self._rs_pool, self._s2m_pool, self._rebuild_pool):
             pool.shutdown(wait=True, cancel_futures=True)
+        if self._kiss_process is not None:
+            self._kiss_process.close()
+
+    def _new_rpe(self):
+        """A fresh odometry. KISS-ICP holds the GIL while it registers a scan, so by default it
+        runs in a child process (one per localizer, reset instead of restarted)."""
+        if not self.cfg.localize.rpe_process:
+            return self._RPE()
+        if self._kiss_process is None:
+            from .rpe_worker import KissICPProcess
+
+            self._kiss_process = KissICPProcess()
+        else:
+            self._kiss_process.reset()
+        return self._RPE(icp=self._kiss_process)
+
+    def _wait_rpe_idle(self) -> None:
+        """Let queued RPE work finish before its odometry is replaced (it shares the process)."""
+        for fut in list(self._rpe_futures.values()):
+            try:
+                fut.result()
+            except Exception:
+                pass
 
     def __enter__(self):
         return self
@@ -212,7 +238,8 @@ class Localizer:
             self._cancel_s2m()
             self._event(self.k - 1, "kidnap", f"vehicle moved from scan {self.k} to {target}")
             self.k = target
-            self.rpe = self._RPE()
+            self._wait_rpe_idle()
+            self.rpe = self._new_rpe()
             self._rpe_futures.clear()
             self._rs_futures.clear()
             self._rpe_origin = target
@@ -283,11 +310,8 @@ class Localizer:
             t = self.seq.timestamp(k)
             dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
             self._prev_t = t
-            # RPE and RS start now and overlap with the PF work below.
+            # RPE starts now and overlaps with the PF work below.
             self._rpe_futures[k] = self._rpe_pool.submit(self._rpe_add, self.rpe, k, scan, t)
-            self._rs_futures[k] = self._rs_pool.submit(self._road_removed, scan)
-            for old in [i for i in self._rs_futures if i < k - 5]:
-                del self._rs_futures[old]
 
             # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
             t0 = time.perf_counter()
@@ -316,7 +340,7 @@ class Localizer:
                 # S2M starts from the highest-weight particle of this posterior; that slot is
                 # then protected through every resampling until the match lands.
                 if self.cfg.s2m.enabled and self._s2m_job is None:
-                    self._start_s2m(k, est.best_index)
+                    self._start_s2m(k, est.best_index, scan)
                 t2 = time.perf_counter()
                 protect = self._s2m_job.particle if self._s2m_job is not None else None
                 self.pf.resample_if_needed(protect=protect)
@@ -343,12 +367,6 @@ class Localizer:
     def _rpe_add(self, rpe, k, scan, t):
         rpe.add(k, scan, t)
 
-    def _road_removed(self, scan: np.ndarray) -> np.ndarray:
-        # RS block: flat surfaces removed, on a 0.25 m-downsampled scan (normals need neighbours,
-        # and the BEV matcher works at ≥ 1 m cells anyway).
-        pts = voxel_downsample_random(scan[:, :3], 0.25, np.random.default_rng(0))
-        return pts[~flat_surface_mask(pts, self.cfg.map)]
-
     def _wait(self, future: Future, block: str, k: int):
         try:
             return future.result()
@@ -370,17 +388,19 @@ class Localizer:
         rel = self.rpe.relative(k - 1, k)
         return float(np.linalg.norm(rel[:3, 3])), yaw
 
-    def _start_s2m(self, k: int, j: int) -> None:
+    def _start_s2m(self, k: int, j: int, scan: np.ndarray) -> None:
+        """Start a local match of scan k from particle j's pose. The RS block removes the scan's
+        flat surfaces on its own thread first; only scans that S2M will match are segmented
+        (normal estimation is the costliest per-scan step after the likelihood)."""
         start_pose = pose_matrix(*self.pf.states[j, :6])
-        rs = self._rs_futures[k]
+        self._rs_futures = {k: self._rs_pool.submit(self.matcher.prepare, scan)}
         self._s2m_generation += 1
-        future = self._s2m_pool.submit(self._run_s2m, rs, start_pose)
+        future = self._s2m_pool.submit(self._run_s2m, self._rs_futures[k], start_pose)
         self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
         self._event(k, "s2m_started", f"particle {j}")
 
     def _run_s2m(self, rs_future: Future, start_pose: np.ndarray):
-        scan_bev = rs_future.result()
-        return self.matcher.match_local(scan_bev, start_pose, road_removed=True)
+        return self.matcher.match_local(None, start_pose, prepared=rs_future.result())
 
     def _cancel_s2m(self) -> None:
         job = getattr(self, "_s2m_job", None)
@@ -423,7 +443,8 @@ class Localizer:
         self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
                     f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
                     + (f" ({reason})" if reason and not accepted else ""))
-        scan_bev = self._rs_futures[job.started_at].result() if job.started_at in self._rs_futures else np.zeros((0, 3))
+        rs = self._rs_futures.get(job.started_at)
+        scan_bev = rs.result().road_removed if rs is not None else np.zeros((0, 3))
         self._last_s2m = S2MView(
             started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
             start_score=float(outcome.start_score), pose=np.asarray(pose_k),

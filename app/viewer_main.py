@@ -35,11 +35,16 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
         finally:
             ready.set()
 
-    handle = serve(factory, host=host, port=port, open_browser=open_browser)
-    console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
     stop = threading.Event()
-    # Ctrl-C sets an event instead of raising wherever the main thread happens to be.
+    # Ctrl-C sets an event instead of raising wherever the main thread happens to be; installed
+    # before the server starts so an early Ctrl-C also shuts down in order.
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        handle = serve(factory, host=host, port=port, open_browser=open_browser)
+    except BaseException:
+        signal.signal(signal.SIGINT, previous)
+        raise
+    console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
     try:
         with bar:
             while not ready.wait(0.2) and not stop.is_set():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
@@ -22,6 +23,8 @@ from lidarloc.core.errors import LidarlocError
 from lidarloc.core.metrics import METRIC_KEYS, aggregate
 from lidarloc.core.results import write_json
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+from .headless import make_out_dir
 
 # The paper's figures for KITTI 05, 250 runs (Simulation section), for the report table.
 PAPER = {"B": {"p75": 14, "max": 24}, "A": {"p75": 17, "max": 28}, "C": {"p75": 16, "max": 78},
@@ -58,11 +61,11 @@ def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_di
         loc.run()
         summary = summarize(loc, time.perf_counter() - t0)
         out = Path(run_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        # latencies first: summary.json (written last) marks the run as complete for a resume
+        np.save(out / "pf_ms.npy", np.array([r.pf_ms for r in loc.records]))
+        np.save(out / "s2m_ms.npy", np.array([r.s2m_ms for r in loc.records if r.s2m_ms is not None]))
         write_outputs(loc, out, summary)
-        pf_ms = [r.pf_ms for r in loc.records]
-        s2m_ms = [r.s2m_ms for r in loc.records if r.s2m_ms is not None]
-    np.save(out / "pf_ms.npy", np.array(pf_ms))
-    np.save(out / "s2m_ms.npy", np.array(s2m_ms))
     return summary
 
 
@@ -86,10 +89,18 @@ def run_bench(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: P
     console = console or Console(stderr=True)
     if runs < 1 or workers < 1:
         raise LidarlocError("--runs and --workers must be ≥ 1")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    _prepare_cache(spec, cfg, cache_root, console)
+    if executor not in ("process", "ray"):
+        raise LidarlocError(f"unknown executor '{executor}' (process or ray)")
+    make_out_dir(out_dir)
     spec_d, cfg_d = _spec_dict(spec), cfg.to_dict()
     cfg_d.pop("seed", None)
+    # Resuming is only honest with the same source and configuration: refuse a mixed directory.
+    identity = json.dumps({"source": spec_d, "config": cfg_d}, sort_keys=True, default=str)
+    marker = out_dir / "bench_config.json"
+    if marker.is_file() and marker.read_text() != identity:
+        raise LidarlocError(f"{out_dir}: holds runs of another source or configuration; use another --out")
+    marker.write_text(identity)
+    _prepare_cache(spec, cfg, cache_root, console)
     cache = str(cache_root) if cache_root else None
     # With several workers on few cores, one numba thread per worker avoids oversubscription.
     numba_threads = 1 if workers > 1 else 0
@@ -106,14 +117,19 @@ def run_bench(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: P
         if executor == "ray":
             summaries.update(_run_ray(todo, spec_d, cfg_d, cache, numba_threads, workers, address,
                                       lambda: bar.advance(task)))
-        elif executor == "process":
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+        else:
+            # spawn, not fork: the parent may have started OpenMP threads (numba), which do not
+            # survive a fork; a failed run cancels the queued ones instead of running them all.
+            pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+            try:
                 futures = {pool.submit(run_one, spec_d, cfg_d, seed, cache, d, numba_threads): seed for seed, d in todo}
                 for fut in as_completed(futures):
                     summaries[futures[fut]] = fut.result()
                     bar.advance(task)
-        else:
-            raise LidarlocError(f"unknown executor '{executor}' (process or ray)")
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown(wait=True)
     return write_report(out_dir, [summaries[s] for s in range(runs)], cfg, spec)
 
 

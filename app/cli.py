@@ -95,8 +95,8 @@ def synth(
 @app.command()
 def run(
     out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events and summary.")],
-    seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
-    clock: Annotated[str, typer.Option("--clock", help="replay (deterministic) or realtime.")] = "replay",
+    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    clock: Annotated[Optional[str], typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")] = None,
     no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
@@ -106,7 +106,7 @@ def run(
     """Localize headless over a sequence and write results to --out."""
     from .headless import run_headless
 
-    overrides = list(set_ or []) + [f"localize.clock={clock}"] + (["s2m.enabled=false"] if no_s2m else [])
+    overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
     cfg = config_from(config, overrides, seed=seed)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary, interrupted = run_headless(spec, cfg, out, cache_root=cache, console=err)
@@ -128,7 +128,7 @@ PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
 
 
 @app.command()
-def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[int, typer.Option("--seed")] = 0,
+def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False):
     """The live demo on the built-in town: browse to the printed URL."""
@@ -138,7 +138,7 @@ def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[int,
 
 @app.command()
 def view(
-    host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[int, typer.Option("--seed")] = 0,
+    host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
     calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
@@ -152,7 +152,7 @@ def view(
 
 # -------------------------------------------------------------------------------------- benches
 @bench_app.command("town")
-def bench_town(seed: Annotated[int, typer.Option("--seed")] = 0, as_json: Annotated[bool, typer.Option("--json")] = False):
+def bench_town(seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None, as_json: Annotated[bool, typer.Option("--json")] = False):
     """Town generation time and simulated-scan time."""
     from .bench_town import run as run_bench
 

@@ -14,6 +14,7 @@ import numpy as np
 from rich.console import Console
 
 from lidarloc.core.config import Config
+from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_to_xyz_ypr, wrap_angle
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.metrics import ScanLog, compute_metrics
@@ -67,6 +68,13 @@ def write_outputs(loc: Localizer, out: Path, summary: dict) -> None:
     write_json(out / "summary.json", summary)
 
 
+def make_out_dir(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LidarlocError(f"{out}: cannot create the output directory ({exc.strerror})") from None
+
+
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
@@ -78,7 +86,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
 
     console = console or Console(stderr=True)
     seq = open_sequence(spec, cfg)
-    out.mkdir(parents=True, exist_ok=True)  # fail on an unwritable --out before the long part
+    make_out_dir(out)  # fail on an unwritable --out before the long part
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
         loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(

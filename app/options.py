@@ -18,7 +18,7 @@ SequenceOpt = Annotated[Optional[str], typer.Option("--sequence", help="KITTI od
 KittiRawOpt = Annotated[Optional[Path], typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=_SRC)]
 DateOpt = Annotated[Optional[str], typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=_SRC)]
 DriveOpt = Annotated[Optional[str], typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=_SRC)]
-TownSeedOpt = Annotated[int, typer.Option("--town-seed", help="Seed of the built-in generated town.", rich_help_panel=_SRC)]
+TownSeedOpt = Annotated[int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=_SRC)]
 TrajectoryOpt = Annotated[Optional[Path], typer.Option("--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=_SRC)]
 CalibOpt = Annotated[Optional[Path], typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=_SRC)]
 ScansOpt = Annotated[Optional[int], typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=_SRC)]

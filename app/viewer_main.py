@@ -10,6 +10,7 @@ from pathlib import Path
 from rich.console import Console
 
 from lidarloc.core.config import Config
+from lidarloc.core.errors import LidarlocError
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 
@@ -24,6 +25,7 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
     ready = threading.Event()
+    failure: list[BaseException] = []
 
     def factory(progress=None):
         def report(stage, frac):
@@ -32,6 +34,9 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
                 progress(stage, frac)
         try:
             return Localizer(seq, cfg, cache_root, progress=report)
+        except BaseException as exc:   # the page shows it too; the console gets one line
+            failure.append(exc)
+            raise
         finally:
             ready.set()
 
@@ -49,6 +54,9 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
         with bar:
             while not ready.wait(0.2) and not stop.is_set():
                 pass
+        if failure:
+            exc = failure[0]
+            raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
         if not stop.is_set():
             console.print("ready: playing; use the page's controls to pause, step and tune")
         stop.wait()

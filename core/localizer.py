@@ -2,8 +2,9 @@
 
 Data flow for scan k (paper, Fig. "block diagram"):
 
-- RS (road segmentation) and RPE (KISS-ICP relative poses) each get scan k on their own worker
-  thread as soon as it is read; the PF runs on the caller's thread meanwhile.
+- RPE (KISS-ICP relative poses, in a child process because it holds the GIL) gets scan k as soon
+  as it is read; the PF runs on the caller's thread meanwhile. RS (road segmentation) runs on its
+  own thread for the scans that S2M matches (only those need it; normals are costly).
 - PF: predict (11-state model), weight (lookup-table likelihood), estimate.
 - SU: when an S2M job started at scan k₀ is due, its match (for scan k₀) is carried forward to
   scan k with the RPE relative pose, written into the particle it started from, and that
@@ -136,6 +137,7 @@ class Localizer:
         self._pending_lookup: Future | None = None
         self._pending_pyramid: Future | None = None
         self._closed = False
+        self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self._kiss_process = None
         self.restart(cfg.seed)
 
@@ -153,6 +155,7 @@ class Localizer:
             self.pf.initialize()
             self.rpe = self._new_rpe()
             self.rules = LocalizationRules(self.cfg.localize)
+            self._failed = None
             self.k = 0                      # index of the next scan to process
             self.steps = 0                  # scans processed since the start (kidnap skips don't count)
             self.events: list[Event] = []
@@ -234,6 +237,8 @@ class Localizer:
         with self._lock:
             if skip < 1:
                 raise LidarlocError("kidnap skip must be ≥ 1 scan")
+            if self.k + 1 >= self.n_scans:
+                raise LidarlocError("cannot kidnap: the sequence has no scans left")
             target = min(self.k + skip, self.n_scans - 1)
             self._cancel_s2m()
             self._event(self.k - 1, "kidnap", f"vehicle moved from scan {self.k} to {target}")
@@ -244,6 +249,7 @@ class Localizer:
             self._rs_futures.clear()
             self._rpe_origin = target
             self._prev_t = None
+            self.rules.reset()   # the odometry restarts: a window must not span the jump
             return target
 
     def set_params(self, **params) -> None:
@@ -302,6 +308,8 @@ class Localizer:
         with self._lock:
             if self._closed:
                 raise LidarlocError("localizer is closed")
+            if self._failed is not None:
+                raise LidarlocError(f"{self._failed} (restart to continue)")
             if self.done:
                 return self._snapshot
             self._swap_rebuilt_tables()
@@ -374,7 +382,10 @@ class Localizer:
             raise
         except Exception as exc:  # a block's failure surfaces once, clearly, in the caller's thread
             self._event(k, "error", f"{block}: {exc}")
-            raise BlockError(f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}") from exc
+            # The step that saw it is half done (the PF already weighted scan k): refuse further
+            # steps rather than silently repeat or skip work.
+            self._failed = f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}"
+            raise BlockError(self._failed) from exc
 
     def _rpe_motion(self, k: int) -> tuple[float, float]:
         """Distance driven from k−1 to k and the odometry yaw at k (RPE, waits for scan k)."""
@@ -417,8 +428,8 @@ class Localizer:
                 return None
         elif not job.future.done():
             return None
-        outcome = self._wait(job.future, "S2M", k)
         self._s2m_job = None
+        outcome = self._wait(job.future, "S2M", k)
         self._s2m_landed += 1
         accepted = bool(outcome.accepted)
         pose_k = outcome.pose
@@ -431,7 +442,10 @@ class Localizer:
             else:
                 from .s2m import carry_forward
 
-                pose_k = carry_forward(outcome.pose, self.rpe, job.started_at, k)
+                try:
+                    pose_k = carry_forward(outcome.pose, self.rpe, job.started_at, k)
+                except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
+                    accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
         if accepted:
             state = self.pf.states[job.particle].copy()
             state[:6] = pose_to_xyz_ypr(pose_k)

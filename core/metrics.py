@@ -5,8 +5,9 @@ an event at 0-based scan index k counts k + 1 scans. A metric that is never met 
 counts as a failure in aggregates (never as missing data).
 
 - B: scans until the localization rule is first met.
-- A: scans spent not localized over the whole sequence (re-localization after false positives
-  and losses included).
+- A: scans spent until localized over the whole sequence: every scan not localized, plus the
+  scan at which each (re-)localization happened (so A = B when localization is never lost, and
+  re-localization after false positives and losses adds to it).
 - C: first scan k where the rule holds (the localized flag is set at k) and the mean position is
   within 5 m (3D Euclidean) of the truth for every scan in [k, k+10].
 - D: the same for [k, k+50]; E: as D with 2.5 m.
@@ -48,7 +49,8 @@ def compute_metrics(log: ScanLog) -> dict:
     err = np.asarray(log.error_m, dtype=float)
     first = np.flatnonzero(localized)
     B = int(first[0]) + 1 if first.size else None
-    A = int((~localized).sum()) if first.size else None
+    onsets = int(np.count_nonzero(localized[1:] & ~localized[:-1]) + (1 if len(localized) and localized[0] else 0))
+    A = int((~localized).sum()) + onsets if first.size else None
     ok5 = np.nan_to_num(err, nan=np.inf) <= 5.0
     ok25 = np.nan_to_num(err, nan=np.inf) <= 2.5
     kC = _first_window(localized, ok5, 10)

@@ -22,7 +22,7 @@ def test_clean_localization():
     loc = [i >= 12 for i in range(n)]
     err = [40.0 if i < 15 else (4.0 if i < 20 else 1.0) for i in range(n)]
     m = compute_metrics(log(loc, err))
-    assert m["B"] == 13 and m["A"] == 12
+    assert m["B"] == 13 and m["A"] == 13
     assert m["C"] == 16 and m["D"] == 16 and m["E"] == 21
     assert m["rmse_pos_after_D_m"] == np.sqrt((5 * 16 + 80 * 1) / 85)
 
@@ -34,7 +34,7 @@ def test_false_positive_then_success():
     err = [80.0 if i < 30 else 3.0 for i in range(n)]
     m = compute_metrics(log(loc, err))
     assert m["B"] == 11                      # the rule was first met (falsely) at scan 10
-    assert m["A"] == 10 + 15                 # scans 0–9 and 15–29 not localized
+    assert m["A"] == 10 + 15 + 2             # scans 0–9 and 15–29 not localized, 2 localizations
     assert m["C"] == 31 and m["D"] == 31 and m["E"] is None
 
 
@@ -43,7 +43,7 @@ def test_loss_then_relocalization():
     loc = [(10 <= i < 60) or i >= 80 for i in range(n)]
     err = [2.0 if (10 <= i < 55) or i >= 85 else 60.0 for i in range(n)]
     m = compute_metrics(log(loc, err))
-    assert m["B"] == 11 and m["A"] == 10 + 20
+    assert m["B"] == 11 and m["A"] == 10 + 20 + 2
     assert m["C"] == 11                      # [10, 20] within 5 m
     assert m["D"] == 86                      # 10..54 is only 45 long; the next window starts at 85
     assert m["E"] == 86

@@ -186,11 +186,11 @@ def _plots(out_dir: Path, per_run: list[dict], pf_ms: np.ndarray, s2m_ms: np.nda
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     data = [[r[k] for r in per_run if r.get(k) is not None] for k in METRIC_KEYS]
-    ax.boxplot([d if d else [np.nan] for d in data], tick_labels=list(METRIC_KEYS), whis=(0, 100))
-    for i, k in enumerate(METRIC_KEYS, 1):
-        ax.text(i, ax.get_ylim()[1], f"{100 * agg[k]['success']:.0f}%", ha="center", va="bottom", fontsize=8)
+    labels = [f"{k}\n{100 * agg[k]['success']:.0f}% met" for k in METRIC_KEYS]
+    ax.boxplot([d if d else [np.nan] for d in data], tick_labels=labels, whis=(0, 100))
     ax.set_ylabel("scans")
-    ax.set_title(f"Localization metrics over {len(per_run)} runs ({'S2M' if agg['s2m'] else 'no S2M'}); % = success")
+    ax.set_title(f"Localization metrics over {len(per_run)} runs ({'S2M' if agg['s2m'] else 'no S2M'}); "
+                 "whiskers = min/max of runs that met the metric")
     fig.tight_layout()
     fig.savefig(out_dir / "metrics_boxplot.png", dpi=120)
     plt.close(fig)

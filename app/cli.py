@@ -76,6 +76,7 @@ def map_build(
 def synth(
     out: Annotated[Path, typer.Option("--out", help="Directory to write the KITTI odometry layout into.")],
     sequence_id: Annotated[str, typer.Option("--sequence-id", help="Sequence id to write as.")] = "00",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing exported sequence.")] = False,
     town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None, calib: CalibOpt = None, scans: ScansOpt = None,
     config: ConfigOpt = None, set_: SetOpt = None,
 ):
@@ -87,7 +88,8 @@ def synth(
     seq = open_sequence(source_spec(None, None, None, None, None, town_seed, trajectory, calib, scans), cfg)
     with progress_bar() as bar:
         task = bar.add_task(f"scans of {seq.name}", total=len(seq))
-        export_kitti_odometry(seq, out, sequence=sequence_id, progress=lambda i, n: bar.update(task, completed=i))
+        export_kitti_odometry(seq, out, sequence=sequence_id, overwrite=overwrite,
+                              progress=lambda i, n: bar.update(task, completed=i))
     err.print(f"wrote {len(seq)} scans to {out}/sequences/{sequence_id}")
 
 

@@ -69,7 +69,7 @@ def export_kitti_odometry(seq: Sequence, out_dir: str | os.PathLike, sequence: s
     final_seq = out_dir / "sequences" / sequence
     final_poses = out_dir / "poses" / f"{sequence}.txt"
     if not overwrite and (final_seq.exists() or final_poses.exists()):
-        raise DataError(f"{final_seq}: sequence already exists (remove it first, or export with another id)")
+        raise DataError(f"{final_seq}: sequence already exists (use --overwrite, or another --sequence-id)")
     n = len(seq)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -494,6 +494,8 @@ class Localizer:
             self.lookup = self._wait(fut, "lookup rebuild", self.k)
             self.pf.set_lookup(self.lookup)
             self.pf.set_d_max(min(self.cfg.pf.d_max, self.lookup.d_max_built))
+            if self.cfg.pf.d_max > self.lookup.d_max_built + 1e-9:   # raised again meanwhile
+                self._rebuild_lookup(self.cfg.pf.d_max)
         if self._pending_pyramid is not None and self._pending_pyramid.done():
             fut, self._pending_pyramid = self._pending_pyramid, None
             from .s2m import ScanToMapMatcher

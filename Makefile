@@ -1,5 +1,5 @@
 # Convenience wrappers; ./run does the work (and needs no make on a fresh machine).
-.PHONY: demo test bench
+.PHONY: demo test
 demo:
 	./run demo
 test:

@@ -219,8 +219,9 @@ def _report(out_dir: Path, agg: dict) -> None:
         a, p = agg[k], PAPER[k]
         lines.append(f"| {k} | {fmt(a['median'])} | {fmt(a['p75'])} | {fmt(a['max'])} | {100 * a['success']:.0f}% | "
                      f"{p['p75'] if p['p75'] is not None else '–'} | {p['max'] if p['max'] is not None else '–'} |")
-    r = agg["rmse_pos_after_D_m"]
-    lines += ["", f"RMSE after D: position median {fmt(r['median'])} m, yaw median {fmt(agg['rmse_yaw_after_D_deg']['median'])}°.",
+    r, ry = agg["rmse_pos_after_D_m"]["median"], agg["rmse_yaw_after_D_deg"]["median"]
+    rmse = "no run met D" if r is None else f"position median {fmt(r)} m, yaw median {fmt(ry)}°"
+    lines += ["", f"RMSE after D: {rmse}.",
               f"PF latency median {fmt(agg['pf_ms_median'])} ms per scan (paper: {PAPER['latency_s'] * 1000:.0f} ms per scan on 8 cores); "
               f"S2M median {fmt(agg['s2m_ms_median'])} ms.", "",
               "![metrics](metrics_boxplot.png)", "", "![latency](latency_hist.png)", ""]

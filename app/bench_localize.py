@@ -221,8 +221,9 @@ def _report(out_dir: Path, agg: dict) -> None:
                      f"{p['p75'] if p['p75'] is not None else '–'} | {p['max'] if p['max'] is not None else '–'} |")
     r, ry = agg["rmse_pos_after_D_m"]["median"], agg["rmse_yaw_after_D_deg"]["median"]
     rmse = "no run met D" if r is None else f"position median {fmt(r)} m, yaw median {fmt(ry)}°"
+    s2m = f"S2M median {fmt(agg['s2m_ms_median'])} ms." if agg["s2m_ms_median"] is not None else "S2M off."
     lines += ["", f"RMSE after D: {rmse}.",
-              f"PF latency median {fmt(agg['pf_ms_median'])} ms per scan (paper: {PAPER['latency_s'] * 1000:.0f} ms per scan on 8 cores); "
-              f"S2M median {fmt(agg['s2m_ms_median'])} ms.", "",
+              f"PF latency median {fmt(agg['pf_ms_median'])} ms per scan (paper: {PAPER['latency_s'] * 1000:.0f} ms "
+              f"per scan on 8 cores); {s2m}", "",
               "![metrics](metrics_boxplot.png)", "", "![latency](latency_hist.png)", ""]
     (out_dir / "report.md").write_text("\n".join(lines))

@@ -24,24 +24,9 @@ import numpy as np
 from .config import MapConfig
 from .errors import DataError, LidarlocError
 from .o3d import open3d
+from .voxelhash import hash_slot, voxel_key
 
 _EMPTY = np.int64(-1)
-_OFFSET = 1 << 20  # voxel indices are packed as three 21-bit fields: ±1M voxels per axis
-
-
-@nb.njit(cache=True, nogil=True)
-def _pack(ix, iy, iz):
-    return ((ix + _OFFSET) << 42) | ((iy + _OFFSET) << 21) | (iz + _OFFSET)
-
-
-@nb.njit(cache=True, nogil=True)
-def _slot(key, mask):
-    """splitmix64 finaliser: mixes all 64 bits so the low bits used as the slot are uniform."""
-    z = np.uint64(key)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    z = z ^ (z >> np.uint64(31))
-    return np.int64(z & np.uint64(mask))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -51,11 +36,8 @@ def _insert(table_keys, table_sums, table_counts, pts, inv_voxel):
     mask = cap - 1
     added = 0
     for i in range(pts.shape[0]):
-        ix = np.int64(np.floor(pts[i, 0] * inv_voxel))
-        iy = np.int64(np.floor(pts[i, 1] * inv_voxel))
-        iz = np.int64(np.floor(pts[i, 2] * inv_voxel))
-        key = _pack(ix, iy, iz)
-        h = _slot(key, mask)
+        key = voxel_key(pts[i, 0], pts[i, 1], pts[i, 2], inv_voxel)
+        h = hash_slot(key, mask)
         while True:
             k = table_keys[h]
             if k == key:
@@ -110,7 +92,7 @@ def _reinsert(table_keys, table_sums, table_counts, keys, sums, counts):
     mask = table_keys.shape[0] - 1
     for i in range(keys.shape[0]):
         key = keys[i]
-        h = _slot(key, mask)
+        h = hash_slot(key, mask)
         while table_keys[h] != -1:
             h = (h + 1) & mask
         table_keys[h] = key

@@ -11,9 +11,7 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
-
-_OFFSET = 1 << 20  # voxel indices packed as three 21-bit fields (±1M voxels per axis)
-
+from .voxelhash import hash_slot, voxel_key
 
 @nb.njit(nogil=True, cache=True)
 def _first_per_voxel(pts, inv_voxel, order, table_bits):
@@ -26,16 +24,8 @@ def _first_per_voxel(pts, inv_voxel, order, table_bits):
     n = 0
     for r in range(order.shape[0]):
         i = order[r]
-        ix = np.int64(np.floor(pts[i, 0] * inv_voxel)) + _OFFSET
-        iy = np.int64(np.floor(pts[i, 1] * inv_voxel)) + _OFFSET
-        iz = np.int64(np.floor(pts[i, 2] * inv_voxel)) + _OFFSET
-        key = (ix << 42) | (iy << 21) | iz
-        # splitmix64 finaliser: all key bits reach the slot bits
-        h = np.uint64(key)
-        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        h = h ^ (h >> np.uint64(31))
-        slot = np.int64(h & np.uint64(mask))
+        key = voxel_key(pts[i, 0], pts[i, 1], pts[i, 2], inv_voxel)
+        slot = hash_slot(key, mask)
         while True:
             k = keys[slot]
             if k == key:

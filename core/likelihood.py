@@ -29,17 +29,22 @@ from .errors import LidarlocError
 from .lookup import LookupTable, lookup_code
 
 
+@nb.njit(inline="always", nogil=True, fastmath=True, cache=True)
+def _rotation_zyx(yaw, pitch, roll):
+    """Row-major entries of Rz(yaw)·Ry(pitch)·Rx(roll), as geometry.rotation_zyx, for kernels."""
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr)
+
+
 @nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
 def _log_likelihood(states, scan, origin, inv_res, brick_index, bricks, sq_cost, out):
     m = scan.shape[0]
     for i in nb.prange(states.shape[0]):
-        yaw, pitch, roll = states[i, 3], states[i, 4], states[i, 5]
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        cp, sp = math.cos(pitch), math.sin(pitch)
-        cr, sr = math.cos(roll), math.sin(roll)
-        r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-        r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-        r20, r21, r22 = -sp, cp * sr, cp * cr
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_zyx(states[i, 3], states[i, 4], states[i, 5])
         tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
         acc = 0.0
         for j in range(m):
@@ -59,13 +64,7 @@ def _costs_until(states, scan, n_points, limit, origin, inv_res, brick_index, br
     """Σ sq_cost over the first ``n_points`` scan points per particle, stopping early once the
     sum exceeds limit[i] (then complete[i] is False and cost[i] is the partial sum)."""
     for i in nb.prange(states.shape[0]):
-        yaw, pitch, roll = states[i, 3], states[i, 4], states[i, 5]
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        cp, sp = math.cos(pitch), math.sin(pitch)
-        cr, sr = math.cos(roll), math.sin(roll)
-        r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-        r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-        r20, r21, r22 = -sp, cp * sr, cp * cr
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_zyx(states[i, 3], states[i, 4], states[i, 5])
         tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
         lim = limit[i]
         acc = 0.0

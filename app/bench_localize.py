@@ -2,8 +2,10 @@
 
 Runs use the replay clock (deterministic per seed). Each run writes ``runs/seed_NNN/`` with its
 summary and per-scan CSV; a run whose summary exists is kept, so an interrupted benchmark
-resumes where it stopped. The map, lookup table and BEV pyramid are built once, in the parent,
-into the cache that every worker then loads (process pool or Ray tasks alike).
+resumes where it stopped. The map, lookup table, BEV pyramid and (unless ``--live-odometry``) the
+KISS-ICP odometry of the sequence are built once, in the parent, into the cache that every
+worker then loads (process pool or Ray tasks alike). The odometry does not depend on the seed,
+so replaying it changes no number (tested) and saves each run ~60–90 ms of CPU per scan.
 """
 
 from __future__ import annotations
@@ -40,6 +42,19 @@ def _spec_from(d: dict) -> SourceSpec:
     return SourceSpec(**{k: (Path(v) if k in paths and v is not None else v) for k, v in d.items()})
 
 
+def _bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
+    """The source; a generated town's scans are simulated once and then loaded from the cache
+    (the same arrays, ~1 ms to load instead of ~20 ms to simulate; ~2 MB per scan on disk)."""
+    from lidarloc.core.mapping import map_cache_dir
+    from lidarloc.core.sequences.base import DiskCachedScans
+
+    seq = open_sequence(spec, cfg)
+    if spec.kitti_odometry is None and spec.kitti_raw is None:
+        map_dir = map_cache_dir(seq, cfg.map, cache_root)   # a sibling: a map build replaces map_dir
+        seq = DiskCachedScans(seq, map_dir.with_name(map_dir.name + "-scans"))
+    return seq
+
+
 def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_dir: str, numba_threads: int) -> dict:
     """One seeded run (executed in a worker process or a Ray task)."""
     if numba_threads:
@@ -53,7 +68,7 @@ def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_di
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
     cfg.localize.clock = "replay"
-    seq = open_sequence(_spec_from(spec_d), cfg)
+    seq = _bench_sequence(_spec_from(spec_d), cfg, Path(cache_root) if cache_root else None)
     import time
 
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
@@ -75,7 +90,7 @@ def _prepare_cache(spec: SourceSpec, cfg: Config, cache_root: Path | None, conso
 
     from .cli import progress_bar
 
-    seq = open_sequence(spec, cfg)
+    seq = _bench_sequence(spec, cfg, cache_root)
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
         loc = Localizer(seq, cfg, cache_root, progress=lambda s, f: bar.update(task, description=f"preparing {s}", completed=100 * f))
@@ -152,9 +167,31 @@ def _run_ray(todo, spec_d, cfg_d, cache, numba_threads, workers, address, advanc
     return out
 
 
+def _within_5m_to_end(run_dir: Path) -> bool | None:
+    """Issue 5's figure: the rule was met, and from that scan to the end of the drive every
+    estimate is within 5 m of the truth (None without ground truth)."""
+    with open(run_dir / "scans.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or rows[0]["error_m"] == "":
+        return None
+    first = next((i for i, r in enumerate(rows) if r["localized"] in ("1", "True", "true")), None)
+    return first is not None and all(r["error_m"] != "" and float(r["error_m"]) <= 5.0 for r in rows[first:])
+
+
+def _median(values) -> float | None:
+    vals = [v for v in values if v is not None]
+    return float(np.median(vals)) if vals else None
+
+
 def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: SourceSpec) -> dict:
     per_run = [dict(s["metrics"], seed=s["seed"]) for s in summaries]
     agg = aggregate(per_run)
+    within = [_within_5m_to_end(out_dir / "runs" / f"seed_{s['seed']:03d}") for s in summaries]
+    known = [w for w in within if w is not None]
+    agg["within_5m_to_end_ratio"] = sum(known) / len(known) if known else None
+    # a run that never localizes has no "after": it counts as a failure in the ratio above
+    agg["rmse_after_localized_m_median"] = _median(s["rmse_after_localized_m"] for s in summaries)
+    agg["localized_at_scan_median"] = _median(s["localized_at_scan"] for s in summaries)
     pf_ms = np.concatenate([np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "pf_ms.npy") for s in summaries])
     s2m_parts = [np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "s2m_ms.npy") for s in summaries]
     s2m_ms = np.concatenate(s2m_parts) if s2m_parts else np.array([])
@@ -166,12 +203,16 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
     agg["scans_per_run"] = summaries[0]["scans"] if summaries else 0
     with open(out_dir / "runs.csv", "w", newline="") as f:
         w = csv.writer(f)
-        cols = ["seed", *METRIC_KEYS, "rmse_pos_after_D_m", "rmse_yaw_after_D_deg", "pf_ms_median", "false_positives", "losses"]
-        w.writerow(cols)
-        for s in summaries:
+        metric_cols = [*METRIC_KEYS, "rmse_pos_after_D_m", "rmse_yaw_after_D_deg"]
+        w.writerow(["seed", *metric_cols, "pf_ms_median", "false_positives", "losses", "localized_at_scan",
+                    "rmse_after_localized_m", "within_5m_to_end"])
+        for s, ok in zip(summaries, within):
             m = s["metrics"]
-            w.writerow([s["seed"], *["" if m.get(k) is None else m[k] for k in cols[1:7]],
-                        f"{s['pf_ms_median']:.2f}", s["false_positives"], s["losses"]])
+            w.writerow([s["seed"], *["" if m.get(k) is None else m[k] for k in metric_cols],
+                        f"{s['pf_ms_median']:.2f}", s["false_positives"], s["losses"],
+                        "" if s["localized_at_scan"] is None else s["localized_at_scan"],
+                        "" if s["rmse_after_localized_m"] is None else f"{s['rmse_after_localized_m']:.3f}",
+                        "" if ok is None else int(ok)])
     write_json(out_dir / "summary.json", agg)
     _plots(out_dir, per_run, pf_ms, s2m_ms, agg)
     _report(out_dir, agg)
@@ -220,9 +261,15 @@ def _report(out_dir: Path, agg: dict) -> None:
         lines.append(f"| {k} | {fmt(a['median'])} | {fmt(a['p75'])} | {fmt(a['max'])} | {100 * a['success']:.0f}% | "
                      f"{p['p75'] if p['p75'] is not None else '–'} | {p['max'] if p['max'] is not None else '–'} |")
     r, ry = agg["rmse_pos_after_D_m"]["median"], agg["rmse_yaw_after_D_deg"]["median"]
-    rmse = "no run met D" if r is None else f"position median {fmt(r)} m, yaw median {fmt(ry)}°"
+    rmse = (f"no median: D met in {100 * agg['D']['success']:.0f}% of runs" if r is None
+            else f"position median {fmt(r)} m, yaw median {fmt(ry)}°")
     s2m = f"S2M median {fmt(agg['s2m_ms_median'])} ms." if agg["s2m_ms_median"] is not None else "S2M off."
+    w5 = agg["within_5m_to_end_ratio"]
+    ral = agg["rmse_after_localized_m_median"]
     lines += ["", f"RMSE after D: {rmse}.",
+              f"Runs localized and within 5 m of the truth from then to the end of the drive: "
+              f"{'–' if w5 is None else f'{100 * w5:.0f}%'}; position RMSE from the rule's first "
+              f"firing on, median over runs: {'–' if ral is None else f'{ral:.2f} m'}.",
               f"PF latency median {fmt(agg['pf_ms_median'])} ms per scan (paper: {PAPER['latency_s'] * 1000:.0f} ms "
               f"per scan on 8 cores); {s2m}", "",
               "![metrics](metrics_boxplot.png)", "", "![latency](latency_hist.png)", ""]

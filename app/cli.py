@@ -206,12 +206,24 @@ def bench_viewer(as_json: Annotated[bool, typer.Option("--json")] = False):
     emit_json(run_bench())
 
 
+@bench_app.command("startup")
+def bench_startup(repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
+                  as_json: Annotated[bool, typer.Option("--json")] = False):
+    """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts."""
+    from .bench_startup import run as run_bench
+
+    emit_json(run_bench(repeats=repeats))
+
+
 @bench_app.command("localize")
 def bench_localize(
     runs: Annotated[int, typer.Option("--runs")] = 20,
     workers: Annotated[int, typer.Option("--workers")] = 2,
     out: Annotated[Path, typer.Option("--out")] = Path("out/bench-localize"),
     no_s2m: Annotated[bool, typer.Option("--no-s2m")] = False,
+    live_odometry: Annotated[bool, typer.Option(
+        "--live-odometry", help="Run KISS-ICP in every run instead of replaying its poses, computed once "
+                                "per sequence (the same numbers; only slower).")] = False,
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
     as_json: Annotated[bool, typer.Option("--json")] = False,
@@ -222,7 +234,8 @@ def bench_localize(
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section)."""
     from .bench_localize import run_bench
 
-    overrides = list(set_ or []) + (["s2m.enabled=false"] if no_s2m else [])
+    overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
+        + (["s2m.enabled=false"] if no_s2m else [])
     cfg = config_from(config, overrides)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,

@@ -3,19 +3,24 @@
 Data flow for scan k (paper, Fig. "block diagram"):
 
 - RPE (KISS-ICP relative poses, in a child process because it holds the GIL) gets scan k as soon
-  as it is read; the PF runs on the caller's thread meanwhile. RS (road segmentation) runs on its
-  own thread for the scans that S2M matches (only those need it; normals are costly).
+  as it is read; the PF runs on the caller's thread meanwhile.
 - PF: predict (11-state model), weight (lookup-table likelihood), estimate.
 - SU: when an S2M job started at scan k₀ is due, its match (for scan k₀) is carried forward to
   scan k with the RPE relative pose, written into the particle it started from, and that
   particle is re-weighted. A failed or rejected match changes nothing.
 - PF resamples when N_eff < 50 %, protecting the S2M particle while a job is in flight.
-- S2M: if no job is in flight, the highest-weight particle's pose at k and the road-removed
-  scan k start a new local match on the S2M worker thread.
+- S2M: if no job is in flight, the highest-weight particle's pose at k and scan k start a new
+  match: over the whole map until the localization rule is met (``s2m.global_until_localized``),
+  then in the paper's ±(L_x, L_y) region (±``tracking_region`` in tracking mode). RS (road removal) and S2M (M3RSM + GICP) run one after the other in a child process
+  (:mod:`lidarloc.core.s2m_worker`; small_gicp and the normal estimation hold the GIL, which
+  stalled the PF by ~4× on threads), driven from the S2M thread. Only the scans S2M matches are
+  road-segmented: nothing else uses them. ``localize.s2m_process = False`` runs both on the S2M
+  thread instead (same results, for debugging).
 
 Two clocks: ``replay`` lands every S2M result exactly ``n_s2m`` scans after it started (the
 step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime`` lands a
-result at the first scan after it finished.
+result at the first scan after it finished, and the rules read the newest finished odometry
+instead of waiting for scan k's, so KISS-ICP and the PF overlap across scans.
 
 Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
 usual but protect the S2M particle's slot (the PF's ``protect`` argument), which keeps the
@@ -43,6 +48,7 @@ from .errors import LidarlocError
 from .geometry import euler_zyx, pose_matrix, pose_to_xyz_ypr, transform_points
 from .mapping import load_or_build_map
 from .rules import LocalizationRules
+from .s2m_worker import S2MProcess
 from .scanprep import voxel_downsample_random
 from .snapshot import Event, S2MView, Snapshot
 
@@ -122,7 +128,18 @@ class Localizer:
                                               progress=lambda f: self._progress("lookup", f))
         self._progress("pyramid", 0.0)
         self.pyramid = load_or_build_pyramid(self.prior_map, self.map_dir, cfg.s2m)
-        self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, cfg.s2m)
+        self._recorded_odometry = None
+        if cfg.localize.recorded_odometry:
+            from .rpe import load_or_build_odometry
+
+            self._progress("odometry", 0.0)
+            self._recorded_odometry = load_or_build_odometry(seq, self.map_dir,
+                                                             progress=lambda f: self._progress("odometry", f))
+        if cfg.localize.s2m_process:
+            # loads the cached map and pyramid and builds its GICP target while we go on
+            self.matcher = S2MProcess(self.map_dir, cfg.map, cfg.s2m)
+        else:
+            self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, cfg.s2m, cfg.map)
         self._progress("ready", 1.0)
         self._RPE = RelativePoseEstimator
         self._PF = ParticleFilter
@@ -130,7 +147,6 @@ class Localizer:
         self._bounds = (np.asarray(bmin, float), np.asarray(bmax, float))
         self._lock = threading.RLock()
         self._rpe_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RPE")
-        self._rs_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RS")
         self._s2m_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-S2M")
         self._rebuild_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-rebuild")
         self.rebuild_progress: float | None = None
@@ -167,8 +183,8 @@ class Localizer:
             self._s2m_accepted = 0
             self._last_s2m: S2MView | None = None
             self._rpe_futures: dict[int, Future] = {}
-            self._rs_futures: dict[int, Future] = {}
             self._rpe_origin = 0            # first scan the current KISS-ICP run has seen
+            self._rpe_used: int | None = None   # last odometry scan the rules consumed (real time)
             self._prev_t: float | None = None
             self._snapshot: Snapshot | None = None
             self._snapshot = self._make_snapshot(-1, None, 0.0, None)
@@ -177,14 +193,18 @@ class Localizer:
         with self._lock:
             self._closed = True
             self._cancel_s2m()
-        for pool in (self._rpe_pool, self._rs_pool, self._s2m_pool, self._rebuild_pool):
+        for pool in (self._rpe_pool, self._s2m_pool, self._rebuild_pool):
             pool.shutdown(wait=True, cancel_futures=True)
         if self._kiss_process is not None:
             self._kiss_process.close()
+        if isinstance(self.matcher, S2MProcess):
+            self.matcher.close()
 
     def _new_rpe(self):
         """A fresh odometry. KISS-ICP holds the GIL while it registers a scan, so by default it
         runs in a child process (one per localizer, reset instead of restarted)."""
+        if self._recorded_odometry is not None:
+            return self._RPE(recorded=self._recorded_odometry)
         if not self.cfg.localize.rpe_process:
             return self._RPE()
         if self._kiss_process is None:
@@ -223,7 +243,7 @@ class Localizer:
                 region = (min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
                 if region[2] - region[0] <= 0 or region[3] - region[1] <= 0:
                     raise LidarlocError("reset region must have a positive width and height")
-            self.pf.initialize(region=region, pose=pose)
+            self._reinitialize(region=region, pose=pose)
             self.rules.reset()
             where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
@@ -246,8 +266,8 @@ class Localizer:
             self._wait_rpe_idle()
             self.rpe = self._new_rpe()
             self._rpe_futures.clear()
-            self._rs_futures.clear()
             self._rpe_origin = target
+            self._rpe_used = None
             self._prev_t = None
             self.rules.reset()   # the odometry restarts: a window must not span the jump
             return target
@@ -267,6 +287,8 @@ class Localizer:
                     ok = False
                 if not ok:
                     raise LidarlocError(f"invalid value for {name}: {value!r}")
+                if name == "clock" and value == "realtime" and self._recorded_odometry is not None:
+                    raise LidarlocError("the real-time clock needs live odometry (localize.recorded_odometry is on)")
             pf, s2m = self.cfg.pf, self.cfg.s2m
             for name, value in params.items():
                 if name == "d_max":
@@ -340,14 +362,16 @@ class Localizer:
             if outcome.event is not None:
                 self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
             if outcome.reinit:
-                self._cancel_s2m()
-                self.pf.initialize()
+                self._reinitialize()
                 reinit = True
                 est = self.pf.estimate()
             else:
+                entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
+                if entering_tracking:    # resamples down: est.best_index no longer names a particle
+                    self._enter_tracking(k)
                 # S2M starts from the highest-weight particle of this posterior; that slot is
                 # then protected through every resampling until the match lands.
-                if self.cfg.s2m.enabled and self._s2m_job is None:
+                if self.cfg.s2m.enabled and self._s2m_job is None and not entering_tracking:
                     self._start_s2m(k, est.best_index, scan)
                 t2 = time.perf_counter()
                 protect = self._s2m_job.particle if self._s2m_job is not None else None
@@ -388,30 +412,82 @@ class Localizer:
             raise BlockError(self._failed) from exc
 
     def _rpe_motion(self, k: int) -> tuple[float, float]:
-        """Distance driven from k−1 to k and the odometry yaw at k (RPE, waits for scan k)."""
-        self._wait(self._rpe_futures[k], "RPE", k)
+        """Distance driven since the rules' previous scan and the odometry yaw, for the rules.
+
+        Replay: from k−1 to k (waits for the RPE of scan k). Real time: from the previous to the
+        newest scan whose odometry is done, without waiting, so the PF of scan k+1 and KISS-ICP's
+        registration of scan k overlap instead of taking turns (the rules then lag the odometry by
+        a scan at most; the motion is counted once all the same)."""
+        if self.cfg.localize.clock == "realtime":
+            latest = None
+            for i in range(k, max(self._rpe_origin, self._rpe_used or 0) - 1, -1):
+                fut = self._rpe_futures.get(i)
+                if fut is not None and fut.done():
+                    self._wait(fut, "RPE", i)     # a failed registration surfaces here
+                    latest = i
+                    break
+            if latest is None:
+                latest = self._rpe_used
+                if latest is None:            # nothing registered yet since the (re)start
+                    self._wait(self._rpe_futures[k], "RPE", k)
+                    latest = k
+        else:
+            self._wait(self._rpe_futures[k], "RPE", k)
+            latest = k
         for old in [i for i in self._rpe_futures if i < k - 200]:
             del self._rpe_futures[old]
-        T = self.rpe.odom_pose(k)
-        yaw = float(euler_zyx(T[:3, :3])[0])
-        if k - 1 < self._rpe_origin:
+        yaw = float(euler_zyx(self.rpe.odom_pose(latest)[:3, :3])[0])
+        prev = latest - 1 if self.cfg.localize.clock != "realtime" else self._rpe_used
+        self._rpe_used = latest
+        if prev is None or prev < self._rpe_origin or prev >= latest:
             return 0.0, yaw
-        rel = self.rpe.relative(k - 1, k)
-        return float(np.linalg.norm(rel[:3, 3])), yaw
+        if prev == latest - 1:
+            return float(np.linalg.norm(self.rpe.relative(prev, latest)[:3, 3])), yaw
+        return self.rpe.moved_since(prev, latest), yaw
+
+    def _reinitialize(self, region=None, pose=None) -> None:
+        """Spread the particles again (globally, in a region or around a pose), leaving tracking
+        mode: the full particle count comes back."""
+        self._cancel_s2m()
+        if self.pf.n != self.cfg.pf.n_particles:
+            self.pf.set_n_particles(self.cfg.pf.n_particles)
+        self.pf.initialize(region=region, pose=pose)
+
+    def _enter_tracking(self, k: int) -> None:
+        """Tracking mode: resample down to fewer particles; S2M searches a smaller region."""
+        n = min(self.cfg.localize.tracking_particles, self.cfg.pf.n_particles)
+        self._cancel_s2m()   # particle indices change
+        self.pf.set_n_particles(n)
+        self._event(k, "tracking", f"{n} particles, S2M region ±{self.cfg.localize.tracking_region:g} m")
+
+    def _s2m_job_config(self, j: int):
+        """The S2M settings for a job from particle j: the whole map until localized (if so
+        configured), the tracking region while tracking, else the configured local region."""
+        cfg = replace(self.cfg.s2m)
+        if not self.rules.localized and cfg.global_until_localized:
+            x, y = self.pf.states[j, :2]
+            (x0, y0, _), (x1, y1, _) = self._bounds
+            cfg.region_x = max(cfg.region_x, x - x0, x1 - x)
+            cfg.region_y = max(cfg.region_y, y - y0, y1 - y)
+        elif self.rules.localized and self.cfg.localize.tracking:
+            cfg.region_x = min(cfg.region_x, self.cfg.localize.tracking_region)
+            cfg.region_y = min(cfg.region_y, self.cfg.localize.tracking_region)
+        return cfg
 
     def _start_s2m(self, k: int, j: int, scan: np.ndarray) -> None:
-        """Start a local match of scan k from particle j's pose. The RS block removes the scan's
-        flat surfaces on its own thread first; only scans that S2M will match are segmented
-        (normal estimation is the costliest per-scan step after the likelihood)."""
+        """Start a match of scan k from particle j's pose (RS, then S2M, in the background)."""
         start_pose = pose_matrix(*self.pf.states[j, :6])
-        self._rs_futures = {k: self._rs_pool.submit(self.matcher.prepare, scan)}
         self._s2m_generation += 1
-        future = self._s2m_pool.submit(self._run_s2m, self._rs_futures[k], start_pose)
+        future = self._s2m_pool.submit(self._run_s2m, self.matcher, scan, start_pose, self._s2m_job_config(j))
         self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
         self._event(k, "s2m_started", f"particle {j}")
 
-    def _run_s2m(self, rs_future: Future, start_pose: np.ndarray):
-        return self.matcher.match_local(None, start_pose, prepared=rs_future.result())
+    @staticmethod
+    def _run_s2m(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg):
+        if isinstance(matcher, S2MProcess):     # the child process: it takes the live settings along
+            return matcher.match_local(scan, start_pose, s2m_cfg)
+        matcher.cfg = s2m_cfg
+        return matcher.match_local(scan, start_pose)
 
     def _cancel_s2m(self) -> None:
         job = getattr(self, "_s2m_job", None)
@@ -427,7 +503,7 @@ class Localizer:
             if k < job.started_at + self.cfg.s2m.n_s2m:
                 return None
         elif not job.future.done():
-            return None
+            return None   # real time: land at the first scan after the match finished
         self._s2m_job = None
         outcome = self._wait(job.future, "S2M", k)
         self._s2m_landed += 1
@@ -457,12 +533,11 @@ class Localizer:
         self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
                     f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
                     + (f" ({reason})" if reason and not accepted else ""))
-        rs = self._rs_futures.get(job.started_at)
-        scan_bev = rs.result().road_removed if rs is not None else np.zeros((0, 3))
+        scan_world = outcome.scan_world if outcome.scan_world is not None else np.zeros((0, 3), np.float32)
         self._last_s2m = S2MView(
             started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
             start_score=float(outcome.start_score), pose=np.asarray(pose_k),
-            scan_world=transform_points(outcome.pose, scan_bev).astype(np.float32),
+            scan_world=scan_world,
             region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
         return float(outcome.ms)
 
@@ -502,7 +577,8 @@ class Localizer:
 
             self.pyramid = self._wait(fut, "pyramid rebuild", self.k)
             self._cancel_s2m()
-            self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, self.cfg.s2m)
+            if not isinstance(self.matcher, S2MProcess):  # the S2M process reloads it from the cache itself
+                self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, self.cfg.s2m, self.cfg.map)
         if self._pending_lookup is None and self._pending_pyramid is None:
             self.rebuild_progress = None
 

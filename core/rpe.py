@@ -55,13 +55,19 @@ class RelativePoseEstimator:
     """KISS-ICP odometry over a bounded buffer of the most recent scans."""
 
     def __init__(self, max_buffer: int = 100, max_range: float = 100.0, min_range: float = 2.5,
-                 voxel_size: float | None = None, icp=None):
+                 voxel_size: float | None = None, icp=None, recorded: np.ndarray | None = None):
         """``icp``: an object with KissICP's ``register_frame``/``last_pose`` (e.g. the
-        process-backed :class:`~lidarloc.core.rpe_worker.KissICPProcess`); default: in-process."""
+        process-backed :class:`~lidarloc.core.rpe_worker.KissICPProcess`); default: in-process.
+        ``recorded``: (N, 4, 4) odometry poses of every scan of the sequence from an earlier run
+        (:func:`load_or_build_odometry`); then no ICP runs, scan k gets inv(P_origin)·P_k with
+        origin the first scan added — bit for bit what the live odometry gave when the recording
+        started at the same scan (replay benchmarks: the odometry does not depend on the seed)."""
         if max_buffer < 2:
             raise ValueError(f"max_buffer must be ≥ 2, got {max_buffer}")
         self.max_buffer = int(max_buffer)
-        if icp is None:
+        self._recorded = None if recorded is None else np.asarray(recorded, dtype=np.float64)
+        self._origin: int | None = None
+        if icp is None and self._recorded is None:
             from kiss_icp.kiss_icp import KissICP
 
             icp = KissICP(_kiss_config(max_range, min_range, voxel_size))
@@ -77,10 +83,15 @@ class RelativePoseEstimator:
         k = int(k)
         if self._latest is not None and k <= self._latest:
             raise ValueError(f"scan {k} added after scan {self._latest}: indices must increase")
-        pts = np.ascontiguousarray(np.asarray(scan_points)[:, :3], dtype=np.float64)
-        # deskew is off, so KISS-ICP ignores per-point times; it still wants the argument
-        self._icp.register_frame(pts, np.zeros(0))
-        pose = np.array(self._icp.last_pose, dtype=np.float64)
+        if self._recorded is not None:
+            if self._origin is None:
+                self._origin = k
+            pose = inv_pose(self._recorded[self._origin]) @ self._recorded[k]
+        else:
+            pts = np.ascontiguousarray(np.asarray(scan_points)[:, :3], dtype=np.float64)
+            # deskew is off, so KISS-ICP ignores per-point times; it still wants the argument
+            self._icp.register_frame(pts, np.zeros(0))
+            pose = np.array(self._icp.last_pose, dtype=np.float64)
         with self._lock:
             if self._buf:
                 prev_pose, _, path, turned = next(reversed(self._buf.values()))
@@ -173,3 +184,32 @@ class RelativePoseEstimator:
     def __len__(self) -> int:
         with self._lock:
             return len(self._buf)
+
+
+def load_or_build_odometry(seq, map_dir, progress=None) -> np.ndarray:
+    """KISS-ICP odometry poses (N, 4, 4) of every scan of ``seq``, cached beside its prior map.
+    Computed exactly as the localizer's live RPE does (the same child process, the same float32
+    hand-over), so replaying them changes no number."""
+    from pathlib import Path
+
+    from .mapping import atomic_write_dir
+    from .rpe_worker import KissICPProcess
+
+    directory = Path(map_dir) / "odometry-kiss"
+    path = directory / "poses.npy"
+    if path.is_file():
+        poses = np.load(path)
+        if poses.shape == (len(seq), 4, 4):
+            return poses
+    icp = KissICPProcess()
+    try:
+        rpe = RelativePoseEstimator(max_buffer=2, icp=icp)
+        poses = np.empty((len(seq), 4, 4))
+        for k in range(len(seq)):
+            poses[k] = rpe.add(k, seq.scan(k), seq.timestamp(k))
+            if progress is not None:
+                progress((k + 1) / len(seq))
+    finally:
+        icp.close()
+    atomic_write_dir(directory, lambda d: np.save(Path(d) / "poses.npy", poses))
+    return poses

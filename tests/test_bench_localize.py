@@ -14,6 +14,7 @@ SCANS = 25
 def small_cfg():
     cfg = Config()
     cfg.pf.n_particles = 300
+    cfg.localize.recorded_odometry = True    # as `lidarloc bench localize` sets it
     return cfg
 
 
@@ -36,6 +37,14 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
         assert summary[key]["max"] == (max(met) if len(met) == 3 else None)
     assert summary["pf_ms_median"] > 0
     assert "| B |" in (out / "report.md").read_text()
+    # issue 5's figures per run and in aggregate
+    within = [r["within_5m_to_end"] for r in rows]
+    assert all(w in ("0", "1") for w in within)
+    assert all(r["localized_at_scan"] != "" for r in rows if r["within_5m_to_end"] == "1")
+    assert summary["within_5m_to_end_ratio"] == sum(w == "1" for w in within) / 3
+    # the odometry was computed once into the cache, and the town's scans stored once
+    assert list((tmp_path / "cache").glob("map-*/odometry-kiss/poses.npy"))
+    assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS
     # resumable: a second call keeps the finished runs (same numbers, nothing recomputed)
     stamp = (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns
     agg2 = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")

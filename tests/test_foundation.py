@@ -243,3 +243,23 @@ def test_scan_index_errors(kitti_raw_seq):
     with pytest.raises(DataError):
         from lidarloc.core.sequences.base import validate_scan
         validate_scan(np.zeros((0, 4), np.float32), "x.bin")
+
+
+def test_example_config_is_the_defaults():
+    """assets/example-config.yaml says it lists the defaults: it loads, and every value matches."""
+    import math
+    from pathlib import Path
+
+    from lidarloc.core.config import Config, load_config
+
+    asset = Path(__file__).resolve().parents[1] / "assets" / "example-config.yaml"
+    loaded, default = load_config(asset, []).to_dict(), Config().to_dict()
+    for section, values in loaded.items():
+        if not isinstance(values, dict):
+            continue
+        for key, value in values.items():
+            expected = default[section][key]
+            if isinstance(expected, float):
+                assert math.isclose(value, expected, rel_tol=1e-6), (section, key)
+            else:
+                assert value == expected, (section, key)

@@ -107,7 +107,8 @@ def test_false_positive_triggers_reinit(town, cache_root):
         loc.run(5)
         kinds = [(e.scan, e.kind) for e in loc.events]
         assert (4, "false_positive") in kinds
-        assert spread_calls == [((), {})], "a false positive re-initialises over the whole map"
+        assert spread_calls == [((), {"region": None, "pose": None})], \
+            "a false positive re-initialises over the whole map"
         assert loc.records[4].reinit
 
 
@@ -122,7 +123,7 @@ def test_loss_triggers_reinit(town, cache_root):
 
 
 def test_failing_block_stops_cleanly(town, cache_root):
-    loc = make(town, cache_root)
+    loc = make(town, cache_root, localize__s2m_process=False)
 
     def boom(*a, **k):
         raise RuntimeError("matcher exploded")
@@ -136,6 +137,30 @@ def test_failing_block_stops_cleanly(town, cache_root):
     loc.close()
     assert time.perf_counter() - t0 < 30
     assert any(e.kind == "error" for e in loc.events)
+
+
+def test_dead_block_process_stops_cleanly(town, cache_root):
+    """The S2M child process dies mid-run: the run stops with a one-line error naming the block,
+    instead of hanging on the pipe."""
+    loc = make(town, cache_root)
+    loc.run(1)
+    loc.matcher._worker._proc.kill()
+    t0 = time.perf_counter()
+    with pytest.raises(BlockError, match=r"S2M block failed at scan \d+: RuntimeError: S2M process exited"):
+        loc.run(10)
+    assert time.perf_counter() - t0 < 30
+    loc.close()
+
+
+def test_s2m_process_matches_thread(town, cache_root):
+    """The S2M block gives the same trajectory in its child process as on a thread."""
+    trajectories = []
+    for in_process in (True, False):
+        with make(town, cache_root, localize__s2m_process=in_process) as loc:
+            loc.run(8)
+            trajectories.append(np.array([r.x for r in loc.records] + [r.y for r in loc.records]))
+            assert any(e.kind in ("s2m_accepted", "s2m_rejected") for e in loc.events)
+    np.testing.assert_array_equal(trajectories[0], trajectories[1])
 
 
 def test_live_parameters_validated(town, cache_root):
@@ -226,3 +251,55 @@ def test_kidnap_mid_run_is_recovered(kitti_raw_seq, cache_root):
         recovered_at = next(i for i, e in enumerate(errors) if e < 1.0)
         assert recovered_at <= 8, errors
         assert max(errors[recovered_at:]) < 1.0, errors
+
+
+def test_recorded_odometry_changes_nothing(town, cache_root):
+    """Replaying the cached KISS-ICP poses gives the live run's trajectory bit for bit (what lets
+    ``bench localize`` compute the odometry once per sequence instead of once per run)."""
+    runs = []
+    for recorded in (False, True):
+        with make(town, cache_root, localize__recorded_odometry=recorded) as loc:
+            loc.run(12)
+            runs.append(np.array([[r.x, r.y, r.z, r.yaw, r.n_eff] for r in loc.records]))
+            if recorded:
+                assert loc._kiss_process is None, "no KISS-ICP process when the odometry is recorded"
+                with pytest.raises(LidarlocError, match="live odometry"):
+                    loc.set_params(clock="realtime")
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_tracking_mode_and_search_regions(town, cache_root):
+    """Until localized S2M searches the whole map; tracking mode then shrinks the filter and the
+    S2M region, and a loss brings the full filter back."""
+    with make(town, cache_root, localize__tracking=True, localize__tracking_particles=100) as loc:
+        (x0, y0, _), (x1, y1, _) = loc._bounds
+        whole = loc._s2m_job_config(0)
+        x, y = loc.pf.states[0, :2]
+        assert x - whole.region_x <= x0 and x + whole.region_x >= x1
+        assert y - whole.region_y <= y0 and y + whole.region_y >= y1
+        scripted_std(loc, [3.0] * 20 + [60.0])
+        loc.run(20)
+        assert [e.kind for e in loc.events].count("tracking") == 1 and loc.rules.localized
+        assert loc.pf.n == 100 and loc.pf.states.shape == (100, 11)
+        tracking = loc._s2m_job_config(0)
+        assert tracking.region_x == tracking.region_y == 10.0
+        loc.run(1)
+        assert any(e.kind == "loss" for e in loc.events) and not loc.rules.localized
+        assert loc.pf.n == 500, "a loss leaves tracking mode: the full particle count comes back"
+
+
+def test_realtime_clock_counts_odometry_once(town, cache_root):
+    """In real time the rules take the newest finished odometry instead of waiting for scan k's:
+    every metre the odometry measured is still counted exactly once."""
+    with make(town, cache_root, s2m__enabled=False, localize__clock="realtime") as loc:
+        steps = []
+        real = loc.rules.update
+
+        def update(k, std_xyz, step_distance, yaw_odom):
+            steps.append(step_distance)
+            return real(k, std_xyz, step_distance, yaw_odom)
+        loc.rules.update = update
+        loc.run(25)
+        assert len(steps) == 25 and loc._rpe_used is not None and loc._rpe_used >= 20
+        assert sum(steps) == pytest.approx(loc.rpe.moved_since(0, loc._rpe_used), abs=1e-9)
+        assert sum(steps) > 10.0, "the town drives ~1 m per scan"

@@ -1,0 +1,68 @@
+"""The RS and S2M blocks in their own process.
+
+small_gicp holds the GIL for the 60–150 ms of a refinement (``gil_hold_ms`` in
+``app/bench_s2m.py``), and road removal's normal estimation is ~45 ms of mostly GIL-holding work:
+on threads they stall the particle filter (measured: the PF step took ~150 ms inside the
+localizer against 35 ms alone). Here a child process loads the prior map and the BEV pyramid
+from the map cache, builds its own GICP target once, and answers "match this scan from this
+pose" requests with an :class:`~lidarloc.core.s2m.S2MOutcome`.
+
+The child runs at a lower priority (nice 5): S2M is the paper's asynchronous, best-effort block
+— its result is used whenever it lands — while the PF and the RPE must keep the LiDAR rate. In
+the replay clock the parent waits for the result anyway, and then the child has the CPU.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .worker_process import WorkerProcess, serve
+
+#: Priority offset of the S2M process (see the module docstring).
+S2M_NICE = 5
+
+
+def _make_handler(init: tuple):
+    from .bev import load_or_build_pyramid
+    from .mapping import PriorMap
+    from .s2m import ScanToMapMatcher
+
+    map_dir, map_cfg, s2m_cfg = init
+    map_dir = Path(map_dir)
+    prior_map = PriorMap.load(map_dir, json.loads((map_dir / "meta.json").read_text()))
+    state = {"matcher": ScanToMapMatcher(prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg),
+                                         s2m_cfg, map_cfg)}
+
+    def handle(request):
+        kind, scan, start_pose, cfg = request
+        matcher = state["matcher"]
+        if abs(cfg.match_resolution - matcher.pyramid.resolution) > 1e-9:
+            # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
+            matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg)
+        matcher.cfg = cfg                      # live region / angle-step changes
+        return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None)
+
+    return handle
+
+
+class S2MProcess:
+    """Parent side: ``match_local(scan, start_pose, s2m_cfg)`` → S2MOutcome, computed in the child
+    (RS, M3RSM and GICP). Set-up starts at construction and overlaps with the caller's work."""
+
+    def __init__(self, map_dir: Path, map_cfg, s2m_cfg):
+        self._worker = WorkerProcess("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg), "S2M")
+        self._worker.start()
+
+    def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg):
+        pts = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)
+        return self._worker.call(("match", pts, np.asarray(start_pose, np.float64), s2m_cfg))
+
+    def close(self) -> None:
+        self._worker.close()
+
+
+if __name__ == "__main__":
+    serve(_make_handler, nice=S2M_NICE)

@@ -1,0 +1,154 @@
+"""A block of the localizer in its own Python process, called like a function.
+
+Why processes: KISS-ICP's and small_gicp's C++ code hold the GIL while they work (50–150 ms per
+call, measured in ``app/bench_s2m.py``), so on threads they stall the particle filter. A child
+process runs them truly in parallel; arrays cross a pipe (a 120k-point scan in float32 is
+~1.4 MB, well under a millisecond to copy).
+
+Plain ``subprocess`` + ``python -m module`` instead of ``multiprocessing``: the caller's
+``__main__`` is never re-imported, so scripts without a main guard work too. Each child gets its
+own session, so a Ctrl-C at the terminal reaches only the parent, which then closes its workers
+in order. The child may lower its own priority (``nice``): a best-effort block (S2M) then only
+gets the CPU the real-time blocks (PF, RPE) leave.
+
+Wire protocol (stdin → child, child → stdout): one length-prefixed pickle per message (protocol
+5). A request is any picklable object; the reply is ``("ok", value)`` or ``("error", message)``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import struct
+import subprocess
+import sys
+import threading
+from typing import Any, Callable
+
+_LEN = struct.Struct("<Q")
+_STOP = "__stop__"
+
+
+def _read_exact(stream, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = stream.read(n - len(buf))
+        if not chunk:
+            raise EOFError
+        buf += chunk
+    return bytes(buf)
+
+
+def _send(stream, obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=5)
+    stream.write(_LEN.pack(len(data)) + data)
+    stream.flush()
+
+
+def _receive(stream) -> Any:
+    (n,) = _LEN.unpack(_read_exact(stream, _LEN.size))
+    return pickle.loads(_read_exact(stream, n))
+
+
+class WorkerProcess:
+    """The parent side: ``call(request)`` sends one request and returns the child's reply
+    (thread-safe; calls are serialised). A failure inside the child raises ``RuntimeError`` with
+    its one-line message; a dead child raises ``RuntimeError`` naming its exit code."""
+
+    def __init__(self, module: str, init: Any, name: str):
+        self.name = name
+        self._proc = subprocess.Popen([sys.executable, "-m", module], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, bufsize=0, start_new_session=True)
+        self._lock = threading.Lock()
+        self._init_sent = False
+        self._init = init
+
+    def call(self, request: Any) -> Any:
+        with self._lock:
+            try:
+                if not self._init_sent:       # the child's set-up overlaps with the parent's
+                    _send(self._proc.stdin, self._init)
+                    self._init_sent = True
+                _send(self._proc.stdin, request)
+                status, value = _receive(self._proc.stdout)
+            except (BrokenPipeError, EOFError, OSError):
+                raise RuntimeError(f"{self.name} process exited (code {self._proc.poll()})") from None
+        if status == "error":
+            raise RuntimeError(value)
+        return value
+
+    def start(self) -> None:
+        """Send the set-up message now, so the child prepares while the parent does other work."""
+        with self._lock:
+            if not self._init_sent:
+                try:
+                    _send(self._proc.stdin, self._init)
+                except (BrokenPipeError, OSError):
+                    pass                       # reported by the first call
+                self._init_sent = True
+
+    def close(self) -> None:
+        proc = self._proc
+        if proc.poll() is None:
+            try:
+                with self._lock:
+                    _send(proc.stdin, _STOP)
+                    proc.stdin.close()
+            except (BrokenPipeError, OSError, ValueError):
+                pass
+            try:
+                proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for stream in (proc.stdin, proc.stdout):
+            try:
+                stream.close()
+            except OSError:
+                pass
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+def serve(make_handler: Callable[[Any], Callable[[Any], Any]], nice: int = 0) -> None:
+    """The child side: read the set-up message, build the handler from it, then answer requests
+    until the parent says stop or goes away. An exception in the handler is sent back as a
+    one-line error and the loop goes on (the parent decides what a failure means)."""
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    # Anything the handler prints must not corrupt the protocol stream.
+    sys.stdout = sys.stderr
+    try:
+        init = _receive(inp)
+    except EOFError:
+        return
+    if isinstance(init, str) and init == _STOP:
+        return
+    try:
+        handler = make_handler(init)
+        failure = None
+    except Exception as exc:
+        handler, failure = None, f"{type(exc).__name__}: {exc}"
+    while True:
+        try:
+            request = _receive(inp)
+        except EOFError:
+            return
+        if isinstance(request, str) and request == _STOP:
+            return
+        if failure is not None:
+            _send(out, ("error", f"set-up failed: {failure}"))
+            continue
+        try:
+            reply = ("ok", handler(request))
+        except Exception as exc:
+            reply = ("error", f"{type(exc).__name__}: {exc}")
+        _send(out, reply)

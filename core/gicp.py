@@ -31,7 +31,8 @@ open3d / 0.25 m         590         0.039 (0.08)    0.063 (0.17)    2.6         
 On two cores CPU time is the scarce resource: an S2M match every n_s2m = 2 scans (200 ms) fits
 with small_gicp, not with open3d. The price is that small_gicp holds the GIL for the 60–150 ms
 of a refinement (``gil_hold_ms`` in the bench): Python threads such as the particle filter's
-stall meanwhile; numba ``nogil`` kernels already running do not. ``backend="open3d"`` remains
+stall meanwhile; numba ``nogil`` kernels already running do not. The localizer therefore runs
+the S2M block in a child process (:mod:`lidarloc.core.s2m_worker`). ``backend="open3d"`` remains
 available.
 """
 

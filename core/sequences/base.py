@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from abc import ABC, abstractmethod
 from pathlib import Path
 
@@ -160,7 +161,7 @@ class DiskCachedScans(Limited):
             pass
         points = self.inner._read_scan(i)
         self.directory.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npy")
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npy")
         np.save(tmp, points)
         os.replace(tmp, path)
         return points

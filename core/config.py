@@ -88,6 +88,10 @@ class S2MConfig:
     # makes it ~0.2 s here). After localization the paper's local region applies. False = the
     # paper's experiments (local region from the first scan). See README "Method choices".
     global_until_localized: bool = True
+    # Real-time clock only: once localized, start an S2M match at most every this many scans
+    # (10 ≈ 1 Hz), leaving the CPU to the PF and the RPE, which must keep the LiDAR rate. 0 = back
+    # to back, as before localization and always in replay.
+    realtime_interval_localized: int = 10
 
 
 @dataclass
@@ -149,6 +153,7 @@ class Config:
             (self.s2m.match_resolution > 0, "s2m.match_resolution must be > 0"),
             (0 < self.s2m.angle_step <= math.pi, "s2m.angle_step must be in (0, π]"),
             (self.s2m.region_x > 0 and self.s2m.region_y > 0, "s2m.region_x/region_y must be > 0"),
+            (self.s2m.realtime_interval_localized >= 0, "s2m.realtime_interval_localized must be ≥ 0"),
             (1 <= self.s2m.n_s2m <= 50, "s2m.n_s2m must be in 1..50 (the odometry keeps 100 scans)"),
             (self.seed >= 0 and self.town.seed >= 0, "seeds must be ≥ 0"),
             (self.localize.std_threshold > 0, "localize.std_threshold must be > 0"),

@@ -179,6 +179,7 @@ class Localizer:
             self.est_trajectory: list[np.ndarray] = []
             self._s2m_job: _S2MJob | None = None
             self._s2m_generation = 0
+            self._last_s2m_start: int | None = None
             self._s2m_landed = 0
             self._s2m_accepted = 0
             self._last_s2m: S2MView | None = None
@@ -371,7 +372,7 @@ class Localizer:
                     self._enter_tracking(k)
                 # S2M starts from the highest-weight particle of this posterior; that slot is
                 # then protected through every resampling until the match lands.
-                if self.cfg.s2m.enabled and self._s2m_job is None and not entering_tracking:
+                if self.cfg.s2m.enabled and self._s2m_job is None and not entering_tracking and self._s2m_due(k):
                     self._start_s2m(k, est.best_index, scan)
                 t2 = time.perf_counter()
                 protect = self._s2m_job.particle if self._s2m_job is not None else None
@@ -474,12 +475,21 @@ class Localizer:
             cfg.region_y = min(cfg.region_y, self.cfg.localize.tracking_region)
         return cfg
 
+    def _s2m_due(self, k: int) -> bool:
+        """Back to back, except in real time once localized: then every
+        ``s2m.realtime_interval_localized`` scans at most (CPU for the PF and the RPE first)."""
+        every = self.cfg.s2m.realtime_interval_localized
+        if self.cfg.localize.clock != "realtime" or not self.rules.localized or every <= 0:
+            return True
+        return self._last_s2m_start is None or k - self._last_s2m_start >= every
+
     def _start_s2m(self, k: int, j: int, scan: np.ndarray) -> None:
         """Start a match of scan k from particle j's pose (RS, then S2M, in the background)."""
         start_pose = pose_matrix(*self.pf.states[j, :6])
         self._s2m_generation += 1
         future = self._s2m_pool.submit(self._run_s2m, self.matcher, scan, start_pose, self._s2m_job_config(j))
         self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
+        self._last_s2m_start = k
         self._event(k, "s2m_started", f"particle {j}")
 
     @staticmethod

@@ -303,3 +303,16 @@ def test_realtime_clock_counts_odometry_once(town, cache_root):
         assert len(steps) == 25 and loc._rpe_used is not None and loc._rpe_used >= 20
         assert sum(steps) == pytest.approx(loc.rpe.moved_since(0, loc._rpe_used), abs=1e-9)
         assert sum(steps) > 10.0, "the town drives ~1 m per scan"
+
+
+def test_realtime_s2m_spaced_once_localized(town, cache_root):
+    """Real time, once localized: S2M starts at most every s2m.realtime_interval_localized scans
+    (before localization, and in replay, back to back)."""
+    with make(town, cache_root, localize__clock="realtime", s2m__realtime_interval_localized=6) as loc:
+        scripted_std(loc, [3.0] * 40)
+        loc.run(40)
+        since = loc.rules.localized_since
+        assert since is not None
+        starts = [e.scan for e in loc.events if e.kind == "s2m_started" and e.scan > since]
+        assert len(starts) >= 2
+        assert all(b - a >= 6 for a, b in zip(starts, starts[1:]))

@@ -41,25 +41,6 @@ def _rotation_zyx(yaw, pitch, roll):
 
 
 @nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
-def _log_likelihood(states, scan, origin, inv_res, brick_index, bricks, sq_cost, out):
-    m = scan.shape[0]
-    for i in nb.prange(states.shape[0]):
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_zyx(states[i, 3], states[i, 4], states[i, 5])
-        tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
-        acc = 0.0
-        for j in range(m):
-            px = np.float64(scan[j, 0])
-            py = np.float64(scan[j, 1])
-            pz = np.float64(scan[j, 2])
-            code = lookup_code(r00 * px + r01 * py + r02 * pz + tx,
-                               r10 * px + r11 * py + r12 * pz + ty,
-                               r20 * px + r21 * py + r22 * pz + tz,
-                               origin, inv_res, brick_index, bricks)
-            acc += sq_cost[code]
-        out[i] = -acc
-
-
-@nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
 def _costs_until(states, scan, n_points, limit, origin, inv_res, brick_index, bricks, sq_cost, cost, complete):
     """Σ sq_cost over the first ``n_points`` scan points per particle, stopping early once the
     sum exceeds limit[i] (then complete[i] is False and cost[i] is the partial sum)."""
@@ -121,12 +102,16 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
     pts = np.ascontiguousarray(pts[:, :3], dtype=np.float32)
-    out = np.zeros(len(st), np.float64)
-    if len(st) == 0 or len(pts) == 0:
-        return out
-    cost = squared_cost_table(lookup, min(d_max, lookup.d_max_built), sigma)
-    _log_likelihood(st, pts, lookup.origin, lookup.inv_res, lookup.brick_index, lookup.bricks, cost, out)
-    return out
+    n = len(st)
+    if n == 0 or len(pts) == 0:
+        return np.zeros(n, np.float64)
+    cost_table = squared_cost_table(lookup, min(d_max, lookup.d_max_built), sigma)
+    cost = np.empty(n, np.float64)
+    complete = np.empty(n, np.bool_)
+    # the floored filter's kernel with no limit: the same sums in the same order
+    _costs_until(st, pts, len(pts), np.full(n, np.inf), lookup.origin, lookup.inv_res, lookup.brick_index,
+                 lookup.bricks, cost_table, cost, complete)
+    return -cost
 
 
 FLOOR_MARGIN = 800.0   # > 745: e^−margin is 0.0 in float64

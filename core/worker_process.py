@@ -114,6 +114,17 @@ class WorkerProcess:
             pass
 
 
+def _next_message(stream) -> tuple[bool, Any]:
+    """(False, None) when the parent closed the pipe or said stop, else (True, message)."""
+    try:
+        message = _receive(stream)
+    except EOFError:
+        return False, None
+    if isinstance(message, str) and message == _STOP:
+        return False, None
+    return True, message
+
+
 def serve(make_handler: Callable[[Any], Callable[[Any], Any]], nice: int = 0) -> None:
     """The child side: read the set-up message, build the handler from it, then answer requests
     until the parent says stop or goes away. An exception in the handler is sent back as a
@@ -126,11 +137,8 @@ def serve(make_handler: Callable[[Any], Callable[[Any], Any]], nice: int = 0) ->
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     # Anything the handler prints must not corrupt the protocol stream.
     sys.stdout = sys.stderr
-    try:
-        init = _receive(inp)
-    except EOFError:
-        return
-    if isinstance(init, str) and init == _STOP:
+    running, init = _next_message(inp)
+    if not running:
         return
     try:
         handler = make_handler(init)
@@ -138,11 +146,8 @@ def serve(make_handler: Callable[[Any], Callable[[Any], Any]], nice: int = 0) ->
     except Exception as exc:
         handler, failure = None, f"{type(exc).__name__}: {exc}"
     while True:
-        try:
-            request = _receive(inp)
-        except EOFError:
-            return
-        if isinstance(request, str) and request == _STOP:
+        running, request = _next_message(inp)
+        if not running:
             return
         if failure is not None:
             _send(out, ("error", f"set-up failed: {failure}"))

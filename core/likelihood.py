@@ -3,8 +3,9 @@
     log p(y | x_i) = −Σ_j min(d_j², d_max²) / σ²,   d_j = L(R_i·X_j + p_i)
 
 for every particle i, with R_i = R(yaw, pitch, roll) (z-y-x Euler, geometry.rotation_zyx) and
-L the lookup table. One numba kernel, parallel over particles; each particle's sum runs
-sequentially in one thread, so the result does not depend on the thread count.
+L the lookup table. One numba kernel (compiled parallel over particles, and serial for small
+passes); each particle's sum runs sequentially in one thread, so the result does not depend on
+the thread count.
 
 :func:`log_likelihood` is the plain sum for every particle. The filter uses
 :func:`log_likelihood_floored`, which gives the same log-weights wherever they can matter and
@@ -26,7 +27,9 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
-from .lookup import LookupTable, lookup_code
+from .lookup import _BRICK_MASK as BRICK_MASK
+from .lookup import _BRICK_SHIFT as BRICK_SHIFT
+from .lookup import MISS_CODE, LookupTable
 
 
 @nb.njit(inline="always", nogil=True, fastmath=True, cache=True)
@@ -40,30 +43,78 @@ def _rotation_zyx(yaw, pitch, roll):
             -sp, cp * sr, cp * cr)
 
 
-@nb.njit(parallel=True, nogil=True, fastmath=True, cache=True)
-def _costs_until(states, scan, n_points, limit, origin, inv_res, brick_index, bricks, sq_cost, cost, complete):
-    """Σ sq_cost over the first ``n_points`` scan points per particle, stopping early once the
-    sum exceeds limit[i] (then complete[i] is False and cost[i] is the partial sum)."""
-    for i in nb.prange(states.shape[0]):
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_zyx(states[i, 3], states[i, 4], states[i, 5])
-        tx, ty, tz = states[i, 0], states[i, 1], states[i, 2]
-        lim = limit[i]
-        acc = 0.0
-        done = True
-        for j in range(n_points):
-            px = np.float64(scan[j, 0])
-            py = np.float64(scan[j, 1])
-            pz = np.float64(scan[j, 2])
-            code = lookup_code(r00 * px + r01 * py + r02 * pz + tx,
-                               r10 * px + r11 * py + r12 * pz + ty,
-                               r20 * px + r21 * py + r22 * pz + tz,
-                               origin, inv_res, brick_index, bricks)
-            acc += sq_cost[code]
-            if acc > lim:
-                done = False
-                break
-        cost[i] = acc
-        complete[i] = done
+_CHUNK = 64    # scan points per inner block of the likelihood kernel
+
+
+def _make_costs_kernel(parallel: bool):
+    """The likelihood kernel, compiled parallel over particles or serial (same code, same sums).
+
+    ``setup`` is a closure cell on purpose: numba's on-disk cache keys a function by its file,
+    name and line plus its closure's contents, so the two twins get separate cache entries."""
+    setup = (_CHUNK, parallel)
+
+    def costs_until(states, scan, n_points, limit, origin, inv_res, brick_index, bricks, sq_cost, cost, complete):
+        """Σ sq_cost over the first ``n_points`` scan points per particle, stopping early once the
+        sum exceeds limit[i] (then complete[i] is False and cost[i] is the partial sum so far).
+
+        The read is :func:`~lidarloc.core.lookup.lookup_code`'s, restructured for speed (measured
+        ~15 % faster on the town's converged filter than a per-point loop of lookup_code calls):
+        the transform is folded with the grid origin and resolution and done in float32 (coordinates
+        are ≤ ~10⁴ cells: float32 keeps them to ~10⁻³ cell), and each block of _CHUNK points is
+        transformed in one branch-free loop the compiler vectorises, then read in a second loop.
+        The limit is checked once per block, so a particle may read up to _CHUNK − 1 points past it.
+        Each particle's sum runs in a fixed order in one thread: thread count never changes it."""
+        chunk = setup[0]
+        nbx, nby, nbz = brick_index.shape
+        flat_index = brick_index.ravel()
+        ir = np.float32(inv_res)
+        for i in nb.prange(states.shape[0]):
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation_zyx(states[i, 3], states[i, 4], states[i, 5])
+            # rotation scaled to cells, translation relative to the grid origin in cells
+            a00, a01, a02 = np.float32(r00) * ir, np.float32(r01) * ir, np.float32(r02) * ir
+            a10, a11, a12 = np.float32(r10) * ir, np.float32(r11) * ir, np.float32(r12) * ir
+            a20, a21, a22 = np.float32(r20) * ir, np.float32(r21) * ir, np.float32(r22) * ir
+            tx = np.float32((states[i, 0] - origin[0]) * inv_res)
+            ty = np.float32((states[i, 1] - origin[1]) * inv_res)
+            tz = np.float32((states[i, 2] - origin[2]) * inv_res)
+            lim = limit[i]
+            acc = 0.0
+            done = True
+            brick_at = np.empty(chunk, np.int64)
+            cell_at = np.empty(chunk, np.int64)
+            for j0 in range(0, n_points, chunk):
+                m = min(n_points, j0 + chunk) - j0
+                for q in range(m):
+                    px, py, pz = scan[j0 + q, 0], scan[j0 + q, 1], scan[j0 + q, 2]
+                    fx = a00 * px + a01 * py + a02 * pz + tx
+                    fy = a10 * px + a11 * py + a12 * pz + ty
+                    fz = a20 * px + a21 * py + a22 * pz + tz
+                    ix, iy, iz = np.int32(fx), np.int32(fy), np.int32(fz)
+                    bx, by, bz = ix >> BRICK_SHIFT, iy >> BRICK_SHIFT, iz >> BRICK_SHIFT
+                    inside = (fx >= 0) & (fy >= 0) & (fz >= 0) & (bx < nbx) & (by < nby) & (bz < nbz)
+                    brick_at[q] = (np.int64(bx) * nby + by) * nbz + bz if inside else -1
+                    cell_at[q] = ((ix & BRICK_MASK) << (2 * BRICK_SHIFT)) | ((iy & BRICK_MASK) << BRICK_SHIFT) | (iz & BRICK_MASK)
+                block = 0.0
+                for q in range(m):
+                    code = MISS_CODE
+                    if brick_at[q] >= 0:
+                        code = np.int64(bricks[flat_index[brick_at[q]], cell_at[q]])
+                    block += sq_cost[code]
+                acc += block
+                if acc > lim:
+                    done = False
+                    break
+            cost[i] = acc
+            complete[i] = done
+
+    return nb.njit(parallel=parallel, nogil=True, fastmath=True, cache=True)(costs_until)
+
+
+# Parallel over particles for the full passes; a serial twin (same code, same sums) for the
+# small ones — a handful of particles or a 1/32 subsample — where waking a second thread costs
+# more than it saves when another block's process holds the other core (measured ~10 ms/scan).
+_costs_until = _make_costs_kernel(parallel=True)
+_costs_until_serial = _make_costs_kernel(parallel=False)
 
 
 def scrambled_order(m: int) -> np.ndarray:
@@ -109,7 +160,8 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
     # the floored filter's kernel with no limit: the same sums in the same order
-    _costs_until(st, pts, len(pts), np.full(n, np.inf), lookup.origin, lookup.inv_res, lookup.brick_index,
+    kernel = _costs_until if n > 64 else _costs_until_serial
+    kernel(st, pts, len(pts), np.full(n, np.inf), lookup.origin, lookup.inv_res, lookup.brick_index,
                  lookup.bricks, cost_table, cost, complete)
     return -cost
 
@@ -142,13 +194,13 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
     no_limit = np.full(n, np.inf)
     # 1. A cheap look at every particle (1/32 of the points) names a few likely-best ones …
     n_sub = max(1, m // 32)
-    _costs_until(st, pts, n_sub, no_limit, *args, cost, complete)
+    _costs_until_serial(st, pts, n_sub, no_limit, *args, cost, complete)
     guess = prior - cost * (m / n_sub)
     top = np.argsort(-guess, kind="stable")[: min(4, n)]
     # 2. … whose full sums give a value every particle must come within ``margin`` of …
     top_cost = np.empty(len(top), np.float64)
     top_complete = np.empty(len(top), np.bool_)
-    _costs_until(st[top], pts, m, no_limit[: len(top)], *args, top_cost, top_complete)
+    _costs_until_serial(st[top], pts, m, no_limit[: len(top)], *args, top_cost, top_complete)
     bound = float(np.max(prior[top] - top_cost))
     # 3. … so the sum of particle i can stop once prior_i − partial > bound − margin fails.
     limit = prior - bound + margin

@@ -185,6 +185,10 @@ def test_log_likelihood_is_the_papers_sum(world):
             d = table.query(world_pts, d_max=d_max).astype(np.float64)
             expected.append(-np.sum(np.minimum(d * d, d_max * d_max)) / sigma ** 2)
         np.testing.assert_allclose(ll, expected, rtol=1e-4)
+    # the parallel kernel (> 64 particles) and its serial twin give the same sums bit for bit:
+    # PF.reweight() (one particle) must agree exactly with PF.update() (all of them)
+    many = np.repeat(states, 3, axis=0)
+    np.testing.assert_array_equal(log_likelihood(many, scan, table, 5.0, 0.5)[::3], log_likelihood(states, scan, table, 5.0, 0.5))
     # a lower d_max changes the values (no rebuild: the same table)
     assert not np.allclose(log_likelihood(states, scan, table, 2.0, 0.5), log_likelihood(states, scan, table, 5.0, 0.5))
 

@@ -91,7 +91,10 @@ def _make_costs_kernel(parallel: bool):
                     fz = a20 * px + a21 * py + a22 * pz + tz
                     ix, iy, iz = np.int32(fx), np.int32(fy), np.int32(fz)
                     bx, by, bz = ix >> BRICK_SHIFT, iy >> BRICK_SHIFT, iz >> BRICK_SHIFT
-                    inside = (fx >= 0) & (fy >= 0) & (fz >= 0) & (bx < nbx) & (by < nby) & (bz < nbz)
+                    # fx ≥ 0 rejects (−1, 0), which truncates to 0; bx ≥ 0 rejects ±inf and values
+                    # beyond int32, which convert to INT_MIN on x86; NaN fails every comparison
+                    inside = ((fx >= 0) & (fy >= 0) & (fz >= 0) & (bx >= 0) & (by >= 0) & (bz >= 0)
+                              & (bx < nbx) & (by < nby) & (bz < nbz))
                     brick_at[q] = (np.int64(bx) * nby + by) * nbz + bz if inside else -1
                     cell_at[q] = ((ix & BRICK_MASK) << (2 * BRICK_SHIFT)) | ((iy & BRICK_MASK) << BRICK_SHIFT) | (iz & BRICK_MASK)
                 block = 0.0

@@ -193,6 +193,18 @@ def test_log_likelihood_is_the_papers_sum(world):
     assert not np.allclose(log_likelihood(states, scan, table, 2.0, 0.5), log_likelihood(states, scan, table, 5.0, 0.5))
 
 
+def test_likelihood_reads_far_or_non_finite_poses_as_misses(world):
+    """Particles off the grid — far away, beyond int32 cells, ±inf or NaN — read d_max for
+    every point (a miss), never memory outside the table."""
+    pts, table = world
+    scan = pts[:500] - [12, 10, 1.7]
+    states = np.zeros((6, 11))
+    states[:, :3] = [[-1e3, 0, 0], [1e12, 1e12, 1e12], [np.inf, 0, 0], [-np.inf, 0, 0], [np.nan, 0, 0], [0, 0, 1e9]]
+    for n_copies in (1, 20):           # serial twin and parallel kernel
+        ll = log_likelihood(np.repeat(states, n_copies, axis=0), scan, table, 5.0, 0.5)
+        np.testing.assert_array_equal(ll, -len(scan) * 5.0 ** 2 / 0.5 ** 2)
+
+
 def test_floored_likelihood_gives_the_same_weights(world):
     pts, table = world
     rng = np.random.default_rng(1)

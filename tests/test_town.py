@@ -19,7 +19,7 @@ from lidarloc.core.sequences.kitti_io import cam0_to_lidar_poses, read_pose_line
 from lidarloc.core.sequences.kitti_odometry import KittiOdometry
 from lidarloc.core.sequences.lidar_sim import (HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG,
                                                LidarModel)
-from lidarloc.core.sequences.town import SENSOR_HEIGHT, TOWN_VERSION, TownSequence
+from lidarloc.core.sequences.town import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION, TownSequence, _body_sway
 
 
 @pytest.fixture(scope="module")
@@ -128,6 +128,39 @@ def test_car_follows_the_ground(town):
     assert np.ptp(p[:, 2]) > 0.2                               # it is not flat
     assert np.degrees(np.arccos(up[:, 2])).max() < 6.0         # but gently sloped
     np.testing.assert_allclose(world_to_town @ town.poses, town.poses_town, atol=1e-9)
+
+
+def test_body_sways_like_the_real_drives_car():
+    """Pitch and roll on the suspension: σ SWAY_STD at speed, ~0.09° change per 0.1 s scan (as
+    KITTI raw 0013's GPS/INS shows), still at a stop, the same for the same seed."""
+    times = np.arange(20000) * 0.1
+    speed = np.full(len(times), 10.0)
+    speed[:1000] = 0.0
+    pitch, roll = _body_sway(np.random.default_rng(7), times, speed)
+    for a in (pitch, roll):
+        assert np.all(a[:1000] == 0.0)
+        assert np.std(a[1000:]) == pytest.approx(SWAY_STD, rel=0.1)
+        assert np.degrees(np.std(np.diff(a[1000:]))) == pytest.approx(0.09, abs=0.015)
+    again = _body_sway(np.random.default_rng(7), times, speed)
+    np.testing.assert_array_equal(again[0], pitch)
+
+
+def test_odometry_reads_the_first_steps_of_the_town_drive(town):
+    """KISS-ICP measures the car's motion from the first scan (it read only about half of it
+    when the simulated body followed the smooth ground exactly and the ground rings repeated)."""
+    from kiss_icp.kiss_icp import KissICP
+
+    from lidarloc.core.rpe import _kiss_config
+
+    icp = KissICP(_kiss_config(100.0, 2.5, None))
+    odom = []
+    for k in range(11):
+        icp.register_frame(town.scan(k)[:, :3].astype(np.float64), np.zeros(0))
+        odom.append(icp.last_pose[:3, 3].copy())
+    measured = np.linalg.norm(np.diff(odom, axis=0), axis=1)
+    driven = np.linalg.norm(np.diff(town.poses[:11, :3, 3], axis=0), axis=1)
+    assert measured.sum() == pytest.approx(driven.sum(), rel=0.03)
+    assert np.all(np.abs(measured - driven) < 0.15)
 
 
 def test_identity_and_config(town, small_town):

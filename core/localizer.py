@@ -487,17 +487,19 @@ class Localizer:
         """Start a match of scan k from particle j's pose (RS, then S2M, in the background)."""
         start_pose = pose_matrix(*self.pf.states[j, :6])
         self._s2m_generation += 1
-        future = self._s2m_pool.submit(self._run_s2m, self.matcher, scan, start_pose, self._s2m_job_config(j))
+        # before localization the particle's z, pitch and roll are as random as its position
+        level = not self.rules.localized
+        future = self._s2m_pool.submit(self._run_s2m, self.matcher, scan, start_pose, self._s2m_job_config(j), level)
         self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
         self._last_s2m_start = k
         self._event(k, "s2m_started", f"particle {j}")
 
     @staticmethod
-    def _run_s2m(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg):
+    def _run_s2m(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):
         if isinstance(matcher, S2MProcess):     # the child process: it takes the live settings along
-            return matcher.match_local(scan, start_pose, s2m_cfg)
+            return matcher.match_local(scan, start_pose, s2m_cfg, level=level)
         matcher.cfg = s2m_cfg
-        return matcher.match_local(scan, start_pose)
+        return matcher.match_local(scan, start_pose, level=level)
 
     def _cancel_s2m(self) -> None:
         job = getattr(self, "_s2m_job", None)

@@ -152,9 +152,16 @@ class ScanToMapMatcher:
 
     # ------------------------------------------------------------------------------- matching
     def match_local(self, scan_sensor: np.ndarray, start_pose: np.ndarray, road_removed: bool = False,
-                    bev_scan: np.ndarray | None = None, prepared: PreparedScan | None = None) -> S2MOutcome:
+                    bev_scan: np.ndarray | None = None, prepared: PreparedScan | None = None,
+                    level: bool = False) -> S2MOutcome:
         """Match around ``start_pose`` (4×4 world ← LiDAR): translations ± (region_x, region_y), yaws
         within ± yaw_window.
+
+        ``level``: do not trust the start pose's z, pitch and roll (a particle before localization:
+        its attitude is as random as its position, up to ±30° of pitch). The scan is then levelled
+        with pitch = roll = 0 and GICP starts at the map's ground height under the match, as in
+        :meth:`match_global`. Measured: a filter collapsed on a wrong particle had every whole-map
+        match refused because GICP had to fix 8–14° of the particle's pitch and roll.
 
         ``scan_sensor`` is the full scan (sensor frame); its flat surfaces are removed here. To skip
         that, pass the road-removed scan as ``bev_scan`` (the full scan still feeds GICP), or pass a
@@ -166,6 +173,8 @@ class ScanToMapMatcher:
         cfg = self.cfg
         start_pose = np.asarray(start_pose, dtype=np.float64)
         x, y, z, yaw, pitch, roll = pose_to_xyz_ypr(start_pose)
+        if level:
+            z, pitch, roll = math.nan, 0.0, 0.0
         prep = prepared or self._prepare_with(scan_sensor, bev_scan, road_removed)
         B = self._bev(prep.road_removed, pitch, roll)
         start_score = m3rsm.score_pose(self.pyramid, B, x, y, yaw)
@@ -178,6 +187,8 @@ class ScanToMapMatcher:
                              cfg.angle_step, min_score=start_score)
         timings = {"prepare": prep.ms, "m3rsm": result.ms}
         if math.isfinite(result.x):
+            if not math.isfinite(z):
+                z = self._height_under(result.x, result.y, prep)
             init = pose_matrix(result.x, result.y, z, result.yaw, pitch, roll)
             return self._refine(init, prep, result, start_score, start_pose, t0, timings)
         reason = "no pose in the search region scores higher than the start pose"
@@ -215,11 +226,16 @@ class ScanToMapMatcher:
         result = m3rsm.match_global(self.pyramid, B, self.cfg.angle_step)
         timings = {"prepare": prep.ms, "m3rsm": result.ms}
         if not math.isfinite(z):
-            ground = self._ground.height(result.x, result.y)
-            scan_ground = prep.ground_z if math.isfinite(prep.ground_z) else -PFConfig().sensor_height
-            z = ground - scan_ground if math.isfinite(ground) else 0.0
+            z = self._height_under(result.x, result.y, prep)
         init = pose_matrix(result.x, result.y, z, result.yaw, pitch, roll)
         return self._refine(init, prep, result, math.nan, init, t0, timings)
+
+    def _height_under(self, x: float, y: float, prep: PreparedScan) -> float:
+        """Sensor z at (x, y): the map's ground height there minus the scan's own ground height
+        (or the configured sensor height when the scan's ground is gone)."""
+        ground = self._ground.height(x, y)
+        scan_ground = prep.ground_z if math.isfinite(prep.ground_z) else -PFConfig().sensor_height
+        return ground - scan_ground if math.isfinite(ground) else 0.0
 
     # -------------------------------------------------------------------------------- helpers
     def _prepare_with(self, scan_sensor, bev_scan, road_removed: bool) -> PreparedScan:

@@ -37,13 +37,13 @@ def _make_handler(init: tuple):
                                          s2m_cfg, map_cfg)}
 
     def handle(request):
-        kind, scan, start_pose, cfg = request
+        kind, scan, start_pose, cfg, level = request
         matcher = state["matcher"]
         if abs(cfg.match_resolution - matcher.pyramid.resolution) > 1e-9:
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
             matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg)
         matcher.cfg = cfg                      # live region / angle-step changes
-        return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None)
+        return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
 
     return handle
 
@@ -56,9 +56,9 @@ class S2MProcess:
         self._worker = WorkerProcess("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg), "S2M")
         self._worker.start()
 
-    def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg):
+    def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool = False):
         pts = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)
-        return self._worker.call(("match", pts, np.asarray(start_pose, np.float64), s2m_cfg))
+        return self._worker.call(("match", pts, np.asarray(start_pose, np.float64), s2m_cfg, bool(level)))
 
     def close(self) -> None:
         self._worker.close()

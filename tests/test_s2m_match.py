@@ -72,6 +72,24 @@ def test_perturbed_start_is_corrected_in_6dof(scene, matcher):
     assert out.scan_world.shape[1] == 3 and out.ms > 0 and set(out.timings) == {"prepare", "m3rsm", "gicp"}
 
 
+@pytest.mark.parametrize("level", [True, False])
+def test_level_ignores_a_random_attitude_and_height_of_the_start(scene, matcher, level):
+    """A particle before localization: position, yaw, z, pitch and roll all wrong (pitch 12°,
+    roll −6°, 3 m too high). ``level`` takes pitch = roll = 0 and the map's ground height instead
+    and the match is accepted and right; trusting the particle, GICP has to turn the match by more
+    than 3 angle steps and it is refused."""
+    truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
+    scan = cut_scan(scene, truth)
+    start = pose_matrix(70.3 + 6.2, 64.6 - 4.7, SENSOR_HEIGHT + 3.0, 0.9 + 25 * DEG, 12 * DEG, -6 * DEG)
+    out = matcher.match_local(scan, start, level=level)
+    if level:
+        assert out.accepted, out.reason
+        dt, dr = pose_error(out.pose, truth)
+        assert dt < 0.1 and dr < 0.3, (dt, dr)
+    else:
+        assert not out.accepted and "GICP" in out.reason
+
+
 def test_match_that_does_not_beat_the_start_is_rejected(scene):
     """Binary cells, and the start is the true pose of a scan made of the map's own wall points: every
     scan cell hits an occupied cell, the highest score any pose can reach, so nothing beats it."""

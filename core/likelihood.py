@@ -165,7 +165,7 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     # the floored filter's kernel with no limit: the same sums in the same order
     kernel = _costs_until if n > 64 else _costs_until_serial
     kernel(st, pts, len(pts), np.full(n, np.inf), lookup.origin, lookup.inv_res, lookup.brick_index,
-                 lookup.bricks, cost_table, cost, complete)
+           lookup.bricks, cost_table, cost, complete)
     return -cost
 
 

@@ -66,9 +66,7 @@ class WorkerProcess:
     def call(self, request: Any) -> Any:
         with self._lock:
             try:
-                if not self._init_sent:       # the child's set-up overlaps with the parent's
-                    _send(self._proc.stdin, self._init)
-                    self._init_sent = True
+                self._send_init_once()
                 _send(self._proc.stdin, request)
                 status, value = _receive(self._proc.stdout)
             except (BrokenPipeError, EOFError, OSError):
@@ -80,12 +78,16 @@ class WorkerProcess:
     def start(self) -> None:
         """Send the set-up message now, so the child prepares while the parent does other work."""
         with self._lock:
-            if not self._init_sent:
-                try:
-                    _send(self._proc.stdin, self._init)
-                except (BrokenPipeError, OSError):
-                    pass                       # reported by the first call
-                self._init_sent = True
+            try:
+                self._send_init_once()
+            except (BrokenPipeError, OSError):
+                pass                           # reported by the first call
+
+    def _send_init_once(self) -> None:
+        """The set-up message goes first, exactly once (caller holds the lock)."""
+        if not self._init_sent:
+            self._init_sent = True
+            _send(self._proc.stdin, self._init)
 
     def close(self) -> None:
         proc = self._proc

@@ -548,6 +548,7 @@ class LookupTable:
         self.bricks = np.ascontiguousarray(bricks, dtype=np.uint8)
         self.step = self.d_max_built / _MAX_CODE         # metres per code
         self.inv_res = 1.0 / self.resolution
+        self._flat_args: tuple | None = None
 
     # -------------------------------------------------------------------------- properties
     @property
@@ -558,6 +559,25 @@ class LookupTable:
     def n_bricks(self) -> int:
         """Allocated bricks, not counting the shared all-miss brick in slot 0."""
         return int(self.bricks.shape[0] - 1)
+
+    @property
+    def flat_kernel_args(self) -> tuple:
+        """(origin, inv_res, nbx, nby, nbz, slot_of_brick, cells) for the likelihood kernel.
+
+        ``slot_of_brick`` is brick_index flattened, plus one extra entry at nbx·nby·nbz holding
+        slot 0 (the shared all-miss brick): a point outside the grid reads through that entry, so
+        the read has no branch. ``cells`` is the brick pool flattened (slot · 512 + cell). Made
+        once per table; the brick shape is int32 so the kernel's index arithmetic stays 32-bit."""
+        if self._flat_args is None:
+            n_grid = self.brick_index.size
+            if n_grid >= 2**31 - 1:
+                raise LidarlocError(f"lookup table too large for the likelihood kernel: {n_grid} bricks in its grid")
+            slot_of_brick = np.empty(n_grid + 1, np.int32)
+            slot_of_brick[:n_grid] = self.brick_index.ravel()
+            slot_of_brick[n_grid] = 0
+            nbx, nby, nbz = (np.int32(s) for s in self.brick_index.shape)
+            self._flat_args = (self.origin, self.inv_res, nbx, nby, nbz, slot_of_brick, self.bricks.reshape(-1))
+        return self._flat_args
 
     @property
     def kernel_args(self) -> tuple:

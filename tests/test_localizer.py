@@ -152,6 +152,24 @@ def test_dead_block_process_stops_cleanly(town, cache_root):
     loc.close()
 
 
+def test_s2m_process_runs_at_lower_priority(town, cache_root):
+    """The S2M child lowers its nice value and, where the kernel groups sessions for scheduling
+    (autogroups), its group's too: otherwise it competes with the PF as an equal group."""
+    import os
+    from pathlib import Path
+
+    from lidarloc.core.s2m_worker import S2M_NICE
+
+    with make(town, cache_root) as loc:
+        loc.run(1)                    # the child has answered a request: its set-up is done
+        pid = loc.matcher._worker._proc.pid
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + S2M_NICE)
+        autogroup = Path(f"/proc/{pid}/autogroup")
+        if Path("/proc/sys/kernel/sched_autogroup_enabled").exists() and autogroup.exists():
+            if Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1":
+                assert autogroup.read_text().split()[-1] == str(S2M_NICE)
+
+
 def test_s2m_process_matches_thread(town, cache_root):
     """The S2M block gives the same trajectory in its child process as on a thread."""
     trajectories = []

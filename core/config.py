@@ -92,6 +92,13 @@ class S2MConfig:
     # (10 ≈ 1 Hz), leaving the CPU to the PF and the RPE, which must keep the LiDAR rate. 0 = back
     # to back, as before localization and always in replay.
     realtime_interval_localized: int = 10
+    # Replay clock only: nice value of the S2M child process (localize.s2m_process). In replay
+    # the step waits for each match at k + n_s2m, so the priority never changes a result; it
+    # keeps S2M work (in ``bench localize`` also the other runs' S2M processes) from pre-empting
+    # the PF, whose per-scan latency is then the PF's own. The real-time clock always runs S2M
+    # at nice 0: there it must make progress while the PF and the RPE keep the cores busy
+    # (measured on the real drive at nice 10: no match landed, the filter never localized).
+    replay_process_nice: int = 10
 
 
 @dataclass
@@ -154,6 +161,7 @@ class Config:
             (0 < self.s2m.angle_step <= math.pi, "s2m.angle_step must be in (0, π]"),
             (self.s2m.region_x > 0 and self.s2m.region_y > 0, "s2m.region_x/region_y must be > 0"),
             (self.s2m.realtime_interval_localized >= 0, "s2m.realtime_interval_localized must be ≥ 0"),
+            (0 <= self.s2m.replay_process_nice <= 19, "s2m.replay_process_nice must be in 0..19"),
             (1 <= self.s2m.n_s2m <= 50, "s2m.n_s2m must be in 1..50 (the odometry keeps 100 scans)"),
             (self.seed >= 0 and self.town.seed >= 0, "seeds must be ≥ 0"),
             (self.localize.std_threshold > 0, "localize.std_threshold must be > 0"),

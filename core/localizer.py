@@ -137,7 +137,7 @@ class Localizer:
                                                              progress=lambda f: self._progress("odometry", f))
         if cfg.localize.s2m_process:
             # loads the cached map and pyramid and builds its GICP target while we go on
-            self.matcher = S2MProcess(self.map_dir, cfg.map, cfg.s2m)
+            self.matcher = S2MProcess(self.map_dir, cfg.map, cfg.s2m, self._s2m_nice())
         else:
             self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, cfg.s2m, cfg.map)
         self._progress("ready", 1.0)
@@ -321,6 +321,7 @@ class Localizer:
                     pf.scan_voxel = float(value)
                 elif name == "clock":
                     self.cfg.localize.clock = value
+                    self._renice_s2m()
 
     def snapshot(self) -> Snapshot:
         return self._snapshot
@@ -493,6 +494,22 @@ class Localizer:
         self._s2m_job = _S2MJob(k, j, self._s2m_generation, start_pose, future)
         self._last_s2m_start = k
         self._event(k, "s2m_started", f"particle {j}")
+
+    def _s2m_nice(self) -> int:
+        """The S2M process's priority offset for the current clock (see s2m.replay_process_nice)."""
+        return self.cfg.s2m.replay_process_nice if self.cfg.localize.clock == "replay" else 0
+
+    def _renice_s2m(self) -> None:
+        """After a clock change: a process niced for replay cannot be raised back (that needs
+        privileges), so real time gets a fresh one at nice 0. The old one finishes its match on
+        the S2M thread, which then closes it; the caller does not wait."""
+        if not isinstance(self.matcher, S2MProcess) or self.matcher.nice == self._s2m_nice():
+            return
+        if self._s2m_nice() > self.matcher.nice:
+            return                    # back to replay: a higher priority changes no result
+        self._cancel_s2m()
+        old, self.matcher = self.matcher, S2MProcess(self.map_dir, self.cfg.map, self.cfg.s2m, self._s2m_nice())
+        self._s2m_pool.submit(old.close)
 
     @staticmethod
     def _run_s2m(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):

@@ -7,12 +7,11 @@ localizer against 35 ms alone). Here a child process loads the prior map and the
 from the map cache, builds its own GICP target once, and answers "match this scan from this
 pose" requests with an :class:`~lidarloc.core.s2m.S2MOutcome`.
 
-The child runs at a lower priority (nice 10, its scheduler autogroup too: see
-:func:`~lidarloc.core.worker_process.lower_priority`): S2M is the paper's asynchronous,
-best-effort block — its result is used whenever it lands — while the PF and the RPE must keep the
-LiDAR rate. In the replay clock the parent waits for the result anyway, and then the child has
-the CPU. Measured (two town runs side by side on 2 cores, one PF thread each): PF median 80 ms
-with the child at nice 0, 43 ms at nice 10 (43 ms at 19 too).
+In the replay clock the child runs at a lower priority (``s2m.replay_process_nice``, default
+10, its scheduler autogroup too: see :func:`~lidarloc.core.worker_process.lower_priority`). The
+parent waits for each match at k + n_s2m anyway, so the priority changes no result, only who
+waits for the CPU: measured with two town runs side by side on 2 cores (one PF thread each), PF
+median 80 ms with the child at nice 0, 43 ms at nice 10. The real-time clock keeps it at nice 0.
 """
 
 from __future__ import annotations
@@ -22,10 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .worker_process import WorkerProcess, serve
-
-#: Priority offset of the S2M process (see the module docstring).
-S2M_NICE = 10
+from .worker_process import WorkerProcess, lower_priority, serve
 
 
 def _make_handler(init: tuple):
@@ -33,7 +29,9 @@ def _make_handler(init: tuple):
     from .mapping import PriorMap
     from .s2m import ScanToMapMatcher
 
-    map_dir, map_cfg, s2m_cfg = init
+    map_dir, map_cfg, s2m_cfg, nice = init
+    if nice > 0:
+        lower_priority(nice)
     map_dir = Path(map_dir)
     prior_map = PriorMap.load(map_dir, json.loads((map_dir / "meta.json").read_text()))
     state = {"matcher": ScanToMapMatcher(prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg),
@@ -55,8 +53,9 @@ class S2MProcess:
     """Parent side: ``match_local(scan, start_pose, s2m_cfg)`` → S2MOutcome, computed in the child
     (RS, M3RSM and GICP). Set-up starts at construction and overlaps with the caller's work."""
 
-    def __init__(self, map_dir: Path, map_cfg, s2m_cfg):
-        self._worker = WorkerProcess("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg), "S2M")
+    def __init__(self, map_dir: Path, map_cfg, s2m_cfg, nice: int = 0):
+        self.nice = int(nice)
+        self._worker = WorkerProcess("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg, self.nice), "S2M")
         self._worker.start()
 
     def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool = False):
@@ -68,4 +67,4 @@ class S2MProcess:
 
 
 if __name__ == "__main__":
-    serve(_make_handler, nice=S2M_NICE)
+    serve(_make_handler)

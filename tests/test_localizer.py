@@ -152,22 +152,42 @@ def test_dead_block_process_stops_cleanly(town, cache_root):
     loc.close()
 
 
-def test_s2m_process_runs_at_lower_priority(town, cache_root):
-    """The S2M child lowers its nice value and, where the kernel groups sessions for scheduling
-    (autogroups), its group's too: otherwise it competes with the PF as an equal group."""
+def test_s2m_process_priority_follows_the_clock(town, cache_root):
+    """In replay the S2M child lowers its nice value and, where the kernel groups sessions for
+    scheduling (autogroups), its group's too (otherwise it competes with the PF as an equal
+    group). Switching to real time replaces it with a child at normal priority, which still
+    matches."""
     import os
     from pathlib import Path
 
-    from lidarloc.core.s2m_worker import S2M_NICE
+    def nice_of(pid):
+        value = os.getpriority(os.PRIO_PROCESS, pid)
+        group = Path(f"/proc/{pid}/autogroup")
+        enabled = Path("/proc/sys/kernel/sched_autogroup_enabled")
+        grouped = enabled.exists() and enabled.read_text().strip() == "1" and group.exists()
+        return value, (int(group.read_text().split()[-1]) if grouped else None)
 
+    own = os.getpriority(os.PRIO_PROCESS, 0)
     with make(town, cache_root) as loc:
-        loc.run(1)                    # the child has answered a request: its set-up is done
-        pid = loc.matcher._worker._proc.pid
-        assert os.getpriority(os.PRIO_PROCESS, pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + S2M_NICE)
-        autogroup = Path(f"/proc/{pid}/autogroup")
-        if Path("/proc/sys/kernel/sched_autogroup_enabled").exists() and autogroup.exists():
-            if Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1":
-                assert autogroup.read_text().split()[-1] == str(S2M_NICE)
+        want = loc.cfg.s2m.replay_process_nice
+        assert want > 0
+        loc.run(3)                    # the first match landed at scan 2: the child is set up
+        assert any(e.kind in ("s2m_accepted", "s2m_rejected") for e in loc.events)
+        first = loc.matcher._worker._proc
+        value, group = nice_of(first.pid)
+        assert value == min(19, own + want)
+        assert group in (None, want)
+        loc.set_params(clock="realtime")
+        assert loc.matcher._worker._proc is not first
+        loc.run(3)
+        value, group = nice_of(loc.matcher._worker._proc.pid)
+        assert value == own and group in (None, 0)
+        assert first.wait(timeout=30) is not None          # the replaced child was closed
+        job = loc._s2m_job            # real time lands a match at the first scan after it is done
+        assert job is not None and job.started_at >= 3
+        job.future.result(timeout=120)
+        loc.run(1)
+        assert any(e.kind in ("s2m_accepted", "s2m_rejected") for e in loc.events if e.scan >= 4)
 
 
 def test_s2m_process_matches_thread(town, cache_root):

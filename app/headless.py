@@ -22,7 +22,9 @@ from lidarloc.core.results import write_events, write_json, write_kitti, write_r
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 
-def summarize(loc: Localizer, wall_s: float, late_scans: int | None = None, max_lag_ms: float | None = None) -> dict:
+def summarize(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None) -> dict:
+    """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
+    after its arrival time its step started."""
     recs = loc.records
     localized = np.array([r.localized for r in recs], dtype=bool)
     err = np.array([np.nan if r.error_m is None else r.error_m for r in recs], dtype=float)
@@ -47,9 +49,25 @@ def summarize(loc: Localizer, wall_s: float, late_scans: int | None = None, max_
         "s2m_landed": kinds.count("s2m_accepted") + kinds.count("s2m_rejected"),
         "s2m_accepted": kinds.count("s2m_accepted"),
         "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
-        "late_scans": late_scans, "max_lag_ms": max_lag_ms,
+        **_lag_summary(lags_ms),
         "metrics": metrics,
     }
+
+
+LATE_MS = 100.0   # a step that starts this much after its scan arrived is late (one LiDAR period)
+
+
+def _lag_summary(lags_ms: list[float] | None) -> dict:
+    """How well the real-time clock kept up: late scans, the largest lag, and from which scan on
+    it kept up (every later step started within LATE_MS of its scan's arrival; None = it was
+    still late at the end). None everywhere in replay."""
+    if lags_ms is None:
+        return {"late_scans": None, "max_lag_ms": None, "lag_at_end_ms": None, "kept_up_from_scan": None}
+    lag = np.asarray(lags_ms, dtype=float)
+    late = np.flatnonzero(lag > LATE_MS)
+    return {"late_scans": int(late.size), "max_lag_ms": float(lag.max()) if lag.size else 0.0,
+            "lag_at_end_ms": float(lag[-1]) if lag.size else 0.0,
+            "kept_up_from_scan": 0 if not late.size else (int(late[-1]) + 1 if late[-1] + 1 < lag.size else None)}
 
 
 def write_outputs(loc: Localizer, out: Path, summary: dict) -> None:
@@ -92,7 +110,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
             task, description=f"preparing {stage}", completed=100 * f))
     realtime = cfg.localize.clock == "realtime"
-    late, max_lag = 0, 0.0
+    lags: list[float] = []
     # Ctrl-C sets a flag that the loop checks between scans: the scan in progress completes
     # (state stays consistent) and everything computed so far is written.
     stop = threading.Event()
@@ -111,9 +129,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                     if now < due:
                         stop.wait(due - now)
                         continue
-                    lag = (now - due) * 1000.0
-                    max_lag = max(max_lag, lag)
-                    late += lag > 100.0
+                    lags.append(max(0.0, (now - due) * 1000.0))
                 snap = loc.step()
                 bar.update(task, completed=snap.scan_index + 1,
                            description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
@@ -125,7 +141,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         interrupted = stop.is_set()
         if interrupted:
             console.print("[yellow]interrupted: writing what was computed[/yellow]")
-        summary = summarize(loc, wall, late if realtime else None, max_lag if realtime else None)
+        summary = summarize(loc, wall, lags[: len(loc.records)] if realtime else None)
         summary["interrupted"] = interrupted
         write_outputs(loc, out, summary)
     console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "

@@ -247,6 +247,17 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
         assert key in s
 
 
+def test_realtime_lag_summary():
+    """How the real-time clock kept up, from each step's start lag after its scan's arrival."""
+    from lidarloc.app.headless import _lag_summary
+
+    assert _lag_summary(None)["kept_up_from_scan"] is None            # replay: no real-time figures
+    s = _lag_summary([0.0, 250.0, 400.0, 120.0, 80.0, 10.0, 0.0])
+    assert s == {"late_scans": 3, "max_lag_ms": 400.0, "lag_at_end_ms": 0.0, "kept_up_from_scan": 4}
+    assert _lag_summary([0.0, 5.0])["kept_up_from_scan"] == 0
+    assert _lag_summary([0.0, 150.0, 300.0])["kept_up_from_scan"] is None  # still late at the end
+
+
 def test_cli_run_ctrl_c_writes_results(tmp_path, cache_root):
     import os
 

@@ -142,7 +142,7 @@ def scrambled_order(m: int) -> np.ndarray:
 def squared_cost_table(lookup: LookupTable, d_max: float, sigma: float) -> np.ndarray:
     """min(d², d_max²)/σ² for each of the 256 distance codes (code 255: a miss, = d_max)."""
     d = np.minimum(np.arange(256, dtype=np.float64) * lookup.step, d_max)
-    d[255] = d_max
+    d[MISS_CODE] = d_max
     return d * d / (sigma * sigma)
 
 

@@ -8,8 +8,8 @@ process runs them truly in parallel; arrays cross a pipe (a 120k-point scan in f
 Plain ``subprocess`` + ``python -m module`` instead of ``multiprocessing``: the caller's
 ``__main__`` is never re-imported, so scripts without a main guard work too. Each child gets its
 own session, so a Ctrl-C at the terminal reaches only the parent, which then closes its workers
-in order. The child may lower its own priority (``nice``): a best-effort block (S2M) then only
-gets the CPU the real-time blocks (PF, RPE) leave.
+in order. A child may lower its own priority (:func:`lower_priority`, from its set-up message):
+a best-effort block (S2M) then only gets the CPU the real-time blocks (PF, RPE) leave.
 
 Wire protocol (stdin → child, child → stdout): one length-prefixed pickle per message (protocol
 5). A request is any picklable object; the reply is ``("ok", value)`` or ``("error", message)``.
@@ -147,12 +147,10 @@ def lower_priority(nice: int) -> None:
         pass
 
 
-def serve(make_handler: Callable[[Any], Callable[[Any], Any]], nice: int = 0) -> None:
+def serve(make_handler: Callable[[Any], Callable[[Any], Any]]) -> None:
     """The child side: read the set-up message, build the handler from it, then answer requests
     until the parent says stop or goes away. An exception in the handler is sent back as a
     one-line error and the loop goes on (the parent decides what a failure means)."""
-    if nice:
-        lower_priority(nice)
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     # Anything the handler prints must not corrupt the protocol stream.
     sys.stdout = sys.stderr

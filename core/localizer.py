@@ -503,12 +503,12 @@ class Localizer:
         """After a clock change: a process niced for replay cannot be raised back (that needs
         privileges), so real time gets a fresh one at nice 0. The old one finishes its match on
         the S2M thread, which then closes it; the caller does not wait."""
-        if not isinstance(self.matcher, S2MProcess) or self.matcher.nice == self._s2m_nice():
+        nice = self._s2m_nice()
+        # same nice, or back to replay (a higher priority there changes no result): keep it
+        if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
             return
-        if self._s2m_nice() > self.matcher.nice:
-            return                    # back to replay: a higher priority changes no result
         self._cancel_s2m()
-        old, self.matcher = self.matcher, S2MProcess(self.map_dir, self.cfg.map, self.cfg.s2m, self._s2m_nice())
+        old, self.matcher = self.matcher, S2MProcess(self.map_dir, self.cfg.map, self.cfg.s2m, nice)
         self._s2m_pool.submit(old.close)
 
     @staticmethod

@@ -67,8 +67,9 @@ Changing d_max
     needs no rebuild. ``load_or_build_lookup`` also reuses a cached table of the same δ built for
     a larger d_max.
 
-``lookup_code`` is a numba ``nogil`` function for use inside other numba kernels (the
-likelihood); ``LookupTable.kernel_args`` gives the arrays it needs.
+``lookup_code`` is a numba ``nogil`` function for use inside other numba kernels (it serves
+``LookupTable.query``); ``LookupTable.kernel_args`` gives the arrays it needs. The likelihood
+kernel inlines the same read in a vectorisable form and takes ``LookupTable.flat_kernel_args``.
 """
 
 from __future__ import annotations

@@ -198,6 +198,21 @@ def bench_s2m(
     emit_json(run_bench(source=source, scans=scans, data_dir=data, out_dir=out))
 
 
+@bench_app.command("rpe")
+def bench_rpe(
+    source: Annotated[str, typer.Option("--source", help="town or kitti_raw")] = "town",
+    scans: Annotated[int, typer.Option("--scans", min=11)] = 300,
+    convergence: Annotated[Optional[list[float]], typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")] = None,
+    data: Annotated[Path, typer.Option("--data")] = Path("../shared/data"),
+    as_json: Annotated[bool, typer.Option("--json")] = False,
+):
+    """KISS-ICP odometry: registration time and error against the truth per convergence setting."""
+    from .bench_rpe import run as run_bench
+
+    emit_json(run_bench(source=source, scans=scans, data_dir=data,
+                        **({"convergences": tuple(convergence)} if convergence else {})))
+
+
 @bench_app.command("viewer")
 def bench_viewer(as_json: Annotated[bool, typer.Option("--json")] = False):
     """Server-side cost of one display update."""

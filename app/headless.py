@@ -110,6 +110,12 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
             task, description=f"preparing {stage}", completed=100 * f))
     realtime = cfg.localize.clock == "realtime"
+    if realtime:
+        try:
+            loc.wait_ready()     # the sensor's clock starts once every block is up
+        except BaseException:
+            loc.close()
+            raise
     lags: list[float] = []
     # Ctrl-C sets a flag that the loop checks between scans: the scan in progress completes
     # (state stays consistent) and everything computed so far is written.

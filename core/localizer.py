@@ -37,6 +37,7 @@ import math
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
@@ -51,6 +52,11 @@ from .rules import LocalizationRules
 from .s2m_worker import S2MProcess
 from .scanprep import voxel_downsample_random
 from .snapshot import Event, S2MView, Snapshot
+
+
+# Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
+# the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
+REALTIME_LAND_WAIT_S = 0.03
 
 
 class BlockError(LidarlocError):
@@ -200,6 +206,27 @@ class Localizer:
             self._kiss_process.close()
         if isinstance(self.matcher, S2MProcess):
             self.matcher.close()
+
+    def wait_ready(self) -> None:
+        """Block until every block is ready to work at full speed: the child processes (S2M's map,
+        pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up and this
+        process's kernels are loaded. The real-time clock calls this before its first scan is
+        due: a sensor's scans start arriving once the system is up, and set-up still running would
+        take the CPU from the first scans (measured on the real drive: the first whole-map match,
+        started at scan 0, landed only at scan ~21)."""
+        from .likelihood import log_likelihood_floored
+
+        # this process's own one-off costs too: numba loads a kernel from its cache at the first
+        # call (~0.3 s for the scan down-sampling, measured), here instead of in scan 0's step
+        few = np.asarray(self.prior_map.points[:64], dtype=np.float32)
+        voxel_downsample_random(few, self.cfg.pf.scan_voxel, 0)
+        log_likelihood_floored(self.pf.states[:2], few, self.lookup, self.cfg.pf.d_max, self.cfg.pf.sigma, np.zeros(2))
+        for worker in (self.matcher, self._kiss_process):
+            if hasattr(worker, "wait_ready"):
+                try:
+                    worker.wait_ready()
+                except RuntimeError as exc:
+                    raise BlockError(str(exc)) from None
 
     def _new_rpe(self):
         """A fresh odometry. KISS-ICP holds the GIL while it registers a scan, so by default it
@@ -531,7 +558,7 @@ class Localizer:
         if self.cfg.localize.clock == "replay":
             if k < job.started_at + self.cfg.s2m.n_s2m:
                 return None
-        elif not job.future.done():
+        elif not job.future.done() or not self._odometry_ready_to_land(job, k):
             return None   # real time: land at the first scan after the match finished
         self._s2m_job = None
         outcome = self._wait(job.future, "S2M", k)
@@ -569,6 +596,26 @@ class Localizer:
             scan_world=scan_world,
             region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
         return float(outcome.ms)
+
+    def _odometry_ready_to_land(self, job: _S2MJob, k: int) -> bool:
+        """Real time: an accepted match is carried forward with scan k's odometry, so it lands
+        only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
+        while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
+        at the next scan, its particle still protected. Blocking until the odometry is
+        done instead stalled the PF behind KISS-ICP's backlog: one town scan takes KISS-ICP
+        0.65 s (``lidarloc bench rpe``), and the landing that waited for it made 16 scans late.
+        A failed or rejected match needs no odometry and lands at once."""
+        try:
+            if not job.future.result().accepted:
+                return True
+            previous = self._rpe_futures.get(k - 1)
+            behind = previous is not None and not previous.done()   # a backlog: do not wait
+            self._rpe_futures[k].result(timeout=0.0 if behind else REALTIME_LAND_WAIT_S)
+        except FutureTimeout:
+            return False
+        except Exception:
+            return True       # a block's failure: the landing reports it
+        return True
 
     # ------------------------------------------------------------------------ background rebuilds
     def _rebuild_lookup(self, d_max: float) -> None:

@@ -51,6 +51,9 @@ class KissICPProcess:
     def reset(self) -> None:
         self.last_pose = np.array(self._worker.call(("reset", None)), dtype=np.float64)
 
+    def wait_ready(self) -> None:
+        self._worker.wait_ready()
+
     def close(self) -> None:
         self._worker.close()
 

@@ -27,6 +27,7 @@ from typing import Any, Callable
 
 _LEN = struct.Struct("<Q")
 _STOP = "__stop__"
+_PING = "__ping__"    # answered by the serving loop itself, once the handler is built
 
 
 def _read_exact(stream, n: int) -> bytes:
@@ -74,6 +75,10 @@ class WorkerProcess:
         if status == "error":
             raise RuntimeError(value)
         return value
+
+    def wait_ready(self) -> None:
+        """Block until the child has finished its set-up (a set-up failure raises here)."""
+        self.call(_PING)
 
     def start(self) -> None:
         """Send the set-up message now, so the child prepares while the parent does other work."""
@@ -168,6 +173,9 @@ def serve(make_handler: Callable[[Any], Callable[[Any], Any]]) -> None:
             return
         if failure is not None:
             _send(out, ("error", f"set-up failed: {failure}"))
+            continue
+        if isinstance(request, str) and request == _PING:
+            _send(out, ("ok", True))
             continue
         try:
             reply = ("ok", handler(request))

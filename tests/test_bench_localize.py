@@ -43,7 +43,7 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert all(r["localized_at_scan"] != "" for r in rows if r["within_5m_to_end"] == "1")
     assert summary["within_5m_to_end_ratio"] == sum(w == "1" for w in within) / 3
     # the odometry was computed once into the cache, and the town's scans stored once
-    assert list((tmp_path / "cache").glob("map-*/odometry-kiss/poses.npy"))
+    assert list((tmp_path / "cache").glob("map-*/odometry-kiss-*/poses.npy"))
     assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS
     # resumable: a second call keeps the finished runs (same numbers, nothing recomputed)
     stamp = (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns

@@ -365,3 +365,67 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
         starts = [e.scan for e in loc.events if e.kind == "s2m_started" and e.scan > since]
         assert len(starts) >= 2
         assert all(b - a >= 6 for a, b in zip(starts, starts[1:]))
+
+
+def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, monkeypatch):
+    """Real time: an accepted match whose scan's odometry is not ready lands at a later scan
+    (its particle still protected) instead of stalling the PF behind KISS-ICP."""
+    import threading
+
+    from lidarloc.core import localizer as localizer_module
+    from lidarloc.core.s2m import S2MOutcome
+
+    gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
+    loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
+    try:
+        real_add = loc._rpe_add
+
+        def add(rpe, k, scan, t):
+            if k >= 3:
+                gate.wait()
+            real_add(rpe, k, scan, t)
+        loc._rpe_add = add
+        loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
+            accepted=True, pose=np.asarray(pose), score=1.0, start_score=0.0, region=(0, 0, 1, 1), ms=1.0)
+        loc.run(3)
+        job = loc._s2m_job
+        assert job is not None and job.started_at == 2
+        job.future.result(timeout=60)
+
+        def steps(n):                  # on a thread: a landing that blocked on the gate would hang
+            worker = threading.Thread(target=loc.run, args=(n,))
+            worker.start()
+            worker.join(timeout=60)
+            assert not worker.is_alive(), "the step waited for the stalled odometry"
+        steps(2)                       # scans 3 and 4: the match is done but cannot land yet
+        assert loc._s2m_job is job
+        assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and "started 2" in e.detail]
+        gate.set()
+        for k in (3, 4):
+            loc._rpe_futures[k].result(timeout=60)
+        # the odometry has caught up: the landing now waits for scan 5's (long enough here)
+        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)
+        steps(1)
+        landed = [e for e in loc.events if e.kind == "s2m_accepted" and "started 2" in e.detail]
+        assert [e.scan for e in landed] == [5]
+        assert loc._last_s2m.started_at == 2 and loc._last_s2m.landed_at == 5
+    finally:
+        gate.set()
+        loc.close()
+
+
+def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
+    """wait_ready() blocks until the child processes are set up, and a set-up failure is a clear
+    one-line error there, before the real-time clock starts."""
+    from lidarloc.core.s2m_worker import S2MProcess
+
+    with make(town, cache_root) as loc:
+        loc.wait_ready()               # the normal case: returns once everything is up
+        good = loc.matcher
+        loc.matcher = S2MProcess(tmp_path / "no-such-map", loc.cfg.map, loc.cfg.s2m)
+        try:
+            with pytest.raises(BlockError, match="set-up failed: FileNotFoundError"):
+                loc.wait_ready()
+        finally:
+            loc.matcher.close()
+            loc.matcher = good

@@ -1,0 +1,58 @@
+"""RPE benchmark: KISS-ICP's registration time and accuracy under several convergence settings.
+
+Each setting registers the first ``scans`` scans of a sequence in-process (one thread, as the
+localizer runs it) and is compared with the sequence's ground truth:
+
+* ``ms_median``: one ``register_frame`` call (crop, voxelisation, ICP, local-map update);
+* ``step_error_cm``: translation error of each scan-to-scan relative pose (median, p95);
+* ``drift_10_pct``: median translation error over 10-scan windows, relative to their length;
+* ``end_drift_pct``: end-point error relative to the distance driven.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lidarloc.core.geometry import inv_pose
+from lidarloc.core.rpe import KISS_CONVERGENCE, _kiss_config
+
+from .bench_s2m import open_source
+
+
+def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
+    from kiss_icp.kiss_icp import KissICP
+
+    icp = KissICP(_kiss_config(100.0, 2.5, None, convergence))
+    ms, poses = [], []
+    for scan in scans:
+        t0 = time.perf_counter()
+        icp.register_frame(scan, np.zeros(0))
+        ms.append((time.perf_counter() - t0) * 1e3)
+        poses.append(icp.last_pose.copy())
+    n = len(scans)
+
+    def rel_error(i: int, j: int) -> tuple[float, float]:
+        truth = inv_pose(G[i]) @ G[j]
+        est = inv_pose(poses[i]) @ poses[j]
+        return float(np.linalg.norm(est[:3, 3] - truth[:3, 3])), float(np.linalg.norm(truth[:3, 3]))
+
+    step = [rel_error(i, i + 1)[0] for i in range(n - 1)]
+    windows = [rel_error(i, i + 10) for i in range(n - 10)]
+    path = float(sum(np.linalg.norm(G[i + 1][:3, 3] - G[i][:3, 3]) for i in range(n - 1)))
+    end_err, _ = rel_error(0, n - 1)
+    return {"convergence": convergence, "ms_median": float(np.median(ms)),
+            "step_error_cm_median": 100 * float(np.median(step)), "step_error_cm_p95": 100 * float(np.percentile(step, 95)),
+            "drift_10_pct": 100 * float(np.median([e / max(d, 1e-6) for e, d in windows])) if windows else None,
+            "end_drift_pct": 100 * end_err / max(path, 1e-9), "path_m": path}
+
+
+def run(source: str = "town", scans: int = 300, convergences: tuple[float, ...] = (1e-4, KISS_CONVERGENCE),
+        data_dir: Path = Path("../shared/data")) -> dict:
+    seq = open_source(source, data_dir)
+    n = min(scans, len(seq))
+    points = [np.asarray(seq.scan(k)[:, :3], dtype=np.float64) for k in range(n)]
+    return {"source": source, "scans": n, "default_convergence": KISS_CONVERGENCE,
+            "settings": [measure(points, seq.poses[:n], float(c)) for c in convergences]}

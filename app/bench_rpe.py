@@ -3,7 +3,8 @@
 Each setting registers the first ``scans`` scans of a sequence in-process (one thread, as the
 localizer runs it) and is compared with the sequence's ground truth:
 
-* ``ms_median``: one ``register_frame`` call (crop, voxelisation, ICP, local-map update);
+* ``ms_median``, ``ms_max`` (at scan ``ms_max_scan``): one ``register_frame`` call (crop,
+  voxelisation, ICP, local-map update);
 * ``step_error_cm``: translation error of each scan-to-scan relative pose (median, p95);
 * ``drift_10_pct``: median translation error over 10-scan windows, relative to their length;
 * ``end_drift_pct``: end-point error relative to the distance driven.
@@ -43,7 +44,8 @@ def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
     windows = [rel_error(i, i + 10) for i in range(n - 10)]
     path = float(sum(np.linalg.norm(G[i + 1][:3, 3] - G[i][:3, 3]) for i in range(n - 1)))
     end_err, _ = rel_error(0, n - 1)
-    return {"convergence": convergence, "ms_median": float(np.median(ms)),
+    return {"convergence": convergence, "ms_median": float(np.median(ms)), "ms_max": float(np.max(ms)),
+            "ms_max_scan": int(np.argmax(ms)),
             "step_error_cm_median": 100 * float(np.median(step)), "step_error_cm_p95": 100 * float(np.percentile(step, 95)),
             "drift_10_pct": 100 * float(np.median([e / max(d, 1e-6) for e, d in windows])) if windows else None,
             "end_drift_pct": 100 * end_err / max(path, 1e-9), "path_m": path}

@@ -1,7 +1,8 @@
 """KISS-ICP in its own process.
 
-KISS-ICP's Python binding holds the GIL while it registers a scan (~90 ms on this project's
-2-core reference machine, measured: a Python thread beside it ran at ~20 % of its normal rate).
+KISS-ICP's Python binding holds the GIL while it registers a scan (~45 ms per KITTI scan on this
+project's 2-core reference machine, ``lidarloc bench rpe``; measured: a Python thread beside it
+ran at ~20 % of its normal rate).
 In a thread it would stall the particle filter's Python code for that long every scan. Running it
 in a child process (:mod:`lidarloc.core.worker_process`) makes the RPE block truly parallel; the
 parent sends each scan (float32) and receives the 4×4 odometry pose.

@@ -2,7 +2,7 @@
 
 Runs use the replay clock (deterministic per seed). Each run writes ``runs/seed_NNN/`` with its
 summary and per-scan CSV; a run whose summary exists is kept, so an interrupted benchmark
-resumes where it stopped. The map, lookup table, BEV pyramid and (unless ``--live-odometry``) the
+resumes where it stopped (only with the same source, configuration and code, else it refuses). The map, lookup table, BEV pyramid and (unless ``--live-odometry``) the
 KISS-ICP odometry of the sequence are built once, in the parent, into the cache that every
 worker then loads (process pool or Ray tasks alike). The odometry does not depend on the seed,
 so replaying it changes no number (tested) and saves each run ~60–90 ms of CPU per scan.
@@ -31,6 +31,22 @@ from .headless import make_out_dir
 # The paper's figures for KITTI 05, 250 runs (Simulation section), for the report table.
 PAPER = {"B": {"p75": 14, "max": 24}, "A": {"p75": 17, "max": 28}, "C": {"p75": 16, "max": 78},
          "D": {"p75": None, "max": 90}, "E": {"p75": None, "max": None}, "latency_s": 0.4}
+
+
+def code_fingerprint() -> str:
+    """SHA-256 of lidarloc's own Python sources (core and app): two benchmark runs resume into
+    one report only if they ran the same code."""
+    import hashlib
+
+    import lidarloc.app
+    import lidarloc.core
+
+    digest = hashlib.sha256()
+    for package in (lidarloc.core, lidarloc.app):
+        root = Path(package.__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
 def _spec_dict(spec: SourceSpec) -> dict:
@@ -109,11 +125,13 @@ def run_bench(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: P
     make_out_dir(out_dir)
     spec_d, cfg_d = _spec_dict(spec), cfg.to_dict()
     cfg_d.pop("seed", None)
-    # Resuming is only honest with the same source and configuration: refuse a mixed directory.
-    identity = json.dumps({"source": spec_d, "config": cfg_d}, sort_keys=True, default=str)
+    # Resuming is only honest with the same source, configuration and code: refuse a mixed
+    # directory (runs kept from before a code change would silently mix two versions' numbers).
+    identity = json.dumps({"source": spec_d, "config": cfg_d, "code": code_fingerprint()}, sort_keys=True, default=str)
     marker = out_dir / "bench_config.json"
     if marker.is_file() and marker.read_text() != identity:
-        raise LidarlocError(f"{out_dir}: holds runs of another source or configuration; use another --out")
+        raise LidarlocError(f"{out_dir}: holds runs of another source, configuration or version of lidarloc's "
+                            "code; use another --out")
     marker.write_text(identity)
     _prepare_cache(spec, cfg, cache_root, console)
     cache = str(cache_root) if cache_root else None

@@ -50,6 +50,15 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     agg2 = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
     assert (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns == stamp
     assert agg2["B"] == agg["B"]
+    # … but not into runs of other code: they would mix two versions' numbers in one report
+    from lidarloc.app import bench_localize
+    from lidarloc.core.errors import LidarlocError
+
+    marker = out / "bench_config.json"
+    assert json.loads(marker.read_text())["code"] == bench_localize.code_fingerprint()
+    marker.write_text(marker.read_text().replace(bench_localize.code_fingerprint(), "0" * 64))
+    with pytest.raises(LidarlocError, match="version of lidarloc's code"):
+        run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
 
 
 def test_ray_matches_process_pool(tmp_path):

@@ -56,5 +56,5 @@ def run(source: str = "town", scans: int = 300, convergences: tuple[float, ...] 
     seq = open_source(source, data_dir)
     n = min(scans, len(seq))
     points = [np.asarray(seq.scan(k)[:, :3], dtype=np.float64) for k in range(n)]
-    return {"source": source, "scans": n, "default_convergence": KISS_CONVERGENCE,
+    return {"source": source, "scans": n, "localizer_convergence": KISS_CONVERGENCE,
             "settings": [measure(points, seq.poses[:n], float(c)) for c in convergences]}

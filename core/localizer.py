@@ -19,8 +19,9 @@ Data flow for scan k (paper, Fig. "block diagram"):
 
 Two clocks: ``replay`` lands every S2M result exactly ``n_s2m`` scans after it started (the
 step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime`` lands a
-result at the first scan after it finished, and the rules read the newest finished odometry
-instead of waiting for scan k's, so KISS-ICP and the PF overlap across scans.
+result at the first scan after it finished whose odometry is ready (an accepted match is carried
+forward with it; see ``_odometry_ready_to_land``), and the rules read the newest finished
+odometry instead of waiting for scan k's, so KISS-ICP and the PF overlap across scans.
 
 Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
 usual but protect the S2M particle's slot (the PF's ``protect`` argument), which keeps the
@@ -57,6 +58,10 @@ from .snapshot import Event, S2MView, Snapshot
 # Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
 # the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
 REALTIME_LAND_WAIT_S = 0.03
+# … and after how many such tries it waits for the odometry however long it takes: a transient
+# backlog (one slow registration, ~0.65 s on the town) clears well within it, while under a
+# sustained one the landing still happens and the RPE queue stays bounded.
+REALTIME_LAND_MAX_DEFERRALS = 20
 
 
 class BlockError(LidarlocError):
@@ -97,6 +102,7 @@ class _S2MJob:
     generation: int
     start_pose: np.ndarray
     future: Future
+    deferrals: int = 0        # real time: scans at which the finished match could not land yet
 
 
 # Parameters the viewer may change live, with their validity checks.
@@ -209,8 +215,8 @@ class Localizer:
 
     def wait_ready(self) -> None:
         """Block until every block is ready to work at full speed: the child processes (S2M's map,
-        pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up and this
-        process's kernels are loaded. The real-time clock calls this before its first scan is
+        pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up, and the PF's
+        kernels (scan down-sampling, likelihood) are loaded in this process. The real-time clock calls this before its first scan is
         due: a sensor's scans start arriving once the system is up, and set-up still running would
         take the CPU from the first scans (measured on the real drive in real time: without this the
         first whole-map match, started at scan 0, landed at scan 11–12; with it, at scan 3)."""
@@ -220,7 +226,8 @@ class Localizer:
         # call (~0.3 s for the scan down-sampling, measured), here instead of in scan 0's step
         few = np.asarray(self.prior_map.points[:64], dtype=np.float32)
         voxel_downsample_random(few, self.cfg.pf.scan_voxel, 0)
-        log_likelihood_floored(self.pf.states[:2], few, self.lookup, self.cfg.pf.d_max, self.cfg.pf.sigma, np.zeros(2))
+        some = self.pf.states[:2]
+        log_likelihood_floored(some, few, self.lookup, self.cfg.pf.d_max, self.cfg.pf.sigma, np.zeros(len(some)))
         for worker in (self.matcher, self._kiss_process):
             if hasattr(worker, "wait_ready"):
                 try:
@@ -559,7 +566,7 @@ class Localizer:
             if k < job.started_at + self.cfg.s2m.n_s2m:
                 return None
         elif not job.future.done() or not self._odometry_ready_to_land(job, k):
-            return None   # real time: land at the first scan after the match finished
+            return None   # real time: land at a scan after the match finished (see there)
         self._s2m_job = None
         outcome = self._wait(job.future, "S2M", k)
         self._s2m_landed += 1
@@ -601,20 +608,24 @@ class Localizer:
         """Real time: an accepted match is carried forward with scan k's odometry, so it lands
         only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
         while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
-        at the next scan, its particle still protected. Blocking until the odometry is
+        at the next scan, its particle still protected, and after ``REALTIME_LAND_MAX_DEFERRALS``
+        tries it waits for the odometry. Blocking until the odometry is
         done instead stalled the PF behind KISS-ICP's backlog: one town scan takes KISS-ICP
         0.65 s (``lidarloc bench rpe``), and the landing that waited for it made 16 scans late.
         A failed or rejected match needs no odometry and lands at once."""
+        if job.future.exception() is not None or not job.future.result().accepted:
+            return True       # a failure (the landing reports it) or a rejection: no odometry needed
+        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
+            return True       # the landing waits for the odometry
+        previous = self._rpe_futures.get(k - 1)
+        behind = previous is not None and not previous.done()   # a backlog: do not wait
         try:
-            if not job.future.result().accepted:
-                return True
-            previous = self._rpe_futures.get(k - 1)
-            behind = previous is not None and not previous.done()   # a backlog: do not wait
             self._rpe_futures[k].result(timeout=0.0 if behind else REALTIME_LAND_WAIT_S)
         except FutureTimeout:
+            job.deferrals += 1
             return False
         except Exception:
-            return True       # a block's failure: the landing reports it
+            return True       # a failed registration: the landing reports it
         return True
 
     # ------------------------------------------------------------------------ background rebuilds

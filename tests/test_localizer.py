@@ -369,7 +369,8 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
 
 def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, monkeypatch):
     """Real time: an accepted match whose scan's odometry is not ready lands at a later scan
-    (its particle still protected) instead of stalling the PF behind KISS-ICP."""
+    (its particle still protected) instead of stalling the PF behind KISS-ICP, and after
+    REALTIME_LAND_MAX_DEFERRALS tries it waits for the odometry (a landing is never lost)."""
     import threading
 
     from lidarloc.core import localizer as localizer_module
@@ -378,37 +379,50 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
     gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
     try:
-        real_add = loc._rpe_add
+        loc.wait_ready()
+        real_add, real_wait = loc._rpe_add, loc._wait
 
         def add(rpe, k, scan, t):
             if k >= 3:
                 gate.wait()
             real_add(rpe, k, scan, t)
         loc._rpe_add = add
+        landing_waits = threading.Event()   # set when a step blocks on an unfinished registration
+
+        def wait(future, block, k):
+            if block == "RPE" and not future.done():
+                landing_waits.set()
+            return real_wait(future, block, k)
+        loc._wait = wait
         loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
             accepted=True, pose=np.asarray(pose), score=1.0, start_score=0.0, region=(0, 0, 1, 1), ms=1.0)
+        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
         loc.run(3)
-        job = loc._s2m_job
-        assert job is not None and job.started_at == 2
+        job = loc._s2m_job                 # started at scan 1 or 2, whichever match was last
+        assert job is not None and job.started_at <= 2
         job.future.result(timeout=60)
+        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 0.03)
+        monkeypatch.setattr(localizer_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
 
-        def steps(n):                  # on a thread: a landing that blocked on the gate would hang
-            worker = threading.Thread(target=loc.run, args=(n,))
+        def step_in_thread():              # a landing that blocked on the gate would hang here
+            worker = threading.Thread(target=loc.run, args=(1,))
             worker.start()
+            return worker
+        for _ in (3, 4):                   # the match is done but its odometry is not: no landing
+            worker = step_in_thread()
             worker.join(timeout=60)
             assert not worker.is_alive(), "the step waited for the stalled odometry"
-        steps(2)                       # scans 3 and 4: the match is done but cannot land yet
-        assert loc._s2m_job is job
-        assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and "started 2" in e.detail]
-        gate.set()
-        for k in (3, 4):
-            loc._rpe_futures[k].result(timeout=60)
-        # the odometry has caught up: the landing now waits for scan 5's (long enough here)
-        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)
-        steps(1)
-        landed = [e for e in loc.events if e.kind == "s2m_accepted" and "started 2" in e.detail]
+        assert loc._s2m_job is job and job.deferrals == 2 and not landing_waits.is_set()
+        started = f"started {job.started_at}"
+        assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and started in e.detail]
+        worker = step_in_thread()          # scan 5: two tries are the limit, so it waits …
+        assert landing_waits.wait(timeout=60)
+        gate.set()                         # … until the odometry catches up, then lands
+        worker.join(timeout=60)
+        assert not worker.is_alive()
+        landed = [e for e in loc.events if e.kind == "s2m_accepted" and started in e.detail]
         assert [e.scan for e in landed] == [5]
-        assert loc._last_s2m.started_at == 2 and loc._last_s2m.landed_at == 5
+        assert loc._last_s2m.started_at == job.started_at and loc._last_s2m.landed_at == 5
     finally:
         gate.set()
         loc.close()

@@ -111,7 +111,7 @@ def test_an_injected_odometry_is_used():
 
 def test_kiss_convergence_setting_keeps_the_accuracy(kitti_raw_seq):
     """The localizer's KISS-ICP stops at a coarser convergence step than KISS-ICP's default (it is
-    ~2.5× faster, BENCHMARKS.md "RPE"): on real scans its scan-to-scan error stays within a
+    ~2× faster, BENCHMARKS.md "RPE"): on real scans its scan-to-scan error stays within a
     centimetre of the default's, and well inside what the carry-forward of S2M needs."""
     from lidarloc.app.bench_rpe import measure
     from lidarloc.core.rpe import KISS_CONVERGENCE, _kiss_config

@@ -22,9 +22,11 @@ from lidarloc.core.results import write_events, write_json, write_kitti, write_r
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 
-def summarize(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None) -> dict:
+def summarize(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None,
+              cpu_s: dict | None = None) -> dict:
     """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
-    after its arrival time its step started."""
+    after its arrival time its step started. ``cpu_s``: CPU seconds each block's process used
+    during the run (differences of :meth:`Localizer.cpu_seconds`)."""
     recs = loc.records
     localized = np.array([r.localized for r in recs], dtype=bool)
     err = np.array([np.nan if r.error_m is None else r.error_m for r in recs], dtype=float)
@@ -50,8 +52,19 @@ def summarize(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None)
         "s2m_accepted": kinds.count("s2m_accepted"),
         "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
         **_lag_summary(lags_ms),
+        **_cpu_summary(cpu_s, len(recs), wall_s),
         "metrics": metrics,
     }
+
+
+def _cpu_summary(cpu_s: dict | None, scans: int, wall_s: float) -> dict:
+    """CPU milliseconds per scan of each block's process, and all of them as a share of one core
+    (200 % = both cores of the reference machine busy for the whole run)."""
+    if not cpu_s or scans == 0:
+        return {"cpu_ms_per_scan": None, "cpu_percent": None}
+    known = [v for v in cpu_s.values() if v is not None]
+    return {"cpu_ms_per_scan": {k: None if v is None else 1000.0 * v / scans for k, v in cpu_s.items()},
+            "cpu_percent": 100.0 * sum(known) / wall_s if wall_s > 0 else None}
 
 
 LATE_MS = 100.0   # a step that starts this much after its scan arrived is late (one LiDAR period)
@@ -121,6 +134,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
     # (state stays consistent) and everything computed so far is written.
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if _main_thread() else None
+    cpu_start = loc.cpu_seconds()
     t_start = time.perf_counter()
     try:
         console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
@@ -143,11 +157,14 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
         wall = time.perf_counter() - t_start
+        cpu_end = loc.cpu_seconds()          # before close(): the child processes end there
+        cpu_used = {k: None if cpu_start[k] is None or cpu_end[k] is None else cpu_end[k] - cpu_start[k]
+                    for k in cpu_start}
         loc.close()
         interrupted = stop.is_set()
         if interrupted:
             console.print("[yellow]interrupted: writing what was computed[/yellow]")
-        summary = summarize(loc, wall, lags[: len(loc.records)] if realtime else None)
+        summary = summarize(loc, wall, lags[: len(loc.records)] if realtime else None, cpu_used)
         summary["interrupted"] = interrupted
         write_outputs(loc, out, summary)
     console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "

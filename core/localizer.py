@@ -235,6 +235,25 @@ class Localizer:
                 except RuntimeError as exc:
                     raise BlockError(str(exc)) from None
 
+    def cpu_seconds(self) -> dict:
+        """CPU time used so far by the blocks' processes, in seconds: ``main`` (this process: the
+        PF, and the threads that feed the child processes), ``rpe`` (the KISS-ICP child) and
+        ``s2m`` (the RS + S2M child). None where a block runs inside this process (then its time
+        is in ``main``) or the platform cannot tell. Differences of two readings give what a run
+        cost per block (``lidarloc run`` puts them in summary.json)."""
+        try:
+            import resource
+
+            usage = resource.getrusage(resource.RUSAGE_SELF)
+            main = usage.ru_utime + usage.ru_stime
+        except ImportError:          # not a Unix
+            main = None
+
+        def child(worker):
+            reading = getattr(worker, "cpu_seconds", None)
+            return reading() if reading is not None else None
+        return {"main": main, "rpe": child(self._kiss_process), "s2m": child(self.matcher)}
+
     def _new_rpe(self):
         """A fresh odometry. KISS-ICP holds the GIL while it registers a scan, so by default it
         runs in a child process (one per localizer, reset instead of restarted)."""

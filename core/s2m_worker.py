@@ -90,6 +90,9 @@ class S2MProcess:
     def wait_ready(self) -> None:
         self._worker.wait_ready()
 
+    def cpu_seconds(self) -> float | None:
+        return self._worker.cpu_seconds()
+
     def close(self) -> None:
         self._worker.close()
 

@@ -80,6 +80,16 @@ class WorkerProcess:
         """Block until the child has finished its set-up (a set-up failure raises here)."""
         self.call(_PING)
 
+    def cpu_seconds(self) -> float | None:
+        """CPU time (user + system, all its threads) the child has used so far; None where
+        ``/proc`` cannot tell (not Linux, or the child is gone)."""
+        try:
+            with open(f"/proc/{self._proc.pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()   # after "pid (name)": state is field 3
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime
+        except (OSError, ValueError, IndexError):
+            return None
+
     def start(self) -> None:
         """Send the set-up message now, so the child prepares while the parent does other work."""
         with self._lock:

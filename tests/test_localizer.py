@@ -245,6 +245,11 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
     for key in ("localized_at_scan", "within_5m_for_50_at_scan", "rmse_after_localized_m", "pf_ms_median",
                 "scans_per_second"):
         assert key in s
+    # what each block's process cost: the PF here, KISS-ICP and S2M in their children
+    cpu = s["cpu_ms_per_scan"]
+    assert set(cpu) == {"main", "rpe", "s2m"}
+    assert cpu["main"] > 0 and cpu["rpe"] > 0 and cpu["s2m"] > 0
+    assert s["cpu_percent"] == pytest.approx(sum(cpu.values()) * 15 / 1000 / (15 / s["scans_per_second"]) * 100)
 
 
 def test_realtime_lag_summary():

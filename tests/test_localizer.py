@@ -392,13 +392,6 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
                 gate.wait()
             real_add(rpe, k, scan, t)
         loc._rpe_add = add
-        landing_waits = threading.Event()   # set when a step blocks on an unfinished registration
-
-        def wait(future, block, k):
-            if block == "RPE" and not future.done():
-                landing_waits.set()
-            return real_wait(future, block, k)
-        loc._wait = wait
         loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
             accepted=True, pose=np.asarray(pose), score=1.0, start_score=0.0, region=(0, 0, 1, 1), ms=1.0)
         monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
@@ -408,6 +401,15 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
         job.future.result(timeout=60)
         monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 0.03)
         monkeypatch.setattr(localizer_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
+        # from here on: note when a step blocks on an unfinished registration (before, scan 0's
+        # rules may legitimately wait for the very first one)
+        landing_waits = threading.Event()
+
+        def wait(future, block, k):
+            if block == "RPE" and not future.done():
+                landing_waits.set()
+            return real_wait(future, block, k)
+        loc._wait = wait
 
         def step_in_thread():              # a landing that blocked on the gate would hang here
             worker = threading.Thread(target=loc.run, args=(1,))

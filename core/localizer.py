@@ -216,10 +216,12 @@ class Localizer:
     def wait_ready(self) -> None:
         """Block until every block is ready to work at full speed: the child processes (S2M's map,
         pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up, and the PF's
-        kernels (scan down-sampling, likelihood) are loaded in this process. The real-time clock calls this before its first scan is
-        due: a sensor's scans start arriving once the system is up, and set-up still running would
-        take the CPU from the first scans (measured on the real drive in real time: without this the
-        first whole-map match, started at scan 0, landed at scan 11–12; with it, at scan 3)."""
+        kernels (scan down-sampling, likelihood) are loaded in this process.
+
+        The real-time clock calls this before its first scan is due: a sensor's scans start
+        arriving once the system is up, and set-up still running would take the CPU from the first
+        scans (measured on the real drive in real time: without this the first whole-map match,
+        started at scan 0, landed at scan 11–12; with it, at scan 3)."""
         from .likelihood import log_likelihood_floored
 
         # this process's own one-off costs too: numba loads a kernel from its cache at the first
@@ -628,10 +630,10 @@ class Localizer:
         only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
         while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
         at the next scan, its particle still protected, and after ``REALTIME_LAND_MAX_DEFERRALS``
-        tries it waits for the odometry. Blocking until the odometry is
-        done instead stalled the PF behind KISS-ICP's backlog: one town scan takes KISS-ICP
-        0.65 s (``lidarloc bench rpe``), and the landing that waited for it made 16 scans late.
-        A failed or rejected match needs no odometry and lands at once."""
+        tries it waits for the odometry. Always blocking until the odometry was done stalled the
+        PF behind KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench
+        rpe``), and the landing that waited for it made 16 scans late. A failed or rejected match
+        needs no odometry and lands at once."""
         if job.future.exception() is not None or not job.future.result().accepted:
             return True       # a failure (the landing reports it) or a rejection: no odometry needed
         if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:

@@ -249,7 +249,8 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
     cpu = s["cpu_ms_per_scan"]
     assert set(cpu) == {"main", "rpe", "s2m"}
     assert cpu["main"] > 0 and cpu["rpe"] > 0 and cpu["s2m"] > 0
-    assert s["cpu_percent"] == pytest.approx(sum(cpu.values()) * 15 / 1000 / (15 / s["scans_per_second"]) * 100)
+    cpu_seconds, wall_seconds = sum(cpu.values()) * 15 / 1000, 15 / s["scans_per_second"]
+    assert s["cpu_percent"] == pytest.approx(100 * cpu_seconds / wall_seconds)
 
 
 def test_realtime_lag_summary():

@@ -20,7 +20,7 @@ import numpy as np
 from lidarloc.core.geometry import inv_pose
 from lidarloc.core.rpe import KISS_CONVERGENCE, _kiss_config
 
-from .bench_s2m import open_source
+from .bench_s2m import open_source, pose_error
 
 
 def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
@@ -36,9 +36,9 @@ def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
     n = len(scans)
 
     def rel_error(i: int, j: int) -> tuple[float, float]:
+        """Translation error of the relative pose from scan i to j, and the true distance."""
         truth = inv_pose(G[i]) @ G[j]
-        est = inv_pose(poses[i]) @ poses[j]
-        return float(np.linalg.norm(est[:3, 3] - truth[:3, 3])), float(np.linalg.norm(truth[:3, 3]))
+        return pose_error(inv_pose(poses[i]) @ poses[j], truth)[0], float(np.linalg.norm(truth[:3, 3]))
 
     step = [rel_error(i, i + 1)[0] for i in range(n - 1)]
     windows = [rel_error(i, i + 10) for i in range(n - 10)]

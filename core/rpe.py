@@ -37,8 +37,8 @@ from .geometry import euler_zyx, inv_pose, wrap_angle
 # KISS-ICP stops iterating when its Gauss-Newton step is shorter than this (metres and radians in
 # one 6-vector norm). Its default, 1e-4, keeps refining 0.1 mm steps. Measured with
 # ``lidarloc bench rpe`` (BENCHMARKS.md, "RPE"): 3e-3 cuts the registration to about half its
-# time (45 % on the real drive, 51 % on the town) with the same per-scan and 10-scan errors. The time it frees
-# is what lets the real-time clock keep up with 10 Hz on two cores.
+# time (45 % on the real drive, 51 % on the town) with the same per-scan and 10-scan errors. The
+# time it frees is what lets the real-time clock keep up with 10 Hz on two cores.
 KISS_CONVERGENCE = 3e-3
 
 

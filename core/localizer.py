@@ -293,13 +293,12 @@ class Localizer:
     def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
         """Re-initialise the particles: globally, around a 4×4 pose, or inside (x0, y0, x1, y1)."""
         with self._lock:
-            self._cancel_s2m()
             if region is not None:
                 x0, y0, x1, y1 = region
                 region = (min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
                 if region[2] - region[0] <= 0 or region[3] - region[1] <= 0:
                     raise LidarlocError("reset region must have a positive width and height")
-            self._reinitialize(region=region, pose=pose)
+            self._reinitialize(region=region, pose=pose, why="particles reset")
             self.rules.reset()
             where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
@@ -316,7 +315,7 @@ class Localizer:
             if self.k + 1 >= self.n_scans:
                 raise LidarlocError("cannot kidnap: the sequence has no scans left")
             target = min(self.k + skip, self.n_scans - 1)
-            self._cancel_s2m()
+            self._cancel_s2m(why="kidnap")
             self._event(self.k - 1, "kidnap", f"vehicle moved from scan {self.k} to {target}")
             self.k = target
             self._wait_rpe_idle()
@@ -361,7 +360,7 @@ class Localizer:
                 elif name == "s2m_enabled":
                     s2m.enabled = bool(value)
                     if not value:
-                        self._cancel_s2m()
+                        self._cancel_s2m(why="S2M switched off")
                 elif name in ("region_x", "region_y", "angle_step"):
                     setattr(s2m, name, float(value))
                 elif name == "match_resolution":
@@ -370,7 +369,7 @@ class Localizer:
                         self._rebuild_pyramid()
                 elif name == "n_particles":
                     pf.n_particles = int(value)
-                    self._cancel_s2m()   # particle indices change
+                    self._cancel_s2m(why="particle count changed")   # particle indices change
                     self.pf.set_n_particles(int(value))
                 elif name == "scan_voxel":
                     pf.scan_voxel = float(value)
@@ -419,7 +418,7 @@ class Localizer:
             if outcome.event is not None:
                 self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
             if outcome.reinit:
-                self._reinitialize()
+                self._reinitialize(k=k, why=f"re-initialised after a {outcome.event.replace('_', ' ')}")
                 reinit = True
                 est = self.pf.estimate()
             else:
@@ -502,10 +501,10 @@ class Localizer:
             return float(np.linalg.norm(self.rpe.relative(prev, latest)[:3, 3])), yaw
         return self.rpe.moved_since(prev, latest), yaw
 
-    def _reinitialize(self, region=None, pose=None) -> None:
+    def _reinitialize(self, region=None, pose=None, k: int | None = None, why: str = "re-initialised") -> None:
         """Spread the particles again (globally, in a region or around a pose), leaving tracking
         mode: the full particle count comes back."""
-        self._cancel_s2m()
+        self._cancel_s2m(k, why)
         if self.pf.n != self.cfg.pf.n_particles:
             self.pf.set_n_particles(self.cfg.pf.n_particles)
         self.pf.initialize(region=region, pose=pose)
@@ -513,7 +512,7 @@ class Localizer:
     def _enter_tracking(self, k: int) -> None:
         """Tracking mode: resample down to fewer particles; S2M searches a smaller region."""
         n = min(self.cfg.localize.tracking_particles, self.cfg.pf.n_particles)
-        self._cancel_s2m()   # particle indices change
+        self._cancel_s2m(k, "tracking mode: particle indices change")
         self.pf.set_n_particles(n)
         self._event(k, "tracking", f"{n} particles, S2M region ±{self.cfg.localize.tracking_region:g} m")
 
@@ -562,7 +561,7 @@ class Localizer:
         # same nice, or back to replay (a higher priority there changes no result): keep it
         if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
             return
-        self._cancel_s2m()
+        self._cancel_s2m(why="clock changed: new S2M process")
         old, self.matcher = self.matcher, S2MProcess(self.map_dir, self.cfg.map, self.cfg.s2m, nice)
         self._s2m_pool.submit(old.close)
 
@@ -573,10 +572,15 @@ class Localizer:
         matcher.cfg = s2m_cfg
         return matcher.match_local(scan, start_pose, level=level)
 
-    def _cancel_s2m(self) -> None:
+    def _cancel_s2m(self, k: int | None = None, why: str = "") -> None:
+        """Drop the match in flight (running, or finished and waiting to land). With a reason,
+        an ``s2m_cancelled`` event at scan k says so, so that every ``s2m_started`` ends in
+        exactly one of accepted / rejected / cancelled."""
         job = getattr(self, "_s2m_job", None)
         if job is not None:
             job.future.cancel()  # if already running it finishes, and its result is ignored
+            if why:
+                self._event(self.k - 1 if k is None else k, "s2m_cancelled", f"started {job.started_at} ({why})")
         self._s2m_job = None
 
     def _maybe_land_s2m(self, k: int, prepared: np.ndarray) -> float | None:
@@ -684,7 +688,7 @@ class Localizer:
             from .s2m import ScanToMapMatcher
 
             self.pyramid = self._wait(fut, "pyramid rebuild", self.k)
-            self._cancel_s2m()
+            self._cancel_s2m(why="map pyramid rebuilt")
             if not isinstance(self.matcher, S2MProcess):  # the S2M process reloads it from the cache itself
                 self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, self.cfg.s2m, self.cfg.map)
         if self._pending_lookup is None and self._pending_pyramid is None:

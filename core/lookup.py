@@ -68,7 +68,7 @@ Changing d_max
     a larger d_max.
 
 ``lookup_code`` is a numba ``nogil`` function for use inside other numba kernels (it serves
-``LookupTable.query``); ``LookupTable.kernel_args`` gives the arrays it needs. The likelihood
+``LookupTable.query``) and takes the table's origin, inv_res, brick_index and bricks. The likelihood
 kernel inlines the same read in a vectorisable form and takes ``LookupTable.flat_kernel_args``.
 """
 
@@ -579,12 +579,6 @@ class LookupTable:
             nbx, nby, nbz = (np.int32(s) for s in self.brick_index.shape)
             self._flat_args = (self.origin, self.inv_res, nbx, nby, nbz, slot_of_brick, self.bricks.reshape(-1))
         return self._flat_args
-
-    @property
-    def kernel_args(self) -> tuple:
-        """(origin, inv_res, brick_index, bricks): the arguments after (x, y, z) of lookup_code.
-        A code times ``step`` is metres; MISS_CODE means ≥ d_max_built."""
-        return self.origin, self.inv_res, self.brick_index, self.bricks
 
     def __repr__(self) -> str:
         return (f"LookupTable(δ={self.resolution} m, d_max_built={self.d_max_built} m, cells={self.shape}, "

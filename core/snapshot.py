@@ -14,8 +14,8 @@ import numpy as np
 @dataclass(frozen=True)
 class Event:
     scan: int          # scan index at which it happened
-    kind: str          # "localized", "false_positive", "loss", "reset", "kidnap",
-                       # "s2m_started", "s2m_accepted", "s2m_rejected", "error"
+    kind: str          # "localized", "false_positive", "loss", "reset", "kidnap", "tracking",
+                       # "s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled", "error"
     detail: str = ""
 
 

@@ -112,6 +112,30 @@ def test_false_positive_triggers_reinit(town, cache_root):
         assert loc.records[4].reinit
 
 
+def test_a_cancelled_match_is_reported(town, cache_root):
+    """A match in flight when the particles are re-initialised (or kidnapped) can no longer land:
+    an s2m_cancelled event says so, and every s2m_started ends in exactly one outcome."""
+    from lidarloc.core.s2m import S2MOutcome
+
+    with make(town, cache_root, localize__s2m_process=False, s2m__n_s2m=3) as loc:
+        loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
+            accepted=False, pose=np.asarray(pose), score=0.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
+        scripted_std(loc, [100.0, 3.0, 3.0, 3.0, 100.0])
+        loc.run(5)                       # starts at 0, lands and restarts at 3, false positive at 4
+        kinds = [(e.scan, e.kind) for e in loc.events]
+        assert (3, "s2m_started") in kinds and (4, "false_positive") in kinds
+        cancelled = [e for e in loc.events if e.kind == "s2m_cancelled"]
+        assert [(e.scan, e.detail) for e in cancelled] == [(4, "started 3 (re-initialised after a false positive)")]
+        assert loc._s2m_job is None
+        loc.run(1)                       # a new job starts at 5 …
+        assert loc._s2m_job is not None
+        loc.kidnap(10)                   # … and the kidnap cancels it
+        assert [e.kind for e in loc.events][-2:] == ["s2m_cancelled", "kidnap"]
+        counts = {kind: sum(e.kind == kind for e in loc.events)
+                  for kind in ("s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled")}
+        assert counts["s2m_started"] == counts["s2m_accepted"] + counts["s2m_rejected"] + counts["s2m_cancelled"]
+
+
 def test_loss_triggers_reinit(town, cache_root):
     with make(town, cache_root, s2m__enabled=False) as loc:
         scripted_std(loc, [3.0] * 20 + [60.0])

@@ -16,7 +16,7 @@ from rich.console import Console
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_to_xyz_ypr, wrap_angle
-from lidarloc.core.localizer import Localizer
+from lidarloc.core.localizer import Interrupted, Localizer
 from lidarloc.core.metrics import ScanLog, compute_metrics
 from lidarloc.core.results import write_events, write_json, write_kitti, write_records_csv, write_tum
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
@@ -131,10 +131,15 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
             loc.close()
             raise
     lags: list[float] = []
-    # Ctrl-C sets a flag that the loop checks between scans: the scan in progress completes
-    # (state stays consistent) and everything computed so far is written.
+    # Ctrl-C sets a flag that the loop checks between scans, and a step still waiting for a
+    # block (the odometry, a match due now) gives up at once (Localizer.interrupt): that scan is
+    # not recorded, everything before it is written.
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if _main_thread() else None
+
+    def on_ctrl_c(*_):
+        stop.set()
+        loc.interrupt()
+    previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
     t_start = time.perf_counter()
     try:
@@ -151,7 +156,10 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                         stop.wait(due - now)
                         continue
                     lags.append(max(0.0, (now - due) * 1000.0))
-                snap = loc.step()
+                try:
+                    snap = loc.step()
+                except Interrupted:
+                    break
                 bar.update(task, completed=snap.scan_index + 1,
                            description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
     finally:

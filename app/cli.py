@@ -230,6 +230,17 @@ def bench_startup(repeats: Annotated[int, typer.Option("--repeats", min=1, help=
     emit_json(run_bench(repeats=repeats))
 
 
+@bench_app.command("stop")
+def bench_stop(repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
+               delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,
+               cache: CacheOpt = None, as_json: Annotated[bool, typer.Option("--json")] = False):
+    """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s)."""
+    from .bench_stop import run as run_bench
+
+    emit_json(run_bench(repeats=repeats, cache=None if cache is None else str(cache),
+                        **({"delays_s": tuple(delay)} if delay else {})))
+
+
 @bench_app.command("localize")
 def bench_localize(
     runs: Annotated[int, typer.Option("--runs")] = 20,

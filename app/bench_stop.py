@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lidarloc.core.errors import LidarlocError
+
 TARGET_S = 2.0
 
 
@@ -35,19 +37,25 @@ def _one_stop(out: Path, clock: str, delay_s: float, scans: int, cache: str | No
             if "localizing" in line:
                 break
         else:
-            raise RuntimeError("lidarloc run ended before localizing: " + "".join(seen[-3:]))
+            raise LidarlocError("lidarloc run ended before localizing: " + (seen[-1].strip() if seen else "no output"))
         time.sleep(delay_s)             # the run goes on meanwhile; this is not synchronisation
         proc.send_signal(signal.SIGINT)
         t0 = time.perf_counter()
-        proc.communicate(timeout=60)
+        try:
+            _, rest = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            raise LidarlocError(f"Ctrl-C after {delay_s} s: lidarloc run still running after 60 s") from None
         stop_s = time.perf_counter() - t0
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    summary = json.loads((out / "summary.json").read_text())
+    summary_file = out / "summary.json"
+    summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
     if proc.returncode != 130 or not summary.get("interrupted"):
-        raise RuntimeError(f"Ctrl-C after {delay_s} s: exit code {proc.returncode}, interrupted={summary.get('interrupted')}")
+        last = (rest or "".join(seen)).strip().splitlines()[-1:]
+        raise LidarlocError(f"Ctrl-C after {delay_s} s: exit code {proc.returncode}, summary.json "
+                           f"{'interrupted' if summary.get('interrupted') else 'missing or not interrupted'}: {last}")
     return stop_s
 
 

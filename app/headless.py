@@ -153,7 +153,9 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                     due = t_start + seq.timestamp(loc.k)
                     now = time.perf_counter()
                     if now < due:
-                        stop.wait(due - now)
+                        # sleep, not stop.wait(): the Ctrl-C handler sets ``stop`` on this same
+                        # thread, and would deadlock on the Event's lock if it interrupted wait()
+                        time.sleep(min(due - now, 0.05))
                         continue
                     lags.append(max(0.0, (now - due) * 1000.0))
                 try:

@@ -1399,14 +1399,18 @@ class ViewerHandle:
 
     def stop(self) -> None:
         """Stop playback, the display and the server; close the localizer if the viewer built it.
-        Bounded: returns within ~1.2 s even if a scan is still being processed (that scan finishes
-        on its daemon thread; the localizer's own worker pools are joined by Python at exit)."""
+        Bounded: returns within ~1.2 s. A scan of the viewer's own localizer that is waiting for
+        a block gives up at once (``Localizer.interrupt``); one still computing finishes on its
+        daemon thread, and the localizer's worker pools are joined by Python at exit."""
         if self._stopped.is_set():
             return
+        loc = self.viewer.localizer
+        owned = loc is not None and self.viewer.owns_localizer
+        if owned:
+            loc.interrupt()
         self.viewer.stop()
         self.server.stop()
-        loc = self.viewer.localizer
-        if loc is not None and self.viewer.owns_localizer:
+        if owned:
             closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
             closer.start()
             closer.join(timeout=0.3)

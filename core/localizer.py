@@ -176,6 +176,7 @@ class Localizer:
         self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
         self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self._kiss_process = None
+        self._retired_matchers: list = []    # S2M processes replaced by a clock change
         self.restart(cfg.seed)
 
     # ------------------------------------------------------------------------ lifecycle
@@ -213,21 +214,22 @@ class Localizer:
             self._snapshot = self._make_snapshot(-1, None, 0.0, None)
 
     def interrupt(self) -> None:
-        """Stop the scan in progress without waiting for its blocks (Ctrl-C, closing the viewer).
+        """Stop stepping without waiting for the blocks (Ctrl-C, closing the viewer).
 
         A step waiting for the odometry or for a match due now gives up within
-        ``INTERRUPT_POLL_S`` and raises :class:`Interrupted`; its scan is not recorded (the PF
-        had already weighted it, so the localizer refuses further steps until ``restart()``).
-        Everything recorded before stays. Without this, Ctrl-C in the first scans waited for the
-        first whole-map match behind the S2M process's set-up: 2.0–2.8 s. Safe from any thread
-        (a signal handler too); it does not take the step's lock."""
+        ``INTERRUPT_POLL_S`` and raises :class:`Interrupted`; its scan is not recorded, nor are
+        its events. From then on ``step()`` raises :class:`Interrupted` until ``restart()`` (the
+        PF may already have weighted the dropped scan). Everything recorded before stays.
+        Without this, Ctrl-C in the first scans waited for the first whole-map match behind the
+        S2M process's set-up: 2.4 s (``lidarloc bench stop``). Safe from any thread (a signal
+        handler too); it does not take the step's lock."""
         self._interrupt.set()
 
     def close(self) -> None:
         self._interrupt.set()            # a step in progress gives up instead of holding the lock
         with self._lock:
             self._closed = True
-            self._cancel_s2m()
+            self._cancel_s2m(why="localizer closed")
         pools = (self._rpe_pool, self._s2m_pool, self._rebuild_pool)
         for pool in pools:               # queued work is dropped …
             pool.shutdown(wait=False, cancel_futures=True)
@@ -236,8 +238,9 @@ class Localizer:
         # whole-map match kept Ctrl-C waiting 1.2 s).
         if self._kiss_process is not None:
             self._kiss_process.close()
-        if isinstance(self.matcher, S2MProcess):
-            self.matcher.close()
+        for matcher in [self.matcher, *self._retired_matchers]:
+            if isinstance(matcher, S2MProcess):
+                matcher.close()
         for pool in pools:
             pool.shutdown(wait=True)
 
@@ -416,59 +419,73 @@ class Localizer:
                 raise LidarlocError("localizer is closed")
             if self._failed is not None:
                 raise LidarlocError(f"{self._failed} (restart to continue)")
+            if self._interrupt.is_set():
+                raise Interrupted("interrupted (restart to continue)")
             if self.done:
                 return self._snapshot
-            self._swap_rebuilt_tables()
-            k = self.k
-            scan = self.seq.scan(k)
-            t = self.seq.timestamp(k)
-            dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
-            self._prev_t = t
-            # RPE starts now and overlaps with the PF work below.
-            self._rpe_futures[k] = self._rpe_pool.submit(self._rpe_add, self.rpe, k, scan, t)
+            events_before, job_before = len(self.events), self._s2m_job
+            try:
+                return self._process_next_scan()
+            except Interrupted:
+                # The scan is not recorded, so neither are its events; a match that landed in
+                # it counts as still in flight (close() or restart() reports it cancelled).
+                del self.events[events_before:]
+                self._s2m_job = job_before
+                raise
 
-            # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
-            t0 = time.perf_counter()
-            rng = np.random.default_rng([self.cfg.seed, k, 1])
-            prepared = voxel_downsample_random(scan[:, :3], self.cfg.pf.scan_voxel, rng)
-            self.pf.predict(dt)
-            self.pf.update(prepared)
-            pf_s = time.perf_counter() - t0
-            s2m_ms = self._maybe_land_s2m(k, prepared)
-            t1 = time.perf_counter()
-            # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
+    def _process_next_scan(self) -> Snapshot:
+        """The body of step(), with the lock held."""
+        self._swap_rebuilt_tables()
+        k = self.k
+        scan = self.seq.scan(k)
+        t = self.seq.timestamp(k)
+        dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
+        self._prev_t = t
+        # RPE starts now and overlaps with the PF work below.
+        self._rpe_futures[k] = self._rpe_pool.submit(self._rpe_add, self.rpe, k, scan, t)
+
+        # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([self.cfg.seed, k, 1])
+        prepared = voxel_downsample_random(scan[:, :3], self.cfg.pf.scan_voxel, rng)
+        self.pf.predict(dt)
+        self.pf.update(prepared)
+        pf_s = time.perf_counter() - t0
+        s2m_ms = self._maybe_land_s2m(k, prepared)
+        t1 = time.perf_counter()
+        # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
+        est = self.pf.estimate()
+        pf_s += time.perf_counter() - t1
+
+        step_dist, yaw_odom = self._rpe_motion(k)
+        outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
+        reinit = False
+        if outcome.event is not None:
+            self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
+        if outcome.reinit:
+            self._reinitialize(k=k, why=f"re-initialised after a {outcome.event.replace('_', ' ')}")
+            reinit = True
             est = self.pf.estimate()
-            pf_s += time.perf_counter() - t1
+        else:
+            entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
+            if entering_tracking:    # resamples down: est.best_index no longer names a particle
+                self._enter_tracking(k)
+            # S2M starts from the highest-weight particle of this posterior; that slot is
+            # then protected through every resampling until the match lands.
+            if self.cfg.s2m.enabled and self._s2m_job is None and not entering_tracking and self._s2m_due(k):
+                self._start_s2m(k, est.best_index, scan)
+            t2 = time.perf_counter()
+            protect = self._s2m_job.particle if self._s2m_job is not None else None
+            self.pf.resample_if_needed(protect=protect)
+            pf_s += time.perf_counter() - t2
+        pf_ms = pf_s * 1000.0
 
-            step_dist, yaw_odom = self._rpe_motion(k)
-            outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
-            reinit = False
-            if outcome.event is not None:
-                self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
-            if outcome.reinit:
-                self._reinitialize(k=k, why=f"re-initialised after a {outcome.event.replace('_', ' ')}")
-                reinit = True
-                est = self.pf.estimate()
-            else:
-                entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
-                if entering_tracking:    # resamples down: est.best_index no longer names a particle
-                    self._enter_tracking(k)
-                # S2M starts from the highest-weight particle of this posterior; that slot is
-                # then protected through every resampling until the match lands.
-                if self.cfg.s2m.enabled and self._s2m_job is None and not entering_tracking and self._s2m_due(k):
-                    self._start_s2m(k, est.best_index, scan)
-                t2 = time.perf_counter()
-                protect = self._s2m_job.particle if self._s2m_job is not None else None
-                self.pf.resample_if_needed(protect=protect)
-                pf_s += time.perf_counter() - t2
-            pf_ms = pf_s * 1000.0
-
-            self.k += 1
-            self.steps += 1
-            snap = self._make_snapshot(k, prepared, pf_ms, est)
-            self._record(k, t, est, snap, pf_ms, s2m_ms, reinit)
-            self._snapshot = snap
-            return snap
+        self.k += 1
+        self.steps += 1
+        snap = self._make_snapshot(k, prepared, pf_ms, est)
+        self._record(k, t, est, snap, pf_ms, s2m_ms, reinit)
+        self._snapshot = snap
+        return snap
 
     def run(self, n: int | None = None, should_stop: Callable[[], bool] | None = None) -> Snapshot:
         """Process up to ``n`` scans (all remaining if None)."""
@@ -485,8 +502,7 @@ class Localizer:
 
     def _wait(self, future: Future, block: str, k: int):
         while not future.done():
-            if self._interrupt.is_set():
-                self._failed = f"interrupted at scan {k}"
+            if self._interrupt.is_set():     # step() refuses further steps until restart()
                 raise Interrupted(f"interrupted at scan {k} while waiting for {block}")
             wait_futures([future], timeout=INTERRUPT_POLL_S)
         try:
@@ -596,6 +612,7 @@ class Localizer:
             return
         self._cancel_s2m(why="clock changed: new S2M process")
         old, self.matcher = self.matcher, S2MProcess(self.map_dir, self.cfg.map, self.cfg.s2m, nice)
+        self._retired_matchers.append(old)     # close() kills it if its match is still running
         self._s2m_pool.submit(old.close)
 
     @staticmethod
@@ -719,7 +736,7 @@ class Localizer:
             from .s2m import ScanToMapMatcher
 
             self.pyramid = self._wait(fut, "pyramid rebuild", self.k)
-            self._cancel_s2m(why="map pyramid rebuilt")
+            self._cancel_s2m(self.k, "map pyramid rebuilt")
             if not isinstance(self.matcher, S2MProcess):  # the S2M process reloads it from the cache itself
                 self.matcher = ScanToMapMatcher(self.prior_map, self.pyramid, self.cfg.s2m, self.cfg.map)
         if self._pending_lookup is None and self._pending_pyramid is None:

@@ -98,6 +98,19 @@ def scripted_std(loc, stds):
     loc.pf.estimate = estimate
 
 
+def instant_matcher(loc, accepted=False, before=None):
+    """Replace the in-process matcher (localize.s2m_process=False) with one that answers at once,
+    accepting or rejecting the start pose; ``before()`` runs first (e.g. to hold the match)."""
+    from lidarloc.core.s2m import S2MOutcome
+
+    def match(scan, pose, level=False):
+        if before is not None:
+            before()
+        return S2MOutcome(accepted=accepted, pose=np.asarray(pose), score=1.0 if accepted else 0.0,
+                          start_score=0.0 if accepted else 1.0, region=(0, 0, 1, 1), ms=1.0)
+    loc.matcher.match_local = match
+
+
 def test_false_positive_triggers_reinit(town, cache_root):
     with make(town, cache_root, s2m__enabled=False) as loc:
         scripted_std(loc, [100.0, 3.0, 3.0, 3.0, 100.0])
@@ -114,12 +127,11 @@ def test_false_positive_triggers_reinit(town, cache_root):
 
 def test_a_cancelled_match_is_reported(town, cache_root):
     """A match in flight when the particles are re-initialised (or kidnapped) can no longer land:
-    an s2m_cancelled event says so, and every s2m_started ends in exactly one outcome."""
-    from lidarloc.core.s2m import S2MOutcome
-
-    with make(town, cache_root, localize__s2m_process=False, s2m__n_s2m=3) as loc:
-        loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
-            accepted=False, pose=np.asarray(pose), score=0.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
+    an s2m_cancelled event says so, and every s2m_started ends in exactly one outcome, also
+    the match in flight when the run ends."""
+    loc = make(town, cache_root, localize__s2m_process=False, s2m__n_s2m=3)
+    try:
+        instant_matcher(loc)
         scripted_std(loc, [100.0, 3.0, 3.0, 3.0, 100.0])
         loc.run(5)                       # starts at 0, lands and restarts at 3, false positive at 4
         kinds = [(e.scan, e.kind) for e in loc.events]
@@ -131,9 +143,14 @@ def test_a_cancelled_match_is_reported(town, cache_root):
         assert loc._s2m_job is not None
         loc.kidnap(10)                   # … and the kidnap cancels it
         assert [e.kind for e in loc.events][-2:] == ["s2m_cancelled", "kidnap"]
-        counts = {kind: sum(e.kind == kind for e in loc.events)
-                  for kind in ("s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled")}
-        assert counts["s2m_started"] == counts["s2m_accepted"] + counts["s2m_rejected"] + counts["s2m_cancelled"]
+        loc.run(1)                       # one more starts, and is in flight when the run ends
+        assert loc._s2m_job is not None
+    finally:
+        loc.close()
+    assert loc.events[-1].kind == "s2m_cancelled" and loc.events[-1].detail.endswith("(localizer closed)")
+    counts = {kind: sum(e.kind == kind for e in loc.events)
+              for kind in ("s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled")}
+    assert counts["s2m_started"] == counts["s2m_accepted"] + counts["s2m_rejected"] + counts["s2m_cancelled"]
 
 
 def test_loss_triggers_reinit(town, cache_root):
@@ -294,16 +311,12 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
     import threading
 
     from lidarloc.core.localizer import Interrupted
-    from lidarloc.core.s2m import S2MOutcome
 
     gate = threading.Event()                # the match never finishes until the gate opens
     with make(town, cache_root, localize__s2m_process=False) as loc:
-        def match(scan, pose, level=False):
-            gate.wait()
-            return S2MOutcome(accepted=False, pose=np.asarray(pose), score=0.0, start_score=1.0,
-                              region=(0, 0, 1, 1), ms=1.0)
-        loc.matcher.match_local = match
+        instant_matcher(loc, before=gate.wait)
         loc.run(loc.cfg.s2m.n_s2m)          # the match started at scan 0 is due at scan n_s2m …
+        events = list(loc.events)
         raised = []
 
         def step():
@@ -318,7 +331,9 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
         gate.set()
         assert not worker.is_alive() and len(raised) == 1, "the step did not give up"
         assert len(loc.records) == loc.cfg.s2m.n_s2m and loc.k == loc.cfg.s2m.n_s2m
-        with pytest.raises(LidarlocError, match="interrupted"):
+        assert loc.events == events, "the dropped scan's events are dropped with it"
+        assert loc._s2m_job is not None and loc._s2m_job.started_at == 0, "still in flight, to be cancelled"
+        with pytest.raises(Interrupted):
             loc.step()
         loc.restart()
         loc.run(1)
@@ -435,12 +450,9 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
     awaited before the next step, so the rules see the motion they would at 10 Hz. Before, a real
     whole-map match from a cold S2M process landed 17–33 scans late when the steps ran as fast as
     possible, and a slow CI machine left room for one start after localization."""
-    from lidarloc.core.s2m import S2MOutcome
-
     with make(town, cache_root, localize__clock="realtime", localize__s2m_process=False,
               s2m__realtime_interval_localized=6) as loc:
-        loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
-            accepted=False, pose=np.asarray(pose), score=0.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
+        instant_matcher(loc)
         scripted_std(loc, [3.0] * 40)
         for _ in range(40):
             loc.step()
@@ -462,7 +474,6 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
     import threading
 
     from lidarloc.core import localizer as localizer_module
-    from lidarloc.core.s2m import S2MOutcome
 
     gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
@@ -475,8 +486,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
                 gate.wait()
             real_add(rpe, k, scan, t)
         loc._rpe_add = add
-        loc.matcher.match_local = lambda scan, pose, level=False: S2MOutcome(
-            accepted=True, pose=np.asarray(pose), score=1.0, start_score=0.0, region=(0, 0, 1, 1), ms=1.0)
+        instant_matcher(loc, accepted=True)
         monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
         loc.run(3)
         job = loc._s2m_job                 # started at scan 1 or 2, whichever match was last

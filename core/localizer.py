@@ -30,6 +30,12 @@ particle intact without starving the filter of resampling while S2M runs back to
 Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
 KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
 detect the failed registration the same way); the filter itself learns nothing.
+
+Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
+``s2m_cancelled`` (the match could no longer land: re-initialised or resized particles, a kidnap,
+S2M switched off, a clock change, a rebuilt pyramid, or ``close()``). Stopping: ``interrupt()``
+(Ctrl-C, closing the viewer) makes a step that waits for a block give up without recording its
+scan, and ``close()`` kills child processes that are busy or still setting up.
 """
 
 from __future__ import annotations

@@ -1182,10 +1182,13 @@ class Viewer:
         n = len(self._changed())
         apply = self.controls.apply
         label = f"Apply {n} change{'s' if n != 1 else ''}" if n else "Apply"
-        if apply.label != label:
-            apply.label = label
-        apply.disabled = n == 0
-        apply.color = "orange" if n else None
+        # one message to the clients: with three, "Apply 1 change" could show while the button
+        # was still disabled, and a quick click on it was lost (seen once in the browser test)
+        with self.server.atomic():
+            if apply.label != label:
+                apply.label = label
+            apply.disabled = n == 0
+            apply.color = "orange" if n else None
 
     def apply_params(self) -> dict:
         """Send the changed numbers to the localizer (effective from the next scan). All or nothing:

@@ -147,16 +147,28 @@ def test_viewer_in_chromium(browser, served):
     page2.close()
 
     # a typed invalid value is refused in the page (and the server lives on); a valid one is applied
+    # Each value is seen by the server before Apply is clicked, and the server's message is
+    # checked before the page's, so a failure says which side went wrong. The page waits poll on
+    # a timer, not on animation frames (a software-rendered page may draw few of them).
+    from test_viewer import wait_for
+
     page.get_by_text("Parameters", exact=True).click()
     sigma = page.get_by_label("σ (m)")
+    sigma_on_server = served.viewer.controls.params["sigma"]
     sigma.fill("0")
+    wait_for(lambda: sigma_on_server.value == 0, what="σ = 0 on the server")
     page.get_by_role("button", name="Apply 1 change").click()
-    page.wait_for_function("document.body.innerText.includes('refused: invalid configuration: pf.sigma must be > 0')",
-                           timeout=STEP_TIMEOUT)
+    refused = "refused: invalid configuration: pf.sigma must be > 0"
+    try:
+        wait_for(lambda: served.viewer.message == refused, what=repr(refused))
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the server's message is {served.viewer.message!r}") from None
+    page.wait_for_function(f"document.body.innerText.includes({refused!r})", polling=250, timeout=STEP_TIMEOUT)
     assert served.localizer.cfg.pf.sigma == 0.5
     sigma.fill("0.7")
+    wait_for(lambda: sigma_on_server.value == 0.7, what="σ = 0.7 on the server")
     page.get_by_role("button", name="Apply 1 change").click()
     page.wait_for_function("document.body.innerText.includes('applied from the next scan: σ (m)')",
-                           timeout=STEP_TIMEOUT)
+                           polling=250, timeout=STEP_TIMEOUT)
     assert served.localizer.cfg.pf.sigma == 0.7 and served.localizer.pf.sigma == 0.7
     page.close()

@@ -114,23 +114,22 @@ class WorkerProcess:
         scans take 2 s. Its caches are safe: they are written to a temporary name, then renamed."""
         proc = self._proc
         if proc.poll() is None:
-            if self._lock.acquire(blocking=False):
+            asked = False
+            if self._lock.acquire(blocking=False):      # no call in flight …
                 try:
-                    if not self._answered:
-                        proc.kill()
-                    else:
+                    if self._answered:                  # … and past its set-up: ask it to exit
                         _send(proc.stdin, _STOP)
                         proc.stdin.close()
+                        asked = True
                 except (BrokenPipeError, OSError, ValueError):
                     pass
                 finally:
                     self._lock.release()
-                try:
-                    proc.wait(timeout=2.0)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-            else:
+            if not asked:
+                proc.kill()
+            try:
+                proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
         for stream in (proc.stdin, proc.stdout):

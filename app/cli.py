@@ -3,21 +3,19 @@ source options; errors the user can fix print one line on stderr and exit with s
 
 from __future__ import annotations
 
-import json
-import resource
-import sys
 import time
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from lidarloc.core.errors import LidarlocError
 
-from .options import (CacheOpt, CalibOpt, ConfigOpt, DateOpt, DriveOpt, KittiOdometryOpt, KittiRawOpt, ScansOpt,
-                      SequenceOpt, SetOpt, TownSeedOpt, TrajectoryOpt, config_from, source_spec)
+from .bench.common import DATA_ENV, DEFAULT_DATA, REAL_DRIVE, REAL_DRIVE_DATE
+from .console import emit_json, err, fail, peak_rss_mb, progress_bar, show_result
+from .options import (SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, CalibOpt, ConfigOpt, DateOpt, DriveOpt, JsonOpt,
+                      KittiOdometryOpt, KittiRawOpt, ScansOpt, SequenceOpt, SetOpt, TownSeedOpt, TrajectoryOpt,
+                      config_from, given, source_options, source_spec)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="LiDAR-only localization in a prior 3D map: scan-matching particle filter with a live viewer.")
@@ -25,21 +23,6 @@ map_app = typer.Typer(no_args_is_help=True, help="Build and inspect prior maps."
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks behind BENCHMARKS.md.")
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
-
-err = Console(stderr=True)
-
-
-def progress_bar(transient: bool = True) -> Progress:
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TimeRemainingColumn(), console=err, transient=transient)
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
-
-
-def emit_json(data: dict) -> None:
-    typer.echo(json.dumps(data, indent=2, default=float))
 
 
 # ------------------------------------------------------------------------------------------ map
@@ -120,7 +103,7 @@ def run(
 
 # -------------------------------------------------------------------------------------- viewer
 def _serve(spec, cfg, host, port, cache, open_browser):
-    from .viewer_main import serve_until_interrupted
+    from .viewer.serve import serve_until_interrupted
 
     serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser)
 
@@ -153,92 +136,192 @@ def view(
 
 
 # -------------------------------------------------------------------------------------- benches
-@bench_app.command("town")
-def bench_town(seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None, as_json: Annotated[bool, typer.Option("--json")] = False):
-    """Town generation time and simulated-scan time."""
-    from .bench_town import run as run_bench
+# Every benchmark takes the source options and --config/--set; --json prints its result as JSON
+# on stdout, else the result is listed on stderr.
+def _result(name: str, result: dict, as_json: bool) -> None:
+    if as_json:
+        emit_json(result)
+    else:
+        show_result(f"lidarloc bench {name}", result)
 
-    emit_json(run_bench(seed=seed))
+
+SeedOpt = Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")]
+MapSource = source_options("Source (default: the built-in town and the real KITTI drive)")
+PfSource = source_options(f"Source (default: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} in ${DATA_ENV} or {DEFAULT_DATA})")
+ViewerSource = source_options("Source (none: the inputs are synthetic)")
+
+
+@bench_app.command("town")
+def bench_town(
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+):
+    """Town generation time and simulated-scan time.
+
+    The built-in town only: --kitti-odometry and --kitti-raw do not apply."""
+    from .bench.town import run as run_bench
+
+    cfg = config_from(config, set_)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    _result("town", run_bench(spec, cfg), as_json)
 
 
 @bench_app.command("map")
 def bench_map(
-    data: Annotated[Path, typer.Option("--data", help="Shared data directory (real KITTI).")] = Path("../shared/data"),
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    ctx: typer.Context, as_json: JsonOpt = False,
+    kitti_odometry: MapSource.kitti_odometry = None, sequence: MapSource.sequence = None,
+    kitti_raw: MapSource.kitti_raw = None, date: MapSource.date = None, drive: MapSource.drive = None,
+    town_seed: MapSource.town_seed = 0, trajectory: MapSource.trajectory = None, calib: MapSource.calib = None,
+    scans: MapSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
-    """Prior-map build and cache-load times, default town and the real drive (fresh cache)."""
-    from .bench_map import run as run_bench
+    """Prior-map build and cache-load times, default town and the real drive (fresh cache).
 
-    emit_json(run_bench(data_dir=data))
+    With a source option, that source's map only."""
+    from .bench.common import config_args
+    from .bench.map import default_sources, run as run_bench, source_name
+
+    config_from(config, set_)      # a bad config fails here, not in the first child process
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE) else default_sources(spec)
+    _result("map", run_bench(sources, config_args(config, set_)), as_json)
 
 
 @bench_app.command("pf")
 def bench_pf(
-    particles: Annotated[int, typer.Option("--particles")] = 1000,
-    data: Annotated[Path, typer.Option("--data", help="Shared data directory (real KITTI).")] = Path("../shared/data"),
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    ctx: typer.Context,
+    particles: Annotated[Optional[int], typer.Option("--particles", min=1, help="Particles (default: the config's).")] = None,
+    seed: SeedOpt = None,
+    big_map: Annotated[bool, typer.Option("--big-map/--no-big-map", help="Time the lookup table of a KITTI-05-sized synthetic map.")] = True,
+    town_lookup: Annotated[bool, typer.Option("--town/--no-town", help="Time the lookup table of the default town's map.")] = True,
+    as_json: JsonOpt = False,
+    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
+    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
+    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
+    scans: PfSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
-    """Particle-filter step time and lookup-table cost (issue targets)."""
-    from .bench_pf import run as run_bench
+    """Particle-filter step time and lookup-table cost, against their targets.
 
-    emit_json(run_bench(n_particles=particles, data_dir=data))
+    Default source: the real KITTI raw drive; --town-seed N for the town."""
+    from .bench.common import require_real_drive
+    from .bench.pf import run as run_bench
+
+    cfg = config_from(config, set_, seed=seed)
+    if particles is not None:
+        cfg.pf.n_particles = particles
+    if given(ctx, SOURCE_CHOICE):
+        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    else:
+        spec = require_real_drive("pf", scans)
+    _result("pf", run_bench(spec, cfg, big_map=big_map, town=town_lookup), as_json)
 
 
 @bench_app.command("s2m")
 def bench_s2m(
-    source: Annotated[str, typer.Option("--source", help="town or kitti_raw")] = "town",
-    scans: Annotated[int, typer.Option("--scans")] = 350,
-    data: Annotated[Path, typer.Option("--data")] = Path("../shared/data"),
-    out: Annotated[Optional[Path], typer.Option("--out", help="Write the RMSE histogram PNG here.")] = None,
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    matches: Annotated[int, typer.Option("--matches", min=1, help="Random scans to match (at most all of the source's).")] = 350,
+    seed: SeedOpt = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Write the result, per-scan rows and RMSE histogram PNG here.")] = None,
+    gicp_comparison: Annotated[bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")] = True,
+    cell_study: Annotated[bool, typer.Option("--cell-study", help="Also match with every BEV cell value.")] = False,
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment)."""
-    from .bench_s2m import run as run_bench
+    from .bench.s2m import run as run_bench
 
-    emit_json(run_bench(source=source, scans=scans, data_dir=data, out_dir=out))
+    cfg = config_from(config, set_, seed=seed)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    _result("s2m", run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison,
+                             cell_study=cell_study), as_json)
 
 
 @bench_app.command("rpe")
 def bench_rpe(
-    source: Annotated[str, typer.Option("--source", help="town or kitti_raw")] = "town",
-    scans: Annotated[int, typer.Option("--scans", min=11)] = 300,
     convergence: Annotated[Optional[list[float]], typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")] = None,
-    data: Annotated[Path, typer.Option("--data")] = Path("../shared/data"),
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
-    """KISS-ICP odometry: registration time and error against the truth per convergence setting."""
-    from .bench_rpe import run as run_bench
+    """KISS-ICP odometry: registration time and error against the truth per convergence setting.
 
-    emit_json(run_bench(source=source, scans=scans, data_dir=data,
-                        **({"convergences": tuple(convergence)} if convergence else {})))
+    Registers the first 300 scans unless --scans says otherwise (at least 11)."""
+    from .bench.rpe import run as run_bench
+
+    cfg = config_from(config, set_)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    _result("rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json)
 
 
 @bench_app.command("viewer")
-def bench_viewer(as_json: Annotated[bool, typer.Option("--json")] = False):
-    """Server-side cost of one display update."""
-    from .bench_viewer import run as run_bench
+def bench_viewer(
+    ctx: typer.Context, as_json: JsonOpt = False,
+    kitti_odometry: ViewerSource.kitti_odometry = None, sequence: ViewerSource.sequence = None,
+    kitti_raw: ViewerSource.kitti_raw = None, date: ViewerSource.date = None, drive: ViewerSource.drive = None,
+    town_seed: ViewerSource.town_seed = 0, trajectory: ViewerSource.trajectory = None, calib: ViewerSource.calib = None,
+    scans: ViewerSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
+):
+    """Server-side cost of one display update.
 
-    emit_json(run_bench())
+    The inputs are synthetic, sized like a real drive: the source options do not apply."""
+    from .bench.viewer import run as run_bench
+
+    cfg = config_from(config, set_)
+    chosen = given(ctx, SOURCE_OPTIONS)
+    if chosen:
+        raise LidarlocError(f"bench viewer times synthetic display updates and reads no sequence; "
+                            f"--{chosen[0].replace('_', '-')} does not apply")
+    _result("viewer", run_bench(n_particles=cfg.pf.n_particles), as_json)
 
 
 @bench_app.command("startup")
-def bench_startup(repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
-                  as_json: Annotated[bool, typer.Option("--json")] = False):
-    """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts."""
-    from .bench_startup import run as run_bench
+def bench_startup(
+    ctx: typer.Context,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+):
+    """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts.
 
-    emit_json(run_bench(repeats=repeats))
+    With a source option, the start-up time of `lidarloc view` on that source."""
+    from .bench.common import config_args, source_args
+    from .bench.startup import run as run_bench
+
+    config_from(config, set_)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    if given(ctx, SOURCE_CHOICE):
+        command = ["view", *source_args(spec)]
+    else:
+        command = ["demo"] + (["--scans", str(scans)] if scans is not None else [])
+    _result("startup", run_bench(command + config_args(config, set_), repeats=repeats), as_json)
 
 
 @bench_app.command("stop")
-def bench_stop(repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
-               delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,
-               cache: CacheOpt = None, as_json: Annotated[bool, typer.Option("--json")] = False):
-    """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s)."""
-    from .bench_stop import run as run_bench
+def bench_stop(
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
+    delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s).
 
-    emit_json(run_bench(repeats=repeats, cache=None if cache is None else str(cache),
-                        **({"delays_s": tuple(delay)} if delay else {})))
+    Runs the town's first 300 scans unless the source options say otherwise."""
+    from .bench.common import config_args, source_args
+    from .bench.stop import run as run_bench
+
+    config_from(config, set_)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib,
+                       300 if scans is None else scans)
+    _result("stop", run_bench(source_args(spec) + config_args(config, set_), repeats=repeats,
+                              cache=None if cache is None else str(cache), **({"delays_s": tuple(delay)} if delay else {})),
+            as_json)
 
 
 @bench_app.command("localize")
@@ -252,13 +335,13 @@ def bench_localize(
                                 "per sequence (the same numbers; only slower).")] = False,
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
     calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section)."""
-    from .bench_localize import run_bench
+    from .bench.localize import run_bench
 
     overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
         + (["s2m.enabled=false"] if no_s2m else [])
@@ -266,8 +349,7 @@ def bench_localize(
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
                         cache_root=cache, console=err)
-    if as_json:
-        emit_json(summary)
+    _result("localize", summary, as_json)
 
 
 def main() -> None:
@@ -276,12 +358,9 @@ def main() -> None:
     try:
         command.main(prog_name="lidarloc", standalone_mode=True)
     except LidarlocError as exc:
-        # plain write: one unwrapped line, no markup interpretation of paths with brackets
-        sys.stderr.write(f"lidarloc: error: {exc}\n")
-        sys.exit(2)
+        fail(str(exc))
     except MemoryError:
-        sys.stderr.write("lidarloc: error: out of memory\n")
-        sys.exit(2)
+        fail("out of memory")
 
 
 if __name__ == "__main__":

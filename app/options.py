@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, NamedTuple, Optional
 
 import typer
 
@@ -13,18 +13,55 @@ from lidarloc.core.sequences.factory import SourceSpec
 _SRC = "Source (default: the built-in town)"
 _CFG = "Configuration"
 
-KittiOdometryOpt = Annotated[Optional[Path], typer.Option("--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=_SRC)]
-SequenceOpt = Annotated[Optional[str], typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=_SRC)]
-KittiRawOpt = Annotated[Optional[Path], typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=_SRC)]
-DateOpt = Annotated[Optional[str], typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=_SRC)]
-DriveOpt = Annotated[Optional[str], typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=_SRC)]
-TownSeedOpt = Annotated[int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=_SRC)]
-TrajectoryOpt = Annotated[Optional[Path], typer.Option("--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=_SRC)]
-CalibOpt = Annotated[Optional[Path], typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=_SRC)]
-ScansOpt = Annotated[Optional[int], typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=_SRC)]
+
+class SourceOptions(NamedTuple):
+    """The source options' types, shown under one help panel."""
+
+    kitti_odometry: Any
+    sequence: Any
+    kitti_raw: Any
+    date: Any
+    drive: Any
+    town_seed: Any
+    trajectory: Any
+    calib: Any
+    scans: Any
+
+
+def source_options(panel: str) -> SourceOptions:
+    """The source options under the help panel ``panel`` (a command whose default source is not
+    the built-in town says which it is there)."""
+    return SourceOptions(
+        Annotated[Optional[Path], typer.Option("--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=panel)],
+        Annotated[Optional[str], typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=panel)],
+        Annotated[Optional[Path], typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=panel)],
+        Annotated[Optional[str], typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=panel)],
+        Annotated[Optional[str], typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=panel)],
+        Annotated[int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=panel)],
+        Annotated[Optional[Path], typer.Option("--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=panel)],
+        Annotated[Optional[Path], typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=panel)],
+        Annotated[Optional[int], typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=panel)],
+    )
+
+
+(KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt,
+ ScansOpt) = source_options(_SRC)
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 (repeatable).", rich_help_panel=_CFG)]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (else a readable summary on stderr).")]
 CacheOpt = Annotated[Optional[Path], typer.Option("--cache", help="Cache directory for maps and tables (default ~/.cache/lidarloc or $LIDARLOC_CACHE).", rich_help_panel=_CFG)]
+
+
+# The options that choose which sequence (the others refine it): a command whose default source
+# is not the town asks whether one of them was given.
+SOURCE_CHOICE = ("kitti_odometry", "kitti_raw", "town_seed", "trajectory")
+SOURCE_OPTIONS = SOURCE_CHOICE + ("sequence", "date", "drive", "calib", "scans")
+
+
+def given(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
+    """Which of the parameters ``names`` were given on the command line (not left at their default)."""
+    # by name: typer may bring its own copy of click, whose ParameterSource is another enum
+    return [n for n in names if getattr(ctx.get_parameter_source(n), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")]
 
 
 def source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans) -> SourceSpec:

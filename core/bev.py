@@ -30,7 +30,7 @@ count      1.58 (min 1.41)      0.94               391               raw counts
 spread is the lattice quantisation, ±4 % noise at 50 scans); times are medians. ``sat8`` is the
 compromise: half of sat32's margin gain over binary at 3/4 of its time; log and raw counts add a
 little margin at 1.5–2.2× sat8's time. The margins come from a one-off exhaustive score map
-(all 144 angles × all cells); ``app/bench_s2m.py --cell-study`` reproduces the other columns.
+(all 144 angles × all cells); ``lidarloc bench s2m --cell-study`` reproduces the other columns.
 
 Layout: ``levels[l]`` is a float32 array indexed ``[ix, iy]``; cell (ix, iy) of level l covers
 world x ∈ [origin_x + ix·2^l·d_m, origin_x + (ix+1)·2^l·d_m) (same for y). ``origin`` is a
@@ -46,9 +46,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .cache import Cached, atomic_write_dir
 from .config import S2MConfig
 from .errors import LidarlocError
-from .mapping import atomic_write_dir
 
 #: Default L0 cell value: "count", "binary", "log" (log1p of the count) or "sat<c>" (min(count, c)).
 #: S2MConfig.binary_cells = True overrides it with "binary". See the module docstring for the study.
@@ -91,6 +91,9 @@ class BEVPyramid:
     levels: list                       # [L0, L1, …], float32 (nx_l, ny_l)
     cell_value: str = DEFAULT_CELL_VALUE
     meta: dict = field(default_factory=dict)
+    # What a matcher derives from the levels, built on first use and kept with them (M3RSM's
+    # flattened bound grids, by its key); never saved.
+    derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -161,16 +164,14 @@ def pyramid_cache_name(s2m_cfg: S2MConfig, cell_value: str | None = None) -> str
 
 
 def load_or_build_pyramid(prior_map, map_cache_dir: Path | None, s2m_cfg: S2MConfig,
-                          cell_value: str | None = None) -> BEVPyramid:
+                          cell_value: str | None = None) -> Cached[BEVPyramid]:
     """The BEV pyramid of ``prior_map.points_bev``, cached in a subdirectory of the map's cache
-    directory (keyed by resolution and cell value); ``pyramid.meta["loaded_from"]`` names the
-    directory when it came from the cache. With ``map_cache_dir=None`` it is built, not cached."""
+    directory (keyed by resolution and cell value). With ``map_cache_dir=None`` it is built, not
+    cached (the result's directory is then None)."""
     directory = None if map_cache_dir is None else Path(map_cache_dir) / pyramid_cache_name(s2m_cfg, cell_value)
     if directory is not None and (directory / "pyramid.json").is_file():
         try:
-            pyramid = BEVPyramid.load(directory)
-            pyramid.meta["loaded_from"] = str(directory)
-            return pyramid
+            return Cached(BEVPyramid.load(directory), directory, True)
         except LidarlocError:
             pass  # unreadable entry: rebuild it below
     t0 = time.perf_counter()
@@ -181,4 +182,4 @@ def load_or_build_pyramid(prior_map, map_cache_dir: Path | None, s2m_cfg: S2MCon
             atomic_write_dir(directory, pyramid.save)
         except OSError as exc:
             raise LidarlocError(f"{directory}: cannot write the BEV pyramid cache ({exc.strerror})") from None
-    return pyramid
+    return Cached(pyramid, directory, False)

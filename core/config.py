@@ -5,15 +5,21 @@ entries are converted here once, and the edges (CLI, GUI, reports) convert back 
 
 Load from YAML/TOML with :func:`load_config`; override single entries with ``section.key=value``
 strings (:func:`apply_overrides`), which is what ``--set`` on the CLI does.
+
+The parameters a running localizer accepts (``Localizer.set_params``) are listed in
+:data:`LIVE_PARAMS`, with their display labels and units; :func:`check_live_changes` is the one
+validation of such a change, used by the localizer and by the viewer before it calls it.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from .errors import LidarlocError
 
@@ -271,3 +277,113 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         update_from_dict(cfg, data)
     apply_overrides(cfg, overrides)
     return cfg.validate()
+
+
+# ------------------------------------------------------------------------------ live parameters
+@dataclass(frozen=True)
+class LiveParam:
+    """A parameter the running localizer accepts (``Localizer.set_params``), with what a GUI
+    needs to show it."""
+
+    key: str            # keyword of Localizer.set_params
+    section: str        # Config section holding the value ("pf", "s2m", "localize")
+    attr: str           # attribute in that section
+    label: str          # display label incl. display unit, e.g. "d_max (m)", "d_θ (deg)"
+    unit: str           # display unit: "m", "deg", "", ...
+    scale: float = 1.0  # display value = SI value / scale (DEG shows radians as degrees)
+    step: float = 0.01
+    integer: bool = False
+    hint: str = ""
+    rule: str = ""      # human-readable validity rule, e.g. "> 0", used in error messages
+
+
+LIVE_PARAMS: dict[str, LiveParam] = {p.key: p for p in (
+    LiveParam("d_max", "pf", "d_max", "d_max (m)", "m", rule="> 0",
+              hint="Distance cap of the likelihood (a larger one than the built table rebuilds it in the background)"),
+    LiveParam("sigma", "pf", "sigma", "σ (m)", "m", rule="> 0", hint="Likelihood scale"),
+    LiveParam("n_particles", "pf", "n_particles", "N particles", "", step=1, integer=True,
+              rule="a whole number in 1..200000"),
+    LiveParam("scan_voxel", "pf", "scan_voxel", "scan voxel (m)", "m", rule="in 0.05..10",
+              hint="Random point per voxel of each scan"),
+    LiveParam("region_x", "s2m", "region_x", "L_x (m)", "m", step=0.5, rule="> 0",
+              hint="S2M local search half-width in x"),
+    LiveParam("region_y", "s2m", "region_y", "L_y (m)", "m", step=0.5, rule="> 0",
+              hint="S2M local search half-width in y"),
+    LiveParam("match_resolution", "s2m", "match_resolution", "d_m (m)", "m", step=0.1, rule="in 0.1..10",
+              hint="S2M match resolution (rebuilds the BEV pyramid)"),
+    LiveParam("angle_step", "s2m", "angle_step", "d_θ (deg)", "deg", scale=DEG, step=0.1, rule="in (0, 180]",
+              hint="S2M angular resolution"),
+    # per-entry units and degrees: see STATE_NAMES and ANGULAR_STATE
+    LiveParam("q_std", "pf", "q_std", "Process noise Q (std)", "", step=0.001,
+              rule="11 entries, each finite and ≥ 0",
+              hint="Standard deviations of the 11-state process noise (angles in degrees)"),
+    LiveParam("s2m_enabled", "s2m", "enabled", "S2M enabled", "", rule="on or off",
+              hint="Scan-to-map matching on/off (applies at once)"),
+    LiveParam("clock", "localize", "clock", "Clock", "", rule="replay or realtime",
+              hint="replay: deterministic; realtime: S2M lands when it finishes, playback at the sequence's timestamps"),
+)}
+
+# The localizer's own limits, beyond what Config.validate asks of any configuration; each one
+# is what the parameter's ``rule`` says. (SI units.)
+_LIVE_LIMITS: dict[str, Callable[[Any], bool]] = {
+    "d_max": lambda v: v > 0,
+    "sigma": lambda v: v > 0,
+    "n_particles": lambda v: 1 <= v <= 200_000,
+    "scan_voxel": lambda v: 0.05 <= v <= 10,
+    "region_x": lambda v: v > 0,
+    "region_y": lambda v: v > 0,
+    "match_resolution": lambda v: 0.1 <= v <= 10,
+    "angle_step": lambda v: 0 < v <= math.pi,
+    "q_std": lambda v: len(v) == 11 and all(math.isfinite(q) and q >= 0 for q in v),
+    "s2m_enabled": lambda v: True,
+    "clock": lambda v: v in ("replay", "realtime"),
+}
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _has_type_of(current: Any, value: Any) -> bool:
+    """Whether ``value`` can stand in for the configuration's ``current`` value."""
+    if isinstance(current, bool):
+        return isinstance(value, bool)
+    if isinstance(current, int):
+        return _is_number(value) and math.isfinite(value) and float(value).is_integer()
+    if isinstance(current, float):
+        return _is_number(value)
+    if isinstance(current, tuple):
+        try:
+            return all(_is_number(q) for q in value)
+        except TypeError:
+            return False
+    return isinstance(value, type(current))
+
+
+def check_live_changes(cfg: Config, changes: dict) -> None:
+    """Refuse live parameter changes (``Localizer.set_params`` keywords, SI units) that the
+    localizer cannot use: raises LidarlocError with a one-line message, changes nothing.
+
+    A change must pass the rules of any configuration (Config.validate on a copy of ``cfg`` with
+    the changes in) and the localizer's own limits (each parameter's ``rule``)."""
+    for key in changes:
+        if key not in LIVE_PARAMS:
+            raise LidarlocError(f"unknown parameter '{key}'")
+    for key, value in changes.items():
+        p = LIVE_PARAMS[key]
+        if not _has_type_of(getattr(getattr(cfg, p.section), p.attr), value):
+            raise LidarlocError(f"invalid value for {key}: {value!r} (must be {p.rule})")
+        if key == "q_std":
+            bad = [name for name, q in zip(STATE_NAMES, value) if not (math.isfinite(q) and q >= 0)]
+            if bad:
+                raise LidarlocError(f"Q std of {', '.join(bad)} must be finite and ≥ 0")
+        elif _is_number(value) and not math.isfinite(value):
+            raise LidarlocError(f"{key} must be a finite number")
+    trial = copy.deepcopy(cfg)
+    for key, value in changes.items():
+        p = LIVE_PARAMS[key]
+        setattr(getattr(trial, p.section), p.attr, tuple(value) if key == "q_std" else value)
+    trial.validate()
+    for key, value in changes.items():
+        if not _LIVE_LIMITS[key](value):
+            raise LidarlocError(f"invalid value for {key}: {value!r} (must be {LIVE_PARAMS[key].rule})")

@@ -5,7 +5,7 @@ the full pose in 3D).
 The map side (down-sampled map, per-point covariances, KD-tree) is built once per map in
 :class:`GICPRefiner`'s constructor; each refinement only pre-processes the scan.
 
-Library choice: small_gicp. Measured on the KITTI raw drive 0013 (``app/bench_s2m.py``,
+Library choice: small_gicp. Measured on the KITTI raw drive 0013 (``lidarloc bench s2m``,
 ``gicp_comparison``: 25 scans, start = ground truth perturbed by up to ±0.5 m in x, y and ±1.25°
 in yaw — the 2D lattice error —, scan voxel 0.5 m, 20 neighbours, 2 m correspondence distance,
 30 iterations, one thread; medians (max); 2 cores shared with other jobs, load ≈ 1.5–2):

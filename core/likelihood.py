@@ -27,9 +27,7 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
-from .lookup import _BRICK_MASK as BRICK_MASK
-from .lookup import _BRICK_SHIFT as BRICK_SHIFT
-from .lookup import BRICK_CELLS, MISS_CODE, LookupTable
+from .lookup import BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MISS_CODE, LookupTable
 
 
 @nb.njit(inline="always", nogil=True, fastmath=True, cache=True)

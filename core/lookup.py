@@ -53,7 +53,7 @@ How it is stored (block-sparse, uint8)
     no branch on "is this brick allocated". A hash map (the paper's choice) would cost ≥ 8 bytes
     of key per stored node and a probe loop per read; the brick grid costs 4 bytes per 512 cells.
 
-    Measured at δ = 0.25 m, d_max = 5 m (app/bench_pf.py, 2 shared cores, load 1.3–3):
+    Measured at δ = 0.25 m, d_max = 5 m (``lidarloc bench pf``, 2 shared cores, load 1.3–3):
 
     - KITTI raw 0013 map (268 × 160 × 35 m, 0.87M points): 34 MB, built in ~3 s.
     - KITTI-05-sized synthetic map (485 × 430 × 42 m, 8.6M points, hilly ground over the whole
@@ -85,13 +85,14 @@ from typing import Callable
 import numba as nb
 import numpy as np
 
+from .cache import Cached, atomic_write_dir
 from .errors import DataError, LidarlocError
 
 MISS_CODE = 255             # quantised "≥ d_max_built"
 _MAX_CODE = 254             # largest code for a stored distance
 BRICK = 8                   # cells per brick side
-_BRICK_SHIFT = 3
-_BRICK_MASK = 7
+BRICK_SHIFT = 3             # log2(BRICK): cell index >> BRICK_SHIFT = brick index
+BRICK_MASK = 7              # BRICK − 1: cell index & BRICK_MASK = cell within its brick
 BRICK_CELLS = BRICK ** 3
 _TILE = 192                 # x-y cells per build tile (multiple of BRICK)
 _INF = np.int32(1 << 30)    # "no map point in reach" in the transform's squared cell distances
@@ -117,13 +118,13 @@ def lookup_code(x, y, z, origin, inv_res, brick_index, bricks):
     ix = np.int64(fx)
     iy = np.int64(fy)
     iz = np.int64(fz)
-    bx = ix >> _BRICK_SHIFT
-    by = iy >> _BRICK_SHIFT
-    bz = iz >> _BRICK_SHIFT
+    bx = ix >> BRICK_SHIFT
+    by = iy >> BRICK_SHIFT
+    bz = iz >> BRICK_SHIFT
     if bx >= brick_index.shape[0] or by >= brick_index.shape[1] or bz >= brick_index.shape[2]:
         return MISS_CODE
     slot = brick_index[bx, by, bz]
-    cell = (((ix & _BRICK_MASK) << 6) | ((iy & _BRICK_MASK) << 3) | (iz & _BRICK_MASK))
+    cell = (((ix & BRICK_MASK) << 6) | ((iy & BRICK_MASK) << 3) | (iz & BRICK_MASK))
     return np.int64(bricks[slot, cell])
 
 
@@ -725,12 +726,10 @@ def _cache_name(resolution: float, d_max: float) -> str:
 
 
 def load_or_build_lookup(prior_map, map_cache_dir: Path, resolution: float, d_max: float,
-                         progress: Callable[[float], None] | None = None) -> tuple[LookupTable, bool]:
+                         progress: Callable[[float], None] | None = None) -> Cached[LookupTable]:
     """The lookup table of ``prior_map`` from ``map_cache_dir/lookup-r<δ>-d<d_max>``, or built and
     cached there atomically. A cached table of the same δ built for a larger d_max is reused
-    (reads clamp at the caller's d_max). Returns (table, was_cached)."""
-    from .mapping import atomic_write_dir
-
+    (reads clamp at the caller's d_max); the result names the directory it came from."""
     map_cache_dir = Path(map_cache_dir)
     resolution, d_max = float(resolution), float(d_max)
     candidates = [map_cache_dir / _cache_name(resolution, d_max)]
@@ -747,7 +746,7 @@ def load_or_build_lookup(prior_map, map_cache_dir: Path, resolution: float, d_ma
     for directory in candidates:
         if (directory / "lookup.json").is_file():
             try:
-                return LookupTable.load(directory), True
+                return Cached(LookupTable.load(directory), directory, True)
             except DataError:
                 pass  # unreadable entry: rebuild below (the exact key is overwritten)
     t0 = time.perf_counter()
@@ -764,4 +763,4 @@ def load_or_build_lookup(prior_map, map_cache_dir: Path, resolution: float, d_ma
         atomic_write_dir(candidates[0], write)
     except OSError as exc:
         raise LidarlocError(f"{candidates[0]}: cannot write the lookup-table cache ({exc.strerror})") from None
-    return table, False
+    return Cached(table, candidates[0], False)

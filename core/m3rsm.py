@@ -11,7 +11,7 @@ same optimum an exhaustive search finds.
 Admissible bounds. Translations are t = anchor + k·d_m (k integer), so a scan point whose L0
 cell at k = 0 is c lands in cell c + k: over a block k ∈ [kx, kx + 2^l) it visits exactly the
 L0 cells [c + kx, c + kx + 2^l − 1] (per axis). Two bounds use that, both admissible (≥ the L0
-score of every translation in the block, checked in tests/test_s2m_m3rsm.py):
+score of every translation in the block, checked in tests/test_m3rsm.py):
 
 * dense (levels 1..DENSE_UPTO): S_l[x] = max of L0 over [x, x + 2^l) — the 2^l × 2^l max-pooling
   with stride 1 — so the point contributes S_l[c + kx], the exact max over the cells it visits.
@@ -519,14 +519,14 @@ _prep_lock = threading.Lock()
 
 def _prepared(pyramid: BEVPyramid, dense_upto: int) -> _Prepared:
     """The kernels' view of ``pyramid`` for one dense/strided split, built once and kept on it."""
-    cache = pyramid.__dict__.setdefault("_m3rsm_prepared", {})
-    prep = cache.get(dense_upto)
+    key = ("m3rsm", dense_upto)
+    prep = pyramid.derived.get(key)
     if prep is None:
         with _prep_lock:
-            prep = cache.get(dense_upto)
+            prep = pyramid.derived.get(key)
             if prep is None:
                 prep = _Prepared(pyramid, dense_upto)
-                cache[dense_upto] = prep
+                pyramid.derived[key] = prep
     return prep
 
 

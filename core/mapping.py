@@ -9,9 +9,6 @@ the returns that fell in it.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -21,6 +18,7 @@ from typing import Callable
 import numba as nb
 import numpy as np
 
+from .cache import Cached, atomic_write_dir, default_cache_root
 from .config import MapConfig
 from .errors import DataError, LidarlocError
 from .o3d import open3d
@@ -182,10 +180,6 @@ def build_prior_map(seq, cfg: MapConfig, progress: Callable[[int, int], None] | 
 
 
 # ------------------------------------------------------------------------------------- cache
-def default_cache_root() -> Path:
-    return Path(os.environ.get("LIDARLOC_CACHE", Path.home() / ".cache" / "lidarloc"))
-
-
 def map_cache_dir(seq, cfg: MapConfig, cache_root: Path | None = None) -> Path:
     import hashlib
 
@@ -194,30 +188,16 @@ def map_cache_dir(seq, cfg: MapConfig, cache_root: Path | None = None) -> Path:
     return Path(cache_root or default_cache_root()) / f"map-{key}"
 
 
-def atomic_write_dir(final: Path, write: Callable[[Path], None]) -> None:
-    """Write a directory's content into a temporary sibling and rename it into place, so a crash or
-    Ctrl-C never leaves a half-written cache entry."""
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=final.name + ".tmp-", dir=final.parent))
-    try:
-        write(tmp)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
 def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
-                      progress: Callable[[int, int], None] | None = None) -> tuple[PriorMap, Path, bool]:
-    """The prior map of ``seq`` from the cache, or built and cached. Returns (map, cache dir, was_cached)."""
+                      progress: Callable[[int, int], None] | None = None) -> Cached[PriorMap]:
+    """The prior map of ``seq`` from the cache, or built and cached (in its own directory under
+    ``cache_root``, default :func:`~lidarloc.core.cache.default_cache_root`)."""
     directory = map_cache_dir(seq, cfg, cache_root)
     meta_path = directory / "meta.json"
     if meta_path.is_file():
         try:
             meta = json.loads(meta_path.read_text())
-            return PriorMap.load(directory, meta), directory, True
+            return Cached(PriorMap.load(directory, meta), directory, True)
         except (OSError, ValueError, KeyError):
             pass  # unreadable entry: rebuild it below
     t0 = time.perf_counter()
@@ -234,4 +214,4 @@ def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
         atomic_write_dir(directory, write)
     except OSError as exc:
         raise LidarlocError(f"{directory}: cannot write the map cache ({exc.strerror})") from None
-    return prior, directory, False
+    return Cached(prior, directory, False)

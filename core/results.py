@@ -1,5 +1,6 @@
-"""Writing a run's results: trajectories in KITTI and TUM formats (so ``evo`` reads them), the
-per-scan CSV, the event list and the summary JSON.
+"""A run's results: trajectories in KITTI and TUM formats (so ``evo`` reads them), the per-scan
+CSV, the event list and the summary JSON (:func:`summarize_run`), written by :func:`write_run`.
+``lidarloc run`` and every run of ``lidarloc bench localize`` write the same files.
 
 Poses are LiDAR poses in the map frame (world = first LiDAR pose of the sequence). The ground
 truth is written beside the estimate in the same frame and format (``groundtruth_*.txt``) so
@@ -13,9 +14,17 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from .errors import LidarlocError
+from .geometry import wrap_angle
+from .metrics import ScanLog, compute_metrics
+
+if TYPE_CHECKING:
+    from .localizer import Localizer
 
 
 def write_kitti(path: Path, poses: np.ndarray) -> None:
@@ -78,3 +87,91 @@ def write_json(path: Path, data: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(json_safe(data), indent=2))
     tmp.replace(path)
+
+
+def make_out_dir(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LidarlocError(f"{out}: cannot create the output directory ({exc.strerror})") from None
+
+
+def write_run(loc: Localizer, out: Path, summary: dict) -> None:
+    """Every file of a run: trajectories (and the ground truth when the source has it), the
+    per-scan CSV, the events, and ``summary.json`` last."""
+    out.mkdir(parents=True, exist_ok=True)
+    recs = loc.records
+    times = np.array([r.time for r in recs])
+    poses = np.array(loc.est_trajectory).reshape(-1, 4, 4)
+    write_kitti(out / "trajectory_kitti.txt", poses)
+    write_tum(out / "trajectory_tum.txt", times, poses)
+    if loc.seq.has_poses and recs:
+        gt = np.array([loc.seq.pose(r.scan) for r in recs])
+        write_kitti(out / "groundtruth_kitti.txt", gt)
+        write_tum(out / "groundtruth_tum.txt", times, gt)
+    write_records_csv(out / "scans.csv", recs)
+    write_events(out / "events.json", loc.events)
+    write_json(out / "summary.json", summary)
+
+
+# --------------------------------------------------------------------------------- run summary
+def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None,
+                  cpu_s: dict | None = None) -> dict:
+    """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
+    after its arrival time its step started. ``cpu_s``: CPU seconds each block's process used
+    during the run (differences of :meth:`Localizer.cpu_seconds`)."""
+    recs = loc.records
+    localized = np.array([r.localized for r in recs], dtype=bool)
+    err = np.array([np.nan if r.error_m is None else r.error_m for r in recs], dtype=float)
+    yaw_err = np.array([np.nan if r.gt_yaw is None else float(wrap_angle(r.yaw - r.gt_yaw)) for r in recs], dtype=float)
+    metrics = compute_metrics(ScanLog(localized, err, yaw_err))
+    first_loc = next((r.scan for r in recs if r.localized), None)
+    after = err[localized] if localized.any() else np.array([])
+    after = after[np.isfinite(after)]
+    pf_ms = np.array([r.pf_ms for r in recs], dtype=float)
+    s2m_ms = np.array([r.s2m_ms for r in recs if r.s2m_ms is not None], dtype=float)
+    kinds = [e.kind for e in loc.events]
+    return {
+        "source": loc.seq.name, "seed": loc.cfg.seed, "scans": len(recs), "clock": loc.cfg.localize.clock,
+        "s2m": loc.cfg.s2m.enabled, "particles": loc.cfg.pf.n_particles,
+        "localized_at_scan": first_loc,
+        "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
+        "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
+        "final_error_m": float(err[-1]) if len(err) and np.isfinite(err[-1]) else None,
+        "pf_ms_median": float(np.median(pf_ms)) if pf_ms.size else None,
+        "s2m_ms_median": float(np.median(s2m_ms)) if s2m_ms.size else None,
+        "scans_per_second": len(recs) / wall_s if wall_s > 0 else None,
+        "s2m_landed": kinds.count("s2m_accepted") + kinds.count("s2m_rejected"),
+        "s2m_accepted": kinds.count("s2m_accepted"),
+        "s2m_cancelled": kinds.count("s2m_cancelled"),
+        "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        **lag_summary(lags_ms),
+        **cpu_summary(cpu_s, len(recs), wall_s),
+        "metrics": metrics,
+    }
+
+
+def cpu_summary(cpu_s: dict | None, scans: int, wall_s: float) -> dict:
+    """CPU milliseconds per scan of each block's process, and all of them as a share of one core
+    (200 % = both cores of the reference machine busy for the whole run)."""
+    if not cpu_s or scans == 0:
+        return {"cpu_ms_per_scan": None, "cpu_percent": None}
+    known = [v for v in cpu_s.values() if v is not None]
+    return {"cpu_ms_per_scan": {k: None if v is None else 1000.0 * v / scans for k, v in cpu_s.items()},
+            "cpu_percent": 100.0 * sum(known) / wall_s if wall_s > 0 else None}
+
+
+LATE_MS = 100.0   # a step that starts this much after its scan arrived is late (one LiDAR period)
+
+
+def lag_summary(lags_ms: list[float] | None) -> dict:
+    """How well the real-time clock kept up: late scans, the largest lag, and from which scan on
+    it kept up (every later step started within LATE_MS of its scan's arrival; None = it was
+    still late at the end). None everywhere in replay."""
+    if lags_ms is None:
+        return {"late_scans": None, "max_lag_ms": None, "lag_at_end_ms": None, "kept_up_from_scan": None}
+    lag = np.asarray(lags_ms, dtype=float)
+    late = np.flatnonzero(lag > LATE_MS)
+    return {"late_scans": int(late.size), "max_lag_ms": float(lag.max()) if lag.size else 0.0,
+            "lag_at_end_ms": float(lag[-1]) if lag.size else 0.0,
+            "kept_up_from_scan": 0 if not late.size else (int(late[-1]) + 1 if late[-1] + 1 < lag.size else None)}

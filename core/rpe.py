@@ -5,7 +5,7 @@ angular-rate pseudo-measurements of the particle filter.
 The paper uses GICP between consecutive scans (with RANSAC); here KISS-ICP does the job:
 point-to-point ICP of each scan against a local voxel map of the recent scans, with an adaptive
 correspondence threshold and a robust kernel, no tuning. Measured on the KITTI raw drive 0013
-(``app/bench_s2m.py``): after 100 scans / 114 m the end point is off by 1.4 % of the distance
+(``lidarloc bench s2m``): after 100 scans / 114 m the end point is off by 1.4 % of the distance
 and 0.6° against the GPS/INS truth. Motion compensation (deskew) is off: the scans carry no
 per-point timestamps. Poses accumulate as in the paper, H_k = H_(k,k−1) ⋯ H_(1,0) H_0 with
 H_0 = I: ``odom_pose(k)`` is the pose of scan k in the frame of the first scan registered
@@ -15,7 +15,7 @@ Threading: one writer calls :meth:`RelativePoseEstimator.add`; any number of rea
 The registration itself runs outside the lock (only the writer touches the KISS-ICP state), so
 readers never wait for an ICP; the lock only guards the pose buffer.
 
-The GIL: KISS-ICP's C++ registration does *not* release it. Measured (``app/bench_s2m.py``,
+The GIL: KISS-ICP's C++ registration does *not* release it. Measured (``lidarloc bench s2m``,
 ``gil_hold_ms``): while another thread runs ``register_frame``, a Python thread that sleeps 1 ms
 in a loop wakes up only every ~50–150 ms (the length of one ICP call), against ~1 ms when idle
 or while a numba ``nogil`` kernel runs. So odometry overlaps with numba/NumPy kernels that drop
@@ -28,33 +28,14 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
+from .cache import Cached, atomic_write_dir
 from .geometry import euler_zyx, inv_pose, wrap_angle
-
-
-# KISS-ICP stops iterating when its Gauss-Newton step is shorter than this (metres and radians in
-# one 6-vector norm). Its default, 1e-4, keeps refining 0.1 mm steps. Measured with
-# ``lidarloc bench rpe`` (BENCHMARKS.md, "RPE"): 3e-3 cuts the registration to about half its
-# time (45 % on the real drive, 51 % on the town) with the same per-scan and 10-scan errors. The
-# time it frees is what lets the real-time clock keep up with 10 Hz on two cores.
-KISS_CONVERGENCE = 3e-3
-
-
-def _kiss_config(max_range: float, min_range: float, voxel_size: float | None,
-                 convergence: float = KISS_CONVERGENCE):
-    from kiss_icp.config import KISSConfig
-
-    config = KISSConfig()
-    config.data.deskew = False
-    config.data.max_range = float(max_range)
-    config.data.min_range = float(min_range)
-    # KISS-ICP's own rule when no voxel size is given: max_range / 100 (1 m for 100 m)
-    config.mapping.voxel_size = float(voxel_size if voxel_size is not None else max_range / 100.0)
-    config.registration.max_num_threads = 1   # the localizer's other threads need the second core
-    config.registration.convergence_criterion = float(convergence)
-    return config
+from .kiss import KISS_CONVERGENCE, kiss_config
+from .rpe_worker import KissICPProcess
 
 
 def _rotation_angle(R: np.ndarray) -> float:
@@ -80,7 +61,7 @@ class RelativePoseEstimator:
         if icp is None and self._recorded is None:
             from kiss_icp.kiss_icp import KissICP
 
-            icp = KissICP(_kiss_config(max_range, min_range, voxel_size))
+            icp = KissICP(kiss_config(max_range, min_range, voxel_size))
         self._icp = icp
         self._lock = threading.Lock()
         # scan index → (odometry pose 4×4, timestamp, path length at this scan, rotation sum)
@@ -196,22 +177,17 @@ class RelativePoseEstimator:
             return len(self._buf)
 
 
-def load_or_build_odometry(seq, map_dir, progress=None) -> np.ndarray:
+def load_or_build_odometry(seq, map_dir, progress=None) -> Cached[np.ndarray]:
     """KISS-ICP odometry poses (N, 4, 4) of every scan of ``seq``, cached beside its prior map.
     Computed exactly as the localizer's live RPE does (the same child process, the same float32
     hand-over), so replaying them changes no number."""
-    from pathlib import Path
-
-    from .mapping import atomic_write_dir
-    from .rpe_worker import KissICPProcess
-
     # keyed by the convergence setting: poses recorded under another one are not reused
     directory = Path(map_dir) / f"odometry-kiss-{KISS_CONVERGENCE:g}"
     path = directory / "poses.npy"
     if path.is_file():
         poses = np.load(path)
         if poses.shape == (len(seq), 4, 4):
-            return poses
+            return Cached(poses, directory, True)
     icp = KissICPProcess()
     try:
         rpe = RelativePoseEstimator(max_buffer=2, icp=icp)
@@ -223,4 +199,4 @@ def load_or_build_odometry(seq, map_dir, progress=None) -> np.ndarray:
     finally:
         icp.close()
     atomic_write_dir(directory, lambda d: np.save(Path(d) / "poses.npy", poses))
-    return poses
+    return Cached(poses, directory, False)

@@ -16,20 +16,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from .worker_process import WorkerProcess, serve
+from .kiss import kiss_config
+from .worker_process import WorkerProxy, serve
 
 
 def _make_handler(config_args: tuple):
     from kiss_icp.kiss_icp import KissICP
 
-    from .rpe import _kiss_config
-
-    state = {"icp": KissICP(_kiss_config(*config_args))}
+    state = {"icp": KissICP(kiss_config(*config_args))}
 
     def handle(request):
         kind, payload = request
         if kind == "reset":
-            state["icp"] = KissICP(_kiss_config(*config_args))
+            state["icp"] = KissICP(kiss_config(*config_args))
             return np.eye(4)
         icp = state["icp"]
         icp.register_frame(np.asarray(payload, dtype=np.float64), np.zeros(0))
@@ -38,11 +37,10 @@ def _make_handler(config_args: tuple):
     return handle
 
 
-class KissICPProcess:
+class KissICPProcess(WorkerProxy):
     def __init__(self, max_range: float = 100.0, min_range: float = 2.5, voxel_size: float | None = None):
         args = (float(max_range), float(min_range), None if voxel_size is None else float(voxel_size))
-        self._worker = WorkerProcess("lidarloc.core.rpe_worker", args, "KISS-ICP")
-        self._worker.start()
+        super().__init__("lidarloc.core.rpe_worker", args, "KISS-ICP")
         self.last_pose = np.eye(4)
 
     def register_frame(self, points: np.ndarray, timestamps=None) -> None:
@@ -51,15 +49,6 @@ class KissICPProcess:
 
     def reset(self) -> None:
         self.last_pose = np.array(self._worker.call(("reset", None)), dtype=np.float64)
-
-    def wait_ready(self) -> None:
-        self._worker.wait_ready()
-
-    def cpu_seconds(self) -> float | None:
-        return self._worker.cpu_seconds()
-
-    def close(self) -> None:
-        self._worker.close()
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The RS and S2M blocks in their own process.
 
 small_gicp holds the GIL for the 60–150 ms of a refinement (``gil_hold_ms`` in
-``app/bench_s2m.py``), and road removal's normal estimation is ~45 ms of mostly GIL-holding work:
+``lidarloc bench s2m``), and road removal's normal estimation is ~45 ms of mostly GIL-holding work:
 on threads they stall the particle filter (measured: the PF step took ~150 ms inside the
 localizer against 35 ms alone). Here a child process loads the prior map and the BEV pyramid
 from the map cache, builds its own GICP target once, and answers "match this scan from this
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .worker_process import WorkerProcess, lower_priority, serve
+from .worker_process import WorkerProxy, lower_priority, serve
 
 
 def _make_handler(init: tuple):
@@ -34,7 +34,7 @@ def _make_handler(init: tuple):
         lower_priority(nice)
     map_dir = Path(map_dir)
     prior_map = PriorMap.load(map_dir, json.loads((map_dir / "meta.json").read_text()))
-    state = {"matcher": ScanToMapMatcher(prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg),
+    state = {"matcher": ScanToMapMatcher(prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value,
                                          s2m_cfg, map_cfg)}
     _warm_up(state["matcher"])
 
@@ -43,7 +43,7 @@ def _make_handler(init: tuple):
         matcher = state["matcher"]
         if abs(cfg.match_resolution - matcher.pyramid.resolution) > 1e-9:
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
-            matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg)
+            matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg).value
         matcher.cfg = cfg                      # live region / angle-step changes
         return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
 
@@ -74,27 +74,17 @@ def _warm_up(matcher) -> None:
         matcher.cfg = saved
 
 
-class S2MProcess:
+class S2MProcess(WorkerProxy):
     """Parent side: ``match_local(scan, start_pose, s2m_cfg)`` → S2MOutcome, computed in the child
     (RS, M3RSM and GICP). Set-up starts at construction and overlaps with the caller's work."""
 
     def __init__(self, map_dir: Path, map_cfg, s2m_cfg, nice: int = 0):
         self.nice = int(nice)
-        self._worker = WorkerProcess("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg, self.nice), "S2M")
-        self._worker.start()
+        super().__init__("lidarloc.core.s2m_worker", (str(map_dir), map_cfg, s2m_cfg, self.nice), "S2M")
 
     def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool = False):
         pts = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)
         return self._worker.call(("match", pts, np.asarray(start_pose, np.float64), s2m_cfg, bool(level)))
-
-    def wait_ready(self) -> None:
-        self._worker.wait_ready()
-
-    def cpu_seconds(self) -> float | None:
-        return self._worker.cpu_seconds()
-
-    def close(self) -> None:
-        self._worker.close()
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
-"""Immutable views of the localizer's state, handed to the viewer and to result writers.
+"""Views of the localizer's state, handed to the viewer and to result writers.
 
 A snapshot is built by the localizer after each scan and never mutated afterwards, so a reader
-on another thread (the viewer) needs no lock to use it.
+on another thread (the viewer) needs no lock to use it. A :class:`ScanRecord` is the scan's row
+of the per-scan log, made from its snapshot.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .geometry import pose_to_xyz_ypr
 
 
 @dataclass(frozen=True)
@@ -58,3 +61,45 @@ class Snapshot:
     events: tuple = field(default_factory=tuple)
     paused: bool = False
     done: bool = False
+
+
+@dataclass
+class ScanRecord:
+    """One row of the per-scan log (headless CSV, metrics A–E)."""
+
+    scan: int
+    time: float
+    x: float
+    y: float
+    z: float
+    yaw: float
+    pitch: float
+    roll: float
+    std_x: float
+    std_y: float
+    std_z: float
+    n_eff: float
+    localized: bool
+    error_m: float | None
+    gt_x: float | None
+    gt_y: float | None
+    gt_z: float | None
+    gt_yaw: float | None
+    pf_ms: float
+    s2m_ms: float | None
+    reinit: bool
+
+    @classmethod
+    def from_snapshot(cls, snap: Snapshot, s2m_ms: float | None, reinit: bool) -> ScanRecord:
+        """The row of the scan a snapshot was taken after: its estimate, and what the snapshot
+        says about localization and the truth."""
+        xyz_ypr = pose_to_xyz_ypr(snap.mean_pose)
+        gt = snap.gt_pose
+        gt_xyz_ypr = pose_to_xyz_ypr(gt) if gt is not None else [None] * 6
+        std = snap.std_xyz
+        return cls(
+            scan=snap.scan_index, time=snap.timestamp, x=xyz_ypr[0], y=xyz_ypr[1], z=xyz_ypr[2], yaw=xyz_ypr[3],
+            pitch=xyz_ypr[4], roll=xyz_ypr[5], std_x=float(std[0]), std_y=float(std[1]), std_z=float(std[2]),
+            n_eff=snap.n_eff, localized=snap.localized, error_m=snap.error_m,
+            gt_x=gt_xyz_ypr[0], gt_y=gt_xyz_ypr[1], gt_z=gt_xyz_ypr[2], gt_yaw=gt_xyz_ypr[3],
+            pf_ms=snap.pf_ms, s2m_ms=s2m_ms, reinit=reinit)

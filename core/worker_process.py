@@ -1,7 +1,7 @@
 """A block of the localizer in its own Python process, called like a function.
 
 Why processes: KISS-ICP's and small_gicp's C++ code hold the GIL while they work (50–150 ms per
-call, measured in ``app/bench_s2m.py``), so on threads they stall the particle filter. A child
+call, measured with ``lidarloc bench s2m``), so on threads they stall the particle filter. A child
 process runs them truly in parallel; arrays cross a pipe (a 120k-point scan in float32 is
 ~1.4 MB, well under a millisecond to copy).
 
@@ -82,6 +82,11 @@ class WorkerProcess:
         """Block until the child has finished its set-up (a set-up failure raises here)."""
         self.call(_PING)
 
+    @property
+    def pid(self) -> int:
+        """The child's process id (for the operating system: its priority, signals)."""
+        return self._proc.pid
+
     def cpu_seconds(self) -> float | None:
         """CPU time (user + system, all its threads) the child has used so far; None where
         ``/proc`` cannot tell (not Linux, or the child is gone)."""
@@ -143,6 +148,32 @@ class WorkerProcess:
             self.close()
         except Exception:
             pass
+
+
+class WorkerProxy:
+    """Base of a block's parent-side object: starts the child process running ``module`` with
+    the set-up message ``init`` (it prepares while the caller goes on), and gives the members
+    every block shares. Subclasses add the block's own calls on top of ``_worker.call``."""
+
+    def __init__(self, module: str, init: Any, name: str):
+        self._worker = WorkerProcess(module, init, name)
+        self._worker.start()
+
+    def wait_ready(self) -> None:
+        """Block until the child has finished its set-up (a set-up failure raises ``RuntimeError``)."""
+        self._worker.wait_ready()
+
+    def cpu_seconds(self) -> float | None:
+        """CPU time the child has used so far (see :meth:`WorkerProcess.cpu_seconds`)."""
+        return self._worker.cpu_seconds()
+
+    @property
+    def pid(self) -> int:
+        """The child's process id (see :attr:`WorkerProcess.pid`)."""
+        return self._worker.pid
+
+    def close(self) -> None:
+        self._worker.close()
 
 
 def _next_message(stream) -> tuple[bool, Any]:

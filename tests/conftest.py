@@ -1,6 +1,10 @@
+"""Fixtures shared by several test files: the real KITTI data (skipped where it is absent), one
+cache directory for the session, and worlds that take a while to build."""
+
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,3 +38,41 @@ def kitti_raw_seq(kitti_raw_dir):
     from lidarloc.core.sequences.kitti_raw import KittiRaw
 
     return KittiRaw(kitti_raw_dir, "2011_09_26", "0013")
+
+
+@pytest.fixture(scope="session")
+def kitti_raw_map(kitti_raw_seq):
+    """Drive 0013's prior map (all 100 scans fused with their poses, the paper's protocol) and its
+    lookup table, built once: (sequence, prior map, lookup table). Only the 3D points are needed,
+    so the map is fused with the same voxel accumulator as mapping.build_prior_map but without its
+    road-removed BEV copy (normal estimation: half of the build time)."""
+    from lidarloc.core.config import MapConfig
+    from lidarloc.core.lookup import LookupTable
+    from lidarloc.core.mapping import PriorMap, VoxelAccumulator, range_filter
+
+    cfg = MapConfig()
+    acc = VoxelAccumulator(cfg.voxel_size)
+    for i in range(len(kitti_raw_seq)):
+        T = kitti_raw_seq.pose(i)
+        pts = range_filter(kitti_raw_seq.scan(i), cfg)[:, :3].astype(np.float64)
+        acc.add(pts @ T[:3, :3].T + T[:3, 3])
+    prior = PriorMap(points=acc.points(), points_bev=np.zeros((0, 3), np.float32), voxel_size=cfg.voxel_size)
+    return kitti_raw_seq, prior, LookupTable.build(prior.points, 0.25, 5.0)
+
+
+@pytest.fixture(scope="session")
+def cache_root(tmp_path_factory) -> Path:
+    """One map cache for the session: sources share it (entries are keyed by source and
+    parameters), so a map built by one test file is not built again by the next."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def toy_world():
+    """The particle filter's toy world (helpers.toy_map) and its 0.25 m / 5 m lookup table."""
+    from helpers import toy_map
+
+    from lidarloc.core.lookup import LookupTable
+
+    pts = toy_map()
+    return pts, LookupTable.build(pts, 0.25, 5.0)

@@ -1,17 +1,15 @@
-"""The localizer: blocks in threads, replay determinism, S2M sample update, rules → re-init,
-kidnap, failing blocks, and the headless run's output files."""
+"""The localizer (core/localizer.py, core/s2m_schedule.py, core/odometry.py): blocks in threads and
+child processes, replay determinism, S2M sample update, rules → re-init, kidnap, failing blocks,
+interrupting a step, the real-time clock's scheduling."""
 
-import csv
-import json
+import os
 import signal
-import subprocess
-import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import instant_matcher, process_gone, scripted_std, wait_for
 
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
@@ -20,10 +18,9 @@ from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 N_SCANS = 60
 
-
-@pytest.fixture(scope="module")
-def cache_root(tmp_path_factory):
-    return tmp_path_factory.mktemp("cache")
+# A block that fails or dies must stop the run at once instead of hanging; these bounds only
+# catch a hang (the failure itself comes within a scan or two), with room for a loaded machine.
+HANG_BOUND_S = 30
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +38,7 @@ def make(seq, cache_root, **overrides) -> Localizer:
     return Localizer(seq, cfg, cache_root)
 
 
+@pytest.mark.slow
 def test_replay_is_deterministic(town, cache_root):
     runs = []
     for _ in range(2):
@@ -61,7 +59,7 @@ def test_s2m_particle_survives_and_is_updated(town, cache_root):
         gt0 = town.poses[0]
         loc.reset(pose=gt0)
         loc.step()                                     # scan 0: a job starts on the best particle
-        job = loc._s2m_job
+        job = loc.s2m.job
         assert job is not None and job.started_at == 0
         j = job.particle
         written = []
@@ -81,34 +79,6 @@ def test_s2m_particle_survives_and_is_updated(town, cache_root):
         carried = loc.snapshot().s2m.pose
         assert np.allclose(written[0][1][:3], carried[:3, 3])
         assert np.linalg.norm(carried[:3, 3] - town.poses[k_prime][:3, 3]) < 1.0
-
-
-def scripted_std(loc, stds):
-    """Replace the filter's reported std with a script (the rest of the estimate is real)."""
-    real = loc.pf.estimate
-    calls = iter(stds)
-
-    def estimate():
-        est = real()
-        try:
-            s = next(calls)
-        except StopIteration:
-            return est
-        return replace(est, std_xyz=np.array([s, s, s], dtype=float))
-    loc.pf.estimate = estimate
-
-
-def instant_matcher(loc, accepted=False, before=None):
-    """Replace the in-process matcher (localize.s2m_process=False) with one that answers at once,
-    accepting or rejecting the start pose; ``before()`` runs first (e.g. to hold the match)."""
-    from lidarloc.core.s2m import S2MOutcome
-
-    def match(scan, pose, level=False):
-        if before is not None:
-            before()
-        return S2MOutcome(accepted=accepted, pose=np.asarray(pose), score=1.0 if accepted else 0.0,
-                          start_score=0.0 if accepted else 1.0, region=(0, 0, 1, 1), ms=1.0)
-    loc.matcher.match_local = match
 
 
 def test_false_positive_triggers_reinit(town, cache_root):
@@ -138,13 +108,13 @@ def test_a_cancelled_match_is_reported(town, cache_root):
         assert (3, "s2m_started") in kinds and (4, "false_positive") in kinds
         cancelled = [e for e in loc.events if e.kind == "s2m_cancelled"]
         assert [(e.scan, e.detail) for e in cancelled] == [(4, "started 3 (re-initialised after a false positive)")]
-        assert loc._s2m_job is None
+        assert loc.s2m.job is None
         loc.run(1)                       # a new job starts at 5 …
-        assert loc._s2m_job is not None
+        assert loc.s2m.job is not None
         loc.kidnap(10)                   # … and the kidnap cancels it
         assert [e.kind for e in loc.events][-2:] == ["s2m_cancelled", "kidnap"]
         loc.run(1)                       # one more starts, and is in flight when the run ends
-        assert loc._s2m_job is not None
+        assert loc.s2m.job is not None
     finally:
         loc.close()
     assert loc.events[-1].kind == "s2m_cancelled" and loc.events[-1].detail.endswith("(localizer closed)")
@@ -168,7 +138,7 @@ def test_failing_block_stops_cleanly(town, cache_root):
 
     def boom(*a, **k):
         raise RuntimeError("matcher exploded")
-    loc.matcher.match_local = boom
+    loc.s2m.matcher.match_local = boom
     t0 = time.perf_counter()
     with pytest.raises(BlockError, match="S2M block failed at scan 2: RuntimeError: matcher exploded"):
         loc.run(10)
@@ -176,7 +146,7 @@ def test_failing_block_stops_cleanly(town, cache_root):
     with pytest.raises(LidarlocError, match="restart to continue"):
         loc.step()
     loc.close()
-    assert time.perf_counter() - t0 < 30
+    assert time.perf_counter() - t0 < HANG_BOUND_S
     assert any(e.kind == "error" for e in loc.events)
 
 
@@ -185,22 +155,20 @@ def test_dead_block_process_stops_cleanly(town, cache_root):
     instead of hanging on the pipe."""
     loc = make(town, cache_root)
     loc.run(1)
-    loc.matcher._worker._proc.kill()
+    os.kill(loc.s2m.matcher.pid, signal.SIGKILL)
     t0 = time.perf_counter()
     with pytest.raises(BlockError, match=r"S2M block failed at scan \d+: RuntimeError: S2M process exited"):
         loc.run(10)
-    assert time.perf_counter() - t0 < 30
+    assert time.perf_counter() - t0 < HANG_BOUND_S
     loc.close()
 
 
+@pytest.mark.slow
 def test_s2m_process_priority_follows_the_clock(town, cache_root):
     """In replay the S2M child lowers its nice value and, where the kernel groups sessions for
     scheduling (autogroups), its group's too (otherwise it competes with the PF as an equal
     group). Switching to real time replaces it with a child at normal priority, which still
     matches."""
-    import os
-    from pathlib import Path
-
     def nice_of(pid):
         value = os.getpriority(os.PRIO_PROCESS, pid)
         group = Path(f"/proc/{pid}/autogroup")
@@ -214,17 +182,17 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         assert want > 0
         loc.run(3)                    # the first match landed at scan 2: the child is set up
         assert any(e.kind in ("s2m_accepted", "s2m_rejected") for e in loc.events)
-        first = loc.matcher._worker._proc
+        first = loc.s2m.matcher
         value, group = nice_of(first.pid)
         assert value == min(19, own + want)
         assert group in (None, want)
         loc.set_params(clock="realtime")
-        assert loc.matcher._worker._proc is not first
+        assert loc.s2m.matcher is not first and loc.s2m.matcher.pid != first.pid
         loc.run(3)
-        value, group = nice_of(loc.matcher._worker._proc.pid)
+        value, group = nice_of(loc.s2m.matcher.pid)
         assert value == own and group in (None, 0)
-        assert first.wait(timeout=30) is not None          # the replaced child was closed
-        job = loc._s2m_job            # real time lands a match at the first scan after it is done
+        wait_for(lambda: process_gone(first.pid), timeout=30, what="the replaced S2M process to be closed")
+        job = loc.s2m.job            # real time lands a match at the first scan after it is done
         assert job is not None and job.started_at >= 3
         job.future.result(timeout=120)
         loc.run(1)
@@ -265,46 +233,6 @@ def test_reset_in_region_and_kidnap(town, cache_root):
         assert snap.scan_index == 21
 
 
-def test_run_writes_parseable_files(tmp_path, cache_root):
-    from lidarloc.app.headless import run_headless
-
-    cfg = Config()
-    cfg.pf.n_particles = 300
-    out = tmp_path / "run"
-    summary, interrupted = run_headless(SourceSpec(scans=15), cfg, out, cache_root=cache_root)
-    assert not interrupted and summary["scans"] == 15
-    kitti = np.loadtxt(out / "trajectory_kitti.txt")
-    assert kitti.shape == (15, 12)
-    tum = np.loadtxt(out / "trajectory_tum.txt")
-    assert tum.shape == (15, 8) and np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1, atol=1e-6)
-    assert np.loadtxt(out / "groundtruth_kitti.txt").shape == (15, 12)
-    rows = list(csv.DictReader(open(out / "scans.csv")))
-    assert len(rows) == 15 and {"scan", "std_x", "n_eff", "localized", "error_m", "pf_ms"} <= set(rows[0])
-    events = json.loads((out / "events.json").read_text())
-    assert any(e["kind"] == "s2m_started" for e in events)
-    s = json.loads((out / "summary.json").read_text())
-    for key in ("localized_at_scan", "within_5m_for_50_at_scan", "rmse_after_localized_m", "pf_ms_median",
-                "scans_per_second"):
-        assert key in s
-    # what each block's process cost: the PF here, KISS-ICP and S2M in their children
-    cpu = s["cpu_ms_per_scan"]
-    assert set(cpu) == {"main", "rpe", "s2m"}
-    assert cpu["main"] > 0 and cpu["rpe"] > 0 and cpu["s2m"] > 0
-    cpu_seconds, wall_seconds = sum(cpu.values()) * 15 / 1000, 15 / s["scans_per_second"]
-    assert s["cpu_percent"] == pytest.approx(100 * cpu_seconds / wall_seconds)
-
-
-def test_realtime_lag_summary():
-    """How the real-time clock kept up, from each step's start lag after its scan's arrival."""
-    from lidarloc.app.headless import _lag_summary
-
-    assert _lag_summary(None)["kept_up_from_scan"] is None            # replay: no real-time figures
-    s = _lag_summary([0.0, 250.0, 400.0, 120.0, 80.0, 10.0, 0.0])
-    assert s == {"late_scans": 3, "max_lag_ms": 400.0, "lag_at_end_ms": 0.0, "kept_up_from_scan": 4}
-    assert _lag_summary([0.0, 5.0])["kept_up_from_scan"] == 0
-    assert _lag_summary([0.0, 150.0, 300.0])["kept_up_from_scan"] is None  # still late at the end
-
-
 def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
     """interrupt() makes a step that waits for its match give up at once: the scan is not
     recorded, earlier ones stay, and further steps refuse until restart()."""
@@ -332,7 +260,7 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
         assert not worker.is_alive() and len(raised) == 1, "the step did not give up"
         assert len(loc.records) == loc.cfg.s2m.n_s2m and loc.k == loc.cfg.s2m.n_s2m
         assert loc.events == events, "the dropped scan's events are dropped with it"
-        assert loc._s2m_job is not None and loc._s2m_job.started_at == 0, "still in flight, to be cancelled"
+        assert loc.s2m.job is not None and loc.s2m.job.started_at == 0, "still in flight, to be cancelled"
         with pytest.raises(Interrupted):
             loc.step()
         loc.restart()
@@ -340,34 +268,7 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
         assert len(loc.records) == 1
 
 
-def test_cli_run_ctrl_c_writes_results(tmp_path, cache_root):
-    import os
-
-    out = tmp_path / "run"
-    env = dict(os.environ, LIDARLOC_CACHE=str(cache_root))
-    proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", str(N_SCANS),
-                             "--set", "pf.n_particles=300"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True, env=env)
-    # wait until it is localizing (the progress line appears), then interrupt
-    deadline = time.monotonic() + 240
-    seen = ""
-    while time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        seen += line
-        if "localizing" in line or line == "":
-            break
-    proc.send_signal(signal.SIGINT)
-    t0 = time.monotonic()
-    proc.wait(timeout=30)
-    # in the first scans: before interrupt() and the prompt closing of children still in their
-    # set-up, this took 2.0–2.8 s (the first whole-map match); now ~0.35 s
-    assert time.monotonic() - t0 < 2.0, "Ctrl-C must stop within 2 s"
-    assert proc.returncode == 130, seen + proc.stderr.read()
-    s = json.loads((out / "summary.json").read_text())
-    assert s["interrupted"] is True
-    assert (out / "scans.csv").is_file() and (out / "trajectory_kitti.txt").is_file()
-
-
+@pytest.mark.slow
 def test_kidnap_mid_run_is_recovered(kitti_raw_seq, cache_root):
     """Tracking on the real drive, the vehicle is moved ~18 m ahead without telling the filter;
     the local S2M around the (now wrong) best particle finds it again within a few scans."""
@@ -386,6 +287,7 @@ def test_kidnap_mid_run_is_recovered(kitti_raw_seq, cache_root):
         assert max(errors[recovered_at:]) < 1.0, errors
 
 
+@pytest.mark.slow
 def test_recorded_odometry_changes_nothing(town, cache_root):
     """Replaying the cached KISS-ICP poses gives the live run's trajectory bit for bit (what lets
     ``bench localize`` compute the odometry once per sequence instead of once per run)."""
@@ -395,7 +297,7 @@ def test_recorded_odometry_changes_nothing(town, cache_root):
             loc.run(12)
             runs.append(np.array([[r.x, r.y, r.z, r.yaw, r.n_eff] for r in loc.records]))
             if recorded:
-                assert loc._kiss_process is None, "no KISS-ICP process when the odometry is recorded"
+                assert loc.odometry.process is None, "no KISS-ICP process when the odometry is recorded"
                 with pytest.raises(LidarlocError, match="live odometry"):
                     loc.set_params(clock="realtime")
     np.testing.assert_array_equal(runs[0], runs[1])
@@ -405,8 +307,8 @@ def test_tracking_mode_and_search_regions(town, cache_root):
     """Until localized S2M searches the whole map; tracking mode then shrinks the filter and the
     S2M region, and a loss brings the full filter back."""
     with make(town, cache_root, localize__tracking=True, localize__tracking_particles=100) as loc:
-        (x0, y0, _), (x1, y1, _) = loc._bounds
-        whole = loc._s2m_job_config(0)
+        (x0, y0, _), (x1, y1, _) = loc.prior_map.bounds
+        whole = loc.s2m.job_config(loc.pf.states[0], loc.rules.localized)
         x, y = loc.pf.states[0, :2]
         assert x - whole.region_x <= x0 and x + whole.region_x >= x1
         assert y - whole.region_y <= y0 and y + whole.region_y >= y1
@@ -414,7 +316,7 @@ def test_tracking_mode_and_search_regions(town, cache_root):
         loc.run(20)
         assert [e.kind for e in loc.events].count("tracking") == 1 and loc.rules.localized
         assert loc.pf.n == 100 and loc.pf.states.shape == (100, 11)
-        tracking = loc._s2m_job_config(0)
+        tracking = loc.s2m.job_config(loc.pf.states[0], loc.rules.localized)
         assert tracking.region_x == tracking.region_y == 10.0
         loc.run(1)
         assert any(e.kind == "loss" for e in loc.events) and not loc.rules.localized
@@ -434,10 +336,10 @@ def test_realtime_clock_counts_odometry_once(town, cache_root):
         loc.rules.update = update
         loc.run(25)                      # as fast as possible: the odometry may fall behind …
         for k in range(25):
-            loc._rpe_futures[k].result(timeout=60)
+            loc.odometry.futures[k].result(timeout=60)
         loc.run(1)                       # … and scan 25's rules see all of it, however slow the machine
-        assert len(steps) == 26 and loc._rpe_used is not None and loc._rpe_used >= 24
-        assert sum(steps) == pytest.approx(loc.rpe.moved_since(0, loc._rpe_used), abs=1e-9)
+        assert len(steps) == 26 and loc.odometry.used is not None and loc.odometry.used >= 24
+        assert sum(steps) == pytest.approx(loc.odometry.rpe.moved_since(0, loc.odometry.used), abs=1e-9)
         assert sum(steps) > 10.0, "the town drives ~1 m per scan"
 
 
@@ -456,7 +358,7 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
         scripted_std(loc, [3.0] * 40)
         for _ in range(40):
             loc.step()
-            loc._rpe_futures[loc.k - 1].result(timeout=60)
+            loc.odometry.futures[loc.k - 1].result(timeout=60)
         since = loc.rules.localized_since
         assert since is not None and since <= 15, "the town drives ~1 m per scan: 10 m by scan ~10"
         starts = [e.scan for e in loc.events if e.kind == "s2m_started"]
@@ -473,36 +375,37 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
     REALTIME_LAND_MAX_DEFERRALS tries it waits for the odometry (a landing is never lost)."""
     import threading
 
-    from lidarloc.core import localizer as localizer_module
+    from lidarloc.core import s2m_schedule as schedule_module
 
     gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
     try:
         loc.wait_ready()
-        real_add, real_wait = loc._rpe_add, loc._wait
+        real_add = loc.odometry.rpe.add
 
-        def add(rpe, k, scan, t):
+        def add(k, scan, t):            # the RPE thread registers scan k (in the KISS-ICP child)
             if k >= 3:
                 gate.wait()
-            real_add(rpe, k, scan, t)
-        loc._rpe_add = add
+            real_add(k, scan, t)
+        loc.odometry.rpe.add = add
         instant_matcher(loc, accepted=True)
-        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
         loc.run(3)
-        job = loc._s2m_job                 # started at scan 1 or 2, whichever match was last
+        job = loc.s2m.job                 # started at scan 1 or 2, whichever match was last
         assert job is not None and job.started_at <= 2
         job.future.result(timeout=60)
-        monkeypatch.setattr(localizer_module, "REALTIME_LAND_WAIT_S", 0.03)
-        monkeypatch.setattr(localizer_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 0.03)
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
         # from here on: note when a step blocks on an unfinished registration (before, scan 0's
         # rules may legitimately wait for the very first one)
         landing_waits = threading.Event()
+        real_wait_registered = loc.odometry.wait_registered
 
-        def wait(future, block, k):
-            if block == "RPE" and not future.done():
+        def wait_registered(k):
+            if not loc.odometry.futures[k].done():
                 landing_waits.set()
-            return real_wait(future, block, k)
-        loc._wait = wait
+            return real_wait_registered(k)
+        loc.odometry.wait_registered = wait_registered
 
         def step_in_thread():              # a landing that blocked on the gate would hang here
             worker = threading.Thread(target=loc.run, args=(1,))
@@ -512,7 +415,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
             worker = step_in_thread()
             worker.join(timeout=60)
             assert not worker.is_alive(), "the step waited for the stalled odometry"
-        assert loc._s2m_job is job and job.deferrals == 2 and not landing_waits.is_set()
+        assert loc.s2m.job is job and job.deferrals == 2 and not landing_waits.is_set()
         started = f"started {job.started_at}"
         assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and started in e.detail]
         worker = step_in_thread()          # scan 5: two tries are the limit, so it waits …
@@ -522,7 +425,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
         assert not worker.is_alive()
         landed = [e for e in loc.events if e.kind == "s2m_accepted" and started in e.detail]
         assert [e.scan for e in landed] == [5]
-        assert loc._last_s2m.started_at == job.started_at and loc._last_s2m.landed_at == 5
+        assert loc.s2m.last.started_at == job.started_at and loc.s2m.last.landed_at == 5
     finally:
         gate.set()
         loc.close()
@@ -535,11 +438,11 @@ def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
 
     with make(town, cache_root) as loc:
         loc.wait_ready()               # the normal case: returns once everything is up
-        good = loc.matcher
-        loc.matcher = S2MProcess(tmp_path / "no-such-map", loc.cfg.map, loc.cfg.s2m)
+        good = loc.s2m.matcher
+        loc.s2m.matcher = S2MProcess(tmp_path / "no-such-map", loc.cfg.map, loc.cfg.s2m)
         try:
             with pytest.raises(BlockError, match="set-up failed: FileNotFoundError"):
                 loc.wait_ready()
         finally:
-            loc.matcher.close()
-            loc.matcher = good
+            loc.s2m.matcher.close()
+            loc.s2m.matcher = good

@@ -1,7 +1,7 @@
-"""Server-level tests of the live viewer on the real Localizer (a small synthetic street keeps it
-fast): every control changes the localizer as it says, invalid values are refused with a message
-and the server keeps running. GUI handles are driven programmatically: assigning ``.value`` runs
-the same callbacks a browser edit runs."""
+"""Server-level tests of the live viewer (app/viewer/) on the real Localizer (a small synthetic
+street, helpers.StreetSequence, keeps it fast): every control changes the localizer as it says,
+invalid values are refused with a message and the server keeps running. GUI handles are driven
+programmatically: assigning ``.value`` runs the same callbacks a browser edit runs."""
 
 from __future__ import annotations
 
@@ -11,66 +11,10 @@ import urllib.request
 
 import numpy as np
 import pytest
+from helpers import StreetSequence, make_localizer, wait_for
 
 from lidarloc.core.config import DEG, Config
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import pose_matrix, transform_points
-from lidarloc.core.sequences.base import Sequence
-
-
-# ------------------------------------------------------------------------------ a small street
-class StreetSequence(Sequence):
-    """A straight street with building façades, poles and a flat road, scanned from a car driving
-    along it at 8 m/s, 10 Hz. Small and fast: tests of the viewer need a real map, not a big one."""
-
-    name = "test-street"
-
-    def __init__(self, n: int = 24, seed: int = 0):
-        rng = np.random.default_rng(seed)
-        self.n = n
-        walls = []
-        for side in (-1, 1):
-            for x0 in np.arange(-20, 260, 14.0):           # façades with gaps and varying depth
-                depth = rng.uniform(7, 11)
-                h = rng.uniform(6, 15)
-                xs = rng.uniform(x0, x0 + 11, 2500)
-                zs = rng.uniform(-1.7, h - 1.7, 2500)
-                walls.append(np.stack([xs, np.full_like(xs, side * depth), zs], 1))
-        poles = []
-        for x in np.arange(0, 250, 9.0):
-            z = rng.uniform(-1.7, 3.5, 120)
-            poles.append(np.stack([np.full_like(z, x), np.full_like(z, 5.5), z], 1))
-        road = np.stack([rng.uniform(-20, 260, 40000), rng.uniform(-10, 10, 40000), np.full(40000, -1.73)], 1)
-        self.world = np.concatenate(walls + poles + [road])
-        t = np.arange(n) * 0.1
-        x = 8.0 * t
-        y = 0.8 * np.sin(x / 40.0)
-        yaw = np.arctan2(0.8 / 40.0 * np.cos(x / 40.0), 1.0)
-        self._poses = pose_matrix(x, y, np.zeros(n), yaw, np.zeros(n), np.zeros(n))
-        self._t = t
-
-    def __len__(self):
-        return self.n
-
-    def _read_scan(self, i):
-        T = self._poses[i]
-        local = transform_points(np.linalg.inv(T), self.world)
-        r = np.linalg.norm(local, axis=1)
-        local = local[(r > 2.5) & (r < 50)]
-        rng = np.random.default_rng(i)
-        local = local + rng.normal(0, 0.02, local.shape)
-        return np.concatenate([local, np.ones((len(local), 1))], 1).astype(np.float32)
-
-    def _describe_scan(self, i):
-        return f"test street scan {i}"
-
-    @property
-    def timestamps(self):
-        return self._t
-
-    @property
-    def poses(self):
-        return self._poses
 
 
 # ---------------------------------------------------------------------------------- fixtures
@@ -79,27 +23,9 @@ def street():
     return StreetSequence()
 
 
-@pytest.fixture(scope="module")
-def cache_root(tmp_path_factory):
-    return tmp_path_factory.mktemp("viewer-cache")
-
-
-def make_localizer(seq, cache_root, n_particles: int = 300):
-    from lidarloc.core.localizer import Localizer
-
-    cfg = Config()
-    cfg.pf.n_particles = n_particles
-    return Localizer(seq, cfg, cache_root)
-
-
-def browser_localizer(cache_root):
-    """The localizer the browser test drives: long enough to pause mid-run."""
-    return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000)
-
-
 @pytest.fixture
 def viewer(street, cache_root):
-    from lidarloc.app.viewer import serve
+    from lidarloc.app.viewer.serve import serve
 
     loc = make_localizer(street, cache_root)
     handle = serve(loc, port=0, autoplay=False)
@@ -108,24 +34,14 @@ def viewer(street, cache_root):
     loc.close()
 
 
-def wait_for(cond, timeout=60.0, what="condition"):
-    """Poll until cond() holds. The timeout only bounds a failure: generous, because the CI
-    machine is slower than ours and a passing test returns as soon as cond() holds."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
 # ---------------------------------------------------------------------------------- tests
 def test_page_is_served_and_map_sent_once(viewer):
     html = urllib.request.urlopen(viewer.url, timeout=5).read().decode()
     assert "<html" in html.lower()
     v = viewer.viewer
-    assert v.scene._map is not None and v.scene._map.precision == "float32"
-    assert v.scene._map.points.dtype == np.float32
+    cloud = v.scene.node("map")
+    assert cloud is not None and cloud.precision == "float32"
+    assert cloud.points.dtype == np.float32
 
 
 def test_step_advances_exactly_one_scan_and_pause_holds(viewer):
@@ -154,9 +70,9 @@ def test_display_shows_latest_snapshot(viewer):
     v.controls.step.value = True
     wait_for(lambda: v.player.idle and loc.k == 1)
     v.update_display(force_plots=True)
-    assert v._drawn is loc.snapshot()
-    assert "Scan 0 of 24" in v._status.content
-    assert len(v.scene._particles.points) == 300
+    assert v.drawn is loc.snapshot()
+    assert "Scan 0 of 24" in v.controls.status.content
+    assert len(v.scene.node("particles").points) == 300
 
 
 def test_numeric_params_reach_the_localizer(viewer):
@@ -222,12 +138,12 @@ def test_invalid_values_are_refused_with_a_message(viewer, key, value):
     v.controls.params[key].value = value
     v.controls.apply.value = True
     assert v.message.startswith("refused:"), v.message
-    assert v._message_md.visible
+    assert v.controls.message.visible
     # all or nothing: the valid σ change in the same batch was not applied either
     assert loc.cfg.to_dict()["pf"] == before["pf"] and loc.cfg.to_dict()["s2m"] == before["s2m"]
     # the server still answers and the controls still work
     urllib.request.urlopen(viewer.url, timeout=5).read()
-    v.controls.params[key].value = v._applied[key]
+    v.controls.params[key].value = v.params.applied[key]
     v.controls.params["sigma"].value = 0.6
     v.controls.apply.value = True
     assert loc.cfg.pf.sigma == 0.6
@@ -257,7 +173,7 @@ def test_reset_global_point_and_rectangle(viewer):
         client = None
         ray_origin = tuple(origin)
         ray_direction = tuple((target - origin) / np.linalg.norm(target - origin))
-    v._on_shift_click(Click())
+    v.on_shift_click(Click())
     assert loc.events[-1].kind == "reset" and "around a pose" in loc.events[-1].detail
     xy = np.median(loc.pf.states[:, :2], axis=0)
     assert xy == pytest.approx([30.0, 2.0], abs=3.0)
@@ -277,7 +193,7 @@ def test_reset_global_point_and_rectangle(viewer):
         client = Client()
         screen_min = (0.5, 0.25)
         screen_max = (0.75, 0.5)
-    v._on_shift_rect(Rect())
+    v.on_shift_rect(Rect())
     assert loc.events[-1].kind == "reset"
     # half-height of the view at the ground is 0.5·(100 − z0); u 0.5…0.75 → x 50…50 + half/2
     half = 0.5 * (100 - ground.z_default)
@@ -308,7 +224,7 @@ def test_kidnap_and_restart(viewer):
     v.controls.seed.value = 7
     v.controls.restart.value = True
     assert loc.k == 0 and loc.cfg.seed == 7
-    assert v.history.n == 0 and v._latest.scan_index == -1
+    assert v.history.n == 0 and v.latest.scan_index == -1
 
 
 def test_layers_and_bev_level(viewer):
@@ -316,19 +232,19 @@ def test_layers_and_bev_level(viewer):
     c = v.controls
     assert c.layers["bev_level"].visible      # the localizer has a pyramid: the toggle is offered
     c.layers["map"].value = False
-    assert v.scene._map.visible is False
+    assert v.scene.node("map").visible is False
     c.layers["map_bev"].value = True
-    assert v.scene._map_bev.visible is True
+    assert v.scene.node("map_bev").visible is True
     c.layers["bev_level"].value = True
-    assert v.scene._bev_image is not None and v.scene._bev_image.visible
+    assert v.scene.node("bev_level") is not None and v.scene.node("bev_level").visible
     c.bev_level.value = 0
-    assert v.scene._bev_level_shown == 0
+    assert v.scene.bev_shown[1] == 0
 
 
 def test_factory_shows_progress_then_attaches(street, cache_root):
     import threading
 
-    from lidarloc.app.viewer import serve
+    from lidarloc.app.viewer.serve import serve
 
     go = threading.Event()
     built = []
@@ -345,25 +261,27 @@ def test_factory_shows_progress_then_attaches(street, cache_root):
 
     handle = serve(factory, port=0, autoplay=True)
     try:
-        wait_for(lambda: handle.viewer._progress_text.content.startswith("Building the prior map… 50%"),
+        wait_for(lambda: handle.viewer.controls.progress_text.content.startswith("Building the prior map… 50%"),
                  what="progress")
-        assert handle.viewer._progress.visible
+        assert handle.viewer.controls.progress.visible
         handle.viewer.controls.reset.value = True
         assert "still starting" in handle.viewer.message
         go.set()
         assert handle.wait_ready(30)
         wait_for(lambda: handle.localizer.k >= 3, what="autoplay")
-        wait_for(lambda: not handle.viewer._progress.visible, what="progress bar hidden")
+        wait_for(lambda: not handle.viewer.controls.progress.visible, what="progress bar hidden")
     finally:
         t0 = time.perf_counter()
         handle.stop()
-        assert time.perf_counter() - t0 < 2.0
+        # stop() is bounded by its own join timeouts (~1.2 s, see ViewerHandle.stop); this bound
+        # only catches a stop that hangs, with room for a loaded 2-core machine
+        assert time.perf_counter() - t0 < 10.0
     # the viewer built it, so the viewer closes it
-    wait_for(lambda: built[0]._closed, what="localizer closed")
+    wait_for(lambda: built[0].closed, what="localizer closed")
 
 
 def test_factory_failure_is_shown(street):
-    from lidarloc.app.viewer import serve
+    from lidarloc.app.viewer.serve import serve
 
     def factory():
         raise LidarlocError("/nowhere: no such sequence")
@@ -377,7 +295,7 @@ def test_factory_failure_is_shown(street):
 
 
 def test_two_viewers_two_ports(street, cache_root):
-    from lidarloc.app.viewer import serve
+    from lidarloc.app.viewer.serve import serve
 
     locs = [make_localizer(street, cache_root) for _ in range(2)]
     a = serve(locs[0], port=0, autoplay=False)
@@ -404,104 +322,24 @@ def test_speed_and_clock_controls_reach_the_player(viewer):
     assert v.player.clock == "replay" and not c.speed.disabled
 
 
-class _InstantSteps:
-    """What the Player needs of a localizer, with 1 ms steps: the pacing is all the player's."""
-
-    def __init__(self, n=100_000, dt=0.1):
-        self.k, self.n = 0, n
-        self.seq = type("Seq", (), {"timestamps": np.arange(n) * dt})()
-        self.lock = __import__("threading").Lock()
-
-    @property
-    def done(self):
-        return self.k >= self.n
-
-    def step(self):
-        time.sleep(0.001)
-        self.k += 1
-        return self.k
-
-
-def _time_scans(player, loc, n):
-    k0, t0 = loc.k, time.perf_counter()
-    player.play()
-    wait_for(lambda: loc.k >= k0 + n, what=f"{n} scans")
-    elapsed = time.perf_counter() - t0
-    player.pause()
-    assert player.wait_idle(5)
-    return elapsed
-
-
-def test_player_pacing():
-    from lidarloc.app.player import Player
-
-    loc = _InstantSteps()
-    player = Player(loc, lambda s: None, lambda m: None, speed=20.0)
-    player.start()
-    try:
-        # replay at 20 scans/s: 6 scans are 5 intervals of 50 ms after the first
-        assert 0.23 <= _time_scans(player, loc, 6) < 0.6
-        player.set_speed(None)                    # max: as fast as the localizer goes
-        assert _time_scans(player, loc, 50) < 0.5
-        # realtime at the sequence's timestamps (0.1 s apart), whatever the speed says
-        player.set_clock("realtime")
-        player.set_speed(100.0)
-        assert 0.38 <= _time_scans(player, loc, 5) < 0.9
-        # step: exactly one scan, then idle
-        k = loc.k
-        player.step_once()
-        assert player.wait_idle(5) and loc.k == k + 1
-        with pytest.raises(LidarlocError):
-            player.set_speed(0)
-        with pytest.raises(LidarlocError):
-            player.set_clock("fast")
-    finally:
-        t0 = time.perf_counter()
-        player.stop()
-        assert time.perf_counter() - t0 < 1.0
-
-
-def test_player_survives_a_failing_step():
-    from lidarloc.app.player import Player
-
-    class Failing(_InstantSteps):
-        def step(self):
-            if self.k == 2:
-                raise LidarlocError("scan 2: corrupt file")
-            return super().step()
-
-    loc, errors = Failing(), []
-    player = Player(loc, lambda s: None, errors.append, speed=None)
-    player.start()
-    try:
-        player.play()
-        wait_for(lambda: errors, what="the error")
-        assert errors == ["scan 2: corrupt file"] and not player.playing
-        loc.k = 3                                     # past the bad scan: playback resumes
-        player.play()
-        wait_for(lambda: loc.k >= 10, what="playing again")
-    finally:
-        player.stop()
-
-
 def test_rebuild_progress_shows_in_the_page(viewer):
     v, loc = viewer.viewer, viewer.localizer
     c = v.controls
     c.layers["bev_level"].value = True
-    old = v._pyramid()
+    old = loc.pyramid
     c.params["match_resolution"].value = 2.0       # d_m: the BEV pyramid is rebuilt in the background
     c.apply.value = True
     assert loc.rebuild_progress is not None
     v.update_display()
-    assert v._progress.visible and "Rebuilding" in v._progress_text.content
+    assert v.controls.progress.visible and "Rebuilding" in v.controls.progress_text.content
     # the new pyramid is swapped in at the next scan; the bar goes, the BEV layer follows
-    wait_for(lambda: loc._pending_pyramid is None or loc._pending_pyramid.done(), what="rebuild")
+    wait_for(lambda: not loc.rebuilding, what="rebuild")
     c.step.value = True
     wait_for(lambda: v.player.idle and loc.k == 1)
     v.update_display()
-    assert loc.rebuild_progress is None and not v._progress.visible
-    assert v._pyramid() is not old and v._pyramid().resolution == 2.0
-    assert v.scene._pyramid is v._pyramid()
+    assert loc.rebuild_progress is None and not v.controls.progress.visible
+    assert loc.pyramid is not old and loc.pyramid.resolution == 2.0
+    assert v.scene.bev_shown[0] is loc.pyramid
 
 
 def test_status_and_plots_follow_the_run(viewer):
@@ -510,16 +348,16 @@ def test_status_and_plots_follow_the_run(viewer):
         v.controls.step.value = True
     wait_for(lambda: v.player.idle and loc.k == 4)
     v.update_display(force_plots=True)
-    text = v._status.content
+    text = v.controls.status.content
     assert "Scan 3 of 24" in text and "paused" in text
     assert "N_eff" in text and "S2M" in text and "error to truth" in text
     assert "s2m started" in text                                  # recent events
-    x, std, err = v._plot_std.data
+    x, std, err = v.controls.plot_std.data
     assert list(x) == [0, 1, 2, 3] and (std > 0).all() and (err > 0).all()
-    x, pf_ms, s2m_ms = v._plot_ms.data
+    x, pf_ms, s2m_ms = v.controls.plot_ms.data
     assert len(pf_ms) == 4 and (pf_ms > 0).all() and s2m_ms[-1] > 0
     # the scene shows this scan: its points in green at the estimate, the S2M match with its label
     snap = loc.snapshot()
-    assert np.array_equal(v.scene._scan.points, snap.scan_world)
+    assert np.array_equal(v.scene.node("scan").points, snap.scan_world)
     assert snap.s2m is not None
-    assert f"started at scan {snap.s2m.started_at}, landed at {snap.s2m.landed_at}" in v.scene._s2m_label.text
+    assert f"started at scan {snap.s2m.started_at}, landed at {snap.s2m.landed_at}" in v.scene.node("s2m_label").text

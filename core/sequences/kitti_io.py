@@ -1,13 +1,18 @@
-"""Reading and writing the KITTI file formats shared by the odometry and raw layouts."""
+"""Reading and writing the KITTI file formats shared by the odometry and raw layouts, and the
+base class of the two KITTI readers."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
 from ..errors import DataError
+from .base import Sequence
 
 
 def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
@@ -77,3 +82,47 @@ def cam0_to_lidar_poses(poses_cam0: np.ndarray, Tr: np.ndarray) -> np.ndarray:
 
 def lidar_to_cam0_poses(poses_lidar: np.ndarray, Tr: np.ndarray) -> np.ndarray:
     return Tr[None] @ poses_lidar @ np.linalg.inv(Tr)[None]
+
+
+class FileBackedSequence(Sequence):
+    """A sequence of KITTI ``.bin`` scan files, read through pykitti: one file per scan, read when
+    the scan is asked for; timestamps and poses read once when the sequence is opened.
+
+    A subclass opens its layout with :meth:`_open_pykitti` (which sets ``_kitti`` and ``_files``)
+    and sets ``_times`` and, where the layout has ground truth, ``_poses``.
+    """
+
+    _files: list
+    _times: np.ndarray
+    _poses: np.ndarray | None = None
+
+    def _open_pykitti(self, opener: Callable[[], Any], errors: tuple[type[Exception], ...], failure: str,
+                      velodyne_dir: Path) -> None:
+        """Run ``opener`` (a pykitti reader) and list its scan files. pykitti prints when poses are
+        absent, so its output is swallowed; ``errors`` it raises become a DataError starting with
+        ``failure``, and a layout without scans one naming ``velodyne_dir``."""
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                self._kitti = opener()
+        except errors as exc:
+            raise DataError(f"{failure} ({exc})") from None
+        self._files = list(self._kitti.velo_files)
+        if not self._files:
+            raise DataError(f"{velodyne_dir}: no .bin scans")
+
+    def __len__(self) -> int:
+        return len(self._files)
+
+    def _read_scan(self, i: int) -> np.ndarray:
+        return read_velodyne_bin(self._files[i])
+
+    def _describe_scan(self, i: int) -> str:
+        return str(self._files[i])
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._times
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        return self._poses

@@ -3,18 +3,16 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError
-from .base import Sequence, check_poses, rebase_poses
-from .kitti_io import cam0_to_lidar_poses, read_pose_lines, read_velodyne_bin
+from .base import check_poses, rebase_poses
+from .kitti_io import FileBackedSequence, cam0_to_lidar_poses, read_pose_lines
 
 
-class KittiOdometry(Sequence):
+class KittiOdometry(FileBackedSequence):
     def __init__(self, root: str | Path, sequence: str):
         import pykitti
 
@@ -30,14 +28,8 @@ class KittiOdometry(Sequence):
         for needed in ("calib.txt", "times.txt"):
             if not (seq_dir / needed).is_file():
                 raise DataError(f"{seq_dir / needed}: file not found")
-        try:
-            with contextlib.redirect_stdout(io.StringIO()):  # pykitti prints when poses are absent
-                self._kitti = pykitti.odometry(str(self.root), self.sequence)
-        except (KeyError, ValueError, OSError) as exc:
-            raise DataError(f"{seq_dir / 'calib.txt'}: unreadable calibration or times ({exc})") from None
-        self._files = list(self._kitti.velo_files)
-        if not self._files:
-            raise DataError(f"{seq_dir / 'velodyne'}: no .bin scans")
+        self._open_pykitti(lambda: pykitti.odometry(str(self.root), self.sequence), (KeyError, ValueError, OSError),
+                           f"{seq_dir / 'calib.txt'}: unreadable calibration or times", seq_dir / "velodyne")
         n = len(self._files)
         times = np.array([t.total_seconds() for t in self._kitti.timestamps], dtype=np.float64)
         if len(times) != n:
@@ -49,23 +41,6 @@ class KittiOdometry(Sequence):
         if pose_file.is_file():
             cam0 = check_poses(read_pose_lines(pose_file), n, str(pose_file))
             self._poses = rebase_poses(cam0_to_lidar_poses(cam0, self.Tr))
-
-    def __len__(self) -> int:
-        return len(self._files)
-
-    def _read_scan(self, i: int) -> np.ndarray:
-        return read_velodyne_bin(self._files[i])
-
-    def _describe_scan(self, i: int) -> str:
-        return str(self._files[i])
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self):
-        return self._poses
 
     def identity(self) -> str:
         return f"kitti-odometry|{self.root.resolve()}|{self.sequence}"

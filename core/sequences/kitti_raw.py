@@ -6,18 +6,16 @@ Velodyne), re-based so that the world frame is the first LiDAR pose.
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError
-from .base import Sequence, check_poses, rebase_poses
-from .kitti_io import read_velodyne_bin
+from .base import check_poses, rebase_poses
+from .kitti_io import FileBackedSequence
 
 
-class KittiRaw(Sequence):
+class KittiRaw(FileBackedSequence):
     def __init__(self, root: str | Path, date: str, drive: str):
         import pykitti
 
@@ -35,14 +33,9 @@ class KittiRaw(Sequence):
                 raise DataError(f"{date_dir / needed}: calibration file not found")
         if not (drive_dir / "oxts" / "timestamps.txt").is_file():
             raise DataError(f"{drive_dir / 'oxts' / 'timestamps.txt'}: file not found")
-        try:
-            with contextlib.redirect_stdout(io.StringIO()):
-                self._kitti = pykitti.raw(str(self.root), self.date, self.drive)
-        except (KeyError, ValueError, OSError, IndexError) as exc:
-            raise DataError(f"{drive_dir}: unreadable OXTS or calibration ({exc})") from None
-        self._files = list(self._kitti.velo_files)
-        if not self._files:
-            raise DataError(f"{drive_dir / 'velodyne_points' / 'data'}: no .bin scans")
+        self._open_pykitti(lambda: pykitti.raw(str(self.root), self.date, self.drive),
+                           (KeyError, ValueError, OSError, IndexError),
+                           f"{drive_dir}: unreadable OXTS or calibration", drive_dir / "velodyne_points" / "data")
         n = len(self._files)
         oxts = self._kitti.oxts
         T_velo_imu = np.asarray(self._kitti.calib.T_velo_imu, dtype=np.float64)
@@ -55,23 +48,6 @@ class KittiRaw(Sequence):
             raise DataError(f"{drive_dir / 'oxts' / 'timestamps.txt'}: {len(stamps)} timestamps for {n} scans")
         t0 = stamps[0]
         self._times = np.array([(t - t0).total_seconds() for t in stamps], dtype=np.float64)
-
-    def __len__(self) -> int:
-        return len(self._files)
-
-    def _read_scan(self, i: int) -> np.ndarray:
-        return read_velodyne_bin(self._files[i])
-
-    def _describe_scan(self, i: int) -> str:
-        return str(self._files[i])
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self):
-        return self._poses
 
     def identity(self) -> str:
         return f"kitti-raw|{self.root.resolve()}|{self.date}|{self.drive}"

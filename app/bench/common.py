@@ -1,0 +1,121 @@
+"""What the benchmarks share: where the real data is, opening the source, the state of the machine
+the numbers were taken on, medians, memory, and pose errors against the ground truth."""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from lidarloc.core.config import Config
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.geometry import inv_pose
+from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+# The real KITTI data is not shipped (licence): $LIDARLOC_DATA, else ../shared/data from where
+# the command runs (the repository root).
+DATA_ENV = "LIDARLOC_DATA"
+DEFAULT_DATA = Path("../shared/data")
+# The KITTI raw drive the real-data figures of BENCHMARKS.md are measured on.
+REAL_DRIVE_DATE, REAL_DRIVE = "2011_09_26", "0013"
+
+
+def data_dir() -> Path:
+    env = os.environ.get(DATA_ENV)
+    return Path(env) if env else DEFAULT_DATA
+
+
+def real_drive(scans: int | None = None) -> SourceSpec | None:
+    """The reference real drive in the data directory, or None where it is absent."""
+    root = data_dir() / "kitti_raw"
+    if not (root / REAL_DRIVE_DATE / f"{REAL_DRIVE_DATE}_drive_{REAL_DRIVE}_sync").is_dir():
+        return None
+    return SourceSpec(kitti_raw=root, date=REAL_DRIVE_DATE, drive=REAL_DRIVE, scans=scans)
+
+
+def require_real_drive(bench: str, scans: int | None = None) -> SourceSpec:
+    spec = real_drive(scans)
+    if spec is None:
+        raise LidarlocError(f"bench {bench} reads KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} by default, not found "
+                            f"under {data_dir() / 'kitti_raw'} (set ${DATA_ENV}, or choose a source such as --town-seed 0)")
+    return spec
+
+
+def is_town(spec: SourceSpec) -> bool:
+    return spec.kitti_odometry is None and spec.kitti_raw is None
+
+
+def require_town(spec: SourceSpec, bench: str, what: str) -> None:
+    if not is_town(spec):
+        raise LidarlocError(f"bench {bench} measures {what}; --kitti-odometry and --kitti-raw do not apply")
+
+
+def open_source(spec: SourceSpec, cfg: Config, bench: str, need_poses: bool = False):
+    """The sequence; ``need_poses``: the measurement compares with the ground truth."""
+    seq = open_sequence(spec, cfg)
+    if need_poses and not seq.has_poses:
+        raise LidarlocError(f"bench {bench} compares with the ground truth, which {seq.name} does not have")
+    return seq
+
+
+def source_args(spec: SourceSpec) -> list[str]:
+    """The source options that select ``spec`` on a ``lidarloc`` command line (for the benchmarks
+    that time a command in a fresh process)."""
+    if spec.kitti_odometry is not None:
+        args = ["--kitti-odometry", str(spec.kitti_odometry)] + (["--sequence", spec.sequence] if spec.sequence else [])
+    elif spec.kitti_raw is not None:
+        args = ["--kitti-raw", str(spec.kitti_raw)] + (["--date", spec.date] if spec.date else []) \
+            + (["--drive", spec.drive] if spec.drive else [])
+    else:
+        args = ["--town-seed", str(spec.town_seed)]
+        for flag, path in (("--trajectory", spec.trajectory), ("--calib", spec.calib)):
+            if path is not None:
+                args += [flag, str(path)]
+    return args + (["--scans", str(spec.scans)] if spec.scans is not None else [])
+
+
+def config_args(config: Path | None, overrides: list[str] | None) -> list[str]:
+    """``--config``/``--set`` as given, for a ``lidarloc`` command in a fresh process."""
+    args = ["--config", str(config)] if config is not None else []
+    for item in overrides or []:
+        args += ["--set", item]
+    return args
+
+
+# ------------------------------------------------------------------------------------ machine
+def load_avg() -> float:
+    """1-minute load average: the machine may be shared, and a slow number under load says so."""
+    return os.getloadavg()[0]
+
+
+def machine() -> str:
+    return f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs"
+
+
+def rss_mb() -> float:
+    """This process's resident memory now (MB)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+# ------------------------------------------------------------------------------------ numbers
+def median(values) -> float | None:
+    """Median of the known values (None and non-finite left out); None if there are none."""
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.median(vals)) if vals else None
+
+
+def median_ms(seconds) -> float:
+    return float(np.median(seconds) * 1000.0)
+
+
+def pose_error(T: np.ndarray, G: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) of the difference between pose T and the truth G."""
+    D = inv_pose(G) @ T
+    return float(np.linalg.norm(D[:3, 3])), math.degrees(math.acos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))

@@ -1,0 +1,20 @@
+"""The live browser viewer (viser): the prior map, the particle filter's state after every scan,
+the last scan-to-map match, and the controls to drive and perturb the localizer.
+
+Threads. A :class:`~lidarloc.app.viewer.player.Player` thread calls ``localizer.step()``; each
+snapshot it returns is recorded in a :class:`~lidarloc.app.viewer.history.History` (cheap appends)
+and left in a one-slot mailbox. A display thread wakes up, takes the newest snapshot (skipping any
+it had no time for) and updates the scene and panels. GUI callbacks run on viser's worker threads;
+they only flip player flags or call the localizer's thread-safe setters. Nothing here holds a lock
+the localizer waits on, so the display never slows the filter down.
+
+Scene state is shared by all browser tabs (one scene, sent once to each client: the map is static
+and never re-sent per scan); the camera and its controls are per tab.
+
+Modules: ``serve`` starts a viewer (``serve``, ``serve_until_interrupted``); ``app`` is the
+:class:`~lidarloc.app.viewer.app.Viewer` that wires the panel to the localizer; ``panel`` builds the
+controls, ``params`` knows the live parameters' labels and units, ``readouts`` fills the progress
+bar, status and plots, ``scene`` draws the 3D nodes, ``camera`` moves each tab's camera, ``ground``
+turns pointer picks into places on the map, ``history`` keeps the per-scan figures, ``style`` holds
+the look.
+"""

@@ -1,0 +1,451 @@
+"""The viewer around one Localizer: the panel's controls wired to what they do, the display
+thread that draws the newest snapshot, and the localizer's arrival (or failure to start).
+
+The panel's controls are built in :mod:`~lidarloc.app.viewer.panel`; every folder with controls
+has a section below, whose ``_wire_*`` method connects each control to the handler that follows
+it (each tab's own camera folder is wired in :mod:`~lidarloc.app.viewer.camera`). Handlers run on
+viser's worker threads through :meth:`Viewer._guard`: a refused value or a failure becomes a
+message in the panel, never a dead callback or server.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+import traceback
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+import viser
+
+from lidarloc.core.config import check_live_changes
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.snapshot import Snapshot
+
+from .camera import TabCameras
+from .ground import clicked_point, dragged_region, pose_on_ground
+from .history import History
+from .panel import build_panel
+from .params import ParamForm
+from .player import Player
+from .readouts import Readouts, status_markdown
+from .scene import SceneView
+from .style import MIN_DRAW_INTERVAL, SHIFT, error_markdown
+
+if TYPE_CHECKING:
+    from lidarloc.core.bev import BEVPyramid
+    from lidarloc.core.localizer import Localizer
+
+
+class Viewer:
+    """GUI, scene and threads around one Localizer. Use
+    :func:`~lidarloc.app.viewer.serve.serve` to start one."""
+
+    def __init__(self, server: viser.ViserServer, *, autoplay: bool = True, speed: str = "10",
+                 display_thread: bool = True):
+        self.server = server
+        self.localizer: Localizer | None = None
+        self.player: Player | None = None
+        self.history = History()
+        self.scene = SceneView(server.scene)
+        self.controls = build_panel(server.gui, speed=speed, layers=self.scene.layers)
+        self.readouts = Readouts(self.controls, self.history)
+        self.params = ParamForm(self.controls.params, self.controls.q)
+        self.cameras = TabCameras(server, self.scene, lambda: self._latest, self._guarded,
+                                  folder_order=self.controls.particles_folder.order + 0.5)
+        self.owns_localizer = False
+        self._autoplay = autoplay
+        self._latest: Snapshot | None = None
+        self._drawn: Snapshot | None = None
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self._ready = threading.Event()
+        self._message = ""
+        self._last_draw = 0.0
+        self._syncing = False           # set while the viewer itself writes GUI values
+        self._wire_playback()
+        self._wire_particles()
+        self._wire_parameters()
+        self._wire_layers()
+        server.on_client_connect(self.cameras.connect)
+        server.on_client_disconnect(self.cameras.disconnect)
+        # Without the display thread (benchmarks) the owner calls update_display() itself.
+        self._display = threading.Thread(target=self._display_loop, name="lidarloc-display", daemon=True)
+        if display_thread:
+            self._display.start()
+
+    # ============================================================== callbacks and messages
+    def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True) -> None:
+        """Run a GUI action; a refused value or any failure becomes a visible message, never a
+        dead callback thread or a crashed server."""
+        if self._syncing:
+            return
+        try:
+            if needs_localizer and not self._ready.is_set():
+                raise LidarlocError("the localizer is still starting (map and tables are being built)")
+            action()
+        except LidarlocError as exc:
+            self.show_message(f"refused: {exc}", error=True, client=event.client)
+        except Exception as exc:  # keep the server alive and say what went wrong
+            traceback.print_exc(file=sys.stderr)
+            self.show_message(f"internal error: {type(exc).__name__}: {exc}", error=True, client=event.client)
+
+    def _guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
+        """``action`` as a GUI callback, run through :meth:`_guard`."""
+        return lambda event: self._guard(event, action, needs_localizer)
+
+    @contextmanager
+    def _quietly(self):
+        """The viewer writes GUI values itself: their callbacks do nothing meanwhile."""
+        self._syncing = True
+        try:
+            yield
+        finally:
+            self._syncing = False
+
+    def show_message(self, text: str, error: bool = False, client=None) -> None:
+        self._message = text
+        self.controls.message.content = error_markdown(text) if error else text
+        self.controls.message.visible = bool(text)
+        if client is not None and text:
+            try:
+                client.add_notification("lidarloc", text, color="red" if error else "blue", auto_close_seconds=6.0)
+            except Exception:  # the tab may have closed meanwhile; the panel message stays
+                pass
+
+    @property
+    def message(self) -> str:
+        return self._message
+
+    @property
+    def latest(self) -> Snapshot | None:
+        """The newest snapshot handed to the display (None before the localizer is attached)."""
+        return self._latest
+
+    @property
+    def drawn(self) -> Snapshot | None:
+        """The snapshot the scene shows now (the display draws the newest one when it gets to it)."""
+        return self._drawn
+
+    # ============================================================== localizer lifecycle
+    def build_progress(self, stage, frac=None) -> None:
+        """Progress callback for the Localizer constructor: (stage, fraction)."""
+        self.readouts.building(stage, frac)
+        self._wake.set()
+
+    def startup_failed(self, message: str) -> None:
+        self.readouts.failed(message)
+        self.show_message(f"could not start: {message}", error=True)
+
+    def attach(self, localizer: Localizer) -> None:
+        """Show a ready Localizer: its map (once), its parameters, and start playing it."""
+        self.localizer = localizer
+        self.scene.set_map(localizer.prior_map)
+        live = localizer.live_params()
+        self._show_live_params(live)
+        pyr = self._pyramid()
+        if pyr is not None:
+            c = self.controls
+            c.layers["bev_level"].visible = True
+            with self._quietly():
+                c.bev_level.max = max(len(pyr.levels) - 1, 0)
+                c.bev_level.value = min(2, len(pyr.levels) - 1)
+            c.bev_level.visible = True
+        if not localizer.seq.has_poses:
+            self.readouts.no_ground_truth()
+        self.cameras.overview()
+        speed = self.controls.speed.value
+        self.player = Player(localizer, self._on_step, self._on_player_error,
+                             speed=None if speed == "max" else float(speed), clock=live["clock"])
+        self.player.start()
+        for h in (self.controls.play, self.controls.step, self.controls.restart, self.controls.reset,
+                  self.controls.kidnap):
+            h.disabled = False
+        self.readouts.built()
+        self.publish(localizer.snapshot())
+        self._ready.set()
+        if self._autoplay:
+            self.play()
+        self._wake.set()
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Block until a localizer is attached (False on timeout)."""
+        return self._ready.wait(timeout)
+
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
+    def _pyramid(self) -> BEVPyramid | None:
+        """The localizer's BEV pyramid (None before one is attached)."""
+        return None if self.localizer is None else self.localizer.pyramid
+
+    def _show_live_params(self, live: dict) -> None:
+        """The localizer's current values (``Localizer.live_params()``) in the panel; they count
+        as applied."""
+        c = self.controls
+        with self._quietly():
+            self.params.show(live)
+            c.s2m_enabled.value = bool(live["s2m_enabled"])
+            c.clock.value = live["clock"]
+            c.seed.value = int(self.localizer.cfg.seed)
+        self._mark_pending()
+
+    # ============================================================== snapshots and display
+    def publish(self, snap: Snapshot) -> None:
+        """Hand a snapshot to the display (any thread; never blocks on the display)."""
+        self.history.record(snap)
+        self._latest = snap
+        self._wake.set()
+
+    def _on_step(self, snap: Snapshot) -> None:
+        """A snapshot from the player thread. A restart that landed between the step returning
+        and this call has replaced the localizer's snapshot: this one is from the old run, drop it."""
+        if snap is self.localizer.snapshot():
+            self.publish(snap)
+
+    def _on_player_error(self, message: str) -> None:
+        self.show_message(message, error=True)
+        self._wake.set()
+
+    def _display_loop(self) -> None:
+        while not self._stopping.is_set():
+            self._wake.wait(timeout=0.1)
+            self._wake.clear()
+            if self._stopping.is_set():
+                return
+            wait = self._last_draw + MIN_DRAW_INTERVAL - time.perf_counter()
+            if wait > 0:
+                self._stopping.wait(wait)
+            try:
+                self.update_display()
+            except Exception:  # one bad frame must not end the display thread
+                traceback.print_exc(file=sys.stderr)
+
+    def update_display(self, force_plots: bool = False) -> float:
+        """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
+        on the scene and status (the per-scan cost)."""
+        self.readouts.update_progress(None if self.localizer is None else self.localizer.rebuild_progress)
+        snap = self._latest
+        ms = 0.0
+        if snap is not None and snap is not self._drawn:
+            t0 = time.perf_counter()
+            with self.server.atomic():
+                self.scene.draw(snap, self.history)
+            self._drawn = snap
+            self.readouts.update_status(self.status_markdown(snap))
+            self.cameras.follow(snap)
+            ms = (time.perf_counter() - t0) * 1000.0
+            self._last_draw = time.perf_counter()
+        elif snap is not None:
+            self.readouts.update_status(self.status_markdown(snap))      # play/pause state may have changed
+        self.readouts.update_plots(force_plots)
+        self._sync_play_button()
+        if self.localizer is not None and self.controls.layers["bev_level"].value:
+            self._show_bev_level()
+        return ms
+
+    def _play_state(self) -> str:
+        p = self.player
+        if p is None:
+            return "starting"
+        if self.localizer is not None and self.localizer.done and p.idle:
+            return "finished"
+        if p.playing:
+            return "playing"
+        return "paused" if p.idle else "stepping"
+
+    def status_markdown(self, snap: Snapshot) -> str:
+        clock = self.player.clock if self.player else "replay"
+        return status_markdown(snap, self._play_state(), clock, self.controls.speed.value,
+                               self.history.recent_events())
+
+    def _sync_play_button(self) -> None:
+        p, play = self.player, self.controls.play
+        if p is None:
+            return
+        label = "Pause" if p.playing else "Play"
+        if play.label != label:
+            play.label = label
+            play.icon = viser.Icon.PLAYER_PAUSE if p.playing else viser.Icon.PLAYER_PLAY
+        finished = self.localizer.done
+        if play.disabled != finished:
+            play.disabled = finished
+            self.controls.step.disabled = finished
+
+    # ============================================================== Playback folder
+    def _wire_playback(self) -> None:
+        c = self.controls
+        c.play.on_click(self._guarded(self._toggle_play))
+        c.step.on_click(self._guarded(self.step_once))
+        c.speed.on_update(self._guarded(self._apply_speed))
+        c.clock.on_update(self._guarded(self._apply_clock))
+        c.restart.on_click(self._guarded(self._restart))
+
+    def play(self) -> None:
+        self.player.play()
+        self._wake.set()
+
+    def pause(self) -> None:
+        self.player.pause()
+        self._wake.set()
+
+    def _toggle_play(self) -> None:
+        if self.player.playing:
+            self.pause()
+        else:
+            if self.localizer.done:
+                raise LidarlocError("end of the sequence: restart to play again")
+            self.play()
+
+    def step_once(self) -> None:
+        if self.localizer.done:
+            raise LidarlocError("end of the sequence: restart to play again")
+        self.player.step_once()
+        self._wake.set()
+
+    def _apply_speed(self) -> None:
+        v = self.controls.speed.value
+        self.player.set_speed(None if v == "max" else float(v))
+        self._wake.set()
+
+    def _apply_clock(self) -> None:
+        clock = self.controls.clock.value
+        self.localizer.set_params(clock=clock)
+        self.player.set_clock(clock)
+        self.controls.speed.disabled = clock == "realtime"
+        self.show_message(f"clock: {clock}")
+
+    def _restart(self) -> None:
+        seed = _whole_number(self.controls.seed, "seed", 0)
+        self.localizer.restart(seed=seed)
+        self.history.clear()
+        self.player.rebase()
+        self.publish(self.localizer.snapshot())
+        self.show_message(f"restarted from scan 0 with seed {seed}")
+
+    # ============================================================== Particles folder and scene picks
+    def _wire_particles(self) -> None:
+        c = self.controls
+        c.reset.on_click(self._guarded(self.reset))
+        c.kidnap.on_click(self._guarded(self._kidnap))
+        self.server.scene.on_click(modifier=SHIFT)(self.on_shift_click)
+        self.server.scene.on_rect_select(modifier=SHIFT)(self.on_shift_rect)
+
+    def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
+        self.localizer.reset(pose=pose, region=region)
+        if pose is not None or region is not None:
+            last = self._latest.scan_index if self._latest is not None else -1
+            self.scene.show_reset_area(last, center=None if pose is None else pose[:3, 3], region=region)
+        self.publish(self.localizer.snapshot())
+        where = ("globally" if pose is None and region is None else
+                 f"around ({pose[0, 3]:.1f}, {pose[1, 3]:.1f})" if pose is not None else
+                 "in x {:.0f}…{:.0f}, y {:.0f}…{:.0f} m".format(region[0], region[2], region[1], region[3]))
+        self.show_message(f"particles reset {where}")
+
+    def on_shift_click(self, event) -> None:
+        """Shift+click on the ground: reset the particles around that point."""
+        def act():
+            hit = clicked_point(self.scene.ground, event.ray_origin, event.ray_direction)
+            self.reset(pose=pose_on_ground(self.scene.ground, hit[0], hit[1], self.localizer.cfg.pf.sensor_height))
+        self._guard(event, act)
+
+    def on_shift_rect(self, event) -> None:
+        """Shift+drag a rectangle on the ground: reset the particles inside it."""
+        self._guard(event, lambda: self.reset(
+            region=dragged_region(self.scene.ground, event.client.camera, event.screen_min, event.screen_max)))
+
+    def _kidnap(self) -> None:
+        skip = _whole_number(self.controls.kidnap_skip, "kidnap skip", 1)
+        before = self.localizer.k
+        target = self.localizer.kidnap(skip)
+        self.player.rebase()
+        if target is None:
+            target = self.localizer.k
+        self.show_message(f"kidnapped: the vehicle jumped from scan {before} to {target}; the filter was not told")
+        self._wake.set()
+
+    # ============================================================== Parameters folder
+    def _wire_parameters(self) -> None:
+        c = self.controls
+        for h in list(c.params.values()) + c.q:
+            h.on_update(self._guarded(self._mark_pending))
+        c.s2m_enabled.on_update(self._guarded(self._apply_s2m_enabled))
+        c.apply.on_click(self._guarded(self.apply_params))
+
+    def _mark_pending(self) -> None:
+        """The Apply button says how many numbers differ from what the localizer has."""
+        n = len(self.params.changed())
+        apply = self.controls.apply
+        label = f"Apply {n} change{'s' if n != 1 else ''}" if n else "Apply"
+        # one message to the clients: with three, "Apply 1 change" could show while the button
+        # was still disabled, and a quick click on it was lost (seen once in the browser test)
+        with self.server.atomic():
+            if apply.label != label:
+                apply.label = label
+            apply.disabled = n == 0
+            apply.color = "orange" if n else None
+
+    def _apply_s2m_enabled(self) -> None:
+        on = bool(self.controls.s2m_enabled.value)
+        self.localizer.set_params(s2m_enabled=on)
+        self.show_message(f"scan-to-map matching {'on' if on else 'off'} from the next scan")
+
+    def apply_params(self) -> dict:
+        """Send the changed numbers to the localizer (effective from the next scan). All or nothing:
+        an invalid value refuses the whole change with a message. Returns what was sent (SI)."""
+        changed = self.params.changed()
+        if not changed:
+            return {}
+        si = self.params.to_si(changed)
+        check_live_changes(self.localizer.cfg, si)
+        self.localizer.set_params(**si)
+        self.params.accept(changed)
+        self._mark_pending()
+        self.show_message(f"applied from the next scan: {self.params.names(changed)}")
+        self._wake.set()
+        return si
+
+    # ============================================================== Layers folder
+    def _wire_layers(self) -> None:
+        c = self.controls
+        for name, h in c.layers.items():
+            h.on_update(self._guarded(lambda name=name: self._toggle_layer(name), needs_localizer=False))
+        c.bev_level.on_update(self._guarded(self._show_bev_level))
+
+    def _toggle_layer(self, name: str) -> None:
+        visible = bool(self.controls.layers[name].value)
+        if name == "bev_level" and visible:
+            self._show_bev_level()
+        self.scene.set_layer(name, visible)
+
+    def _show_bev_level(self) -> None:
+        pyr, level = self._pyramid(), self.controls.bev_level
+        if pyr is None or not self.controls.layers["bev_level"].value:
+            return
+        top = max(len(pyr.levels) - 1, 0)
+        if level.max != top:      # a rebuilt pyramid (new d_m) has other levels
+            with self._quietly():
+                level.max = top
+                level.value = min(level.value, top)
+        self.scene.set_pyramid(pyr, int(level.value))
+
+    # ============================================================== shutdown
+    def stop(self) -> None:
+        self._stopping.set()
+        self._wake.set()
+        if self.player is not None:
+            self.player.stop(timeout=0.5)
+        if self._display.is_alive():
+            self._display.join(timeout=0.3)
+
+
+def _whole_number(handle, what: str, minimum: int) -> int:
+    """The value of a number field, checked to be a whole number ≥ ``minimum``."""
+    v = handle.value
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and float(v).is_integer() and v >= minimum):
+        raise LidarlocError(f"{what} must be a whole number ≥ {minimum}, got {v}")
+    return int(v)

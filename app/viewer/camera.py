@@ -1,0 +1,129 @@
+"""Each tab's camera: where a new tab looks first, the tab's own camera folder (follow the
+vehicle, top-down view, whole map), and the following cameras moved along with every drawn scan.
+The scene is shared by all tabs; cameras are not."""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Callable
+
+import numpy as np
+import viser
+
+from lidarloc.core.snapshot import Snapshot
+
+from .panel import CameraControls, add_camera_folder
+from .scene import SceneView
+
+
+def _position(snap: Snapshot | None) -> np.ndarray | None:
+    """The estimate's position, if there is a finite one."""
+    if snap is None:
+        return None
+    p = np.asarray(snap.mean_pose, float)[:3, 3]
+    return p if np.isfinite(p).all() else None
+
+
+class TabCameras:
+    """The cameras of all open tabs. ``latest`` returns the newest snapshot (or None);
+    ``guarded(action, needs_localizer)`` turns an action into a GUI callback that reports
+    failures in the panel."""
+
+    def __init__(self, server: viser.ViserServer, scene: SceneView, latest: Callable[[], Snapshot | None],
+                 guarded: Callable, folder_order: float):
+        self.server = server
+        self.scene = scene
+        self._latest = latest
+        self._guarded = guarded
+        self._order = folder_order
+        self._tabs: dict[int, CameraControls] = {}
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ tabs
+    def connect(self, client: viser.ClientHandle) -> None:
+        """A new tab: its camera folder, each control wired to its move."""
+        tab = add_camera_folder(client.gui, self._order)
+        tab.follow.on_update(self._guarded(lambda: self._follow_toggled(client, tab), needs_localizer=False))
+        tab.top_down.on_click(self._guarded(lambda: self.top_down(client), needs_localizer=False))
+        tab.fit.on_click(self._guarded(lambda: self.whole_map(client), needs_localizer=False))
+        with self._lock:
+            self._tabs[client.client_id] = tab
+
+    def disconnect(self, client: viser.ClientHandle) -> None:
+        with self._lock:
+            self._tabs.pop(client.client_id, None)
+
+    def _follow_toggled(self, client, tab: CameraControls) -> None:
+        """Following starts behind the vehicle, looking along its heading."""
+        if not tab.follow.value:
+            return
+        snap = self._latest()
+        p = _position(snap)
+        if p is None:
+            return
+        yaw = float(np.arctan2(snap.mean_pose[1][0], snap.mean_pose[0][0]))
+        back = np.array([-math.cos(yaw), -math.sin(yaw), 0.0])
+        with client.atomic():
+            client.camera.position = p + 35.0 * back + np.array([0, 0, 25.0])
+            client.camera.look_at = p
+
+    def top_down(self, client) -> None:
+        """Look straight down: on the vehicle if following it, else on the whole map."""
+        with self._lock:
+            tab = self._tabs.get(client.client_id)
+        following = tab is not None and tab.follow.value
+        p = _position(self._latest())
+        if following and p is not None:
+            self._look_down(client, p, 120.0)
+        else:
+            self.whole_map(client)
+
+    def whole_map(self, client) -> None:
+        fov = client.camera.fov if client.camera.fov else 1.3
+        h = 0.55 * self.scene.map_extent / math.tan(fov / 2.0)
+        self._look_down(client, self.scene.map_center, h)
+
+    @staticmethod
+    def _look_down(client, target, height: float) -> None:
+        target = np.asarray(target, float)
+        with client.atomic():
+            # a hair off vertical keeps the orbit controls' up vector defined; +y stays up on screen
+            client.camera.position = target + np.array([0.0, -1e-3 * height, height])
+            client.camera.look_at = target
+
+    # ------------------------------------------------------------------ all tabs
+    def overview(self) -> None:
+        """An oblique view of the whole map, for new tabs and for those already open."""
+        center, ext = self.scene.map_center, self.scene.map_extent
+        position, look_at = center + np.array([0.0, -0.42 * ext, 0.6 * ext]), center
+        self.server.initial_camera.look_at = tuple(look_at)
+        self.server.initial_camera.position = tuple(position)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        # tabs opened while the map was being built still look at the default origin
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = position
+                client.camera.look_at = look_at
+
+    def follow(self, snap: Snapshot) -> None:
+        """Move the cameras of the tabs that follow the vehicle onto the estimate of ``snap``."""
+        p = _position(snap)
+        if p is None:
+            return
+        with self._lock:
+            following = [cid for cid, tab in self._tabs.items() if tab.follow is not None and tab.follow.value]
+        if not following:
+            return
+        clients = self.server.get_clients()
+        for cid in following:
+            client = clients.get(cid)
+            if client is None:
+                continue
+            try:
+                cam = client.camera
+                shift = p - np.asarray(cam.look_at)
+                if np.linalg.norm(shift) > 1e-3:
+                    cam.position = np.asarray(cam.position) + shift   # moves look_at along
+            except (AssertionError, ValueError):  # camera state not reported yet
+                continue

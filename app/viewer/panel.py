@@ -1,0 +1,133 @@
+"""The page's controls and read-outs, built in order, folder by folder. Nothing here reacts to
+them: :class:`~lidarloc.app.viewer.app.Viewer` wires each control to what it does."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import viser
+import viser.uplot as uplot
+
+from .params import CLOCK, NUMBER_FIELDS, Q_STD, S2M_ENABLED, q_labels
+from .scene import Layers
+from .style import SPEEDS
+
+LAYER_LABELS = (("map", "Map"), ("map_bev", "Map, road removed"), ("particles", "Particles"),
+                ("scan", "Current scan (green)"), ("s2m", "Last S2M match"),
+                ("trajectories", "Trajectories (white: truth, orange: estimate)"),
+                ("ellipse", "2σ ellipse"), ("bev_level", "BEV pyramid level"))
+
+
+@dataclass
+class Controls:
+    """Handles of every control and read-out, for the viewer and for tests that drive them."""
+
+    # read-outs at the top of the panel
+    progress: object = None
+    progress_text: object = None
+    status: object = None
+    message: object = None
+    # Playback
+    play: object = None
+    step: object = None
+    speed: object = None
+    clock: object = None
+    seed: object = None
+    restart: object = None
+    # Particles
+    particles_folder: object = None
+    reset: object = None
+    kidnap_skip: object = None
+    kidnap: object = None
+    # Parameters
+    params: dict = field(default_factory=dict)      # set_params key → number handle
+    q: list = field(default_factory=list)           # 11 number handles, paper units
+    s2m_enabled: object = None
+    apply: object = None
+    # Layers
+    layers: dict = field(default_factory=dict)
+    bev_level: object = None
+    # Plots
+    plot_std: object = None
+    plot_ms: object = None
+
+
+@dataclass
+class CameraControls:
+    """One tab's camera folder."""
+
+    follow: object = None          # "follow the vehicle" checkbox
+    top_down: object = None
+    fit: object = None
+
+
+def std_series(has_truth: bool = True) -> tuple:
+    """Series of the position-std plot; without ground truth the error series is hidden."""
+    error = (uplot.Series(label="error (m)", stroke="#e6e6e6", width=2) if has_truth
+             else uplot.Series(label="error: no ground truth", show=False))
+    return (uplot.Series(label="scan"), uplot.Series(label="std (m)", stroke="#ff5a5a", width=2), error)
+
+
+def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
+    """Every control of the shared panel, disabled where it needs a localizer."""
+    c = Controls()
+    gui.configure_theme(dark_mode=True, control_width="medium", show_share_button=False)
+    gui.set_panel_label("lidarloc")
+    c.progress = gui.add_progress_bar(0.0, animated=True, visible=True)
+    c.progress_text = gui.add_markdown("Starting the localizer…")
+    c.status = gui.add_markdown("")
+    c.message = gui.add_markdown("", visible=False)
+
+    with gui.add_folder("Playback"):
+        c.play = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
+        c.step = gui.add_button("Step", icon=viser.Icon.PLAYER_TRACK_NEXT, disabled=True,
+                                hint="Pause and process exactly one scan")
+        c.speed = gui.add_dropdown("Speed (scans/s)", SPEEDS, initial_value=speed,
+                                   hint="Replay clock: at most this many scans per second")
+        c.clock = gui.add_dropdown(CLOCK.label, ("replay", "realtime"), initial_value="replay", hint=CLOCK.hint)
+        c.seed = gui.add_number("Seed", 0, step=1)
+        c.restart = gui.add_button("Restart from scan 0", icon=viser.Icon.REFRESH, disabled=True)
+    c.particles_folder = gui.add_folder("Particles")
+    with c.particles_folder:
+        c.reset = gui.add_button("Reset globally", disabled=True, hint="Re-initialise the particles over the whole map")
+        gui.add_markdown("**Shift+click** the ground: reset around that point.  \n"
+                         "**Shift+drag** a rectangle: reset inside it.")
+        c.kidnap_skip = gui.add_number("Kidnap skip (scans)", 100, step=1)
+        c.kidnap = gui.add_button("Kidnap", disabled=True, hint="Jump the vehicle ahead without telling the filter")
+    with gui.add_folder("Parameters", expand_by_default=False):
+        for p in NUMBER_FIELDS:
+            c.params[p.key] = gui.add_number(p.label, 1 if p.integer else 1.0, step=p.step, hint=p.hint or None)
+        c.s2m_enabled = gui.add_checkbox(S2M_ENABLED.label, True, hint=S2M_ENABLED.hint)
+        with gui.add_folder(Q_STD.label, expand_by_default=False):
+            for label in q_labels():
+                c.q.append(gui.add_number(label, 0.0, step=Q_STD.step))
+        c.apply = gui.add_button("Apply", disabled=True, hint="Numbers take effect from the next scan")
+    with gui.add_folder("Layers", expand_by_default=False):
+        for name, label in LAYER_LABELS:
+            c.layers[name] = gui.add_checkbox(label, getattr(layers, name), visible=name != "bev_level")
+        c.bev_level = gui.add_slider("BEV level", 0, 8, 1, 0, visible=False)
+    with gui.add_folder("Plots"):
+        x = np.zeros(1)
+        c.plot_std = gui.add_uplot(
+            (x, x, x), std_series(),
+            title="Position std (max of x, y) and error", scales={"x": uplot.Scale(time=False, auto=True),
+                                                                   "y": uplot.Scale(distr=3, auto=True)},
+            aspect=1.6)
+        c.plot_ms = gui.add_uplot(
+            (x, x, x), (uplot.Series(label="scan"),
+                        uplot.Series(label="PF (ms)", stroke="#ff9620", width=2),
+                        uplot.Series(label="S2M (ms)", stroke="#ff3cff", width=2)),
+            title="Latency per scan", scales={"x": uplot.Scale(time=False, auto=True),
+                                              "y": uplot.Scale(auto=True)}, aspect=1.6)
+    return c
+
+
+def add_camera_folder(gui, order: float) -> CameraControls:
+    """One tab's camera folder (``gui`` is the tab's own), placed at ``order`` in the panel."""
+    c = CameraControls()
+    with gui.add_folder("Camera (this tab)", order=order):
+        c.follow = gui.add_checkbox("Follow the vehicle", False, hint="Keep the camera on the estimate")
+        c.top_down = gui.add_button("Top-down view", icon=viser.Icon.ARROW_DOWN)
+        c.fit = gui.add_button("Whole map")
+    return c

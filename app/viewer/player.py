@@ -1,0 +1,221 @@
+"""Playback: one thread that calls ``localizer.step()`` when it is due.
+
+The viewer's controls only flip flags here (play, pause, step, speed, clock) and return at once;
+the thread does the blocking work, so a GUI callback never waits for a scan to be processed.
+
+Pacing. In the "replay" clock the next scan is due one speed-interval after the previous one
+started (or immediately at "max" speed). In the "realtime" clock scan k is due when as much wall
+time has passed as the sequence's timestamps say since the scan playback (re)started from, so a
+10 Hz drive plays at 10 Hz; a localizer slower than that simply runs behind (scans are not dropped:
+which scans to skip is the localizer's business, not the player's).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import traceback
+from typing import Callable, Protocol
+
+import numpy as np
+
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.snapshot import Snapshot
+
+CLOCKS = ("replay", "realtime")
+
+
+class _Timed(Protocol):
+    @property
+    def timestamps(self) -> np.ndarray: ...
+
+
+class Steppable(Protocol):
+    """What the player needs of a localizer: the next scan's index, its sequence's timestamps
+    (for the realtime clock), whether it is done, and a step."""
+
+    k: int
+
+    @property
+    def seq(self) -> _Timed: ...
+
+    @property
+    def done(self) -> bool: ...
+
+    def step(self) -> Snapshot: ...
+
+
+class Player:
+    """Drives a Localizer on a background thread.
+
+    ``on_snapshot`` is called on the player thread with every snapshot ``step()`` returns;
+    ``on_error`` with a one-line message when a step fails (playback then pauses, the thread lives on).
+    """
+
+    def __init__(self, localizer: Steppable, on_snapshot: Callable[[Snapshot], None],
+                 on_error: Callable[[str], None], *, speed: float | None = 10.0, clock: str = "replay"):
+        self._loc = localizer
+        self._on_snapshot = on_snapshot
+        self._on_error = on_error
+        self._cond = threading.Condition()
+        self._playing = False
+        self._steps_pending = 0
+        self._busy = False
+        self._stopping = False
+        self._speed = speed                      # scans per second in replay; None = as fast as possible
+        self._clock = clock
+        self._anchor: tuple[float, float] | None = None   # (wall time, sequence time) realtime pacing starts from
+        self._last_start: float | None = None    # wall time the previous step started (replay pacing)
+        self.steps_done = 0                      # steps completed since start (any reason)
+        self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
+
+    # ------------------------------------------------------------------ controls (any thread)
+    def start(self) -> None:
+        self._thread.start()
+
+    def play(self) -> None:
+        with self._cond:
+            if not self._playing:
+                self._playing = True
+                self._anchor = None
+                self._last_start = None
+            self._cond.notify_all()
+
+    def pause(self) -> None:
+        with self._cond:
+            self._playing = False
+            self._cond.notify_all()
+
+    def step_once(self) -> None:
+        """Pause, then process exactly one more scan."""
+        with self._cond:
+            self._playing = False
+            self._steps_pending += 1
+            self._cond.notify_all()
+
+    def set_speed(self, scans_per_second: float | None) -> None:
+        if scans_per_second is not None and not scans_per_second > 0:
+            raise LidarlocError(f"speed must be > 0 scans/s, got {scans_per_second}")
+        with self._cond:
+            self._speed = scans_per_second
+            self._cond.notify_all()
+
+    def set_clock(self, clock: str) -> None:
+        if clock not in CLOCKS:
+            raise LidarlocError(f"clock must be replay or realtime, got {clock!r}")
+        with self._cond:
+            self._clock = clock
+            self._anchor = None
+            self._cond.notify_all()
+
+    def rebase(self) -> None:
+        """Forget the pacing reference (after a restart or kidnap the sequence time jumps)."""
+        with self._cond:
+            self._anchor = None
+            self._last_start = None
+            self._cond.notify_all()
+
+    @property
+    def playing(self) -> bool:
+        return self._playing
+
+    @property
+    def speed(self) -> float | None:
+        return self._speed
+
+    @property
+    def clock(self) -> str:
+        return self._clock
+
+    @property
+    def idle(self) -> bool:
+        """Nothing running and nothing queued: the scan counter will not move until told to."""
+        with self._cond:
+            return not self._busy and self._steps_pending == 0 and not (self._playing and not self._loc.done)
+
+    def wait_idle(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._busy or self._steps_pending or (self._playing and not self._loc.done):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    def stop(self, timeout: float = 1.5) -> None:
+        with self._cond:
+            self._stopping = True
+            self._playing = False
+            self._cond.notify_all()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ the thread
+    def _due_in(self, now: float) -> float:
+        """Seconds until the next scan is due while playing (≤ 0: now). Called with the lock held."""
+        if self._clock == "realtime":
+            k = self._loc.k
+            stamps = self._loc.seq.timestamps
+            if k >= len(stamps):
+                return 0.0
+            t_seq = float(stamps[k])
+            if self._anchor is None:
+                self._anchor = (now, t_seq)
+            return self._anchor[0] + (t_seq - self._anchor[1]) - now
+        if self._speed is None or self._last_start is None:
+            return 0.0
+        return self._last_start + 1.0 / self._speed - now
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while True:
+                    if self._stopping:
+                        return
+                    if self._loc.done:
+                        self._steps_pending = 0
+                        if self._playing:
+                            self._playing = False
+                            self._cond.notify_all()
+                        self._cond.wait()
+                        continue
+                    if self._steps_pending:
+                        self._steps_pending -= 1
+                        break
+                    if self._playing:
+                        wait = self._due_in(time.perf_counter())
+                        if wait <= 0:
+                            break
+                        self._cond.wait(wait)
+                        continue
+                    self._cond.wait()
+                self._busy = True
+                self._last_start = time.perf_counter()
+            try:
+                snapshot = self._loc.step()
+            except LidarlocError as exc:
+                snapshot = None
+                self._fail(str(exc))
+            except Exception as exc:  # a bug in a step must not kill playback or the server
+                snapshot = None
+                traceback.print_exc(file=sys.stderr)
+                self._fail(f"scan {self._loc.k}: internal error: {type(exc).__name__}: {exc}")
+            # Published before the busy flag drops, so whoever sees the player idle also sees
+            # the snapshot of the last scan it processed.
+            if snapshot is not None:
+                try:
+                    self._on_snapshot(snapshot)
+                except Exception:  # a display bug must not stop the localizer
+                    traceback.print_exc(file=sys.stderr)
+            with self._cond:
+                self._busy = False
+                self.steps_done += 1
+                self._cond.notify_all()
+
+    def _fail(self, message: str) -> None:
+        with self._cond:
+            self._playing = False
+            self._steps_pending = 0
+        self._on_error(message)

@@ -1,0 +1,135 @@
+"""The panel's read-outs: the progress bar (while the localizer is built, and while a table is
+rebuilt in the background), the status table with the recent events, and the two plots."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from lidarloc.core.snapshot import Snapshot
+
+from .history import History
+from .panel import Controls, std_series
+from .style import PLOT_INTERVAL, PLOT_MAX_POINTS, error_markdown, shorten
+
+BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior map",
+                "lookup": "Building the distance lookup table", "pyramid": "Building the BEV pyramid",
+                "ready": "Ready"}
+
+
+def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list) -> str:
+    """The status table: scan counter, play state, localized or not, the filter's figures and the
+    recent events (newest first). ``speed`` is the replay speed shown (scans/s)."""
+    speed = "" if clock == "realtime" else f", {speed} scans/s"
+    k = "–" if snap.scan_index < 0 else str(snap.scan_index)
+    lines = [f"**Scan {k} of {snap.n_scans}** · {state} ({clock}{speed})"]
+    if snap.localized:
+        since = "" if snap.localized_since is None else f" since scan {snap.localized_since}"
+        lines.append(f"<span style='color:#5be35b'>**localized**{since}</span>")
+    else:
+        lines.append("<span style='color:#ffb347'>**not localized**</span>")
+    std = np.asarray(snap.std_xyz, float)
+    err = "–" if snap.error_m is None else f"{snap.error_m:.2f} m"
+    n = len(snap.weights)
+    s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
+    running = " · running" if snap.s2m_running else ""
+    lines += [
+        "",
+        "| | |",
+        "|---|---|",
+        f"| position std x/y/z | {std[0]:.2f} / {std[1]:.2f} / {std[2]:.2f} m |",
+        f"| error to truth | {err} |",
+        f"| N_eff | {snap.n_eff:.0f} of {n} |",
+        f"| PF | {snap.pf_ms:.1f} ms/scan |",
+        f"| S2M | {s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running} |",
+    ]
+    if events:
+        lines += ["", "**Recent events**"]
+        lines += [f"- {e.scan}: {e.kind.replace('_', ' ')}" + (f" — {shorten(e.detail, 60)}" if e.detail else "")
+                  for e in reversed(events)]
+    return "\n".join(lines)
+
+
+class Readouts:
+    """Fills the read-outs of a :class:`~lidarloc.app.viewer.panel.Controls`; called from the
+    display thread, except the start-up reports (from the thread that builds the localizer)."""
+
+    def __init__(self, controls: Controls, history: History):
+        self.c = controls
+        self.history = history
+        self._stage: str | None = "starting"     # Localizer construction stage, None once built
+        self._frac: float | None = None
+        self._failed = False
+        self._status_text = ""
+        self._plot_version = None
+        self._last_plot = 0.0
+
+    # ------------------------------------------------------------------ start-up
+    def building(self, stage, frac=None) -> None:
+        self._stage = str(stage)
+        self._frac = None if frac is None else float(frac)
+
+    def built(self) -> None:
+        self._stage = None
+
+    def failed(self, message: str) -> None:
+        self._failed = True
+        self._stage = None
+        self.c.progress_text.content = error_markdown(f"could not start: {message}")
+        self.c.progress.visible = False
+
+    def no_ground_truth(self) -> None:
+        self.c.plot_std.series = std_series(has_truth=False)
+
+    # ------------------------------------------------------------------ per display update
+    def update_progress(self, rebuild: float | None) -> None:
+        """The start-up stage while building, else ``rebuild`` (the localizer's background table
+        rebuild, 0…1, or None: the bar goes)."""
+        if self._failed:
+            return
+        bar, text = self.c.progress, self.c.progress_text
+        if self._stage is not None:
+            frac = self._frac
+            label = BUILD_STAGES.get(self._stage, self._stage)
+            bar.visible = True
+            bar.animated = frac is None
+            bar.value = 100.0 * (frac if frac is not None else 1.0)
+            pct = f" {100 * frac:.0f}%" if frac is not None else ""
+            text.content = f"{label}…{pct}"
+            text.visible = True
+        elif rebuild is not None:
+            bar.visible = True
+            bar.animated = False
+            bar.value = float(np.clip(100.0 * rebuild, 0, 100))
+            text.content = f"Rebuilding a table in the background… {100 * rebuild:.0f}% (the old one is used meanwhile)"
+            text.visible = True
+        else:
+            bar.visible = False
+            text.visible = False
+
+    def update_status(self, text: str) -> None:
+        if text != self._status_text:
+            self._status_text = text
+            self.c.status.content = text
+
+    def update_plots(self, force: bool = False) -> None:
+        """Resend the plots' series, at most every PLOT_INTERVAL unless ``force``d."""
+        now = time.perf_counter()
+        if not force and now - self._last_plot < PLOT_INTERVAL:
+            return
+        h = self.history.arrays()
+        if h["version"] == self._plot_version:
+            return
+        self._plot_version, self._last_plot = h["version"], now
+        x = h["scan"].astype(np.float64)
+        if len(x) == 0:
+            return
+        stride = int(np.ceil(len(x) / PLOT_MAX_POINTS))
+        sl = slice(None, None, stride)
+        # a log scale needs positive finite values; without ground truth the error series is hidden
+        std = np.maximum(h["std"], 1e-3)
+        err = h["error"]
+        err = np.where(np.isfinite(err), np.maximum(err, 1e-3), std)
+        self.c.plot_std.data = (x[sl], std[sl], err[sl])
+        self.c.plot_ms.data = (x[sl], h["pf_ms"][sl], h["s2m_ms"][sl])

@@ -1,0 +1,396 @@
+"""The 3D scene: the prior map, the particles, the 2σ ellipse, the current scan, the last
+scan-to-map match, the trajectories and the BEV pyramid level, on the server-wide scene that
+every browser tab shares."""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+
+from lidarloc.core.mapping import VoxelAccumulator
+from lidarloc.core.snapshot import Snapshot
+
+from .ground import GroundHeight
+from .history import History
+from .style import (BEST_COLOR, BEV_COLOR, DISPLAY_MAX_POINTS, DISPLAY_VOXEL, ELLIPSE_COLOR, EST_COLOR, GT_COLOR,
+                    PARTICLE_HIGH, PARTICLE_LOW, RESET_COLOR, S2M_ACCEPTED_COLOR, S2M_REJECTED_COLOR, SCAN_COLOR,
+                    TRAJ_CHUNK, height_colors, shorten)
+
+
+def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
+                           max_points: int = DISPLAY_MAX_POINTS) -> tuple[np.ndarray, float]:
+    """One centroid per voxel, the voxel grown by 1.5× until at most ``max_points`` remain.
+    Returns (points float32, voxel used)."""
+    if len(points) == 0:
+        return np.zeros((0, 3), np.float32), voxel
+    while True:
+        acc = VoxelAccumulator(voxel, capacity=1 << max(10, int(np.ceil(np.log2(2 * len(points) + 1)))))
+        acc.add(points)
+        out = acc.points()
+        if len(out) <= max_points:
+            return out, voxel
+        voxel *= 1.5
+
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    return viser.transforms.SO3.from_matrix(np.asarray(R, float)).wxyz
+
+
+
+class ChunkedPolyline:
+    """A growing polyline sent in chunks: a finished chunk is sent once and left alone, only the
+    last one is updated, so the per-scan cost does not grow with the length of the drive."""
+
+    def __init__(self, scene, name: str, color, thickness: float = 2.0):
+        self.scene, self.name, self.color, self.thickness = scene, name, color, thickness
+        self.epoch = None
+        self.handles: list = []
+        self.visible = True
+
+    def _clear(self) -> None:
+        for h in self.handles:
+            h.remove()
+        self.handles = []
+
+    def set_visible(self, visible: bool) -> None:
+        self.visible = visible
+        for h in self.handles:
+            h.visible = visible
+
+    def sync(self, epoch: int, pts: np.ndarray, connected: np.ndarray) -> None:
+        """``pts`` (n, 3) so far; ``connected[i]`` says whether point i joins point i − 1.
+        Chunk c holds the segments between points c·C … (c+1)·C (consecutive chunks share a point)."""
+        if epoch != self.epoch:
+            self._clear()
+            self.epoch = epoch
+        n = len(pts)
+        if n < 2:
+            return
+        last = (n - 2) // TRAJ_CHUNK                  # chunk of the newest segment
+        first = max(len(self.handles) - 1, 0)         # the open chunk: finished ones stay as sent
+        for c in range(first, last + 1):
+            lo, hi = c * TRAJ_CHUNK, min((c + 1) * TRAJ_CHUNK, n - 1)
+            segs = self._segments(pts, connected, lo, hi)
+            if segs is None:   # nothing connected here (e.g. no ground truth): a zero-length stand-in
+                segs = np.repeat(np.nan_to_num(pts[lo:lo + 1]).astype(np.float32)[:, None], 2, axis=1)
+            if c < len(self.handles):
+                self.handles[c].points = segs
+            else:
+                self.handles.append(self.scene.add_line_segments(
+                    f"{self.name}/c{c}", segs, self.color, thickness=self.thickness, thickness_units="screen",
+                    visible=self.visible))
+
+    @staticmethod
+    def _segments(pts, connected, lo, hi):
+        """Segments between points lo…hi (inclusive) that are connected and finite, or None."""
+        if hi <= lo:
+            return None
+        a, b = pts[lo:hi], pts[lo + 1: hi + 1]
+        keep = connected[lo + 1: hi + 1] & np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+        if not keep.any():
+            return None
+        return np.stack([a[keep], b[keep]], axis=1).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------- scene
+@dataclass
+class Layers:
+    map: bool = True
+    map_bev: bool = False
+    bev_level: bool = False
+    particles: bool = True
+    scan: bool = True
+    s2m: bool = True
+    trajectories: bool = True
+    ellipse: bool = True
+
+
+class SceneView:
+    """Every 3D node the viewer shows, on the server-wide scene (shared by all tabs).
+
+    The display thread draws while GUI callbacks (layer toggles, BEV level) run on viser's
+    worker threads: one lock keeps a node from being replaced by one while the other updates it.
+    """
+
+    def __init__(self, scene):
+        self.scene = scene
+        self._lock = threading.RLock()
+        self.layers = Layers()
+        self.ground: GroundHeight | None = None
+        self.map_center = np.zeros(3)
+        self.map_extent = 100.0
+        self._map = self._map_bev = self._bev_image = None
+        self._pyramid = None
+        self._bev_level_shown = None
+        self._particles = self._particle_dots = self._best = self._ellipse = self._scan = None
+        self._s2m_scan = self._s2m_box = self._s2m_label = None
+        self._s2m_shown = None
+        self._est_frame = None
+        self._reset_hint = None
+        self._reset_hint_scan: int | None = None
+        self.gt_line = ChunkedPolyline(scene, "/trajectory/ground_truth", GT_COLOR, 2.0)
+        self.est_line = ChunkedPolyline(scene, "/trajectory/estimate", EST_COLOR, 2.0)
+        self.display_voxel = DISPLAY_VOXEL
+
+    #: the names :meth:`node` answers to, and the attribute holding each node
+    _NODES = {"map": "_map", "map_bev": "_map_bev", "bev_level": "_bev_image", "particles": "_particles",
+              "particle_dots": "_particle_dots", "best": "_best", "ellipse": "_ellipse", "scan": "_scan",
+              "pose": "_est_frame", "s2m_scan": "_s2m_scan", "s2m_region": "_s2m_box", "s2m_label": "_s2m_label",
+              "reset_area": "_reset_hint"}
+
+    def node(self, name: str):
+        """The viser handle of one drawn node (``"map"``, ``"particles"``, ``"scan"``, ``"s2m_label"``,
+        ``"reset_area"``, … see ``_NODES``), or None until it is first drawn."""
+        return getattr(self, self._NODES[name])
+
+    @property
+    def bev_shown(self) -> tuple:
+        """(pyramid, level) of the BEV level image on the ground; (None, None) before one is shown."""
+        return self._pyramid, self._bev_level_shown
+
+    # -------------------------------------------------------------------- static content
+    def set_map(self, prior_map, voxel: float = DISPLAY_VOXEL, max_points: int = DISPLAY_MAX_POINTS) -> None:
+        """The map, down-sampled for display and coloured by height; sent once (static scene state).
+        float32 positions: viser's default float16 is off by ~0.25 m a few hundred metres out."""
+        with self._lock:
+            self._set_map(prior_map, voxel, max_points)
+
+    def _set_map(self, prior_map, voxel: float, max_points: int) -> None:
+        pts, self.display_voxel = downsample_for_display(prior_map.points, max(voxel, prior_map.voxel_size), max_points)
+        self._map = self.scene.add_point_cloud(
+            "/map/full", pts, height_colors(pts[:, 2]), point_size=self.display_voxel * 0.8, precision="float32",
+            point_shape="square", point_shading="flat", visible=self.layers.map)
+        bev, _ = downsample_for_display(prior_map.points_bev, self.display_voxel, max_points)
+        self._map_bev = self.scene.add_point_cloud(
+            "/map/road_removed", bev, height_colors(bev[:, 2]), point_size=self.display_voxel * 0.8,
+            precision="float32", point_shape="square", point_shading="flat", visible=self.layers.map_bev)
+        self.ground = GroundHeight(pts)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        self.map_center = (lo + hi) / 2.0
+        self.map_center[2] = self.ground.z_default
+        self.map_extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 20.0))
+
+    def set_pyramid(self, pyramid, level: int) -> None:
+        """Show one BEV pyramid level as a flat image on the ground (cells with map points in
+        yellow, the paper's colour, brighter for larger values; empty cells transparent)."""
+        if pyramid is None:
+            return
+        with self._lock:
+            self._set_pyramid(pyramid, level)
+
+    def _set_pyramid(self, pyramid, level: int) -> None:
+        level = int(np.clip(level, 0, len(pyramid.levels) - 1))
+        if pyramid is self._pyramid and level == self._bev_level_shown:
+            return
+        grid = np.asarray(pyramid.levels[level], np.float32)        # [ix, iy]
+        cell = pyramid.resolution * 2 ** level
+        vmax = float(grid.max()) if grid.size and grid.max() > 0 else 1.0
+        value = np.clip(grid / vmax, 0, 1)
+        # image rows run top (max y) to bottom, columns along +x
+        value = value.T[::-1]
+        rgba = np.zeros(value.shape + (4,), np.uint8)
+        rgba[..., :3] = BEV_COLOR
+        rgba[..., 3] = np.where(value > 0, (90 + 140 * np.sqrt(value)).astype(np.uint8), 0)
+        nx, ny = grid.shape
+        x0, y0 = (float(v) for v in pyramid.origin)
+        w, h = nx * cell, ny * cell
+        z = (self.ground.z_default if self.ground is not None else 0.0) - 0.3
+        if self._bev_image is not None:
+            self._bev_image.remove()
+        # Nearest-neighbour look: upsample small levels so the image filter keeps the cells crisp.
+        rep = max(1, int(np.ceil(256 / max(value.shape))))
+        if rep > 1:
+            rgba = np.repeat(np.repeat(rgba, rep, axis=0), rep, axis=1)
+        self._bev_image = self.scene.add_image(
+            "/map/bev_level", rgba, w, h, format="png", position=(x0 + w / 2, y0 + h / 2, z),
+            cast_shadow=False, receive_shadow=False, visible=self.layers.bev_level)
+        self._pyramid, self._bev_level_shown = pyramid, level
+
+    def set_layer(self, name: str, visible: bool) -> None:
+        with self._lock:
+            self._set_layer(name, visible)
+
+    def _set_layer(self, name: str, visible: bool) -> None:
+        setattr(self.layers, name, visible)
+        nodes = {"map": [self._map], "map_bev": [self._map_bev], "bev_level": [self._bev_image],
+                 "particles": [self._particles, self._particle_dots, self._best],
+                 "scan": [self._scan, self._est_frame], "s2m": [self._s2m_scan, self._s2m_box, self._s2m_label],
+                 "ellipse": [self._ellipse]}.get(name, [])
+        for node in nodes:
+            if node is not None:
+                node.visible = visible
+        if name == "trajectories":
+            self.gt_line.set_visible(visible)
+            self.est_line.set_visible(visible)
+
+    # -------------------------------------------------------------------- per snapshot
+    def draw(self, snap: Snapshot, history: History) -> None:
+        with self._lock:
+            self._draw(snap, history)
+
+    def show_reset_area(self, scan_index: int, center=None, region=None, radius: float = 6.0) -> None:
+        """Outline where particles were just re-drawn (a circle round a point, or a rectangle),
+        until a scan after ``scan_index`` shows the particles themselves."""
+        with self._lock:
+            z = self.ground.z_default if self.ground is not None else 0.0
+            if region is not None:
+                x0, y0, x1, y1 = region
+                c = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32)
+            else:
+                th = np.linspace(0, 2 * np.pi, 49)[:-1]
+                c = np.stack([center[0] + radius * np.cos(th), center[1] + radius * np.sin(th),
+                              np.full_like(th, center[2] if len(center) > 2 else z)], axis=1).astype(np.float32)
+            segs = np.stack([c, np.roll(c, -1, axis=0)], axis=1)
+            if self._reset_hint is None:
+                self._reset_hint = self.scene.add_line_segments("/reset_area", segs, RESET_COLOR, thickness=3.0,
+                                                                thickness_units="screen")
+            else:
+                self._reset_hint.points = segs
+                self._reset_hint.visible = True
+            self._reset_hint_scan = scan_index
+
+    def _draw(self, snap: Snapshot, history: History) -> None:
+        if self._reset_hint_scan is not None and snap.scan_index > self._reset_hint_scan:
+            self._reset_hint.visible = False
+            self._reset_hint_scan = None
+        self._draw_particles(snap)
+        self._draw_ellipse(snap)
+        self._draw_scan(snap)
+        self._draw_s2m(snap)
+        self._draw_trajectories(history)
+
+    def _node(self, attr: str, make, update, visible: bool):
+        h = getattr(self, attr)
+        if h is None:
+            setattr(self, attr, make(visible))
+        else:
+            update(h)
+
+    def _draw_particles(self, snap: Snapshot) -> None:
+        P = np.asarray(snap.particles)
+        w = np.asarray(snap.weights, np.float64)
+        if len(P) == 0:
+            return
+        w_rel = (w / w.max()) if w.max() > 0 else np.ones_like(w)
+        xyz = P[:, :3].astype(np.float32)
+        yaw = P[:, 3]
+        head = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1).astype(np.float32)
+        length = (1.5 + 3.0 * w_rel).astype(np.float32)[:, None]           # longer = heavier
+        tip = xyz + head * length
+        segs = np.stack([xyz, tip], axis=1)
+        c = (PARTICLE_LOW + (PARTICLE_HIGH - PARTICLE_LOW) * w_rel[:, None].astype(np.float32)).astype(np.uint8)
+        colors = np.repeat(c[:, None, :], 2, axis=1)
+        vis = self.layers.particles
+        self._node("_particles",
+                   lambda v: self.scene.add_line_segments("/particles/headings", segs, colors, thickness=2.0,
+                                                          thickness_units="screen", visible=v),
+                   lambda h: self._set(h, points=segs, colors=colors), vis)
+        dots_c = c
+        self._node("_particle_dots",
+                   lambda v: self.scene.add_point_cloud("/particles/positions", xyz, dots_c, point_size=0.6,
+                                                        precision="float32", point_shape="circle",
+                                                        point_shading="flat", visible=v),
+                   lambda h: self._set(h, points=xyz, colors=dots_c), vis)
+        # the highest-weight particle: a big cyan arrow (shaft and two barbs)
+        b = int(snap.best_index) if 0 <= snap.best_index < len(P) else int(np.argmax(w))
+        p, hd = xyz[b], head[b]
+        side = np.array([-hd[1], hd[0], 0], np.float32)
+        L = 8.0
+        t = p + hd * L
+        best = np.array([[p, t], [t, t - hd * 2.5 + side * 1.5], [t, t - hd * 2.5 - side * 1.5]], np.float32)
+        self._node("_best",
+                   lambda v: self.scene.add_line_segments("/particles/best", best, BEST_COLOR, thickness=4.0,
+                                                          thickness_units="screen", visible=v),
+                   lambda h: self._set(h, points=best), vis)
+
+    def _draw_ellipse(self, snap: Snapshot) -> None:
+        a, bb, ang = (float(v) for v in snap.ellipse_xy)
+        center = np.asarray(snap.mean_pose)[:3, 3]
+        if not all(math.isfinite(v) for v in (a, bb, ang)) or not np.isfinite(center).all():
+            return
+        n = 72
+        th = np.linspace(0, 2 * np.pi, n + 1)
+        ca, sa = math.cos(ang), math.sin(ang)
+        ex, ey = a * np.cos(th), bb * np.sin(th)
+        pts = np.stack([center[0] + ca * ex - sa * ey, center[1] + sa * ex + ca * ey,
+                        np.full_like(th, center[2])], axis=1).astype(np.float32)
+        segs = np.stack([pts[:-1], pts[1:]], axis=1)[::2]     # every other piece: the paper's dotted circle
+        self._node("_ellipse",
+                   lambda v: self.scene.add_line_segments("/estimate/ellipse_2sigma", segs, ELLIPSE_COLOR,
+                                                          thickness=2.5, thickness_units="screen", visible=v),
+                   lambda h: self._set(h, points=segs), self.layers.ellipse)
+
+    def _draw_scan(self, snap: Snapshot) -> None:
+        pts = np.asarray(snap.scan_world, np.float32).reshape(-1, 3)
+        T = np.asarray(snap.mean_pose, float)
+        if len(pts) == 0:
+            if self._scan is not None:
+                self._scan.visible = False
+        else:
+            self._node("_scan",
+                       lambda v: self.scene.add_point_cloud("/estimate/scan", pts, SCAN_COLOR, point_size=0.25,
+                                                            precision="float32", point_shading="flat", visible=v),
+                       lambda h: self._set(h, points=pts, visible=self.layers.scan), self.layers.scan)
+        if np.isfinite(T).all():
+            wxyz, pos = quat_wxyz_from_matrix(T[:3, :3]), T[:3, 3]
+            if self._est_frame is None:
+                self._est_frame = self.scene.add_frame("/estimate/pose", wxyz=wxyz, position=pos, axes_length=3.0,
+                                                       axes_radius=0.15, visible=self.layers.scan)
+            else:
+                self._est_frame.wxyz, self._est_frame.position = wxyz, pos
+
+    def _draw_s2m(self, snap: Snapshot) -> None:
+        s = snap.s2m
+        if s is None or s is self._s2m_shown:
+            return
+        self._s2m_shown = s
+        color = S2M_ACCEPTED_COLOR if s.accepted else S2M_REJECTED_COLOR
+        vis = self.layers.s2m
+        pts = np.asarray(s.scan_world, np.float32).reshape(-1, 3)
+        if len(pts):
+            if self._s2m_scan is not None:
+                self._s2m_scan.remove()
+            self._s2m_scan = self.scene.add_point_cloud("/s2m/scan", pts, color, point_size=0.3,
+                                                        precision="float32", point_shading="flat", visible=vis)
+        x0, y0, x1, y1 = (float(v) for v in s.region)
+        z = float(np.asarray(s.pose)[2, 3])
+        c = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32)
+        box = np.stack([c, np.roll(c, -1, axis=0)], axis=1)
+        if self._s2m_box is None:
+            self._s2m_box = self.scene.add_line_segments("/s2m/region", box, color, thickness=2.0,
+                                                         thickness_units="screen", visible=vis)
+        else:
+            self._set(self._s2m_box, points=box, colors=np.asarray(color, np.uint8))
+        verdict = "accepted" if s.accepted else "rejected" + (f" ({shorten(s.reason, 60)})" if s.reason else "")
+        text = (f"S2M: started at scan {s.started_at}, landed at {s.landed_at}\n{verdict}, "
+                f"score {s.score:.0f} (start {s.start_score:.0f}), {s.ms:.0f} ms")
+        if self._s2m_label is None:
+            self._s2m_label = self.scene.add_label("/s2m/label", text, position=(x0, y1, z + 2.0),
+                                                   anchor="bottom-left", visible=vis)
+        else:
+            self._s2m_label.text = text
+            self._s2m_label.position = (x0, y1, z + 2.0)
+
+    def _draw_trajectories(self, history: History) -> None:
+        epoch, scans, est, gt = history.trajectories()
+        # Ground truth jumps where the vehicle was kidnapped (scan index skips): no line there.
+        connected = np.ones(len(scans), bool)
+        if len(scans):
+            connected[1:] = np.diff(scans) == 1
+            connected[0] = False
+        self.gt_line.sync(epoch, gt, connected)
+        est_connected = np.ones(len(scans), bool)
+        if len(scans):
+            est_connected[0] = False
+        self.est_line.sync(epoch, est, est_connected)
+
+    @staticmethod
+    def _set(handle, **props) -> None:
+        for k, v in props.items():
+            setattr(handle, k, v)
+

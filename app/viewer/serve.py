@@ -1,0 +1,179 @@
+"""Starting and stopping a viewer: :func:`serve` starts one on a ready Localizer or on a factory
+that builds one, and returns at once; :func:`serve_until_interrupted` is ``lidarloc demo`` /
+``lidarloc view``: start the viewer at once, build the localizer behind a progress bar (console
+and page), and serve until Ctrl-C."""
+
+from __future__ import annotations
+
+import inspect
+import signal
+import sys
+import threading
+import traceback
+import webbrowser
+from pathlib import Path
+from typing import Callable
+
+import viser
+from rich.console import Console
+
+from lidarloc.app.console import progress_bar
+from lidarloc.core.config import Config
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.localizer import Localizer
+from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+from .app import Viewer
+from .style import SPEEDS
+
+
+class ViewerHandle:
+    """What :func:`serve` returns: where the viewer is, and how to stop it."""
+
+    def __init__(self, viewer: Viewer, server: viser.ViserServer, host: str):
+        self.viewer = viewer
+        self.server = server
+        self.port = int(server.get_port())
+        shown = "localhost" if host in ("0.0.0.0", "::") else host
+        self.url = f"http://{shown}:{self.port}"
+        self._stopped = threading.Event()
+
+    @property
+    def localizer(self) -> Localizer | None:
+        return self.viewer.localizer
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Block until the localizer is built and shown (False on timeout or failed start)."""
+        return self.viewer.wait_ready(timeout)
+
+    def wait(self) -> None:
+        """Block until :meth:`stop` (in short waits, so Ctrl-C gets through at once)."""
+        while not self._stopped.wait(0.25):
+            pass
+
+    def stop(self) -> None:
+        """Stop playback, the display and the server; close the localizer if the viewer built it.
+        Bounded: returns within ~1.2 s. A scan of the viewer's own localizer that is waiting for
+        a block gives up at once (``Localizer.interrupt``); one still computing finishes on its
+        daemon thread, and the localizer's worker pools are joined by Python at exit."""
+        if self._stopped.is_set():
+            return
+        loc = self.viewer.localizer
+        owned = loc is not None and self.viewer.owns_localizer
+        if owned:
+            loc.interrupt()
+        self.viewer.stop()
+        self.server.stop()
+        if owned:
+            closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
+            closer.start()
+            closer.join(timeout=0.3)
+        self._stopped.set()
+
+
+def _call_factory(factory: Callable[..., Localizer], progress) -> Localizer:
+    """Build the localizer, handing it the progress callback if it takes one."""
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        params = {}
+    if "progress" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return factory(progress=progress)
+    return factory()
+
+
+def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str = "127.0.0.1", port: int = 8080,
+          open_browser: bool = False, *, autoplay: bool = True, speed: str = "10") -> ViewerHandle:
+    """Start the viewer and return at once.
+
+    ``localizer_or_factory``: a ready Localizer (the caller keeps ownership and closes it), or a
+    callable returning one — called on a background thread, with ``progress=`` if it accepts it
+    (the Localizer's ``(stage, fraction)`` callback), while the page shows a progress bar; the
+    viewer then owns it and closes it on :meth:`ViewerHandle.stop`.
+    ``port``: the first port tried (viser moves up if it is taken; the handle has the real one).
+    """
+    if speed not in SPEEDS:
+        raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {speed!r}")
+    if not (isinstance(localizer_or_factory, Localizer) or callable(localizer_or_factory)):
+        raise LidarlocError("serve() needs a Localizer or a callable that returns one")
+    server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
+    try:
+        viewer = Viewer(server, autoplay=autoplay, speed=speed)
+    except BaseException:
+        server.stop()
+        raise
+    if isinstance(localizer_or_factory, Localizer):
+        try:
+            viewer.attach(localizer_or_factory)
+        except BaseException:
+            viewer.stop()
+            server.stop()
+            raise
+    else:
+        factory = localizer_or_factory
+
+        def build():
+            try:
+                loc = _call_factory(factory, viewer.build_progress)
+                viewer.owns_localizer = True
+                if viewer.stopping:      # stopped while building: nobody will show it
+                    loc.close()
+                    return
+                viewer.attach(loc)
+            except LidarlocError as exc:
+                viewer.startup_failed(str(exc))
+            except Exception as exc:
+                traceback.print_exc(file=sys.stderr)
+                viewer.startup_failed(f"{type(exc).__name__}: {exc}")
+        threading.Thread(target=build, name="lidarloc-build", daemon=True).start()
+    handle = ViewerHandle(viewer, server, host)
+    if open_browser:
+        threading.Thread(target=webbrowser.open, args=(handle.url,), daemon=True).start()
+    return handle
+
+
+def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
+                            console: Console, open_browser: bool = False) -> None:
+    seq = open_sequence(spec, cfg)          # bad paths fail here, before any server starts
+    bar = progress_bar(transient=True)
+    task = bar.add_task("preparing", total=100)
+    ready = threading.Event()
+    failure: list[BaseException] = []
+
+    def factory(progress=None):
+        def report(stage, frac):
+            bar.update(task, description=f"preparing {stage}", completed=100 * float(frac))
+            if progress is not None:
+                progress(stage, frac)
+        try:
+            return Localizer(seq, cfg, cache_root, progress=report)
+        except BaseException as exc:   # the page shows it too; the console gets one line
+            failure.append(exc)
+            raise
+        finally:
+            ready.set()
+
+    stop = threading.Event()
+    # Ctrl-C sets an event instead of raising wherever the main thread happens to be; installed
+    # before the server starts so an early Ctrl-C also shuts down in order.
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        handle = serve(factory, host=host, port=port, open_browser=open_browser)
+    except BaseException:
+        signal.signal(signal.SIGINT, previous)
+        raise
+    console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+    try:
+        with bar:
+            while not ready.wait(0.2) and not stop.is_set():
+                pass
+        if failure:
+            exc = failure[0]
+            raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
+        if not stop.is_set():
+            console.print("ready: playing; use the page's controls to pause, step and tune")
+        stop.wait()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        console.print("stopping viewer")
+        handle.stop()

@@ -1,0 +1,66 @@
+"""The viewer's look: colours, sizes, refresh rates, and the few text and colour helpers that
+every part of the page shares."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Dark background: the paper's colour code (green scan, red particles) reads best on it, and the
+# height ramp of the map avoids pure green and red so neither gets lost in the map.
+SCAN_COLOR = (40, 255, 40)
+S2M_ACCEPTED_COLOR = (255, 60, 255)
+S2M_REJECTED_COLOR = (150, 150, 150)     # grey: discarded (and unlike the BEV yellow)
+BEST_COLOR = (0, 230, 255)
+ELLIPSE_COLOR = (255, 70, 70)
+GT_COLOR = (235, 235, 235)
+EST_COLOR = (255, 150, 30)
+PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # weight ≈ 0
+PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # the highest weight
+BEV_COLOR = (255, 225, 90)
+RESET_COLOR = (255, 255, 255)
+ERROR_CSS = "#ff6b6b"                    # refusals and failures in the panel
+
+DISPLAY_VOXEL = 0.5          # m, first try for the displayed map's voxel size …
+DISPLAY_MAX_POINTS = 1_500_000   # … grown until the map fits in this many points
+MIN_DRAW_INTERVAL = 1 / 30   # s, the display refreshes at most this often
+PLOT_INTERVAL = 0.5          # s, the plots at most this often (they resend whole series)
+PLOT_MAX_POINTS = 1500       # longer series are decimated for the plots
+TRAJ_CHUNK = 256             # points per trajectory chunk (finished chunks are never re-sent)
+EVENTS_SHOWN = 6
+
+SPEEDS = ("1", "2", "5", "10", "20", "50", "max")        # scans per second in replay
+SHIFT = "shift"              # the modifier of the scene's pointer picks (reset the particles)
+
+
+def _height_lut() -> np.ndarray:
+    """256-entry RGB ramp for map heights: slate blue (low) → light blue → warm white (high)."""
+    stops = np.array([[62, 80, 135], [80, 120, 190], [145, 180, 228], [245, 235, 215]], np.float32)
+    t = np.linspace(0, 1, 256)
+    pos = t * (len(stops) - 1)
+    i = np.minimum(pos.astype(int), len(stops) - 2)
+    f = (pos - i)[:, None]
+    return ((1 - f) * stops[i] + f * stops[i + 1]).astype(np.uint8)
+
+
+HEIGHT_LUT = _height_lut()
+
+
+def height_colors(z: np.ndarray) -> np.ndarray:
+    """(N,) heights → (N, 3) uint8, the 2nd–98th percentile spread over the ramp."""
+    if len(z) == 0:
+        return np.zeros((0, 3), np.uint8)
+    lo, hi = np.percentile(z, [2, 98])
+    t = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
+    return HEIGHT_LUT[(t * 255).astype(np.intp)]
+
+
+def shorten(text: str, limit: int = 70) -> str:
+    """One line of at most ``limit`` characters (the panel and labels are narrow; the localizer's
+    event log keeps the full text)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 1].rstrip() + "…"
+
+
+def error_markdown(text: str) -> str:
+    """``text`` as a bold red line of the panel."""
+    return f"<span style='color:{ERROR_CSS}'>**{text}**</span>"

@@ -1,0 +1,72 @@
+"""The on-disk cache of maps and tables: where it lives, how entries are written, and what a
+"load it, or build and cache it" function returns.
+
+Entries are directories under the cache root (``$LIDARLOC_CACHE``, default ``~/.cache/lidarloc``;
+``--cache`` on the CLI): a prior map per sequence and map configuration, and beside it the
+tables derived from that map (lookup tables, BEV pyramids, recorded odometry). Every entry and
+file is written under a temporary name and renamed into place, so a crash, Ctrl-C or a killed
+child process never leaves a half-written one, and readers never see one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Generic, Iterator, TypeVar
+
+T = TypeVar("T")
+
+
+def default_cache_root() -> Path:
+    """``$LIDARLOC_CACHE``, or ``~/.cache/lidarloc``."""
+    return Path(os.environ.get("LIDARLOC_CACHE", Path.home() / ".cache" / "lidarloc"))
+
+
+@dataclass(frozen=True)
+class Cached(Generic[T]):
+    """What a ``load_or_build_*`` function returns: the value, the cache directory it was read
+    from or written to (None when not cached), and whether it came from the cache. Unpacks as
+    ``value, directory, cached = load_or_build_...(...)``."""
+
+    value: T
+    directory: Path | None
+    cached: bool
+
+    def __iter__(self) -> Iterator:
+        return iter((self.value, self.directory, self.cached))
+
+
+def atomic_write_dir(final: Path, write: Callable[[Path], None]) -> None:
+    """Write a directory's content into a temporary sibling and rename it into place, so a crash or
+    Ctrl-C never leaves a half-written cache entry."""
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=final.name + ".tmp-", dir=final.parent))
+    try:
+        write(tmp)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def atomic_write_file(final: Path, write: Callable[[Path], None]) -> None:
+    """Write a file under a temporary name beside it (unique per process and thread, with the
+    final suffix, which ``np.save`` needs) and rename it into place: a reader sees the old file
+    or the whole new one, never a part, also with several writers at once."""
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=final.name + ".tmp-", suffix=final.suffix, dir=final.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        write(tmp)
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -1,0 +1,253 @@
+"""The localizer's S2M scheduling: when a scan-to-map match starts, over which region, when its
+result lands in the particle filter, and when it is cancelled.
+
+One match is in flight at a time. It starts at scan k₀ from a particle's pose, runs on the S2M
+thread (RS and S2M, in the S2M child process by default, see :mod:`lidarloc.core.s2m_worker`),
+and lands at a later scan k: an accepted match for scan k₀ is carried forward to scan k with the
+RPE relative pose and written into the particle it started from, which is then re-weighted.
+``replay`` lands it exactly ``n_s2m`` scans after it started (the step waits for it);
+``realtime`` lands it at the first scan after it finished whose odometry is ready (see
+:meth:`S2MScheduler._odometry_ready_to_land`).
+
+Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
+``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .config import Config
+from .geometry import pose_matrix, pose_to_xyz_ypr
+from .odometry import OdometryFeed
+from .s2m_worker import S2MProcess
+from .snapshot import S2MView
+
+# Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
+# the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
+REALTIME_LAND_WAIT_S = 0.03
+# … and after how many such tries it waits for the odometry however long it takes: a transient
+# backlog (one slow registration, ~0.65 s on the town) clears well within it, while under a
+# sustained one the landing still happens and the RPE queue stays bounded.
+REALTIME_LAND_MAX_DEFERRALS = 20
+
+
+@dataclass
+class S2MJob:
+    """The match in flight."""
+
+    started_at: int
+    particle: int
+    generation: int
+    start_pose: np.ndarray
+    future: Future
+    deferrals: int = 0        # real time: scans at which the finished match could not land yet
+
+
+class S2MScheduler:
+    """Starts, lands and cancels the localizer's S2M matches.
+
+    ``cfg`` is the localizer's live configuration (read at every decision). Matches run on
+    ``pool`` (one thread). ``wait(future, block, k)`` is the localizer's wait for a block: it
+    gives up on ``interrupt()`` and turns a block's failure into a clear error. ``event(k, kind,
+    detail)`` records an event."""
+
+    def __init__(self, cfg: Config, prior_map, pyramid, map_dir: Path, bounds: tuple, pool: ThreadPoolExecutor,
+                 wait: Callable[[Future, str, int], Any], event: Callable[[int, str, str], None]):
+        self.cfg = cfg
+        self._prior_map = prior_map
+        self._map_dir = map_dir
+        self._bounds = bounds
+        self._pool = pool
+        self._wait = wait
+        self._event = event
+        if cfg.localize.s2m_process:
+            # loads the cached map and pyramid and builds its GICP target while the caller goes on
+            self.matcher = S2MProcess(map_dir, cfg.map, cfg.s2m, self._nice())
+        else:
+            from .s2m import ScanToMapMatcher
+
+            self.matcher = ScanToMapMatcher(prior_map, pyramid, cfg.s2m, cfg.map)
+        self._retired_matchers: list = []    # S2M processes replaced by a clock change
+        self.job: S2MJob | None = None
+        self.restart()
+
+    def restart(self) -> None:
+        """A fresh run: the match in flight is dropped without an event, the counts start over."""
+        if self.job is not None:
+            self.job.future.cancel()  # if already running it finishes, and its result is ignored
+        self.job = None
+        self._generation = 0
+        self._last_start: int | None = None
+        self.n_landed = 0
+        self.n_accepted = 0
+        self.last: S2MView | None = None     # the last match that landed
+
+    @property
+    def acceptance(self) -> float:
+        """Accepted / landed so far (0 before the first landing)."""
+        return self.n_accepted / max(self.n_landed, 1)
+
+    @property
+    def protected_particle(self) -> int | None:
+        """The particle slot the match in flight started from: resampling must keep it."""
+        return self.job.particle if self.job is not None else None
+
+    # ------------------------------------------------------------------------ starting
+    def job_config(self, state: np.ndarray, localized: bool):
+        """The S2M settings for a job from a particle's ``state``: the whole map until localized
+        (if so configured), the tracking region while tracking, else the configured local region."""
+        cfg = replace(self.cfg.s2m)
+        if not localized and cfg.global_until_localized:
+            x, y = state[:2]
+            (x0, y0, _), (x1, y1, _) = self._bounds
+            cfg.region_x = max(cfg.region_x, x - x0, x1 - x)
+            cfg.region_y = max(cfg.region_y, y - y0, y1 - y)
+        elif localized and self.cfg.localize.tracking:
+            cfg.region_x = min(cfg.region_x, self.cfg.localize.tracking_region)
+            cfg.region_y = min(cfg.region_y, self.cfg.localize.tracking_region)
+        return cfg
+
+    def due(self, k: int, localized: bool) -> bool:
+        """Whether a match should start at scan k: S2M is on and none is in flight. Back to back,
+        except in real time once localized: then every ``s2m.realtime_interval_localized`` scans
+        at most (CPU for the PF and the RPE first)."""
+        if not self.cfg.s2m.enabled or self.job is not None:
+            return False
+        every = self.cfg.s2m.realtime_interval_localized
+        if self.cfg.localize.clock != "realtime" or not localized or every <= 0:
+            return True
+        return self._last_start is None or k - self._last_start >= every
+
+    def start(self, k: int, j: int, state: np.ndarray, scan: np.ndarray, localized: bool) -> None:
+        """Start a match of scan k from particle j (whose ``state`` it is) in the background."""
+        start_pose = pose_matrix(*state[:6])
+        self._generation += 1
+        # before localization the particle's z, pitch and roll are as random as its position
+        level = not localized
+        future = self._pool.submit(self._run, self.matcher, scan, start_pose, self.job_config(state, localized), level)
+        self.job = S2MJob(k, j, self._generation, start_pose, future)
+        self._last_start = k
+        self._event(k, "s2m_started", f"particle {j}")
+
+    @staticmethod
+    def _run(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):
+        if isinstance(matcher, S2MProcess):     # the child process: it takes the live settings along
+            return matcher.match_local(scan, start_pose, s2m_cfg, level=level)
+        matcher.cfg = s2m_cfg
+        return matcher.match_local(scan, start_pose, level=level)
+
+    # ------------------------------------------------------------------------ cancelling
+    def cancel(self, k: int, why: str) -> None:
+        """Drop the match in flight (running, or finished and waiting to land); an
+        ``s2m_cancelled`` event at scan k says why."""
+        job, self.job = self.job, None
+        if job is not None:
+            job.future.cancel()  # if already running it finishes, and its result is ignored
+            self._event(k, "s2m_cancelled", f"started {job.started_at} ({why})")
+
+    # ------------------------------------------------------------------------ landing
+    def land(self, k: int, prepared: np.ndarray, pf, odometry: OdometryFeed) -> float | None:
+        """Land the match in flight at scan k if it is due: an accepted one is carried forward
+        to k with the ``odometry`` and written into its particle of ``pf``, which is then
+        re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed."""
+        job = self.job
+        if job is None:
+            return None
+        if self.cfg.localize.clock == "replay":
+            if k < job.started_at + self.cfg.s2m.n_s2m:
+                return None
+        elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
+            return None   # real time: land at a scan after the match finished (see there)
+        self.job = None
+        outcome = self._wait(job.future, "S2M", k)
+        self.n_landed += 1
+        accepted = bool(outcome.accepted)
+        pose_k = outcome.pose
+        reason = outcome.reason
+        if accepted:
+            # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
+            odometry.wait_registered(k)
+            if job.started_at < odometry.origin:
+                accepted, reason = False, "odometry restarted since the match started"
+            else:
+                from .s2m import carry_forward
+
+                try:
+                    pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
+                except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
+                    accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
+        if accepted:
+            state = pf.states[job.particle].copy()
+            state[:6] = pose_to_xyz_ypr(pose_k)
+            state[6] = odometry.rpe.speed(k)
+            state[7:10] = odometry.rpe.rates(k)
+            pf.set_particle(job.particle, state)
+            pf.reweight(job.particle, prepared)
+            self.n_accepted += 1
+        self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
+                    f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
+                    + (f" ({reason})" if reason and not accepted else ""))
+        scan_world = outcome.scan_world if outcome.scan_world is not None else np.zeros((0, 3), np.float32)
+        self.last = S2MView(
+            started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
+            start_score=float(outcome.start_score), pose=np.asarray(pose_k),
+            scan_world=scan_world,
+            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
+        return float(outcome.ms)
+
+    def _odometry_ready_to_land(self, job: S2MJob, k: int, odometry: OdometryFeed) -> bool:
+        """Real time: an accepted match is carried forward with scan k's odometry, so it lands
+        only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
+        while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
+        at the next scan, its particle still protected, and after ``REALTIME_LAND_MAX_DEFERRALS``
+        tries it waits for the odometry. Always blocking until the odometry was done stalled the
+        PF behind KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench
+        rpe``), and the landing that waited for it made 16 scans late. A failed or rejected match
+        needs no odometry and lands at once."""
+        if job.future.exception() is not None or not job.future.result().accepted:
+            return True       # a failure (the landing reports it) or a rejection: no odometry needed
+        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
+            return True       # the landing waits for the odometry
+        if not odometry.registered_within(k, REALTIME_LAND_WAIT_S):
+            job.deferrals += 1
+            return False
+        return True           # registered (or failed: the landing reports it)
+
+    # ------------------------------------------------------------------------ the matcher
+    def _nice(self) -> int:
+        """The S2M process's priority offset for the current clock (see s2m.replay_process_nice)."""
+        return self.cfg.s2m.replay_process_nice if self.cfg.localize.clock == "replay" else 0
+
+    def follow_clock(self, k: int) -> None:
+        """After a clock change: a process niced for replay cannot be raised back (that needs
+        privileges), so real time gets a fresh one at nice 0 (the match in flight is cancelled
+        at scan k). The old one finishes its match on the S2M thread, which then closes it; the
+        caller does not wait."""
+        nice = self._nice()
+        # same nice, or back to replay (a higher priority there changes no result): keep it
+        if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
+            return
+        self.cancel(k, "clock changed: new S2M process")
+        old, self.matcher = self.matcher, S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, nice)
+        self._retired_matchers.append(old)     # close() kills it if its match is still running
+        self._pool.submit(old.close)
+
+    def use_pyramid(self, k: int, pyramid) -> None:
+        """A rebuilt BEV pyramid (new d_m) from now on; the match in flight is cancelled at scan k."""
+        self.cancel(k, "map pyramid rebuilt")
+        if not isinstance(self.matcher, S2MProcess):  # the S2M process reloads it from the cache itself
+            from .s2m import ScanToMapMatcher
+
+            self.matcher = ScanToMapMatcher(self._prior_map, pyramid, self.cfg.s2m, self.cfg.map)
+
+    def close_processes(self) -> None:
+        """Close the S2M child processes (a busy one is killed: its match would be thrown away)."""
+        for matcher in [self.matcher, *self._retired_matchers]:
+            if isinstance(matcher, S2MProcess):
+                matcher.close()

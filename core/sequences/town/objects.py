@@ -1,0 +1,369 @@
+"""Everything standing on the ground plan: buildings, walls, fences and hedges, trees and bushes,
+street lights, signs and traffic lights, parked cars and centre-line dashes.
+
+:func:`populate` places them beside the streets of a :class:`~.layout.Plan` and returns their
+parameters per material (:class:`Solids`); :mod:`.meshes` turns those into triangles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .constants import CELL, CURB, EGO_CLEARANCE, EGO_CLEARANCE_STATIC, JUNCTION_CLEAR, SIDEWALK_MIN
+from .layout import Plan
+from .raster import left_normal
+
+
+class Solids:
+    """Collects object parameters per material; meshes are made in bulk at the end."""
+
+    def __init__(self):
+        self.boxes = defaultdict(list)     # material → (cx, cy, yaw, length, width, z0, z1, refl)
+        self.prisms = defaultdict(list)    # gable roofs: (cx, cy, yaw, length, width, z0, rise, refl)
+        self.cylinders = defaultdict(list)  # (cx, cy, r, z0, z1, refl)
+        self.blobs = defaultdict(list)     # (cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl)
+        self.decals = defaultdict(list)    # flat quads on the ground: (cx, cy, yaw, length, width, refl)
+        self.counts = defaultdict(int)
+
+
+def _rect_points(cx, cy, yaw, length, width, step=CELL):
+    nu = max(2, int(math.ceil(length / step)) + 1)
+    nv = max(2, int(math.ceil(width / step)) + 1)
+    U, V = np.meshgrid(np.linspace(-length / 2, length / 2, nu), np.linspace(-width / 2, width / 2, nv))
+    c, s = math.cos(yaw), math.sin(yaw)
+    return cx + U.ravel() * c - V.ravel() * s, cy + U.ravel() * s + V.ravel() * c
+
+
+def _rect_free(plan: Plan, cx, cy, yaw, length, width, clearance=0.0):
+    """A footprint can be built: inside the build area, off the road and its sidewalks, away
+    from the drive and from everything already placed (``clearance`` keeps a gap)."""
+    x, y = _rect_points(cx, cy, yaw, length + 2 * clearance, width + 2 * clearance)
+    i, j, ok = plan.raster.ij(x, y)
+    return bool(np.all(ok & plan.build_area[i, j] & ~plan.occupied[i, j]
+                       & (plan.dist_road[i, j] >= SIDEWALK_MIN) & (plan.dist_ego[i, j] >= 5.0)))
+
+
+def _mark_rect(plan: Plan, cx, cy, yaw, length, width):
+    x, y = _rect_points(cx, cy, yaw, length, width, step=CELL / 2)
+    plan.raster.paint(plan.occupied, x, y)
+
+
+def _point_free(plan: Plan, x, y, radius, min_road=0.6):
+    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    px = np.concatenate([[x], x + radius * np.cos(ang)])
+    py = np.concatenate([[y], y + radius * np.sin(ang)])
+    i, j, ok = plan.raster.ij(px, py)
+    return bool(np.all(ok & ~plan.occupied[i, j] & (plan.dist_road[i, j] >= min_road)
+                       & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)))
+
+
+def _mark_point(plan: Plan, x, y, radius):
+    x2, y2 = _rect_points(x, y, 0.0, 2 * radius, 2 * radius, step=CELL / 2)
+    plan.raster.paint(plan.occupied, x2, y2)
+
+
+def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, density):
+    """A building: main block, maybe an annex of another height, a gable roof on low houses or
+    roof plant on tall ones. Its base is buried below the lowest ground under it."""
+    ground = plan.ground
+    fx, fy = _rect_points(cx, cy, yaw, length, width, step=max(length, width) / 2)
+    gz = ground(fx, fy)
+    base = float(gz.min()) - 0.5
+    top_ground = float(gz.max()) + CURB
+    storeys = 1 + int(rng.gamma(1.0 + 5.0 * density**1.5, 1.0 + 1.2 * density))
+    height = min(storeys * rng.uniform(2.9, 3.4) + rng.uniform(0.2, 1.0), 45.0)
+    refl = float(rng.uniform(0.2, 0.65))
+    solids.boxes["building"].append((cx, cy, yaw, length, width, base, top_ground + height, refl))
+    c, s = math.cos(yaw), math.sin(yaw)
+    if height < 10.0 and rng.random() < 0.6:
+        along = length >= width
+        solids.prisms["roof"].append((cx, cy, yaw if along else yaw + np.pi / 2, max(length, width), min(length, width),
+                                      top_ground + height, rng.uniform(1.2, 3.0), float(rng.uniform(0.1, 0.4))))
+    elif height > 12.0 and rng.random() < 0.5:
+        ux, uy = rng.uniform(-0.3, 0.3) * length, rng.uniform(-0.3, 0.3) * width
+        solids.boxes["building"].append((cx + ux * c - uy * s, cy + ux * s + uy * c, yaw, rng.uniform(2.5, 5.0),
+                                         rng.uniform(2.5, 5.0), top_ground + height - 0.5,
+                                         top_ground + height + rng.uniform(2.0, 3.5), refl))
+    solids.counts["buildings"] += 1
+    if rng.random() < 0.35:
+        # Annex behind or beside the main block: L- and T-shaped footprints.
+        al = rng.uniform(0.35, 0.8) * length
+        aw = rng.uniform(4.0, 10.0)
+        ux = rng.uniform(-0.5, 0.5) * (length - al)
+        uy = width / 2 + aw / 2 - 0.3  # behind: local +v points away from the street (see populate)
+        ax, ay = cx + ux * c - uy * s, cy + ux * s + uy * c
+        if _rect_free(plan, ax, ay, yaw, al, aw - 0.6):
+            solids.boxes["building"].append((ax, ay, yaw, al, aw, base,
+                                             top_ground + max(3.0, height * rng.uniform(0.3, 1.3)), refl))
+            _mark_rect(plan, ax, ay, yaw, al, aw)
+    _mark_rect(plan, cx, cy, yaw, length, width)
+
+
+def _fence_line(plan: Plan, solids: Solids, rng, p0, p1, kind):
+    """A wall, fence or hedge from p0 to p1 on the ground, split where its cells are not free."""
+    length = float(np.linalg.norm(p1 - p0))
+    if length < 2.0:
+        return
+    u = np.arange(0.0, length, CELL) + CELL / 2
+    pts = p0 + (p1 - p0) / length * u[:, None]
+    i, j, ok = plan.raster.ij(pts[:, 0], pts[:, 1])
+    free = ok & ~plan.occupied[i, j] & ~plan.road[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)
+    runs = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
+    yaw = math.atan2(*(p1 - p0)[::-1])
+    ground = plan.ground
+    for r0, r1 in zip(runs[::2], runs[1::2]):
+        if (r1 - r0) * CELL < 2.0:
+            continue
+        a, b = pts[r0] - (pts[1] - pts[0]) * 0.5, pts[r1 - 1] + (pts[1] - pts[0]) * 0.5
+        seg = float(np.linalg.norm(b - a))
+        mid = 0.5 * (a + b)
+        gz = ground(np.array([a[0], mid[0], b[0]]), np.array([a[1], mid[1], b[1]]))
+        if kind == "wall":
+            h = rng.uniform(0.8, 2.2)
+            solids.boxes["wall"].append((mid[0], mid[1], yaw, seg, 0.25, gz.min() - 0.3, gz.max() + CURB + h,
+                                         float(rng.uniform(0.3, 0.55))))
+        elif kind == "hedge":
+            h = rng.uniform(1.0, 2.0)
+            n = int(seg * h * 14)
+            solids.blobs["hedge"].append((mid[0], mid[1], gz.mean() + CURB + h / 2, seg / 2, 0.45, h / 2, yaw,
+                                          n, 0.3, 2, 0.5))
+        else:  # fence: posts every 2.5 m and two rails; rays pass between them
+            h = rng.uniform(1.0, 1.8)
+            n_posts = int(seg / 2.5) + 1
+            for k in range(n_posts):
+                q = a + (b - a) * (k / max(n_posts - 1, 1))
+                z = float(ground(q[0:1], q[1:2])[0])
+                solids.boxes["fence"].append((q[0], q[1], yaw, 0.08, 0.08, z - 0.2, z + CURB + h, 0.45))
+            for frac in (0.45, 0.9):
+                z = float(gz.mean()) + CURB + h * frac
+                solids.boxes["fence"].append((mid[0], mid[1], yaw, seg, 0.04, z - 0.05, z + 0.05, 0.45))
+        _mark_rect(plan, mid[0], mid[1], yaw, seg, 0.5)
+        solids.counts[kind + "s"] += 1
+
+
+def _tree(plan: Plan, solids: Solids, rng, x, y, scale=1.0):
+    ground_z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
+    conifer = rng.random() < 0.25
+    trunk_r = rng.uniform(0.12, 0.3) * scale
+    if conifer:
+        crown_h = rng.uniform(5.0, 12.0) * scale
+        crown_r = crown_h * rng.uniform(0.25, 0.35)
+        crown_base = ground_z + rng.uniform(0.8, 2.0)
+        trunk_top = crown_base + crown_h * 0.6
+        n = int(np.clip(crown_r * crown_h * 12, 80, 450))
+        solids.blobs["crown"].append((x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1,
+                                      float(rng.uniform(0.4, 0.6))))
+    else:
+        crown_r = rng.uniform(1.5, 4.0) * scale
+        crown_v = crown_r * rng.uniform(0.7, 1.2)
+        trunk_top = ground_z + rng.uniform(2.2, 4.0) * scale
+        n = int(np.clip(crown_r * crown_v * 22, 80, 450))
+        solids.blobs["crown"].append((x, y, trunk_top + crown_v * 0.7, crown_r, crown_r * rng.uniform(0.8, 1.2), crown_v,
+                                      rng.uniform(0, np.pi), n, 0.45, 0, float(rng.uniform(0.45, 0.7))))
+    solids.cylinders["trunk"].append((x, y, trunk_r, ground_z - 0.3, trunk_top, float(rng.uniform(0.25, 0.4))))
+    _mark_point(plan, x, y, max(trunk_r, 0.6))
+    solids.counts["trees"] += 1
+
+
+def _pole(plan: Plan, solids: Solids, rng, x, y, toward_road, kind):
+    z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
+    yaw = math.atan2(toward_road[1], toward_road[0])
+    if kind == "light":
+        h = rng.uniform(7.0, 9.0)
+        solids.cylinders["pole"].append((x, y, 0.1, z - 0.3, z + h, 0.5))
+        arm = 1.8
+        solids.boxes["pole"].append((x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15,
+                                     z + h - 0.25, z + h, 0.5))
+        solids.boxes["pole"].append((x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.7, 0.3,
+                                     z + h - 0.4, z + h - 0.1, 0.6))
+    elif kind == "utility":
+        h = rng.uniform(9.0, 11.0)
+        solids.cylinders["pole"].append((x, y, 0.14, z - 0.3, z + h, 0.35))
+        solids.boxes["pole"].append((x, y, yaw + np.pi / 2, 1.8, 0.12, z + h - 0.8, z + h - 0.65, 0.35))
+    elif kind == "traffic_light":
+        h = rng.uniform(5.0, 6.0)
+        solids.cylinders["pole"].append((x, y, 0.12, z - 0.3, z + h, 0.5))
+        arm = rng.uniform(3.0, 5.0)
+        solids.boxes["pole"].append((x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15,
+                                     z + h - 0.2, z + h, 0.5))
+        solids.boxes["sign"].append((x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.35, 0.35,
+                                     z + h - 1.1, z + h, 0.3))
+    else:  # sign: thin post with a retro-reflective plate facing the road
+        h = rng.uniform(2.2, 3.0)
+        solids.cylinders["pole"].append((x, y, 0.04, z - 0.3, z + h, 0.5))
+        solids.boxes["sign"].append((x, y, yaw, 0.03, 0.65, z + h - 0.7, z + h, 0.95))
+    _mark_point(plan, x, y, 0.5)
+    solids.counts["poles"] += 1
+
+
+def _parked_car(plan: Plan, solids: Solids, rng, x, y, yaw):
+    kind = rng.choice(3, p=[0.6, 0.3, 0.1])  # car, SUV, van
+    length = [rng.uniform(3.9, 4.7), rng.uniform(4.4, 4.9), rng.uniform(4.8, 5.4)][kind]
+    width = [rng.uniform(1.7, 1.85), rng.uniform(1.8, 1.95), rng.uniform(1.9, 2.05)][kind]
+    body_h = [rng.uniform(0.65, 0.8), rng.uniform(0.8, 1.0), rng.uniform(1.5, 1.9)][kind]
+    cabin_h = [rng.uniform(0.45, 0.55), rng.uniform(0.55, 0.7), 0.0][kind]
+    fx, fy = _rect_points(x, y, yaw, length, width, step=length)
+    z = float(plan.ground(fx, fy).min())
+    c, s = math.cos(yaw), math.sin(yaw)
+    refl = float(rng.uniform(0.1, 0.75))
+    solids.boxes["car"].append((x, y, yaw, length, width, z + 0.3, z + 0.3 + body_h, refl))
+    if cabin_h > 0:
+        back = -0.15 * length
+        solids.boxes["glass"].append((x + back * c, y + back * s, yaw, 0.55 * length, width - 0.15,
+                                      z + 0.3 + body_h, z + 0.3 + body_h + cabin_h, 0.08))
+    for u in (-1, 1):
+        for v in (-1, 1):
+            ux, uy = u * (length / 2 - 0.85), v * (width / 2 - 0.12)
+            solids.boxes["wheel"].append((x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22, z, z + 0.62, 0.05))
+    solids.counts["parked_cars"] += 1
+
+
+def populate(plan: Plan, rng) -> Solids:
+    """Place everything beside the streets: buildings, walls/fences/hedges, trees, poles, cars,
+    centre-line dashes; then back buildings and parks in the remaining space."""
+    solids = Solids()
+    raster = plan.raster
+    junction_tree = cKDTree(plan.junctions) if len(plan.junctions) else None
+
+    def near_junction(p, dist):
+        return junction_tree is not None and junction_tree.query(p)[0] < dist
+
+    for st in plan.streets:
+        for side in (-1.0, 1.0):
+            # Per street side: its own building line and planting style.
+            setback_style = rng.uniform(0.0, 1.0)
+            has_trees = rng.random() < 0.55
+            fence_kind = rng.choice(["wall", "fence", "hedge"])
+            prop = st.half_width + st.sidewalk
+            s = rng.uniform(0.0, 8.0)
+            while s < st.length - 4.0:
+                p, t = st.at(s)
+                d = float(raster.lookup(plan.density, p[0], p[1]))
+                if raster.lookup(plan.park, *(p + side * left_normal(t) * (prop + 6.0))):
+                    s += 8.0
+                    continue
+                width = rng.uniform(8.0, 14.0 + 30.0 * d)
+                depth = rng.uniform(8.0, 12.0 + 18.0 * d)
+                setback = (rng.uniform(0.0, 1.5) if d > 0.5 else rng.uniform(1.0, 6.0)) * (0.4 + setback_style)
+                pm, tm = st.at(s + width / 2)
+                normal = side * left_normal(tm)
+                centre = pm + normal * (prop + setback + depth / 2)
+                yaw = math.atan2(tm[1], tm[0])
+                if rng.random() < 0.05 + 0.2 * (1 - d):
+                    gap = rng.uniform(8.0, 25.0)  # an empty lot: maybe walled or fenced off
+                    if rng.random() < 0.5:
+                        a = st.at(s)[0] + side * left_normal(st.at(s)[1]) * (prop + 0.3)
+                        b = st.at(s + gap)[0] + side * left_normal(st.at(s + gap)[1]) * (prop + 0.3)
+                        _fence_line(plan, solids, rng, a, b, fence_kind)
+                    s += gap
+                    continue
+                # In a footprint's own frame (_rect_points) +v is to the left of its yaw; turning
+                # right-side buildings by π makes +v point away from the street on both sides.
+                b_yaw = yaw if side > 0 else yaw + np.pi
+                if _rect_free(plan, centre[0], centre[1], b_yaw, width - 0.6, depth - 0.6):
+                    _building(plan, solids, rng, centre[0], centre[1], b_yaw, width, depth, d)
+                    if setback > 2.5 and rng.random() < 0.45:
+                        a = st.at(s)[0] + normal * (prop + 0.3)
+                        b = st.at(s + width)[0] + normal * (prop + 0.3)
+                        _fence_line(plan, solids, rng, a, b, fence_kind)
+                    s += width + (0.0 if (d > 0.55 and rng.random() < 0.6) else rng.uniform(1.5, 8.0))
+                else:
+                    s += 2.0
+
+            # Street trees on the sidewalk, near the curb.
+            curb_off = st.half_width + min(max(st.sidewalk * 0.45, 0.8), 1.5)
+            if has_trees:
+                for u in np.arange(rng.uniform(2, 8), st.length, rng.uniform(7.0, 11.0)):
+                    p, t = st.at(u + rng.uniform(-0.8, 0.8))
+                    q = p + side * left_normal(t) * curb_off
+                    if not near_junction(q, st.half_width + 6.0) and _point_free(plan, q[0], q[1], 0.6):
+                        _tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
+        # Street lights (or utility poles) at the curb, on one side or alternating.
+        light_kind = "light" if rng.random() < 0.7 else "utility"
+        alternate = rng.random() < 0.5
+        for k, u in enumerate(np.arange(rng.uniform(5, 20), st.length, rng.uniform(25.0, 40.0))):
+            side = (1.0 if k % 2 else -1.0) if alternate else 1.0
+            p, t = st.at(u)
+            q = p + side * left_normal(t) * (st.half_width + 0.7)
+            if _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+                _pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), light_kind)
+
+    # Signs and traffic lights at junction corners.
+    for jp in plan.junctions:
+        lights = rng.random() < 0.3
+        for ang in rng.uniform(0, 2 * np.pi) + np.arange(4) * np.pi / 2:
+            if rng.random() < (0.6 if lights else 0.35):
+                for dist in (8.5, 9.5, 10.5, 7.5):
+                    q = jp + dist * np.array([math.cos(ang), math.sin(ang)])
+                    i, j, ok = raster.ij(q[0], q[1])
+                    if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+                        _pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j],
+                              "traffic_light" if lights else "sign")
+                        break
+
+    # Parked cars in the parking lanes; right curb faces the street's direction, left curb against.
+    for st in plan.streets:
+        if not st.parking:
+            continue
+        for side in (-1.0, 1.0):
+            fill = rng.uniform(0.25, 0.85)
+            u = rng.uniform(2.0, 6.0)
+            while u < st.length - 3.0:
+                p, t = st.at(u)
+                q = p + side * left_normal(t) * (st.half_width - 1.15)
+                yaw = math.atan2(t[1], t[0]) + (0.0 if side < 0 else np.pi) + rng.uniform(-0.03, 0.03)
+                if rng.random() < fill and not near_junction(q, JUNCTION_CLEAR):
+                    x, y = _rect_points(q[0], q[1], yaw, 5.0, 2.0)
+                    i, j, ok = raster.ij(x, y)
+                    if np.all(ok & plan.road[i, j] & ~plan.occupied[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE)):
+                        _parked_car(plan, solids, rng, q[0], q[1], yaw)
+                        _mark_rect(plan, q[0], q[1], yaw, 4.8, 1.9)
+                u += rng.uniform(5.6, 7.0)
+
+    # Dashed centre lines, not across junctions.
+    for st in plan.streets:
+        for u in np.arange(rng.uniform(0, 9), st.length - 3.0, 9.0):
+            p, t = st.at(u + 1.5)
+            if not near_junction(p, JUNCTION_CLEAR) and raster.lookup(plan.road, p[0], p[1]):
+                solids.decals["marking"].append((p[0], p[1], math.atan2(t[1], t[0]), 3.0, 0.15, 0.85))
+
+    # Back buildings inside big blocks, then trees and bushes in yards and parks.
+    free_cells = np.flatnonzero((plan.build_area & ~plan.occupied & ~plan.park & (plan.dist_road >= 12.0)).ravel())
+    if len(free_cells):
+        for cell in rng.choice(free_cells, size=min(len(free_cells), 400), replace=False):
+            i, j = np.unravel_index(cell, raster.shape)
+            if plan.occupied[i, j]:
+                continue
+            d = float(plan.density[i, j])
+            x, y = raster.x0 + (i + 0.5) * CELL, raster.y0 + (j + 0.5) * CELL
+            rd = plan.road_dir[i, j]
+            yaw = math.atan2(rd[1], rd[0]) + np.pi / 2 + rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.05)
+            length, width = rng.uniform(8.0, 14.0 + 20.0 * d), rng.uniform(7.0, 10.0 + 14.0 * d)
+            if _rect_free(plan, x, y, yaw, length, width, clearance=2.5):
+                _building(plan, solids, rng, x, y, yaw, length, width, d)
+    green = ~plan.road & ~plan.occupied & (plan.dist_road >= 1.5) & (plan.dist_ego >= 3.0)
+    cells = np.flatnonzero(green.ravel())
+    if len(cells):
+        tries = rng.choice(cells, size=min(len(cells), int(len(cells) * CELL * CELL / 90.0)), replace=False)
+        for cell in tries:
+            i, j = np.unravel_index(cell, raster.shape)
+            in_park = plan.park[i, j]
+            if rng.random() > (0.9 if in_park else 0.25 * (1.0 - plan.density[i, j]) ** 2):
+                continue
+            x = raster.x0 + (i + rng.random()) * CELL
+            y = raster.y0 + (j + rng.random()) * CELL
+            if rng.random() < 0.3:  # a bush
+                if _point_free(plan, x, y, 0.8, min_road=1.5):
+                    gz = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
+                    r = rng.uniform(0.5, 1.3)
+                    solids.blobs["bush"].append((x, y, gz + r * 0.6, r, r, r * 0.7, 0.0, int(40 * r * r + 20), 0.3, 0,
+                                                 float(rng.uniform(0.4, 0.6))))
+                    _mark_point(plan, x, y, r * 0.8)
+                    solids.counts["bushes"] += 1
+            elif _point_free(plan, x, y, 1.2, min_road=1.5):
+                _tree(plan, solids, rng, x, y)
+    return solids

@@ -1,0 +1,201 @@
+"""Shared test helpers: small data builders, fakes that replace a block, and polling waits.
+Test files import from here (``from helpers import …``), never from each other."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from lidarloc.core.config import Config
+from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
+from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.sequences.base import Sequence
+
+
+# ---------------------------------------------------------------------------------- waiting
+def wait_for(cond, timeout=60.0, what="condition"):
+    """Poll until cond() holds. The timeout only bounds a failure: generous, because the CI
+    machine is slower than ours and a passing test returns as soon as cond() holds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def process_gone(pid: int) -> bool:
+    """Whether process ``pid`` has exited (a zombie not yet reaped counts as exited)."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+# ---------------------------------------------------------------------------------- KITTI odometry tree
+Tr_KITTI = np.array([[4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
+                     [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
+                     [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
+                     [0, 0, 0, 1]])
+
+
+def make_odometry(root: Path, n_scans=3, n_poses=None, n_points=500, seq="00"):
+    """A tiny KITTI odometry tree; the scans are random points (content does not matter here)."""
+    rng = np.random.default_rng(0)
+    d = root / "sequences" / seq / "velodyne"
+    d.mkdir(parents=True)
+    for i in range(n_scans):
+        pts = rng.normal(0, 10, (n_points, 4)).astype(np.float32)
+        pts.tofile(d / f"{i:06d}.bin")
+    P = "P{}: 7.0e+02 0 6.0e+02 0 0 7.0e+02 1.8e+02 0 0 0 1 0"
+    lines = [P.format(i) for i in range(4)] + ["Tr: " + " ".join(f"{v:.12e}" for v in Tr_KITTI[:3].ravel())]
+    (root / "sequences" / seq / "calib.txt").write_text("\n".join(lines) + "\n")
+    (root / "sequences" / seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(n_scans)))
+    (root / "poses").mkdir()
+    n_poses = n_scans if n_poses is None else n_poses
+    with open(root / "poses" / f"{seq}.txt", "w") as f:
+        for i in range(n_poses):
+            T = pose_matrix(i * 1.0, 0.1 * i, 0, 0.01 * i, 0, 0)
+            f.write(" ".join(f"{v:.9e}" for v in T[:3].ravel()) + "\n")
+    return root
+
+
+# ---------------------------------------------------------------------------------- a toy world (PF)
+def toy_map() -> np.ndarray:
+    """40 × 40 m of flat ground, an L of two 4 m walls (x = 0 and y = 0) and a 2 × 2 m pillar:
+    every x-y position has its own view of the walls."""
+    sp = 0.2
+    gx, gy = np.meshgrid(np.arange(0, 40, 0.25), np.arange(0, 40, 0.25), indexing="ij")
+    ground = np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+    wy, wz = np.meshgrid(np.arange(0, 40, sp), np.arange(0, 4, sp), indexing="ij")
+    wall_a = np.c_[np.zeros(wy.size), wy.ravel(), wz.ravel()]
+    wx, wz = np.meshgrid(np.arange(0, 25, sp), np.arange(0, 4, sp), indexing="ij")
+    wall_b = np.c_[wx.ravel(), np.zeros(wx.size), wz.ravel()]
+    s, z = np.meshgrid(np.arange(0, 2, sp), np.arange(0, 3, sp), indexing="ij")
+    s, z = s.ravel(), z.ravel()
+    pillar = np.concatenate([np.c_[30 + s, 25 + 0 * s, z], np.c_[30 + s, 27 + 0 * s, z],
+                             np.c_[30 + 0 * s, 25 + s, z], np.c_[32 + 0 * s, 25 + s, z]])
+    return np.concatenate([ground, wall_a, wall_b, pillar]).astype(np.float32)
+
+
+def toy_scan(world: np.ndarray, state: np.ndarray, rng, k: int) -> np.ndarray:
+    """What a sensor at ``state`` sees (25 m range, 2 cm noise), prepared at 0.5 m."""
+    T = pose_matrix(*state[:6])
+    near = world[np.linalg.norm(world[:, :2] - state[:2], axis=1) < 25]
+    local = transform_points(inv_pose(T), near) + rng.normal(0, 0.02, (len(near), 3))
+    return voxel_downsample_random(local, 0.5, k)
+
+
+# ---------------------------------------------------------------------------------- 2D walls (BEV, M3RSM)
+def random_segments(rng, n, extent, length, step=0.1):
+    """Points along n random wall segments inside [0, extent]²."""
+    pts = []
+    for _ in range(n):
+        a = rng.uniform(0, extent, 2)
+        b = a + rng.uniform(-length, length, 2)
+        t = np.arange(0, 1, step / max(np.linalg.norm(b - a), step))[:, None]
+        pts.append(a + (b - a) * t)
+    return np.concatenate(pts)
+
+
+# ---------------------------------------------------------------------------------- localizer fakes
+def scripted_std(loc, stds):
+    """Replace the filter's reported std with a script (the rest of the estimate is real)."""
+    real = loc.pf.estimate
+    calls = iter(stds)
+
+    def estimate():
+        est = real()
+        try:
+            s = next(calls)
+        except StopIteration:
+            return est
+        return replace(est, std_xyz=np.array([s, s, s], dtype=float))
+    loc.pf.estimate = estimate
+
+
+def instant_matcher(loc, accepted=False, before=None):
+    """Replace the in-process matcher (localize.s2m_process=False) with one that answers at once,
+    accepting or rejecting the start pose; ``before()`` runs first (e.g. to hold the match)."""
+    from lidarloc.core.s2m import S2MOutcome
+
+    def match(scan, pose, level=False):
+        if before is not None:
+            before()
+        return S2MOutcome(accepted=accepted, pose=np.asarray(pose), score=1.0 if accepted else 0.0,
+                          start_score=0.0 if accepted else 1.0, region=(0, 0, 1, 1), ms=1.0)
+    loc.s2m.matcher.match_local = match
+
+
+# ---------------------------------------------------------------------------------- a small street (viewer)
+class StreetSequence(Sequence):
+    """A straight street with building façades, poles and a flat road, scanned from a car driving
+    along it at 8 m/s, 10 Hz. Small and fast: tests of the viewer need a real map, not a big one."""
+
+    name = "test-street"
+
+    def __init__(self, n: int = 24, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.n = n
+        walls = []
+        for side in (-1, 1):
+            for x0 in np.arange(-20, 260, 14.0):           # façades with gaps and varying depth
+                depth = rng.uniform(7, 11)
+                h = rng.uniform(6, 15)
+                xs = rng.uniform(x0, x0 + 11, 2500)
+                zs = rng.uniform(-1.7, h - 1.7, 2500)
+                walls.append(np.stack([xs, np.full_like(xs, side * depth), zs], 1))
+        poles = []
+        for x in np.arange(0, 250, 9.0):
+            z = rng.uniform(-1.7, 3.5, 120)
+            poles.append(np.stack([np.full_like(z, x), np.full_like(z, 5.5), z], 1))
+        road = np.stack([rng.uniform(-20, 260, 40000), rng.uniform(-10, 10, 40000), np.full(40000, -1.73)], 1)
+        self.world = np.concatenate(walls + poles + [road])
+        t = np.arange(n) * 0.1
+        x = 8.0 * t
+        y = 0.8 * np.sin(x / 40.0)
+        yaw = np.arctan2(0.8 / 40.0 * np.cos(x / 40.0), 1.0)
+        self._poses = pose_matrix(x, y, np.zeros(n), yaw, np.zeros(n), np.zeros(n))
+        self._t = t
+
+    def __len__(self):
+        return self.n
+
+    def _read_scan(self, i):
+        T = self._poses[i]
+        local = transform_points(np.linalg.inv(T), self.world)
+        r = np.linalg.norm(local, axis=1)
+        local = local[(r > 2.5) & (r < 50)]
+        rng = np.random.default_rng(i)
+        local = local + rng.normal(0, 0.02, local.shape)
+        return np.concatenate([local, np.ones((len(local), 1))], 1).astype(np.float32)
+
+    def _describe_scan(self, i):
+        return f"test street scan {i}"
+
+    @property
+    def timestamps(self):
+        return self._t
+
+    @property
+    def poses(self):
+        return self._poses
+
+
+def make_localizer(seq, cache_root, n_particles: int = 300):
+    """A Localizer with the default configuration but ``n_particles`` particles."""
+    from lidarloc.core.localizer import Localizer
+
+    cfg = Config()
+    cfg.pf.n_particles = n_particles
+    return Localizer(seq, cfg, cache_root)
+
+
+def browser_localizer(cache_root):
+    """The localizer the browser test drives: long enough to pause mid-run."""
+    return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000)

@@ -1,0 +1,79 @@
+"""``lidarloc bench localize`` (app/bench/localize.py) end to end: a 3-run smoke bench with 2 workers,
+resumable, refusing runs of other code; and Ray ≡ process pool."""
+
+import json
+
+import numpy as np
+import pytest
+
+from lidarloc.core.config import Config
+from lidarloc.core.sequences.factory import SourceSpec
+
+SCANS = 25
+
+
+def small_cfg():
+    cfg = Config()
+    cfg.pf.n_particles = 300
+    cfg.localize.recorded_odometry = True    # as `lidarloc bench localize` sets it
+    return cfg
+
+
+@pytest.mark.slow
+def test_smoke_bench_three_runs_two_workers(tmp_path):
+    from lidarloc.app.bench.localize import run_bench
+
+    out = tmp_path / "bench"
+    agg = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+    for name in ("summary.json", "runs.csv", "metrics_boxplot.png", "latency_hist.png", "report.md"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs"] == 3 and summary["scans_per_run"] == SCANS
+    import csv
+
+    rows = list(csv.DictReader(open(out / "runs.csv")))
+    assert len(rows) == 3 and [int(r["seed"]) for r in rows] == [0, 1, 2]
+    for key in "ABCDE":  # the aggregate agrees with the per-run table, failures included
+        met = [float(r[key]) for r in rows if r[key] != ""]
+        assert summary[key]["success"] == len(met) / 3
+        assert summary[key]["max"] == (max(met) if len(met) == 3 else None)
+    assert summary["pf_ms_median"] > 0
+    assert "| B |" in (out / "report.md").read_text()
+    # the "within 5 m to the end" figures, per run and in aggregate
+    within = [r["within_5m_to_end"] for r in rows]
+    assert all(w in ("0", "1") for w in within)
+    assert all(r["localized_at_scan"] != "" for r in rows if r["within_5m_to_end"] == "1")
+    assert summary["within_5m_to_end_ratio"] == sum(w == "1" for w in within) / 3
+    # the odometry was computed once into the cache, and the town's scans stored once
+    assert list((tmp_path / "cache").glob("map-*/odometry-kiss-*/poses.npy"))
+    assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS
+    # resumable: a second call keeps the finished runs (same numbers, nothing recomputed)
+    stamp = (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns
+    agg2 = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+    assert (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns == stamp
+    assert agg2["B"] == agg["B"]
+    # … but not into runs of other code: they would mix two versions' numbers in one report
+    from lidarloc.app.bench import localize as bench_localize
+    from lidarloc.core.errors import LidarlocError
+
+    marker = out / "bench_config.json"
+    assert json.loads(marker.read_text())["code"] == bench_localize.code_fingerprint()
+    marker.write_text(marker.read_text().replace(bench_localize.code_fingerprint(), "0" * 64))
+    with pytest.raises(LidarlocError, match="version of lidarloc's code"):
+        run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+
+
+@pytest.mark.slow
+def test_ray_matches_process_pool(tmp_path):
+    pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'lidarloc[ray]')")
+    from lidarloc.app.bench.localize import run_bench
+
+    spec = SourceSpec(scans=12)
+    a = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "pool", cache_root=tmp_path / "cache")
+    b = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray",
+                  cache_root=tmp_path / "cache")
+    for key in "ABCDE":
+        assert a[key] == b[key]
+    ta = np.loadtxt(tmp_path / "pool" / "runs" / "seed_001" / "trajectory_kitti.txt")
+    tb = np.loadtxt(tmp_path / "ray" / "runs" / "seed_001" / "trajectory_kitti.txt")
+    assert np.array_equal(ta, tb)

@@ -1,0 +1,154 @@
+"""M3RSM branch and bound (core/m3rsm.py): admissible bounds, exactness against brute force,
+min-score pruning, the angle and translation lattices, recovery of synthetic 2D scans in local
+and global mode."""
+
+import math
+
+import numpy as np
+import pytest
+from helpers import random_segments
+
+from lidarloc.core import m3rsm
+from lidarloc.core.bev import BEVPyramid
+from lidarloc.core.errors import LidarlocError
+
+DEG = math.pi / 180
+
+
+def to_sensor(xy_world, x, y, yaw):
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = xy_world - [x, y]
+    return d @ np.array([[c, -s], [s, c]])   # R(yaw)ᵀ applied to each row
+
+
+# ------------------------------------------------------------------------ admissible bounds
+def test_bounds_are_admissible_for_every_block():
+    """Level-l bound of a block ≥ the L0 score of every translation in it, including blocks that
+    hang over the grid's edges (negative cells) — both bound kinds.
+
+    Admissibility is a property of the search's inner kernels (``_Prepared``, ``_cells``,
+    ``_bound``, …), so this test calls them directly: the public ``match`` shows it only through
+    its result (the exhaustive-optimum test below), and public names for numba kernels that
+    nothing else should call would be artificial."""
+    rng = np.random.default_rng(7)
+    pyr = BEVPyramid.build(random_segments(rng, 12, 30, 12), 1.0, cell_value="sat4")
+    prep = m3rsm._Prepared(pyr, dense_upto=99, strided_from=1)   # both bound kinds at every level
+    B = m3rsm.scan_cells(rng.uniform(-9, 9, (60, 2)), 1.0)
+    angles = np.array([0.3, -2.0])
+    cx, cy = m3rsm._cells(pyr, B, angles, (3.7, 21.2))
+    top = prep.n_levels - 1
+    ex, ey, ec, ew, eoff = m3rsm._level_entries(cx, cy, 1, top)
+    checked = 0
+    for l in range(1, top + 1):
+        size = 1 << l
+        for _ in range(15):
+            r = int(rng.integers(len(angles)))
+            kx = int(rng.integers(-40, 40)) // size * size
+            ky = int(rng.integers(-40, 40)) // size * size
+            exact = max(m3rsm._score_l0(prep.L0, cx[r], cy[r], kx + i, ky + j)
+                        for i in range(size) for j in range(size))
+            strided = m3rsm._bound(prep.G, prep.gnx, prep.gny, prep.goff, l, ex, ey, ec, ew,
+                                   eoff[l, r], eoff[l, r + 1], kx >> l, ky >> l)
+            dense = m3rsm._bound_dense(prep.S, prep.snx, prep.sny, prep.soff, l, cx[r], cy[r], kx, ky)
+            assert strided >= exact and dense >= exact
+            assert dense <= strided          # the stride-1 pooling is the tighter of the two
+            checked += exact > 0
+    assert checked > 20
+
+
+# ------------------------------------------------------------------- branch and bound = brute force
+@pytest.mark.parametrize("dense_upto", [0, 2, 99])
+def test_branch_and_bound_finds_the_exhaustive_optimum(monkeypatch, dense_upto):
+    monkeypatch.setattr(m3rsm, "DENSE_UPTO", dense_upto)
+    same_pose = 0
+    for seed in range(24):
+        rng = np.random.default_rng(1000 * dense_upto + seed)
+        xy = random_segments(rng, int(rng.integers(3, 12)), 40, 15) + rng.normal(0, 0.2, (1, 2))
+        pyr = BEVPyramid.build(xy, float(rng.choice([0.5, 1.0])), cell_value=str(rng.choice(["sat4", "binary", "count"])))
+        scan = rng.uniform(-12, 12, (int(rng.integers(5, 60)), 2))
+        step = float(rng.choice([3.0, 10.0, 30.0])) * DEG
+        if seed % 2:
+            args = (pyr, scan, rng.uniform(0, 40, 2), tuple(rng.uniform(1, 12, 2)), rng.uniform(-3, 3),
+                    float(rng.choice([0.5, math.pi])), step)
+            fast, slow = m3rsm.match(*args), m3rsm.exhaustive_match(*args)
+        else:
+            fast, slow = m3rsm.match_global(pyr, scan, step), m3rsm.exhaustive_match(pyr, scan, angle_step=step)
+        assert fast.score == slow.score, seed
+        assert fast.nodes_expanded <= slow.nodes_expanded
+        # equal poses unless several poses tie for the optimum; a tie must really score the same
+        if (fast.x, fast.y, fast.yaw) == (slow.x, slow.y, slow.yaw):
+            same_pose += 1
+        else:
+            assert m3rsm.score_pose(pyr, scan, fast.x, fast.y, fast.yaw) == pytest.approx(slow.score)
+    assert same_pose >= 12
+
+
+def test_min_score_prunes_and_reports_nothing_when_unbeaten():
+    rng = np.random.default_rng(5)
+    pyr = BEVPyramid.build(random_segments(rng, 10, 40, 15), 1.0)
+    scan = rng.uniform(-10, 10, (40, 2))
+    best = m3rsm.match(pyr, scan, (20, 20), (8, 8), 0.0, math.pi, 10 * DEG)
+    none = m3rsm.match(pyr, scan, (20, 20), (8, 8), 0.0, math.pi, 10 * DEG, min_score=best.score)
+    assert math.isnan(none.x) and none.score == best.score
+    again = m3rsm.match(pyr, scan, (20, 20), (8, 8), 0.0, math.pi, 10 * DEG, min_score=best.score - 0.5)
+    assert again.score == best.score and (again.x, again.y, again.yaw) == (best.x, best.y, best.yaw)
+
+
+def test_local_lattices_translations_from_the_start_and_world_fixed_yaws():
+    rng = np.random.default_rng(11)
+    pyr = BEVPyramid.build(random_segments(rng, 10, 40, 15), 1.0)
+    scan = rng.uniform(-10, 10, (50, 2))
+    step = 2.5 * DEG
+    lattice = m3rsm.angle_lattice(step)
+    assert len(lattice) == 144 and lattice[0] == -math.pi
+    # a start whose yaw is on the lattice is itself a candidate: the match scores at least as much
+    start = (17.37, 22.81, float(lattice[100]))
+    res = m3rsm.match(pyr, scan, start[:2], (5, 5), start[2], 0.3, step)
+    assert res.score >= m3rsm.score_pose(pyr, scan, *start)
+    # a region below one cell leaves the start position; a zero window the nearest lattice yaw
+    only = m3rsm.match(pyr, scan, start[:2], (0.4, 0.4), start[2] + 0.4 * step, 0.0, step)
+    assert (only.x, only.y, only.yaw) == pytest.approx(start)
+    assert only.score == m3rsm.score_pose(pyr, scan, *start)
+    # yaws are the lattice's, whatever the centre: ±0.3 rad holds ⌊0.3 / d_θ⌋ · 2 (+1) of them
+    off_lattice = m3rsm.match(pyr, scan, start[:2], (3, 3), start[2] + 0.37 * step, 0.3, step)
+    assert off_lattice.n_angles in (13, 14)
+    assert np.min(np.abs(lattice - off_lattice.yaw)) < 1e-9
+
+
+# --------------------------------------------------------------------------- recovery
+def _town_2d(seed):
+    rng = np.random.default_rng(seed)
+    walls = random_segments(rng, 60, 160, 25, step=0.1)
+    return walls + rng.normal(0, 0.05, walls.shape)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_scan_cut_from_the_map_is_recovered_locally_and_globally(seed):
+    world = _town_2d(seed)
+    pyr = BEVPyramid.build(world, 1.0)
+    rng = np.random.default_rng(100 + seed)
+    d_m, d_t = 1.0, 2.5 * DEG
+    # The true yaw is on the angle lattice (θ_r = −π + r·d_θ, and the local search's lattice is
+    # anchored a whole number of steps away): off-lattice yaw errors make the best translation
+    # compensate a rotation about the scan's centroid, which may exceed d_m (the real-scan test
+    # covers arbitrary poses, with GICP). The translation is arbitrary.
+    x, y, yaw = rng.uniform(50, 110), rng.uniform(50, 110), -math.pi + int(rng.integers(144)) * d_t
+    near = world[np.hypot(world[:, 0] - x, world[:, 1] - y) < 40]
+    scan = to_sensor(near, x, y, yaw)
+
+    local = m3rsm.match(pyr, scan, (x + rng.uniform(-20, 20), y + rng.uniform(-20, 20)), (25, 25),
+                        yaw + int(rng.integers(-40, 40)) * d_t, math.pi, d_t)
+    glob = m3rsm.match_global(pyr, scan, d_t)
+    for res in (local, glob):
+        assert math.hypot(res.x - x, res.y - y) <= d_m, res
+        assert abs((res.yaw - yaw + math.pi) % (2 * math.pi) - math.pi) <= d_t, res
+        assert res.score >= m3rsm.score_pose(pyr, scan, res.x, res.y, res.yaw) - 1e-9
+
+
+def test_scan_cells_downsamples_to_unique_cells():
+    pts = np.array([[0.1, 0.1], [0.3, 0.5], [1.5, 0.2], [np.nan, 1.0]])
+    cells = m3rsm.scan_cells(pts, 1.0)
+    assert cells.shape == (2, 2)
+    assert np.allclose(cells[0], [0.2, 0.3])
+    with pytest.raises(LidarlocError):
+        m3rsm.scan_cells(np.zeros((3, 1)), 1.0)

@@ -1,0 +1,48 @@
+"""The prior map (core/mapping.py): voxel centroids, road removal on a real scan, and a real map
+built once and then read from its cache."""
+
+import numpy as np
+
+from lidarloc.core.config import MapConfig
+from lidarloc.core.mapping import VoxelAccumulator, flat_surface_mask, load_or_build_map
+from lidarloc.core.sequences.base import Limited
+
+
+def test_voxel_accumulator_centroids_and_growth():
+    acc = VoxelAccumulator(1.0, capacity=16)   # tiny capacity forces several table growths
+    rng = np.random.default_rng(1)
+    cells = rng.integers(-50, 50, size=(400, 3))
+    pts = np.repeat(cells, 3, axis=0) + rng.uniform(0.01, 0.99, size=(1200, 3))
+    acc.add(pts[:600])
+    acc.add(pts[600:])
+    out = acc.points()
+    uniq = np.unique(cells, axis=0)
+    assert len(out) == len(uniq)
+    # each output point is the centroid of the inputs in its voxel
+    keys = np.floor(pts).astype(int)
+    for c in uniq[:20]:
+        mask = (keys == c).all(axis=1)
+        centroid = pts[mask].mean(axis=0)
+        assert np.min(np.linalg.norm(out - centroid, axis=1)) < 1e-5
+
+
+def test_road_removal_keeps_walls_drops_road(kitti_raw_seq):
+    pts = kitti_raw_seq.scan(10)[:, :3]
+    pts = pts[np.linalg.norm(pts, axis=1) < 30]
+    flat = flat_surface_mask(pts, MapConfig())
+    road = (pts[:, 2] < -1.4) & (np.linalg.norm(pts[:, :2], axis=1) < 12)   # sensor is 1.73 m above the road
+    tall = pts[:, 2] > 0.5                                                    # above the car roofs: walls, trees
+    assert flat[road].mean() > 0.8, "most road points should be removed"
+    assert (~flat[tall]).mean() > 0.7, "most wall/tree points should be kept"
+
+
+def test_real_map_build_and_cache(kitti_raw_seq, tmp_path):
+    seq = Limited(kitti_raw_seq, 20)
+    m1, d, cached = load_or_build_map(seq, MapConfig(), tmp_path)
+    assert not cached and len(m1.points) > 100_000 and len(m1.points_bev) < len(m1.points)
+    m2, d2, cached2 = load_or_build_map(seq, MapConfig(), tmp_path)
+    assert cached2 and d2 == d and np.array_equal(m1.points, m2.points)
+    # one point per 0.2 m voxel (centroids are stored as float32, so a handful that sit on a
+    # voxel boundary may round into the neighbouring cell)
+    keys = np.floor(m1.points.astype(np.float64) / 0.2).astype(np.int64)
+    assert len(np.unique(keys, axis=0)) >= 0.9999 * len(keys)

@@ -1,0 +1,197 @@
+"""The viewer (app/viewer/) in a real (headless) Chromium: the page loads, the 3D canvas draws
+something, the Pause and Step buttons do what they say, the Reset button, a shift+click and a
+shift+drag on the scene reset the particles, and a second tab sees the same run. Screenshots go
+to test-artifacts/.
+
+WebGL is software-rendered here (no GPU), so waits are generous; every wait polls for a
+condition, none sleeps for a fixed time."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import browser_localizer, wait_for
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--headless"]
+LOAD_TIMEOUT = 90_000      # ms: first load compiles the viewer's shaders in software
+STEP_TIMEOUT = 60_000
+
+# ~40 s (software WebGL): the slow lane
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+/); return m ? +m[1] : -1; })()"
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not CHROMIUM.exists():
+        pytest.skip("/usr/bin/chromium not found (apt-get install -y chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="Python Playwright not installed")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    from lidarloc.app.viewer.serve import serve
+
+    loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"))
+    # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps.
+    handle = serve(loc, port=0, autoplay=True, speed="2")
+    yield handle
+    handle.stop()
+    loc.close()
+
+
+def scan_counter(page) -> int:
+    return page.evaluate(JS_SCAN)
+
+
+def canvas_stats(png: bytes) -> tuple[int, float]:
+    """(distinct colours, fraction of pixels unlike the most common one = the background)."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).reshape(-1, 3)
+    packed = (img[:, 0].astype(np.int64) << 16) | (img[:, 1].astype(np.int64) << 8) | img[:, 2]
+    values, counts = np.unique(packed, return_counts=True)
+    return len(values), 1.0 - counts.max() / len(packed)
+
+
+def particle_pixels(png: bytes) -> int:
+    """Pixels in the particles' reds (strong red, little green and blue: not the map's blues and
+    whites, the scan's green or the S2M match's magenta)."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int32)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(((r > 100) & (r > 2 * g) & (r > 2 * b)).sum())
+
+
+def open_viewer(browser, url):
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(url, timeout=LOAD_TIMEOUT)
+    page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
+    page.wait_for_function(f"{JS_SCAN} >= 0", timeout=LOAD_TIMEOUT)
+    return page
+
+
+def test_viewer_in_chromium(browser, served):
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    ARTIFACTS.mkdir(exist_ok=True)
+    page = open_viewer(browser, served.url)
+
+    # playing: the counter moves by itself
+    start = scan_counter(page)
+    page.wait_for_function(f"{JS_SCAN} >= {start + 2}", timeout=STEP_TIMEOUT)
+
+    # the canvas is drawn: many colours, and a good share of pixels that are not background
+    canvas = page.locator("canvas").first
+    page.wait_for_function(
+        "(() => { const t = document.body.innerText; return t.includes('Scan') })()", timeout=STEP_TIMEOUT)
+    colours, foreground = canvas_stats(canvas.screenshot(timeout=LOAD_TIMEOUT))
+    assert colours > 50 and foreground > 0.02, (colours, foreground)
+
+    # Pause: the status says paused and the counter stays put
+    page.get_by_role("button", name="Pause").click()
+    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    paused_at = scan_counter(page)
+    assert served.localizer.k == paused_at + 1
+    with pytest.raises(PlaywrightTimeout):
+        page.wait_for_function(f"{JS_SCAN} !== {paused_at}", timeout=2_500)
+
+    # Step: exactly one more scan, then paused again
+    page.get_by_role("button", name="Step").click()
+    page.wait_for_function(f"{JS_SCAN} === {paused_at + 1}", timeout=STEP_TIMEOUT)
+    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    with pytest.raises(PlaywrightTimeout):
+        page.wait_for_function(f"{JS_SCAN} !== {paused_at + 1}", timeout=2_500)
+    assert served.localizer.k == paused_at + 2
+
+    # Reset globally: the particles spread over the whole map at once, while paused. The page
+    # with them drawn over the map is the README's picture (without the software-WebGL notice).
+    for close in page.locator(".mantine-Notification-closeButton").all():
+        try:
+            close.click(timeout=5_000)
+        except PlaywrightTimeout:       # it closed by itself meanwhile
+            pass
+    page.get_by_role("button", name="Reset globally").click()
+    page.wait_for_function("document.body.innerText.includes('particles reset globally')", timeout=STEP_TIMEOUT)
+    wait_for(lambda: particle_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 5_000, timeout=STEP_TIMEOUT / 1000,
+             what="the re-drawn particles on the canvas")
+    page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)
+
+    # shift+click on the scene: particles reset around the clicked ground point
+    box = canvas.bounding_box()
+    cx, cy = box["x"] + box["width"] * 0.4, box["y"] + box["height"] * 0.55
+    page.keyboard.down("Shift")
+    page.mouse.click(cx, cy)
+    page.keyboard.up("Shift")
+    page.wait_for_function("document.body.innerText.includes('particles reset around')", timeout=STEP_TIMEOUT)
+
+    # shift+drag: particles reset inside the rectangle
+    page.keyboard.down("Shift")
+    page.mouse.move(cx - 60, cy - 40)
+    page.mouse.down()
+    page.mouse.move(cx, cy, steps=5)
+    page.mouse.move(cx + 60, cy + 40, steps=5)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    page.wait_for_function("document.body.innerText.includes('particles reset in x')", timeout=STEP_TIMEOUT)
+    text = page.evaluate("document.body.innerText")
+    x0, x1, y0, y1 = map(float, re.search(r"reset in x (-?\d+)…(-?\d+), y (-?\d+)…(-?\d+)", text).groups())
+    P = served.localizer.pf.states          # reset() re-draws the particles; snapshots show them from the next scan
+    assert (P[:, 0] >= x0 - 1).all() and (P[:, 0] <= x1 + 1).all()
+    assert (P[:, 1] >= y0 - 1).all() and (P[:, 1] <= y1 + 1).all()
+    assert served.viewer.scene.node("reset_area").visible      # the reset area is outlined until the next scan
+    page.get_by_role("button", name="Step").click()
+    page.wait_for_function(f"{JS_SCAN} === {paused_at + 2}", timeout=STEP_TIMEOUT)
+    page.screenshot(path=str(ARTIFACTS / "viewer-after-rect-reset.png"))
+    paused_at += 1
+
+    # a second tab: same run, same counter, its own camera folder
+    page2 = open_viewer(browser, served.url)
+    page2.wait_for_function(f"{JS_SCAN} === {paused_at + 1}", timeout=STEP_TIMEOUT)
+    assert page2.get_by_text("Follow the vehicle").count() == 1
+    page2.get_by_role("button", name="Step").click()
+    for p in (page, page2):
+        p.wait_for_function(f"{JS_SCAN} === {paused_at + 2}", timeout=STEP_TIMEOUT)
+    page2.screenshot(path=str(ARTIFACTS / "viewer-second-tab.png"))
+    page2.close()
+
+    # a typed invalid value is refused in the page (and the server lives on); a valid one is applied
+    # Each value is seen by the server before Apply is clicked, and the server's message is
+    # checked before the page's, so a failure says which side went wrong. The page waits poll on
+    # a timer, not on animation frames (a software-rendered page may draw few of them).
+    page.get_by_text("Parameters", exact=True).click()
+    sigma = page.get_by_label("σ (m)")
+    sigma_on_server = served.viewer.controls.params["sigma"]
+    sigma.fill("0")
+    wait_for(lambda: sigma_on_server.value == 0, what="σ = 0 on the server")
+    page.get_by_role("button", name="Apply 1 change").click()
+    refused = "refused: invalid configuration: pf.sigma must be > 0"
+    try:
+        wait_for(lambda: served.viewer.message == refused, what=repr(refused))
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the server's message is {served.viewer.message!r}") from None
+    page.wait_for_function(f"document.body.innerText.includes({refused!r})", polling=250, timeout=STEP_TIMEOUT)
+    assert served.localizer.cfg.pf.sigma == 0.5
+    sigma.fill("0.7")
+    wait_for(lambda: sigma_on_server.value == 0.7, what="σ = 0.7 on the server")
+    page.get_by_role("button", name="Apply 1 change").click()
+    page.wait_for_function("document.body.innerText.includes('applied from the next scan: σ (m)')",
+                           polling=250, timeout=STEP_TIMEOUT)
+    assert served.localizer.cfg.pf.sigma == 0.7 and served.localizer.pf.sigma == 0.7
+    page.close()

@@ -1,0 +1,98 @@
+"""The viewer's playback thread (app/viewer/player.py) on a stand-in localizer with 1 ms steps:
+replay and real-time pacing, max speed, single steps, refused settings, and a failing step."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from helpers import wait_for
+
+from lidarloc.app.viewer.player import Player
+from lidarloc.core.errors import LidarlocError
+
+# Upper bounds below only catch a player that hangs or paces an order of magnitude too slowly: a
+# loaded 2-core machine can delay a thread by a large fraction of a second. The lower bounds are
+# the pacing itself (a player never starts a scan before it is due, however loaded the machine).
+SLOW_BOUND_S = 5.0
+
+
+class InstantSteps:
+    """What the Player needs of a localizer, with 1 ms steps: the pacing is all the player's."""
+
+    def __init__(self, n=100_000, dt=0.1):
+        self.k, self.n = 0, n
+        self.seq = type("Seq", (), {"timestamps": np.arange(n) * dt})()
+        self.lock = threading.Lock()
+
+    @property
+    def done(self):
+        return self.k >= self.n
+
+    def step(self):
+        time.sleep(0.001)
+        self.k += 1
+        return self.k
+
+
+def time_scans(player, loc, n):
+    """Seconds from play() until ``n`` more scans are done (then paused and idle)."""
+    k0, t0 = loc.k, time.perf_counter()
+    player.play()
+    wait_for(lambda: loc.k >= k0 + n, what=f"{n} scans")
+    elapsed = time.perf_counter() - t0
+    player.pause()
+    assert player.wait_idle(5)
+    return elapsed
+
+
+def test_player_pacing():
+    loc = InstantSteps()
+    player = Player(loc, lambda s: None, lambda m: None, speed=20.0)
+    player.start()
+    try:
+        # replay at 20 scans/s: 6 scans are 5 intervals of 50 ms after the first
+        assert 0.23 <= time_scans(player, loc, 6) < SLOW_BOUND_S
+        player.set_speed(None)                    # max: as fast as the localizer goes …
+        # … so 50 scans take less than the 2.5 s that pacing them at 20 scans/s would
+        assert time_scans(player, loc, 50) < 50 / 20.0
+        # realtime at the sequence's timestamps (0.1 s apart), whatever the speed says (at 100
+        # scans/s, 5 scans would take 0.04 s)
+        player.set_clock("realtime")
+        player.set_speed(100.0)
+        assert 0.38 <= time_scans(player, loc, 5) < SLOW_BOUND_S
+        # step: exactly one scan, then idle
+        k = loc.k
+        player.step_once()
+        assert player.wait_idle(5) and loc.k == k + 1
+        with pytest.raises(LidarlocError):
+            player.set_speed(0)
+        with pytest.raises(LidarlocError):
+            player.set_clock("fast")
+    finally:
+        t0 = time.perf_counter()
+        player.stop()
+        # stop() joins the thread for at most 1.5 s; more means it did not return
+        assert time.perf_counter() - t0 < SLOW_BOUND_S
+    assert not player.playing
+
+
+def test_player_survives_a_failing_step():
+    class Failing(InstantSteps):
+        def step(self):
+            if self.k == 2:
+                raise LidarlocError("scan 2: corrupt file")
+            return super().step()
+
+    loc, errors = Failing(), []
+    player = Player(loc, lambda s: None, errors.append, speed=None)
+    player.start()
+    try:
+        player.play()
+        wait_for(lambda: errors, what="the error")
+        assert errors == ["scan 2: corrupt file"] and not player.playing
+        loc.k = 3                                     # past the bad scan: playback resumes
+        player.play()
+        wait_for(lambda: loc.k >= 10, what="playing again")
+    finally:
+        player.stop()

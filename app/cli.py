@@ -14,7 +14,7 @@ from lidarloc.core.errors import LidarlocError
 from .bench.common import DATA_ENV, DEFAULT_DATA, REAL_DRIVE, REAL_DRIVE_DATE
 from .console import emit_json, err, fail, peak_rss_mb, progress_bar, show_result
 from .options import (SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, CalibOpt, ConfigOpt, DateOpt, DriveOpt, JsonOpt,
-                      KittiOdometryOpt, KittiRawOpt, ScansOpt, SequenceOpt, SetOpt, TownSeedOpt, TrajectoryOpt,
+                      KittiOdometryOpt, KittiRawOpt, PresetOpt, ScansOpt, SequenceOpt, SetOpt, TownSeedOpt, TrajectoryOpt,
                       config_from, given, source_options, source_spec)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -32,14 +32,15 @@ def map_build(
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Build the prior map of a sequence from its scans and ground-truth poses (and cache it)."""
     from lidarloc.core.mapping import load_or_build_map
     from lidarloc.core.sequences.factory import open_sequence
 
-    cfg = config_from(config, set_)
-    seq = open_sequence(source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans), cfg)
+    cfg = config_from(config, set_, preset=preset)
+    # the map of a source is its whole mapping drive (--scans N plays N scans inside it)
+    seq = open_sequence(source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans), cfg).map_source
     t0 = time.perf_counter()
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=len(seq))
@@ -61,13 +62,13 @@ def synth(
     sequence_id: Annotated[str, typer.Option("--sequence-id", help="Sequence id to write as.")] = "00",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing exported sequence.")] = False,
     town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None, calib: CalibOpt = None, scans: ScansOpt = None,
-    config: ConfigOpt = None, set_: SetOpt = None,
+    preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Export the built-in town's drive in KITTI odometry layout (velodyne/*.bin, calib, times, poses)."""
     from lidarloc.core.sequences.export import export_kitti_odometry
     from lidarloc.core.sequences.factory import open_sequence
 
-    cfg = config_from(config, set_)
+    cfg = config_from(config, set_, preset=preset)
     seq = open_sequence(source_spec(None, None, None, None, None, town_seed, trajectory, calib, scans), cfg)
     with progress_bar() as bar:
         task = bar.add_task(f"scans of {seq.name}", total=len(seq))
@@ -86,15 +87,15 @@ def run(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Localize headless over a sequence and write results to --out."""
     from .headless import run_headless
 
     overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
-    cfg = config_from(config, overrides, seed=seed)
+    cfg = config_from(config, overrides, seed=seed, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    summary, interrupted = run_headless(spec, cfg, out, cache_root=cache, console=err)
+    summary, interrupted = run_headless(spec, cfg, out, cache_root=cache, console=err, preset=preset)
     if as_json:
         emit_json(summary)
     if interrupted:
@@ -114,10 +115,10 @@ PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
 
 @app.command()
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-         scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+         scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False):
     """The live demo on the built-in town: browse to the printed URL."""
-    cfg = config_from(config, set_, seed=seed)
+    cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(source_spec(None, None, None, None, None, cfg.town.seed, None, None, scans), cfg, host, port, cache, open_browser)
 
 
@@ -126,11 +127,11 @@ def view(
     host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
 ):
     """The live viewer on any sequence source."""
-    cfg = config_from(config, set_, seed=seed)
+    cfg = config_from(config, set_, seed=seed, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _serve(spec, cfg, host, port, cache, open_browser)
 
@@ -156,14 +157,14 @@ def bench_town(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Town generation time and simulated-scan time.
 
     The built-in town only: --kitti-odometry and --kitti-raw do not apply."""
     from .bench.town import run as run_bench
 
-    cfg = config_from(config, set_)
+    cfg = config_from(config, set_, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("town", run_bench(spec, cfg), as_json)
 
@@ -174,7 +175,7 @@ def bench_map(
     kitti_odometry: MapSource.kitti_odometry = None, sequence: MapSource.sequence = None,
     kitti_raw: MapSource.kitti_raw = None, date: MapSource.date = None, drive: MapSource.drive = None,
     town_seed: MapSource.town_seed = 0, trajectory: MapSource.trajectory = None, calib: MapSource.calib = None,
-    scans: MapSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
+    scans: MapSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Prior-map build and cache-load times, default town and the real drive (fresh cache).
 
@@ -182,10 +183,10 @@ def bench_map(
     from .bench.common import config_args
     from .bench.map import default_sources, run as run_bench, source_name
 
-    config_from(config, set_)      # a bad config fails here, not in the first child process
+    config_from(config, set_, preset=preset)      # a bad config fails here, not in the first child process
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE) else default_sources(spec)
-    _result("map", run_bench(sources, config_args(config, set_)), as_json)
+    _result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
 
 
 @bench_app.command("pf")
@@ -199,7 +200,7 @@ def bench_pf(
     kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
     kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
     town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
-    scans: PfSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
+    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Particle-filter step time and lookup-table cost, against their targets.
 
@@ -207,7 +208,7 @@ def bench_pf(
     from .bench.common import require_real_drive
     from .bench.pf import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed)
+    cfg = config_from(config, set_, seed=seed, preset=preset)
     if particles is not None:
         cfg.pf.n_particles = particles
     if given(ctx, SOURCE_CHOICE):
@@ -227,12 +228,12 @@ def bench_s2m(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment)."""
     from .bench.s2m import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed)
+    cfg = config_from(config, set_, seed=seed, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("s2m", run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison,
                              cell_study=cell_study), as_json)
@@ -244,14 +245,14 @@ def bench_rpe(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """KISS-ICP odometry: registration time and error against the truth per convergence setting.
 
     Registers the first 300 scans unless --scans says otherwise (at least 11)."""
     from .bench.rpe import run as run_bench
 
-    cfg = config_from(config, set_)
+    cfg = config_from(config, set_, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json)
 
@@ -262,14 +263,14 @@ def bench_viewer(
     kitti_odometry: ViewerSource.kitti_odometry = None, sequence: ViewerSource.sequence = None,
     kitti_raw: ViewerSource.kitti_raw = None, date: ViewerSource.date = None, drive: ViewerSource.drive = None,
     town_seed: ViewerSource.town_seed = 0, trajectory: ViewerSource.trajectory = None, calib: ViewerSource.calib = None,
-    scans: ViewerSource.scans = None, config: ConfigOpt = None, set_: SetOpt = None,
+    scans: ViewerSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Server-side cost of one display update.
 
     The inputs are synthetic, sized like a real drive: the source options do not apply."""
     from .bench.viewer import run as run_bench
 
-    cfg = config_from(config, set_)
+    cfg = config_from(config, set_, preset=preset)
     chosen = given(ctx, SOURCE_OPTIONS)
     if chosen:
         raise LidarlocError(f"bench viewer times synthetic display updates and reads no sequence; "
@@ -284,7 +285,7 @@ def bench_startup(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts.
 
@@ -292,13 +293,13 @@ def bench_startup(
     from .bench.common import config_args, source_args
     from .bench.startup import run as run_bench
 
-    config_from(config, set_)
+    config_from(config, set_, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     if given(ctx, SOURCE_CHOICE):
         command = ["view", *source_args(spec)]
     else:
         command = ["demo"] + (["--scans", str(scans)] if scans is not None else [])
-    _result("startup", run_bench(command + config_args(config, set_), repeats=repeats), as_json)
+    _result("startup", run_bench(command + config_args(config, set_, preset), repeats=repeats), as_json)
 
 
 @bench_app.command("stop")
@@ -308,7 +309,7 @@ def bench_stop(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s).
 
@@ -316,10 +317,10 @@ def bench_stop(
     from .bench.common import config_args, source_args
     from .bench.stop import run as run_bench
 
-    config_from(config, set_)
+    config_from(config, set_, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib,
                        300 if scans is None else scans)
-    _result("stop", run_bench(source_args(spec) + config_args(config, set_), repeats=repeats,
+    _result("stop", run_bench(source_args(spec) + config_args(config, set_, preset), repeats=repeats,
                               cache=None if cache is None else str(cache), **({"delays_s": tuple(delay)} if delay else {})),
             as_json)
 
@@ -338,18 +339,53 @@ def bench_localize(
     as_json: JsonOpt = False,
     kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section)."""
     from .bench.localize import run_bench
 
     overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
         + (["s2m.enabled=false"] if no_s2m else [])
-    cfg = config_from(config, overrides)
+    cfg = config_from(config, overrides, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
-                        cache_root=cache, console=err)
+                        cache_root=cache, console=err, preset=preset)
     _result("localize", summary, as_json)
+
+
+_AXES = "Matrix (comma-separated values; each axis restricts the matrix)"
+
+
+@bench_app.command("robustness")
+def bench_robustness(
+    runs: Annotated[int, typer.Option("--runs", help="Seeded runs per cell (seeds 0…N−1).")] = 5,
+    workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
+    out: Annotated[Path, typer.Option("--out", help="Directory for the cells' runs, report.md, cells.csv, summary.json and heatmap.png.")] = Path("out/bench-robustness"),
+    changes: Annotated[str, typer.Option("--changes", help="Shares of the town's movable objects changed since mapping, in [0, 1].", rich_help_panel=_AXES)] = "0,0.3,0.6",
+    traffic: Annotated[str, typer.Option("--traffic", help="Traffic: off, on.", rich_help_panel=_AXES)] = "off,on",
+    sensors: Annotated[str, typer.Option("--sensors", help="Sensors of the localized drive: hdl64e, vlp16, vlp32c, os1-128.", rich_help_panel=_AXES)] = "hdl64e,vlp16,os1-128",
+    skew: Annotated[str, typer.Option("--skew", help="Motion skew: off, on.", rich_help_panel=_AXES)] = "off,on",
+    configs: Annotated[str, typer.Option("--configs", help="Configurations: paper (the paper preset), default, no-S2M (default without S2M).", rich_help_panel=_AXES)] = "paper,default,no-S2M",
+    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive, same configurations (default: where its data is present).", rich_help_panel=_AXES)] = None,
+    as_json: JsonOpt = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Localization when the world is not the map: changes × traffic × sensor × skew × configuration.
+
+    Each cell: --runs seeded runs of the town's first 300 scans (unless --scans says otherwise) against the map of the town as mapped, plus the real KITTI drive's cells. The configurations are presets (so no --preset); --config and --set apply to every cell, e.g. --set town.route=2, but may not set what the matrix sets."""
+    from .bench.robustness import parse_matrix, run_robustness
+
+    matrix = parse_matrix(changes, traffic, sensors, skew, configs)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    summary = run_robustness(spec, config, set_, matrix, runs=runs, workers=workers, out_dir=out,
+                             real=real, cache_root=cache, console=err)
+    if as_json:
+        emit_json(summary)
+    else:
+        err.print((out / "report.md").read_text(), markup=False, highlight=False, soft_wrap=True)
+        err.print(f"report, cells.csv, summary.json and heatmap.png in {out}", highlight=False)
 
 
 def main() -> None:

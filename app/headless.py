@@ -25,8 +25,10 @@ def _main_thread() -> bool:
 
 
 def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | None = None,
-                 console: Console | None = None, stop_after: int | None = None) -> tuple[dict, bool]:
-    """Run the localizer over the whole sequence; returns (summary, interrupted)."""
+                 console: Console | None = None, stop_after: int | None = None,
+                 preset: str | None = None) -> tuple[dict, bool]:
+    """Run the localizer over the whole sequence; returns (summary, interrupted). ``preset``: the
+    named configuration ``cfg`` started from (``--preset``), recorded in the summary."""
     console = console or Console(stderr=True)
     seq = open_sequence(spec, cfg)
     make_out_dir(out)  # fail on an unwritable --out before the long part
@@ -86,7 +88,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         interrupted = stop.is_set()
         if interrupted:
             console.print("[yellow]interrupted: writing what was computed[/yellow]")
-        summary = summarize_run(loc, wall, lags[: len(loc.records)] if realtime else None, cpu_used)
+        summary = summarize_run(loc, wall, lags[: len(loc.records)] if realtime else None, cpu_used, preset=preset)
         summary["interrupted"] = interrupted
         write_run(loc, out, summary)
     console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "

@@ -7,7 +7,7 @@ from typing import Annotated, Any, NamedTuple, Optional
 
 import typer
 
-from lidarloc.core.config import Config, load_config
+from lidarloc.core.config import PRESETS, Config, load_config
 from lidarloc.core.sequences.factory import SourceSpec
 
 _SRC = "Source (default: the built-in town)"
@@ -47,7 +47,13 @@ def source_options(panel: str) -> SourceOptions:
 (KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt,
  ScansOpt) = source_options(_SRC)
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)]
-SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 (repeatable).", rich_help_panel=_CFG)]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 or --set town.changes=0.3 (repeatable).", rich_help_panel=_CFG)]
+# a plain string checked by load_config, not a click Choice: a bad name is then one line and exit
+# status 2 like every other configuration error, not a usage box
+PresetOpt = Annotated[Optional[str], typer.Option(
+    "--preset", metavar="|".join(PRESETS), rich_help_panel=_CFG,
+    help="Named configuration the defaults start from, before --config and --set: "
+         "'paper' pins the paper's method (untempered likelihood, fixed particle count, its S2M acceptance).")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (else a readable summary on stderr).")]
 CacheOpt = Annotated[Optional[Path], typer.Option("--cache", help="Cache directory for maps and tables (default ~/.cache/lidarloc or $LIDARLOC_CACHE).", rich_help_panel=_CFG)]
 
@@ -69,8 +75,11 @@ def source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, tra
                       drive=drive, town_seed=town_seed, trajectory=trajectory, calib=calib, scans=scans)
 
 
-def config_from(config: Path | None, overrides: list[str] | None, seed: int | None = None) -> Config:
-    cfg = load_config(config, overrides)
+def config_from(config: Path | None, overrides: list[str] | None, seed: int | None = None,
+                preset: str | None = None) -> Config:
+    """The configuration: the defaults, then ``preset`` (``--preset``), ``config`` (``--config``),
+    ``overrides`` (``--set``), and ``seed`` (``--seed``) last."""
+    cfg = load_config(config, overrides, preset=preset)
     if seed is not None:
         cfg.seed = seed
     return cfg

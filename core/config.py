@@ -73,6 +73,27 @@ class PFConfig:
     init_mode: str = "uniform_box"
     sensor_height: float = 1.73        # m, KITTI's Velodyne above the road
     resample_threshold: float = 0.5    # resample when N_eff < threshold · N
+    # Likelihood shape. The paper's log-likelihood is −Σ min(d², d_max²)/σ² over the scan's points;
+    # summed over 12–15k points it separates particles by hundreds of nats, so the weights collapse
+    # to one particle (N_eff ≈ 1) and the std says nothing. Both knobs below reduce to the paper's
+    # likelihood at their defaults (1.0 and 0.0).
+    temperature: float = 1.0           # the log-likelihood is divided by T (tempering); 1 = paper;
+                                       # 0 = T is the number of points weighed (a per-point mean)
+    unexplained_share: float = 0.0     # per-point mixture with an "unexplained point" term, as the
+                                       # beam model's z_rand: p = (1−z)·exp(−min(d²,d_max²)/σ²) + z; 0 = paper
+    # Dynamic points: scan points that stay farther than dynamic_distance from the map, at the
+    # estimate, over dynamic_scans consecutive scans are left out of the likelihood.
+    dynamic_rejection: bool = False
+    dynamic_distance: float = 1.0      # m
+    dynamic_scans: int = 2
+    # Adaptive particle count by KLD-sampling (Fox 2003): after each resampling, as many particles
+    # as the KLD bound asks for the occupied (x, y, yaw) bins, within [kld_min, n_particles].
+    kld: bool = False
+    kld_epsilon: float = 0.05          # KL-divergence bound ε
+    kld_z: float = 2.326               # upper (1 − δ) quantile of N(0, 1); 2.326 = δ 0.01
+    kld_bin_xy: float = 1.0            # m, bin size in x and y
+    kld_bin_yaw: float = 10.0 * DEG    # rad, bin size in yaw
+    kld_min: int = 100
 
 
 @dataclass
@@ -94,6 +115,13 @@ class S2MConfig:
     # makes it ~0.2 s here). After localization the paper's local region applies. False = the
     # paper's experiments (local region from the first scan). See README "Method choices".
     global_until_localized: bool = True
+    # Acceptance of a landed match. The paper rejects a match "as the corresponding likelihood
+    # will significantly lower the weight of the particle": reject_if_weight_drops re-weights the
+    # particle at the carried-forward pose and keeps its old state if the log-likelihood fell.
+    reject_if_weight_drops: bool = False
+    # A start already within the BnB lattice of the truth is refined by GICP and accepted if it
+    # then beats its own score (not in the paper: there an unbeaten start is simply rejected).
+    refine_unbeaten_start: bool = True
     # Real-time clock only: once localized, start an S2M match at most every this many scans
     # (10 ≈ 1 Hz), leaving the CPU to the PF and the RPE, which must keep the LiDAR rate. 0 = back
     # to back, as before localization and always in replay.
@@ -128,16 +156,36 @@ class LocalizeConfig:
     tracking: bool = False
     tracking_particles: int = 300
     tracking_region: float = 10.0      # m, S2M search half-width in x and y while tracking
+    # Confidence ("is it lost?"): an event when, while localized, the share of scan points within
+    # d_max of the map at the estimate falls below this.
+    min_inlier_share: float = 0.5
+    # De-skew each scan before the filter with the constant-velocity motion from the odometry
+    # (per-point times from the azimuth, a spinning LiDAR's sweep of 1/rate seconds).
+    deskew: bool = False
 
 
 @dataclass
 class TownConfig:
-    """The built-in generated town and its simulated HDL-64E drive."""
+    """The built-in generated town and its simulated drive.
+
+    The prior map is always made from the mapping drive: the whole route, the town as it was
+    (no changes, no traffic), scanned by an HDL-64E at 1.73 m without motion skew. The options
+    below change only the world and the sensor of the drive being localized."""
 
     seed: int = 0
     size: float = 400.0                # m, side of the square town
     n_scans: int = 1200                # scans in the default drive (10 Hz)
     rate_hz: float = 10.0
+    changes: float = 0.0               # share of movable objects (parked cars, bins, signs) moved,
+                                       # removed or added, and of vegetation grown or cut, since mapping
+    traffic: bool = False              # moving cars, cyclists and pedestrians (never in the map)
+    sensor: str = "hdl64e"             # hdl64e | vlp16 | vlp32c | os1-128
+    mount_height: float = 1.73         # m, sensor above the road
+    skew: bool = False                 # each scan swept over 1/rate_hz while moving (not de-skewed)
+    route: int = 1                     # 1 = the mapping drive's route; 2 = another drive, same streets
+
+
+TOWN_SENSORS = ("hdl64e", "vlp16", "vlp32c", "os1-128")
 
 
 @dataclass
@@ -160,6 +208,20 @@ class Config:
             (len(self.pf.q_std) == 11, "pf.q_std must have 11 entries"),
             (all(q >= 0 and math.isfinite(q) for q in self.pf.q_std), "pf.q_std entries must be finite and ≥ 0"),
             (0 < self.pf.resample_threshold <= 1, "pf.resample_threshold must be in (0, 1]"),
+            (self.pf.temperature == 0 or self.pf.temperature >= 1,
+             "pf.temperature must be ≥ 1 (1 = the paper's likelihood) or 0 (per-point mean)"),
+            (0 <= self.pf.unexplained_share < 1, "pf.unexplained_share must be in [0, 1)"),
+            (self.pf.dynamic_distance > 0, "pf.dynamic_distance must be > 0"),
+            (self.pf.dynamic_scans >= 1, "pf.dynamic_scans must be ≥ 1"),
+            (0 < self.pf.kld_epsilon < 1, "pf.kld_epsilon must be in (0, 1)"),
+            (self.pf.kld_z > 0, "pf.kld_z must be > 0"),
+            (self.pf.kld_bin_xy > 0 and self.pf.kld_bin_yaw > 0, "pf.kld_bin_xy/kld_bin_yaw must be > 0"),
+            (1 <= self.pf.kld_min, "pf.kld_min must be ≥ 1"),
+            (0 <= self.localize.min_inlier_share <= 1, "localize.min_inlier_share must be in [0, 1]"),
+            (0 <= self.town.changes <= 1, "town.changes must be in [0, 1]"),
+            (self.town.sensor in TOWN_SENSORS, f"town.sensor must be one of {'|'.join(TOWN_SENSORS)}"),
+            (0.3 <= self.town.mount_height <= 5, "town.mount_height must be in 0.3..5 m"),
+            (self.town.route in (1, 2), "town.route must be 1 or 2"),
             (self.pf.init_mode in ("uniform_box", "map_support"), "pf.init_mode must be uniform_box or map_support"),
             (self.map.voxel_size > 0, "map.voxel_size must be > 0"),
             (0 < self.map.road_normal_z <= 1, "map.road_normal_z must be in (0, 1]"),
@@ -248,9 +310,35 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     return cfg
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Defaults, then a YAML/TOML file (if given), then ``section.key=value`` overrides; validated."""
-    cfg = Config()
+# Named configurations (``--preset NAME``), applied over the defaults before a config file and
+# ``--set``. "paper" pins every choice of the paper's experiment, so that it stays the paper's
+# method whatever the defaults become: its likelihood untempered and without an unexplained-point
+# term, all points used, a fixed particle count, S2M searching ±(L_x, L_y) around the best
+# particle from the first scan, a match accepted only if BnB beat the start and the particle's
+# weight does not drop, scans used as they come. "default" is the defaults themselves.
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "paper": {
+        "pf.temperature": 1.0, "pf.unexplained_share": 0.0, "pf.dynamic_rejection": False, "pf.kld": False,
+        "s2m.global_until_localized": False, "s2m.reject_if_weight_drops": True,
+        "s2m.refine_unbeaten_start": False, "localize.deskew": False,
+    },
+}
+
+
+def apply_preset(cfg: Config, name: str | None) -> Config:
+    if name is None:
+        return cfg
+    if name not in PRESETS:
+        raise LidarlocError(f"invalid configuration: unknown preset '{name}' (choose {'|'.join(PRESETS)})")
+    return apply_overrides(cfg, [f"{key}={value}" for key, value in PRESETS[name].items()])
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None,
+                preset: str | None = None) -> Config:
+    """Defaults, then a preset (if named), then a YAML/TOML file (if given), then
+    ``section.key=value`` overrides; validated."""
+    cfg = apply_preset(Config(), preset)
     if path is not None:
         path = Path(path)
         if not path.is_file():

@@ -26,9 +26,31 @@ odometry instead of waiting for scan k's, so KISS-ICP and the PF overlap across 
 The blocks around the scan loop: :class:`~lidarloc.core.odometry.OdometryFeed` feeds the RPE,
 :class:`~lidarloc.core.s2m_schedule.S2MScheduler` starts, lands and cancels the S2M matches.
 
+The prior map is built from the sequence's ``map_source`` (the whole mapping drive: ``--scans N``
+plays N scans inside it, and the generated town's drive with changes, traffic or another sensor
+is localized in the town as it was mapped), never from the scans being localized alone.
+
+Confidence: after each scan the localizer measures how well the scan fits the map at the
+estimate (the share of prepared scan points within d_max of the map and their mean distance,
+:func:`~lidarloc.core.likelihood.residual_stats`, one pose: well under a millisecond) and, with
+the particles' spread and N_eff, reports it in the snapshot and the per-scan record (see
+:mod:`lidarloc.core.snapshot`). A ``confidence_low`` event marks the scan at which, while
+localized, the inlier share drops below ``localize.min_inlier_share``; it fires once and is
+re-armed when the share recovers or localization ends.
+
+De-skew (``localize.deskew``): a spinning LiDAR measures its points over a whole sweep while the
+car moves. Each scan is moved into its mid-sweep frame (:mod:`lidarloc.core.deskew`) before the
+PF, the RPE and S2M see it, assuming the motion of the newest known odometry step (constant
+velocity over one sweep; the scan's own odometry is not known yet when it arrives). The first two
+scans after a (re)start of the odometry have no such step and are used as they come. Recorded
+odometry (``localize.recorded_odometry``) is KISS-ICP's over the scans as they come, so with
+de-skewing it differs slightly from the live odometry, which registers the de-skewed scans.
+
 Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
-usual but protect the S2M particle's slot (the PF's ``protect`` argument), which keeps the
-particle intact without starving the filter of resampling while S2M runs back to back.
+usual but protect the S2M particle (the PF's ``protect`` argument), which keeps the particle
+intact without starving the filter of resampling while S2M runs back to back. With KLD-sampling
+(``pf.kld``) a resampling may change the particle count and move the protected particle to
+another slot: the match in flight follows it (``pf.protected_index``) instead of being cancelled.
 
 Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
 KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
@@ -57,6 +79,7 @@ from .config import LIVE_PARAMS, Config, check_live_changes
 from .errors import LidarlocError
 from .geometry import transform_points
 from .mapping import load_or_build_map
+from .metrics import inside_2sigma
 from .odometry import OdometryFeed
 from .rpe import load_or_build_odometry
 from .rules import LocalizationRules
@@ -88,8 +111,11 @@ class Localizer:
         self.seq, self.cfg = seq, cfg
         self.n_scans = len(seq)
         self._progress = progress or (lambda stage, frac: None)
+        # The prior map comes from the sequence's mapping drive, not from the scans being
+        # localized (``--scans N`` plays N scans inside the whole drive's map; the town's drive
+        # with changes, traffic or another sensor inside the town as it was mapped).
         self.prior_map, self.map_dir, _ = load_or_build_map(
-            seq, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n))
+            seq.map_source, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n))
         self._progress("lookup", 0.0)
         self.lookup = load_or_build_lookup(self.prior_map, self.map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max,
                                            progress=lambda f: self._progress("lookup", f)).value
@@ -99,8 +125,12 @@ class Localizer:
         if cfg.localize.recorded_odometry:
             self._progress("odometry", 0.0)
             recorded_odometry = load_or_build_odometry(
-                seq, self.map_dir, progress=lambda f: self._progress("odometry", f)).value
+                seq, self.odometry_cache_dir, progress=lambda f: self._progress("odometry", f)).value
         self._PF = ParticleFilter
+        # one LiDAR sweep lasts one scan interval (a spinning sensor reports a scan per turn)
+        gaps = np.diff(np.asarray(seq.timestamps, dtype=np.float64))
+        gaps = gaps[gaps > 0]
+        self._sweep_period = float(np.median(gaps)) if gaps.size else float(cfg.pf.dt)
         bmin, bmax = self.prior_map.bounds
         self._bounds = (np.asarray(bmin, float), np.asarray(bmax, float))
         self._lock = threading.RLock()
@@ -139,6 +169,7 @@ class Localizer:
             self.records: list[ScanRecord] = []
             self.est_trajectory: list[np.ndarray] = []
             self._prev_t: float | None = None
+            self._confidence_armed = True    # confidence_low may fire (see _scan_fit)
             self._snapshot: Snapshot | None = None
             self._snapshot = self._make_snapshot(-1, None, 0.0, None)
 
@@ -313,6 +344,13 @@ class Localizer:
             return {key: getattr(getattr(self.cfg, p.section), p.attr) for key, p in LIVE_PARAMS.items()}
 
     @property
+    def odometry_cache_dir(self) -> Path:
+        """Where the localized drive's recorded odometry is cached: a sibling of the map's
+        directory named after the drive (several drives share one map; a map rebuild, which
+        replaces its own directory, leaves it alone)."""
+        return self.map_dir.with_name(f"{self.map_dir.name}-drive-{self.seq.cache_key()}")
+
+    @property
     def effective_d_max(self) -> float:
         """The likelihood's distance cap: the configured d_max, clamped to the one the lookup
         table was built for (a larger one is being rebuilt in the background meanwhile)."""
@@ -351,6 +389,8 @@ class Localizer:
         t = self.seq.timestamp(k)
         dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
         self._prev_t = t
+        if self.cfg.localize.deskew:
+            scan = self._deskew(k, scan)
         # RPE starts now and overlaps with the PF work below.
         self.odometry.submit(k, scan, t)
 
@@ -365,6 +405,7 @@ class Localizer:
         t1 = time.perf_counter()
         # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
         est = self.pf.estimate()
+        n_weighed = self.pf.n
         pf_s += time.perf_counter() - t1
 
         step_dist, yaw_odom = self.odometry.motion(k)
@@ -376,6 +417,7 @@ class Localizer:
             self._reinitialize(k=k, why=f"re-initialised after a {outcome.event.replace('_', ' ')}")
             reinit = True
             est = self.pf.estimate()
+            n_weighed = self.pf.n
         else:
             entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
             if entering_tracking:    # resamples down: est.best_index no longer names a particle
@@ -387,12 +429,16 @@ class Localizer:
                 self.s2m.start(k, j, self.pf.states[j], scan, self.rules.localized)
             t2 = time.perf_counter()
             self.pf.resample_if_needed(protect=self.s2m.protected_particle)
+            # KLD-sampling may shrink the count below the protected slot: the filter moves that
+            # particle, and the match lands where it went
+            self.s2m.follow_particle(self.pf.protected_index)
             pf_s += time.perf_counter() - t2
         pf_ms = pf_s * 1000.0
+        fit = self._scan_fit(k, est, prepared)
 
         self.k += 1
         self.steps += 1
-        snap = self._make_snapshot(k, prepared, pf_ms, est)
+        snap = self._make_snapshot(k, prepared, pf_ms, est, n_weighed, fit)
         self.est_trajectory.append(est.pose)
         self.records.append(ScanRecord.from_snapshot(snap, s2m_ms, reinit))
         self._snapshot = snap
@@ -408,6 +454,17 @@ class Localizer:
         return self._snapshot
 
     # ------------------------------------------------------------------------ blocks
+    def _deskew(self, k: int, scan: np.ndarray) -> np.ndarray:
+        """Scan k moved into its mid-sweep frame with the newest known odometry step's constant
+        velocity (see the module docstring); as it comes while no step is known."""
+        from .deskew import deskew, sweep_offsets, twist_from_relative_pose
+
+        step = self.odometry.last_step(k)
+        if step is None:
+            return scan
+        velocity, angular_velocity = twist_from_relative_pose(*step)
+        return deskew(scan, sweep_offsets(scan, self._sweep_period), velocity, angular_velocity)
+
     def _wait(self, future: Future, block: str, k: int):
         while not future.done():
             if self._interrupt.is_set():     # step() refuses further steps until restart()
@@ -481,12 +538,38 @@ class Localizer:
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
 
-    def _make_snapshot(self, k: int, prepared, pf_ms: float, est) -> Snapshot:
+    def _scan_fit(self, k: int, est, prepared: np.ndarray) -> tuple[float, float | None]:
+        """How well the scan fits the map at the estimate: (inlier share, mean residual m), see
+        :func:`~lidarloc.core.likelihood.residual_stats`. Records a ``confidence_low`` event when,
+        while localized, the inlier share falls below ``localize.min_inlier_share``: once, until
+        it recovers or localization ends (a new localization may fire it again)."""
+        from .likelihood import residual_stats
+
+        share, residual = residual_stats(est.state[:6], prepared, self.lookup, self.effective_d_max)
+        share, residual = float(share), (float(residual) if np.isfinite(residual) else None)   # None: no inlier
+        low = share < self.cfg.localize.min_inlier_share
+        if self.rules.localized and low:
+            if self._confidence_armed:
+                self._event(k, "confidence_low", f"inlier share {share:.2f} < "
+                            f"{self.cfg.localize.min_inlier_share:g}"
+                            + ("" if residual is None else f", mean residual {residual:.2f} m"))
+                self._confidence_armed = False
+        else:
+            self._confidence_armed = True
+        return share, residual
+
+    def _make_snapshot(self, k: int, prepared, pf_ms: float, est, n_weighed: int | None = None,
+                       fit: tuple[float, float | None] | None = None) -> Snapshot:
+        """The snapshot after scan k (-1: none yet). ``n_weighed``: the particles the estimate
+        ``est`` was computed from; ``fit``: :meth:`_scan_fit`'s (inlier share, mean residual)."""
         if est is None:
             est = self.pf.estimate()
+            n_weighed = self.pf.n
         mean_T = est.pose
         gt = self.seq.pose(k) if k >= 0 and self.seq.has_poses else None
         err = None if gt is None else float(np.linalg.norm(mean_T[:3, 3] - gt[:3, 3]))
+        inside = None if gt is None else inside_2sigma(mean_T[:2, 3] - gt[:2, 3], est.cov_xyz[:2, :2])
+        share, residual = (None, None) if fit is None else fit
         scan_world = (np.zeros((0, 3), np.float32) if prepared is None
                       else transform_points(mean_T, prepared).astype(np.float32))
         return Snapshot(
@@ -496,4 +579,7 @@ class Localizer:
             n_eff=float(est.n_eff), localized=self.rules.localized, localized_since=self.rules.localized_since,
             scan_world=scan_world, gt_pose=gt, error_m=err, pf_ms=pf_ms, s2m=self.s2m.last,
             s2m_running=self.s2m.job is not None, s2m_acceptance=self.s2m.acceptance,
+            n_particles=int(n_weighed if n_weighed is not None else len(self.pf.states)),
+            converged=bool(np.all(est.std_xyz < self.cfg.localize.std_threshold)),
+            inlier_share=share, mean_residual_m=residual, inside_2sigma=inside,
             events=tuple(self.events[-50:]), done=self.k >= self.n_scans)

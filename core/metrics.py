@@ -15,10 +15,20 @@ counts as a failure in aggregates (never as missing data).
 
 A window that runs past the end of the sequence does not count as met (the condition must be
 observed for the whole window).
+
+Beyond the paper, whether the filter's confidence can be trusted (:func:`confidence_metrics`):
+
+- consistency_2sigma: the share of localized scans whose true x-y error lies inside the filter's
+  own 2σ ellipse (Mahalanobis distance ≤ 2 under the particles' x-y covariance). A filter whose
+  covariance is honest scores near 0.86 (the probability mass of a 2-D Gaussian within 2σ); one
+  collapsed onto a single particle scores near 0 however small its error.
+- false_fire: whether the localization rule was met (a "localized" onset) at a scan whose true
+  error was above 5 m (the metrics' own "within 5 m" bound).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,3 +98,53 @@ def aggregate(per_run: list[dict]) -> dict:
             return v if np.isfinite(v) else None
         out[key] = {"median": stat(50), "p75": stat(75), "max": stat(100), "success": success}
     return out
+
+
+# ------------------------------------------------------------------------------ confidence
+#: An onset of "localized" farther than this from the truth is a false fire (m); the same bound
+#: as metrics C and D.
+FALSE_FIRE_M = 5.0
+#: Variance added to the x-y covariance before inverting it (m²): a filter collapsed onto one
+#: particle has a singular covariance; with this its ellipse is a 2 mm disc, not undefined.
+COV_JITTER_M2 = 1e-6
+
+
+def mahalanobis_xy(error_xy, cov_xy) -> float:
+    """Mahalanobis distance of an x-y error (estimate − truth, m) under a 2×2 covariance (m²)."""
+    e = np.asarray(error_xy, dtype=np.float64).reshape(2)
+    c = np.asarray(cov_xy, dtype=np.float64).reshape(2, 2) + COV_JITTER_M2 * np.eye(2)
+    d2 = float(e @ np.linalg.solve(c, e))
+    return math.sqrt(max(d2, 0.0))
+
+
+def inside_2sigma(error_xy, cov_xy) -> bool:
+    """Whether the truth lies inside the 2σ ellipse of the estimate (Mahalanobis distance ≤ 2)."""
+    return mahalanobis_xy(error_xy, cov_xy) <= 2.0
+
+
+def confidence_metrics(localized, error_m, inside) -> dict:
+    """``consistency_2sigma`` and ``false_fire`` of one run (see the module docstring), from
+    per-scan arrays: the localized flag, the 3D error (NaN where no truth) and inside_2sigma (None
+    or NaN where no truth). Both are None without truth; consistency also without a localized
+    scan."""
+    localized = np.asarray(localized, dtype=bool)
+    err = np.asarray(error_m, dtype=float)
+    inside = np.array([np.nan if v is None else float(v) for v in inside], dtype=float)
+    if not np.isfinite(err).any():
+        return {"consistency_2sigma": None, "false_fire": None}
+    judged = localized & np.isfinite(inside)
+    consistency = float(inside[judged].mean()) if judged.any() else None
+    onset = localized & ~np.r_[False, localized[:-1]]
+    onset_err = err[onset]
+    false_fire = bool(np.any(onset_err[np.isfinite(onset_err)] > FALSE_FIRE_M))
+    return {"consistency_2sigma": consistency, "false_fire": false_fire}
+
+
+def aggregate_confidence(summaries: list[dict]) -> dict:
+    """Over runs (their summary.json dicts): ``consistency_2sigma``, the median of the runs' own
+    values, and ``false_fire_rate``, the share of runs whose rule fired more than 5 m from the
+    truth. Runs without a value (no truth, or never localized) are left out; None if none has one."""
+    cons = [float(s["consistency_2sigma"]) for s in summaries if s.get("consistency_2sigma") is not None]
+    fires = [bool(s["false_fire"]) for s in summaries if s.get("false_fire") is not None]
+    return {"consistency_2sigma": float(np.median(cons)) if cons else None,
+            "false_fire_rate": float(np.mean(fires)) if fires else None}

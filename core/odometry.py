@@ -9,6 +9,7 @@ odometry (``localize.recorded_odometry``) no ICP runs at all: the poses come fro
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from typing import Any, Callable
@@ -36,6 +37,7 @@ class OdometryFeed:
         self.process: KissICPProcess | None = None    # the KISS-ICP child, once started
         self.rpe: RelativePoseEstimator | None = None
         self.futures: dict[int, Future] = {}          # registrations by scan
+        self._times: dict[int, float] = {}            # timestamps of the submitted scans
         self.origin = 0                 # first scan the current KISS-ICP run has seen
         self.used: int | None = None    # last odometry scan the rules consumed (real time)
 
@@ -54,6 +56,7 @@ class OdometryFeed:
                 pass
         self.rpe = self._new_rpe()
         self.futures.clear()
+        self._times.clear()
         self.origin = origin
         self.used = None
 
@@ -71,6 +74,7 @@ class OdometryFeed:
     def submit(self, k: int, scan: np.ndarray, t: float) -> None:
         """Register scan k in the background."""
         self.futures[k] = self._pool.submit(self._add, self.rpe, k, scan, t)
+        self._times[k] = float(t)
 
     def _add(self, rpe, k, scan, t):
         rpe.add(k, scan, t)
@@ -113,6 +117,7 @@ class OdometryFeed:
             latest = k
         for old in [i for i in self.futures if i < k - 200]:
             del self.futures[old]
+            self._times.pop(old, None)
         yaw = float(euler_zyx(self.rpe.odom_pose(latest)[:3, :3])[0])
         prev = latest - 1 if self.cfg.localize.clock != "realtime" else self.used
         self.used = latest
@@ -121,6 +126,27 @@ class OdometryFeed:
         if prev == latest - 1:
             return float(np.linalg.norm(self.rpe.relative(prev, latest)[:3, 3])), yaw
         return self.rpe.moved_since(prev, latest), yaw
+
+    def last_step(self, k: int) -> tuple[np.ndarray, float] | None:
+        """The newest known motion before scan k, for a constant-velocity guess of scan k's:
+        (T_{i−1←i}, the pose of scan i in scan i−1's frame, and the seconds between them), for
+        the newest registered i < k whose predecessor is registered too; None if there is none
+        yet (the first two scans after a (re)start). Never waits: replay uses i = k − 1, which
+        the rules' ``motion(k − 1)`` already waited for, so a seed still fixes the result; real
+        time takes the newest registration that is done."""
+        for i in range(k - 1, self.origin, -1):
+            fut = self.futures.get(i)
+            if fut is None or not fut.done():
+                if self.cfg.localize.clock != "realtime":
+                    return None
+                continue
+            if fut.exception() is not None or not (self.rpe.has(i) and self.rpe.has(i - 1)):
+                return None          # a failed registration surfaces where the rules wait for it
+            dt = self._times.get(i, math.nan) - self._times.get(i - 1, math.nan)
+            if not dt > 0:
+                return None
+            return self.rpe.relative(i - 1, i), float(dt)
+        return None
 
     def close_process(self) -> None:
         """Close the KISS-ICP child (a busy one is killed: its registration would be thrown away)."""

@@ -25,6 +25,24 @@ Choices where the paper is silent, kept explicit:
 - Weights that are exactly 0.0 in float64 are floored in log space (likelihood.py,
   log_likelihood_floored), which makes the weight update several times faster; see there.
 - Process noise Q is applied once per step as the paper states it (not scaled by dt).
+
+Options beyond the paper (all off at the defaults, where the filter is the paper's, bit for bit):
+
+- Likelihood shape, ``cfg.temperature`` and ``cfg.unexplained_share``: see likelihood.py. The
+  temperature :data:`~lidarloc.core.likelihood.PER_POINT` (0) divides by the number of points
+  the scan is weighed with (after dynamic-point rejection). reweight() uses the same T as the
+  update of the same scan, so a particle's ll_new − ll_old stays consistent.
+- Dynamic-point rejection, ``cfg.dynamic_rejection``: update() leaves out the points
+  :class:`~lidarloc.core.dynamic.DynamicPointFilter` rejects at the prior estimate (the weighted
+  mean of the predicted particles), but only while the particles' x/y std is below
+  ``dynamic.MAX_SPREAD`` (a spread cloud's mean is no pose to judge the world by); otherwise
+  the history is forgotten. reweight() with the same scan array weighs the same subset.
+- KLD-sampling, ``cfg.kld``: each resampling draws ``cfg.n_particles`` by systematic resampling
+  in a random order and keeps the shortest prefix Fox's bound accepts (core/kld.py), so the
+  count falls to a few hundred once the cloud has converged and rises again when it spreads
+  (up to ``cfg.n_particles``). initialize() always starts from ``cfg.n_particles``. The
+  protected particle keeps its slot if the new count still has it, else it takes the last slot:
+  ``protected_index`` says where it is. ``kld_bins`` is the bin count of the last KLD resampling.
 """
 
 from __future__ import annotations
@@ -38,7 +56,9 @@ import numpy as np
 from .config import PFConfig
 from .errors import LidarlocError
 from .geometry import pose_matrix, pose_to_xyz_ypr, wrap_angle
-from .likelihood import log_likelihood, log_likelihood_floored, scrambled_order
+from .dynamic import MAX_SPREAD, DynamicPointFilter
+from .kld import bin_keys, kld_count
+from .likelihood import check_shape, effective_temperature, log_likelihood, log_likelihood_floored, scrambled_order
 from .lookup import LookupTable
 from .motion import N_STATE, propagate
 
@@ -160,7 +180,14 @@ class ParticleFilter:
         self.states = np.zeros((self.n, N_STATE))
         self.log_weights = np.full(self.n, -math.log(self.n))
         self.log_likelihoods = np.zeros(self.n)   # of the last update, per particle
-        self._scan: np.ndarray | None = None
+        self._scan: np.ndarray | None = None      # the points the last update weighed with
+        self._scan_input = None                   # the array update() was given (see reweight)
+        self._temperature = 1.0                   # effective T of the last update
+        self.protected_index: int | None = None   # where the last resampling put the protected particle
+        self.kld_bins: int | None = None          # occupied bins at the last KLD resampling
+        check_shape(cfg.temperature, cfg.unexplained_share)
+        self.dynamic = (DynamicPointFilter(lookup, cfg.dynamic_distance, cfg.dynamic_scans)
+                        if cfg.dynamic_rejection else None)
         self.initialize()
 
     # ------------------------------------------------------------------------ parameters
@@ -203,6 +230,8 @@ class ParticleFilter:
         """Use another lookup table (e.g. rebuilt for a larger d_max) from the next update on."""
         self.lookup = lookup
         self._d_max = min(self._d_max_requested, lookup.d_max_built)
+        if self.dynamic is not None:
+            self.dynamic.set_lookup(lookup)
 
     # ------------------------------------------------------------------------ initialisation
     @property
@@ -221,8 +250,12 @@ class ParticleFilter:
         - ``pose`` (4×4): Gaussian around it with ``pose_std`` = 6 stds for x, y, z, yaw,
           pitch, roll (or one number: the x, y std; default DEFAULT_POSE_STD).
         ``speed``: initial speed for every particle instead of uniform [0, v_max].
+        With KLD-sampling the count goes back to ``cfg.n_particles`` (a fresh cloud is spread).
         """
-        cfg, n, rng = self.cfg, self.n, self.rng
+        cfg, rng = self.cfg, self.rng
+        if cfg.kld:
+            self.n = int(cfg.n_particles)
+        n = self.n
         s = np.zeros((n, N_STATE))
         if pose is not None:
             mean = pose_to_xyz_ypr(np.asarray(pose, dtype=np.float64))
@@ -263,6 +296,9 @@ class ParticleFilter:
         self.states = s
         self.log_weights = np.full(n, -math.log(n))
         self.log_likelihoods = np.zeros(n)
+        self.protected_index = None
+        if self.dynamic is not None:
+            self.dynamic.reset()     # the far cells were judged at an estimate now discarded
 
     # ------------------------------------------------------------------------ filtering
     def predict(self, dt: float) -> None:
@@ -274,11 +310,34 @@ class ParticleFilter:
         pts = np.asarray(scan)
         if pts.ndim != 2 or pts.shape[1] < 3:
             raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+        self._scan_input = scan
         self._scan = np.ascontiguousarray(pts[:, :3], dtype=np.float32)
-        ll = log_likelihood_floored(self.states, self._scan, self.lookup, self._d_max, self._sigma, self.log_weights)
+        if self.dynamic is not None:
+            self._scan = self._reject_dynamic(self._scan)
+        cfg = self.cfg
+        self._temperature = effective_temperature(cfg.temperature, len(self._scan))
+        ll = log_likelihood_floored(self.states, self._scan, self.lookup, self._d_max, self._sigma, self.log_weights,
+                                    temperature=self._temperature, unexplained_share=cfg.unexplained_share)
         self.log_likelihoods = ll
         self.log_weights = self.log_weights + ll
         self._normalise()
+
+    def _reject_dynamic(self, pts: np.ndarray) -> np.ndarray:
+        """The points of the scan the dynamic-point filter keeps, judged at the prior estimate
+        (every point while the cloud is too spread for its mean to be a pose)."""
+        w = self.weights
+        xy = self.states[:, :2]
+        mean_xy = w @ xy
+        spread = float(np.sqrt(np.max(w @ (xy - mean_xy) ** 2)))
+        if not spread < MAX_SPREAD:
+            self.dynamic.reset()
+            return pts
+        pose = np.empty(6)
+        pose[:3] = w @ self.states[:, :3]
+        angles = self.states[:, 3:6]
+        pose[3:] = np.arctan2(w @ np.sin(angles), w @ np.cos(angles))
+        keep = self.dynamic.keep_mask(pts, pose)
+        return pts if keep.all() else np.ascontiguousarray(pts[keep])
 
     def _normalise(self) -> None:
         lw = self.log_weights
@@ -296,17 +355,32 @@ class ParticleFilter:
 
     def resample_if_needed(self, protect: int | None = None) -> bool:
         """Systematic resampling when N_eff < resample_threshold · N. ``protect``: a particle
-        index that survives unchanged at the same index. Returns whether it resampled."""
-        if self.n_eff() >= self.cfg.resample_threshold * self.n:
-            return False
-        idx = systematic_resample(self.weights, self.n, self.rng)
+        index that survives unchanged; afterwards ``protected_index`` is where it is (its own
+        index, except when KLD-sampling shrank the count below it: then the last slot).
+        Returns whether it resampled."""
         if protect is not None:
             protect = int(protect)
             if not 0 <= protect < self.n:
                 raise LidarlocError(f"protected particle {protect} out of range (N = {self.n})")
-            idx[protect] = protect
+        self.protected_index = protect
+        if self.n_eff() >= self.cfg.resample_threshold * self.n:
+            return False
+        cfg = self.cfg
+        if cfg.kld:
+            n_max = int(cfg.n_particles)
+            # a random order makes every prefix of the systematic draw a fair sample (module docstring)
+            idx = systematic_resample(self.weights, n_max, self.rng)[self.rng.permutation(n_max)]
+            n_new, self.kld_bins = kld_count(bin_keys(self.states[idx], cfg.kld_bin_xy, cfg.kld_bin_yaw),
+                                             cfg.kld_epsilon, cfg.kld_z, cfg.kld_min, n_max)
+            idx = idx[:n_new]
+        else:
+            idx = systematic_resample(self.weights, self.n, self.rng)
+        if protect is not None:
+            self.protected_index = protect if protect < len(idx) else len(idx) - 1
+            idx[self.protected_index] = protect
         self.states = self.states[idx]
         self.log_likelihoods = self.log_likelihoods[idx]
+        self.n = len(idx)
         self.log_weights = np.full(self.n, -math.log(self.n))
         return True
 
@@ -320,6 +394,7 @@ class ParticleFilter:
         self.log_likelihoods = self.log_likelihoods[idx]
         self.n = n
         self.log_weights = np.full(n, -math.log(n))
+        self.protected_index = None
 
     def set_particle(self, j: int, state) -> None:
         """Overwrite particle j's state (S2M sample update); call reweight(j) after."""
@@ -329,15 +404,22 @@ class ParticleFilter:
 
     def reweight(self, j: int, scan: np.ndarray | None = None) -> float:
         """Recompute particle j's likelihood for the current scan (or ``scan``, which then
-        becomes the current scan) and swap it into its log-weight; returns the new log-likelihood."""
-        if scan is not None:
+        becomes the current scan) and swap it into its log-weight; returns the new log-likelihood.
+
+        ``scan`` being the very array the last update() weighed (the same object) keeps that
+        update's points (after dynamic-point rejection) and temperature; another array is used
+        whole, with the temperature recomputed for its point count."""
+        if scan is not None and scan is not self._scan_input:
+            self._scan_input = scan
             self._scan = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)
+            self._temperature = effective_temperature(self.cfg.temperature, len(self._scan))
         if self._scan is None:
             raise LidarlocError("reweight needs a scan: call update() first or pass one")
         j = int(j)
         # same point order as update() sums in, so that ll_new − ll_old has no rounding offset
         pts = self._scan[scrambled_order(len(self._scan))]
-        ll = float(log_likelihood(self.states[j:j + 1], pts, self.lookup, self._d_max, self._sigma)[0])
+        ll = float(log_likelihood(self.states[j:j + 1], pts, self.lookup, self._d_max, self._sigma,
+                                  temperature=self._temperature, unexplained_share=self.cfg.unexplained_share)[0])
         self.log_weights[j] += ll - self.log_likelihoods[j]
         self.log_likelihoods[j] = ll
         self._normalise()

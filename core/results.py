@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from .errors import LidarlocError
 from .geometry import wrap_angle
-from .metrics import ScanLog, compute_metrics
+from .metrics import ScanLog, compute_metrics, confidence_metrics
 
 if TYPE_CHECKING:
     from .localizer import Localizer
@@ -116,10 +116,14 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
 
 # --------------------------------------------------------------------------------- run summary
 def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None,
-                  cpu_s: dict | None = None) -> dict:
+                  cpu_s: dict | None = None, preset: str | None = None) -> dict:
     """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
     after its arrival time its step started. ``cpu_s``: CPU seconds each block's process used
-    during the run (differences of :meth:`Localizer.cpu_seconds`)."""
+    during the run (differences of :meth:`Localizer.cpu_seconds`). ``preset``: the named
+    configuration the run started from (``--preset``; None = the defaults), recorded as given.
+
+    ``world`` is the generated town's world options (changes, traffic, sensor, …; None for other
+    sources); ``consistency_2sigma`` and ``false_fire`` are :func:`~lidarloc.core.metrics.confidence_metrics`."""
     recs = loc.records
     localized = np.array([r.localized for r in recs], dtype=bool)
     err = np.array([np.nan if r.error_m is None else r.error_m for r in recs], dtype=float)
@@ -131,9 +135,14 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
     pf_ms = np.array([r.pf_ms for r in recs], dtype=float)
     s2m_ms = np.array([r.s2m_ms for r in recs if r.s2m_ms is not None], dtype=float)
     kinds = [e.kind for e in loc.events]
+    confidence = confidence_metrics(localized, err, [r.inside_2sigma for r in recs])
+    n_particles = np.array([r.n_particles for r in recs], dtype=float)
+    world_options = getattr(loc.seq, "world_options", None)   # only the generated town has one
     return {
         "source": loc.seq.name, "seed": loc.cfg.seed, "scans": len(recs), "clock": loc.cfg.localize.clock,
+        "preset": preset, "world": world_options() if callable(world_options) else None,
         "s2m": loc.cfg.s2m.enabled, "particles": loc.cfg.pf.n_particles,
+        "n_particles_median": float(np.median(n_particles)) if n_particles.size else None,
         "localized_at_scan": first_loc,
         "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
         "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
@@ -145,6 +154,7 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         "s2m_accepted": kinds.count("s2m_accepted"),
         "s2m_cancelled": kinds.count("s2m_cancelled"),
         "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        **confidence,
         **lag_summary(lags_ms),
         **cpu_summary(cpu_s, len(recs), wall_s),
         "metrics": metrics,

@@ -12,7 +12,8 @@ from the outset and a start that nothing beats is rejected quickly. The translat
 anchored at the start, the yaw lattice is the paper's world-fixed θ_r = −π + r·d_θ (see
 :func:`m3rsm.match` for why that matters for starts already near the truth).
 
-Beyond the paper (``refine_unbeaten``, on by default): a start within the BEV's resolution of the
+Beyond the paper (``s2m.refine_unbeaten_start``, on by default; off in the ``paper`` preset): a
+start within the BEV's resolution of the
 truth is usually not beaten by any lattice pose — on the built-in town a best particle 0.3 m and
 0.2° from the truth scored 3405, the best lattice pose 3373 (exhaustive search agrees) — so the
 paper's rule rejects it and GICP never gets to refine it. Then the start itself is refined by
@@ -106,12 +107,13 @@ class ScanToMapMatcher:
 
     def __init__(self, prior_map, pyramid: BEVPyramid, s2m_cfg: S2MConfig | None = None,
                  map_cfg: MapConfig | None = None, gicp_backend: str = "small_gicp",
-                 refine_unbeaten: bool = True):
+                 refine_unbeaten: bool | None = None):
         """``refine_unbeaten``: when no lattice pose beats the start (the start is already within the
         BEV's d_m / d_θ of the best it can tell), refine the start itself by GICP and accept that
         if its BEV score beats the start's — see the module docstring. False = the paper's rule
-        only."""
-        self.refine_unbeaten = bool(refine_unbeaten)
+        only. None (default): as the settings in use say (``s2m.refine_unbeaten_start`` of
+        ``self.cfg``, which the localizer replaces with its live settings at every match)."""
+        self.refine_unbeaten = None if refine_unbeaten is None else bool(refine_unbeaten)
         self.cfg = s2m_cfg or S2MConfig()
         self.map_cfg = map_cfg or MapConfig()
         if abs(pyramid.resolution - self.cfg.match_resolution) > 1e-9:
@@ -192,7 +194,8 @@ class ScanToMapMatcher:
             init = pose_matrix(result.x, result.y, z, result.yaw, pitch, roll)
             return self._refine(init, prep, result, start_score, start_pose, t0, timings)
         reason = "no pose in the search region scores higher than the start pose"
-        if self.refine_unbeaten:
+        refine = cfg.refine_unbeaten_start if self.refine_unbeaten is None else self.refine_unbeaten
+        if refine:
             refined = self._refine(start_pose, prep, result, start_score, start_pose, t0, timings)
             if refined.accepted:
                 rx, ry, _, ryaw, _, _ = pose_to_xyz_ypr(refined.pose)

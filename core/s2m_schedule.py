@@ -4,7 +4,9 @@ result lands in the particle filter, and when it is cancelled.
 One match is in flight at a time. It starts at scan k₀ from a particle's pose, runs on the S2M
 thread (RS and S2M, in the S2M child process by default, see :mod:`lidarloc.core.s2m_worker`),
 and lands at a later scan k: an accepted match for scan k₀ is carried forward to scan k with the
-RPE relative pose and written into the particle it started from, which is then re-weighted.
+RPE relative pose and written into the particle it started from, which is then re-weighted
+(with ``s2m.reject_if_weight_drops``, the paper's rule, it is taken back if that lowered the
+particle's log-likelihood: see :meth:`S2MScheduler._write_unless_weight_drops`).
 ``replay`` lands it exactly ``n_s2m`` scans after it started (the step waits for it);
 ``realtime`` lands it at the first scan after it finished whose odometry is ready (see
 :meth:`S2MScheduler._odometry_ready_to_land`).
@@ -98,6 +100,13 @@ class S2MScheduler:
         """The particle slot the match in flight started from: resampling must keep it."""
         return self.job.particle if self.job is not None else None
 
+    def follow_particle(self, index: int | None) -> None:
+        """The match in flight lands on the particle at ``index`` from now on: a resampling that
+        changes the particle count (KLD-sampling) may move the protected particle to another
+        slot (the filter's ``protected_index``). The match itself is not affected."""
+        if self.job is not None and index is not None:
+            self.job.particle = int(index)
+
     # ------------------------------------------------------------------------ starting
     def job_config(self, state: np.ndarray, localized: bool):
         """The S2M settings for a job from a particle's ``state``: the whole map until localized
@@ -187,8 +196,12 @@ class S2MScheduler:
             state[:6] = pose_to_xyz_ypr(pose_k)
             state[6] = odometry.rpe.speed(k)
             state[7:10] = odometry.rpe.rates(k)
-            pf.set_particle(job.particle, state)
-            pf.reweight(job.particle, prepared)
+            if self.cfg.s2m.reject_if_weight_drops:
+                accepted, reason = self._write_unless_weight_drops(pf, job.particle, state, prepared)
+            else:
+                pf.set_particle(job.particle, state)
+                pf.reweight(job.particle, prepared)
+        if accepted:
             self.n_accepted += 1
         self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
                     f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
@@ -200,6 +213,26 @@ class S2MScheduler:
             scan_world=scan_world,
             region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
         return float(outcome.ms)
+
+    @staticmethod
+    def _write_unless_weight_drops(pf, j: int, state: np.ndarray, prepared: np.ndarray) -> tuple[bool, str]:
+        """The paper's acceptance of a landed match (``s2m.reject_if_weight_drops``): write
+        ``state`` into particle j and re-weight it; if its log-likelihood for the current scan is
+        lower than that of its own state, the particle, and every weight, is put back as it was.
+        Returns (accepted, reason).
+
+        The paper only says a failed match "will significantly lower the weight of the particle"
+        and is not accepted; "lower" is taken literally (any drop rejects: no margin), and the
+        comparison is between exact log-likelihoods of the same scan, the particle's own one
+        recomputed first (the weight update may have floored it, see likelihood.py)."""
+        saved = (pf.states[j].copy(), pf.log_weights.copy(), pf.log_likelihoods.copy())
+        before = pf.reweight(j, prepared)
+        pf.set_particle(j, state)
+        after = pf.reweight(j)
+        if after >= before:
+            return True, ""
+        pf.states[j], pf.log_weights, pf.log_likelihoods = saved
+        return False, f"lowers the particle's weight: log-likelihood {after:.1f} < {before:.1f}"
 
     def _odometry_ready_to_land(self, job: S2MJob, k: int, odometry: OdometryFeed) -> bool:
         """Real time: an accepted match is carried forward with scan k's odometry, so it lands

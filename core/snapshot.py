@@ -3,6 +3,14 @@
 A snapshot is built by the localizer after each scan and never mutated afterwards, so a reader
 on another thread (the viewer) needs no lock to use it. A :class:`ScanRecord` is the scan's row
 of the per-scan log, made from its snapshot.
+
+Both carry the scan's confidence, what a user without ground truth can read to tell a good
+estimate from a bad one: ``n_particles`` (the particles that weighed the scan), ``n_eff_share``
+(N_eff / N), ``converged`` (every position std below ``localize.std_threshold``),
+``inlier_share`` and ``mean_residual_m`` (the share of the prepared scan's points within d_max of
+the map at the estimate, and their mean distance to it), ``cov_xx``, ``cov_xy``, ``cov_yy`` (m²,
+the particles' x-y position covariance), and, where the truth is known, ``inside_2sigma`` (the
+true x-y position inside the estimate's 2σ ellipse: Mahalanobis distance ≤ 2).
 """
 
 from __future__ import annotations
@@ -18,7 +26,8 @@ from .geometry import pose_to_xyz_ypr
 class Event:
     scan: int          # scan index at which it happened
     kind: str          # "localized", "false_positive", "loss", "reset", "kidnap", "tracking",
-                       # "s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled", "error"
+                       # "confidence_low", "s2m_started", "s2m_accepted", "s2m_rejected",
+                       # "s2m_cancelled", "error"
     detail: str = ""
 
 
@@ -58,9 +67,34 @@ class Snapshot:
     s2m: S2MView | None                   # last S2M result that landed
     s2m_running: bool
     s2m_acceptance: float                 # accepted / landed so far
+    # confidence (module docstring); None where unknown: before the first scan, after a reset,
+    # inside_2sigma without truth
+    n_particles: int | None = None        # particles that weighed this scan (None: len(weights))
+    converged: bool = False               # every position std < localize.std_threshold
+    inlier_share: float | None = None     # share of scan points within d_max of the map at the estimate
+    mean_residual_m: float | None = None  # their mean distance to the map (m)
+    inside_2sigma: bool | None = None     # truth inside the 2σ x-y ellipse
     events: tuple = field(default_factory=tuple)
     paused: bool = False
     done: bool = False
+
+    @property
+    def n_eff_share(self) -> float:
+        """N_eff / N of the weights the estimate was computed from."""
+        n = self.n_particles if self.n_particles else len(self.weights)
+        return float(self.n_eff) / max(n, 1)
+
+    @property
+    def cov_xx(self) -> float:
+        return float(self.cov_xyz[0, 0])
+
+    @property
+    def cov_xy(self) -> float:
+        return float(self.cov_xyz[0, 1])
+
+    @property
+    def cov_yy(self) -> float:
+        return float(self.cov_xyz[1, 1])
 
 
 @dataclass
@@ -88,6 +122,15 @@ class ScanRecord:
     pf_ms: float
     s2m_ms: float | None
     reinit: bool
+    n_particles: int
+    n_eff_share: float
+    converged: bool
+    inlier_share: float | None
+    mean_residual_m: float | None
+    cov_xx: float
+    cov_xy: float
+    cov_yy: float
+    inside_2sigma: bool | None
 
     @classmethod
     def from_snapshot(cls, snap: Snapshot, s2m_ms: float | None, reinit: bool) -> ScanRecord:
@@ -102,4 +145,8 @@ class ScanRecord:
             pitch=xyz_ypr[4], roll=xyz_ypr[5], std_x=float(std[0]), std_y=float(std[1]), std_z=float(std[2]),
             n_eff=snap.n_eff, localized=snap.localized, error_m=snap.error_m,
             gt_x=gt_xyz_ypr[0], gt_y=gt_xyz_ypr[1], gt_z=gt_xyz_ypr[2], gt_yaw=gt_xyz_ypr[3],
-            pf_ms=snap.pf_ms, s2m_ms=s2m_ms, reinit=reinit)
+            pf_ms=snap.pf_ms, s2m_ms=s2m_ms, reinit=reinit,
+            n_particles=int(snap.n_particles if snap.n_particles else len(snap.weights)),
+            n_eff_share=snap.n_eff_share, converged=bool(snap.converged), inlier_share=snap.inlier_share,
+            mean_residual_m=snap.mean_residual_m, cov_xx=snap.cov_xx, cov_xy=snap.cov_xy, cov_yy=snap.cov_yy,
+            inside_2sigma=snap.inside_2sigma)

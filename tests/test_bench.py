@@ -1,5 +1,6 @@
-"""``lidarloc bench localize`` (app/bench/localize.py) end to end: a 3-run smoke bench with 2 workers,
-resumable, refusing runs of other code; and Ray ≡ process pool."""
+"""``lidarloc bench localize`` (app/bench/localize.py) end to end: a 3-run smoke bench with 2 workers
+(A–E, within 5 m to the end, 2σ consistency and false fires), resumable, refusing runs of other
+code; and Ray ≡ process pool."""
 
 import json
 
@@ -16,6 +17,7 @@ def small_cfg():
     cfg = Config()
     cfg.pf.n_particles = 300
     cfg.localize.recorded_odometry = True    # as `lidarloc bench localize` sets it
+    cfg.town.n_scans = 150                   # a short mapping drive: its map builds in seconds
     return cfg
 
 
@@ -44,6 +46,13 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert all(w in ("0", "1") for w in within)
     assert all(r["localized_at_scan"] != "" for r in rows if r["within_5m_to_end"] == "1")
     assert summary["within_5m_to_end_ratio"] == sum(w == "1" for w in within) / 3
+    # the filter's own uncertainty over runs: the median run's 2σ consistency, the share of false fires
+    runs = [json.loads((out / "runs" / f"seed_{s:03d}" / "summary.json").read_text()) for s in range(3)]
+    cons = [r["consistency_2sigma"] for r in runs if r["consistency_2sigma"] is not None]
+    assert summary["consistency_2sigma"] == (float(np.median(cons)) if cons else None)
+    assert summary["false_fire_rate"] == sum(r["false_fire"] for r in runs) / 3
+    assert [r["false_fire"] for r in rows] == [str(int(r["false_fire"])) for r in runs]
+    assert "2σ ellipse" in (out / "report.md").read_text()
     # the odometry was computed once into the cache, and the town's scans stored once
     assert list((tmp_path / "cache").glob("map-*/odometry-kiss-*/poses.npy"))
     assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS

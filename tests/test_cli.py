@@ -111,9 +111,11 @@ def test_map_build_json_and_cache(tmp_path):
 def test_demo_serves_and_stops_on_ctrl_c(tmp_path):
     """``lidarloc demo`` prints its URL, serves HTTP 200 on loopback, and ends on Ctrl-C."""
     env = dict(os.environ, LIDARLOC_CACHE=str(tmp_path / "cache"))
-    # a short drive keeps the first (uncached) start of this test quick; the default town's
+    # a short drive (and mapping drive: the map comes from all of it) keeps the first (uncached)
+    # start of this test quick; the default town's
     # first-start time is measured in BENCHMARKS.md
-    proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "demo", "--port", "0", "--scans", "30"],
+    proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "demo", "--port", "0", "--scans", "30",
+                             "--set", "town.n_scans=150"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     try:
         url, seen = None, ""
@@ -150,9 +152,10 @@ def test_run_ctrl_c_writes_results(tmp_path, cache_root):
     """``lidarloc run`` interrupted while localizing exits with 130 and still writes its results."""
     out = tmp_path / "run"
     env = dict(os.environ, LIDARLOC_CACHE=str(cache_root))
-    # the localizer tests' town (60 scans): its map may already be in the session's cache
+    # the localizer tests' town (a 150-scan mapping drive, 60 played): its map may already be in
+    # the session's cache
     proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", "60",
-                             "--set", "pf.n_particles=300"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
+                             "--set", "pf.n_particles=300", "--set", "town.n_scans=150"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
                             text=True, env=env)
     # wait until it is localizing (the progress line appears), then interrupt
     deadline = time.monotonic() + 240

@@ -361,3 +361,31 @@ def test_status_and_plots_follow_the_run(viewer):
     assert np.array_equal(v.scene.node("scan").points, snap.scan_world)
     assert snap.s2m is not None
     assert f"started at scan {snap.s2m.started_at}, landed at {snap.s2m.landed_at}" in v.scene.node("s2m_label").text
+
+
+def test_status_shows_the_scans_confidence_and_warns_while_it_is_low(viewer):
+    from dataclasses import replace
+
+    from lidarloc.app.viewer.readouts import status_markdown
+
+    v, loc = viewer.viewer, viewer.localizer
+    for _ in range(3):
+        v.controls.step.value = True
+    wait_for(lambda: v.player.idle and loc.k == 3)
+    v.update_display(force_plots=True)
+    snap, text = loc.snapshot(), v.controls.status.content
+    assert snap.inlier_share is not None and snap.n_particles == 300
+    assert f"| inlier share | {100 * snap.inlier_share:.0f}% · mean residual {snap.mean_residual_m:.2f} m |" in text
+    assert f"| N_eff / N | {snap.n_eff:.0f} / 300 ({100 * snap.n_eff_share:.0f}%) |" in text
+    assert f"| converged | {'yes' if snap.converged else 'no'} |" in text
+    # the warning line: while localized with fewer inliers than localize.min_inlier_share
+    floor = loc.cfg.localize.min_inlier_share
+    low = replace(snap, localized=True, inlier_share=floor - 0.2)
+
+    def status(s):
+        return status_markdown(s, "paused", "replay", "10", [], min_inlier_share=floor)
+    assert f"low confidence: {100 * (floor - 0.2):.0f}% of the scan fits the map" in status(low)
+    assert "low confidence" not in status(replace(low, inlier_share=floor + 0.1))
+    assert "low confidence" not in status(replace(low, localized=False))
+    # and the viewer passes the localizer's own floor
+    assert "low confidence" in v.status_markdown(low)

@@ -139,7 +139,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
                  "load_avg_1m_before": load_avg()}
     seq = open_source(spec, cfg, "pf", need_poses=True)
     out["source"] = seq.name
-    prior, map_dir, _ = load_or_build_map(seq, cfg.map)
+    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map)
     t0 = time.perf_counter()
     lookup, _, cached = load_or_build_lookup(prior, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max)
     out.update(kitti_map_points=int(len(prior.points)), kitti_lookup_mb=lookup.nbytes / 1e6,
@@ -232,7 +232,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     if town:
         from lidarloc.core.sequences.town import TownSequence
 
-        town_map = load_or_build_map(TownSequence.from_config(cfg.town), cfg.map).value   # the default town
+        town_map = load_or_build_map(TownSequence.from_config(cfg.town).map_source, cfg.map).value   # the default town
         res = measure_lookup(town_map.points)
         out.update(town_lookup_build_s=res["build_s"], town_lookup_mb=res["mb"], town_lookup_load_s=res["load_s"],
                    town_lookup_build_peak_rss_mb=res["peak_rss_mb"], town_map_points=res["points"],

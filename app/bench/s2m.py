@@ -175,7 +175,7 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
     t_start = time.perf_counter()
     seed, cfg = config.seed, config.s2m
     seq = open_source(spec, config, "s2m", need_poses=True)
-    prior, map_dir, _ = load_or_build_map(seq, config.map, cache_root)
+    prior, map_dir, _ = load_or_build_map(seq.map_source, config.map, cache_root)
     pyramid = load_or_build_pyramid(prior, map_dir, cfg).value
     matcher = ScanToMapMatcher(prior, pyramid, cfg)
     rng = np.random.default_rng(seed)

@@ -260,8 +260,9 @@ class Viewer:
 
     def status_markdown(self, snap: Snapshot) -> str:
         clock = self.player.clock if self.player else "replay"
+        floor = None if self.localizer is None else self.localizer.cfg.localize.min_inlier_share
         return status_markdown(snap, self._play_state(), clock, self.controls.speed.value,
-                               self.history.recent_events())
+                               self.history.recent_events(), min_inlier_share=floor)
 
     def _sync_play_button(self) -> None:
         p, play = self.player, self.controls.play

@@ -1,5 +1,6 @@
 """The panel's read-outs: the progress bar (while the localizer is built, and while a table is
-rebuilt in the background), the status table with the recent events, and the two plots."""
+rebuilt in the background), the status table with the scan's confidence and the recent events,
+and the two plots."""
 
 from __future__ import annotations
 
@@ -18,9 +19,13 @@ BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior
                 "ready": "Ready"}
 
 
-def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list) -> str:
-    """The status table: scan counter, play state, localized or not, the filter's figures and the
-    recent events (newest first). ``speed`` is the replay speed shown (scans/s)."""
+def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list,
+                    min_inlier_share: float | None = None) -> str:
+    """The status table: scan counter, play state, localized or not, the filter's figures, the
+    scan's confidence and the recent events (newest first). ``speed`` is the replay speed shown
+    (scans/s). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with fewer
+    of the scan's points fitting the map than this, a warning line says so (the
+    ``confidence_low`` condition)."""
     speed = "" if clock == "realtime" else f", {speed} scans/s"
     k = "–" if snap.scan_index < 0 else str(snap.scan_index)
     lines = [f"**Scan {k} of {snap.n_scans}** · {state} ({clock}{speed})"]
@@ -29,18 +34,26 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
         lines.append(f"<span style='color:#5be35b'>**localized**{since}</span>")
     else:
         lines.append("<span style='color:#ffb347'>**not localized**</span>")
+    share = snap.inlier_share
+    if snap.localized and share is not None and min_inlier_share is not None and share < min_inlier_share:
+        lines.append(error_markdown(f"⚠ low confidence: {100 * share:.0f}% of the scan fits the map "
+                                    f"(below {100 * min_inlier_share:.0f}%)"))
     std = np.asarray(snap.std_xyz, float)
     err = "–" if snap.error_m is None else f"{snap.error_m:.2f} m"
-    n = len(snap.weights)
+    n = snap.n_particles if snap.n_particles else len(snap.weights)
     s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
     running = " · running" if snap.s2m_running else ""
+    fit = "–" if share is None else f"{100 * share:.0f}%" + (
+        "" if snap.mean_residual_m is None else f" · mean residual {snap.mean_residual_m:.2f} m")
     lines += [
         "",
         "| | |",
         "|---|---|",
         f"| position std x/y/z | {std[0]:.2f} / {std[1]:.2f} / {std[2]:.2f} m |",
+        f"| converged | {'yes' if snap.converged else 'no'} |",
         f"| error to truth | {err} |",
-        f"| N_eff | {snap.n_eff:.0f} of {n} |",
+        f"| N_eff / N | {snap.n_eff:.0f} / {n} ({100 * snap.n_eff_share:.0f}%) |",
+        f"| inlier share | {fit} |",
         f"| PF | {snap.pf_ms:.1f} ms/scan |",
         f"| S2M | {s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running} |",
     ]

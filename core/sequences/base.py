@@ -2,7 +2,8 @@
 
 A :class:`Sequence` has a length, scan ``i`` as float32 (N, 4) x, y, z, intensity in the sensor
 frame, its timestamp (seconds since the first scan) and, where known, the ground-truth LiDAR pose
-as a 4×4 matrix in a world frame equal to the first LiDAR pose.
+as a 4×4 matrix in a world frame equal to the first LiDAR pose of its :attr:`~Sequence.map_source`
+(the sequence itself, unless a separate mapping drive builds the prior map).
 """
 
 from __future__ import annotations
@@ -40,12 +41,19 @@ class Sequence(ABC):
 
     @property
     def poses(self) -> np.ndarray | None:
-        """(len, 4, 4) float64 ground-truth LiDAR poses (world = first LiDAR pose), or None."""
+        """(len, 4, 4) float64 ground-truth LiDAR poses (world = the map source's first LiDAR
+        pose), or None."""
         return None
 
     @property
     def has_poses(self) -> bool:
         return self.poses is not None
+
+    @property
+    def map_source(self) -> "Sequence":
+        """The sequence whose scans and poses build the prior map: this one, unless the source
+        knows a separate mapping drive (the generated town's, when its world changed)."""
+        return self
 
     def identity(self) -> str:
         """A string that identifies the source and its parameters (for cache keys)."""
@@ -136,6 +144,11 @@ class Limited(Sequence):
 
     def identity(self) -> str:
         return self.inner.identity()
+
+    @property
+    def map_source(self) -> Sequence:
+        """The inner sequence's map source: ``--scans N`` plays N scans inside the whole map."""
+        return self.inner.map_source
 
     def __getattr__(self, item):  # expose source-specific extras (e.g. the town's geometry)
         return getattr(self.__dict__["inner"], item)

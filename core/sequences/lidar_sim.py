@@ -1,14 +1,19 @@
-"""A simulated Velodyne HDL-64E: rays cast into a triangle world with open3d's Embree scene.
+"""A simulated spinning LiDAR (Velodyne HDL-64E by default): rays cast into a triangle world
+with open3d's Embree scene.
 
 The sensor model is deliberately simple but keeps what a scan matcher notices:
 
-- 64 beams from +2° to −24.8° elevation in the HDL-64E's two laser blocks (the upper block is
-  denser), ``n_azimuth`` steps per revolution, 120 m maximum range; rays that hit nothing within
-  range produce no return (like the real sensor, which reports no point for a miss);
+- the beams' elevations, ``n_azimuth`` firings per revolution and a maximum range; rays that
+  hit nothing within range produce no return (like a real sensor, which reports no point for a
+  miss). :data:`SENSORS` holds the HDL-64E (64 beams from +2° to −24.8° in two laser blocks, the
+  upper one denser), the VLP-16, the VLP-32C and the OS1-128 with their datasheets' figures;
 - Gaussian range noise, random dropouts, and more dropouts for weak far returns;
 - intensity = material reflectivity × |cos(incidence)|, the Lambertian falloff a real return has;
-- one scan is an instantaneous snapshot from one pose (no motion skew within the sweep), so the
-  ground-truth pose describes every point of the scan exactly.
+- by default one scan is an instantaneous snapshot from one pose (no motion skew), so the
+  ground-truth pose describes every point exactly; with a :class:`Sweep` each firing column is
+  cast from the sensor's pose at its own firing time (see :mod:`lidarloc.core.deskew`);
+- things that move (traffic) come as extra mesh parts per scan: a second, tiny scene is cast
+  and the nearer hit of the two is kept per ray.
 
 The ray direction table is computed once; a scan is one ``cast_rays`` call plus a handful of
 vectorised numpy operations, and everything random comes from the generator the caller passes
@@ -20,11 +25,13 @@ from __future__ import annotations
 import functools
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Callable
 
 import numba as nb
 import numpy as np
 
+from ..deskew import sweep_fraction
 from ..o3d import open3d
 
 DEG = np.pi / 180.0
@@ -51,6 +58,71 @@ def _fill_rays(dirs, R, origin, rays):
         rays[k, 3] = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
         rays[k, 4] = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
         rays[k, 5] = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+
+
+@nb.njit(cache=True, nogil=True)
+def _fill_rays_per_column(dirs, n_azimuth, R, origin, rays):
+    """rays[k] = [origin[c], R[c] @ dirs[k]] with c = k mod n_azimuth, the ray's firing column
+    (the tables are beam-major): each column cast from its own sensor pose."""
+    for k in range(dirs.shape[0]):
+        c = k % n_azimuth
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        rays[k, 0] = origin[c, 0]
+        rays[k, 1] = origin[c, 1]
+        rays[k, 2] = origin[c, 2]
+        rays[k, 3] = R[c, 0, 0] * dx + R[c, 0, 1] * dy + R[c, 0, 2] * dz
+        rays[k, 4] = R[c, 1, 0] * dx + R[c, 1, 1] * dy + R[c, 1, 2] * dz
+        rays[k, 5] = R[c, 2, 0] * dx + R[c, 2, 1] * dy + R[c, 2, 2] * dz
+
+
+AZIMUTH_BINS = 1440   # 0.25°: the azimuth histogram that picks the rays worth casting at movers
+
+
+@nb.njit(cache=True, nogil=True)
+def _rays_toward(rays, n_azimuth, origin, centres, radii, bottoms, tops):
+    """Indices of the rays that may hit one of the movers bounded by vertical cylinders
+    (centres (m, 2), radii (m,), bottom and top heights (m,)) seen from ``origin``: the rays
+    within a mover's azimuth span (plus 0.06 rad for the sensor's tilt) whose rise (dz per metre
+    across) keeps them between its bottom and its top somewhere across it (plus 0.05). Per
+    azimuth bin (AZIMUTH_BINS of them) the span of rises of all its movers is kept; a ray's
+    azimuth is its firing column's (read off the middle beam: the tables are beam-major)."""
+    two_pi = 2.0 * np.pi
+    low = np.full(AZIMUTH_BINS, np.inf)
+    high = np.full(AZIMUTH_BINS, -np.inf)
+    for a in range(centres.shape[0]):
+        dx, dy = centres[a, 0] - origin[0], centres[a, 1] - origin[1]
+        d = np.sqrt(dx * dx + dy * dy)
+        r = radii[a] + 1.0                    # the sweep moves the sensor by up to ±0.7 m
+        if d <= r:                            # around the sensor: every ray may hit it
+            low[:] = -np.inf
+            high[:] = np.inf
+            break
+        half = np.arcsin(r / d) + 0.06
+        rise_high = (tops[a] - origin[2]) / (d - r) + 0.05
+        rise_low = (bottoms[a] - origin[2]) / (d + r) - 0.05
+        az = np.arctan2(dy, dx)
+        b0 = int(np.floor((az - half) / two_pi * AZIMUTH_BINS))
+        b1 = int(np.floor((az + half) / two_pi * AZIMUTH_BINS))
+        for b in range(b0, b1 + 1):
+            bb = b % AZIMUTH_BINS
+            low[bb] = min(low[bb], rise_low)
+            high[bb] = max(high[bb], rise_high)
+    column_bin = np.empty(n_azimuth, np.int64)
+    middle = (rays.shape[0] // n_azimuth // 2) * n_azimuth
+    for c in range(n_azimuth):
+        az = np.arctan2(rays[middle + c, 4], rays[middle + c, 3])
+        column_bin[c] = int(np.floor(az / two_pi * AZIMUTH_BINS)) % AZIMUTH_BINS
+    out = np.empty(rays.shape[0], np.int64)
+    m = 0
+    for k in range(rays.shape[0]):
+        b = column_bin[k % n_azimuth]
+        if low[b] == np.inf:
+            continue
+        h = np.sqrt(rays[k, 3] * rays[k, 3] + rays[k, 4] * rays[k, 4])
+        if low[b] * h <= rays[k, 5] <= high[b] * h:
+            out[m] = k
+            m += 1
+    return out[:m]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -90,6 +162,8 @@ def _compile_kernels() -> None:
     dirs = np.array([[1.0, 0.0, 0.0]], np.float32)
     rays = np.empty((1, 6), np.float32)
     _fill_rays(dirs, np.eye(3, dtype=np.float32), np.zeros(3, np.float32), rays)
+    _fill_rays_per_column(dirs, 1, np.eye(3, dtype=np.float32)[None], np.zeros((1, 3), np.float32), rays)
+    _rays_toward(rays, 1, np.zeros(3), np.ones((1, 2)), np.ones(1), np.zeros(1), np.ones(1))
     one_f = np.ones(1, np.float32)
     one_u = np.zeros(1, np.uint32)
     _returns(np.zeros(1, np.int64), one_f, one_u, one_u, np.ones((1, 3), np.float32), rays, dirs, one_f,
@@ -97,9 +171,9 @@ def _compile_kernels() -> None:
              np.float32(0), np.float32(0))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class LidarModel:
-    """Parameters of the simulated sensor."""
+    """Parameters of the simulated sensor (the defaults: Velodyne HDL-64E S2)."""
 
     n_azimuth: int = 2000              # firings per revolution and laser (0.18° apart)
     max_range: float = 120.0           # m
@@ -107,16 +181,29 @@ class LidarModel:
     dropout: float = 0.02              # probability that any return is lost
     weak_dropout: float = 0.4          # extra loss probability of a zero-intensity return at max range
     intensity_noise: float = 0.05      # relative (multiplicative) intensity noise, standard deviation
+    elevations_deg: tuple[float, ...] | None = None   # beam elevations, °; None = the HDL-64E's two blocks
+
+    def __repr__(self) -> str:
+        # The repr is part of the town's cache identity: the HDL-64E's (no elevations_deg) must
+        # read as it always has, so the field is only shown when set.
+        shown = [f for f in fields(self) if f.name != "elevations_deg" or self.elevations_deg is not None]
+        return f"{type(self).__name__}({', '.join(f'{f.name}={getattr(self, f.name)!r}' for f in shown)})"
+
+    @property
+    def n_beams(self) -> int:
+        return 64 if self.elevations_deg is None else len(self.elevations_deg)
 
     def elevations(self) -> np.ndarray:
-        """(64,) beam elevations in radians, top beam first."""
+        """(n_beams,) beam elevations in radians, top beam first."""
+        if self.elevations_deg is not None:
+            return np.sort(np.asarray(self.elevations_deg, np.float64))[::-1] * DEG
         upper = np.linspace(*HDL64E_UPPER_DEG, 32)
         lower = np.linspace(*HDL64E_LOWER_DEG, 32)
         return np.concatenate([upper, lower]) * DEG
 
     def ray_directions(self, phase: float = 0.0) -> np.ndarray:
-        """(64 · n_azimuth, 3) float32 unit directions in the sensor frame, beam-major (ring order),
-        the first firing of each beam ``phase`` azimuth steps after the x axis."""
+        """(n_beams · n_azimuth, 3) float32 unit directions in the sensor frame, beam-major (ring
+        order), the first firing of each beam ``phase`` azimuth steps after the x axis."""
         elevation = self.elevations()[:, None]
         azimuth = (np.arange(self.n_azimuth)[None, :] + phase) * (2.0 * np.pi / self.n_azimuth)
         dirs = np.stack(
@@ -126,6 +213,30 @@ class LidarModel:
             axis=-1,
         )
         return dirs.reshape(-1, 3).astype(np.float32)
+
+
+# Datasheet sensors. Dropouts are not on any datasheet: every model keeps the HDL-64E's 2 % plus
+# the weak-return loss, which scales with its own maximum range.
+SENSORS: dict[str, LidarModel] = {
+    # Velodyne HDL-64E S2 datasheet: 64 lasers, +2° … −24.8°, 0.09° azimuth resolution at 5 Hz,
+    # 120 m range, < 2 cm accuracy (the model above; 2000 firings at 10 Hz, 0.18° apart).
+    "hdl64e": LidarModel(),
+    # Velodyne VLP-16 (Puck) datasheet 63-9229: 16 channels over ±15° every 2°, 0.2° azimuth
+    # resolution at 10 Hz (1800 firings), range up to 100 m, accuracy ±3 cm (typical).
+    "vlp16": LidarModel(n_azimuth=1800, max_range=100.0, range_sigma=0.03,
+                        elevations_deg=tuple(float(e) for e in range(-15, 16, 2))),
+    # Velodyne VLP-32C (Ultra Puck) datasheet 63-9378 and user manual 63-9325 (vertical angle per
+    # laser ID): 32 channels, −25° … +15°, densest (0.33°) around the horizon; 0.2° azimuth
+    # resolution at 10 Hz (1800 firings), range up to 200 m, accuracy ±3 cm.
+    "vlp32c": LidarModel(n_azimuth=1800, max_range=200.0, range_sigma=0.03, elevations_deg=(
+        -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0,
+        -2.667, -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0, 1.333,
+        1.667, 2.333, 3.333, 4.667, 7.0, 10.333, 15.0)),
+    # Ouster OS1-128 datasheet (rev. 6): 128 channels, uniform over 45° (±22.5°, 0.35° apart),
+    # 1024 × 10 Hz mode (the sensor's default), 120 m range, accuracy ±3 cm (Lambertian targets).
+    "os1-128": LidarModel(n_azimuth=1024, max_range=120.0, range_sigma=0.03,
+                          elevations_deg=tuple(float(e) for e in np.round(np.linspace(-22.5, 22.5, 128), 4))),
+}
 
 
 @dataclass
@@ -148,13 +259,82 @@ class MeshPart:
             raise ValueError(f"{self.name}: {refl.shape[0]} reflectivities for {len(self.triangles)} triangles")
         self.reflectivity = refl
 
-    @staticmethod
-    def _ray_tables(model: LidarModel) -> list[np.ndarray]:
-        return [model.ray_directions(k / N_PHASES) for k in range(N_PHASES)]
-
     @property
     def n_triangles(self) -> int:
         return len(self.triangles)
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """Motion during one sweep: ``period`` s, and ``poses(offsets)``, the sensor's world poses
+    (m, 4, 4) at time offsets (m,) s from mid-sweep (see :mod:`lidarloc.core.deskew`)."""
+
+    period: float
+    poses: Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass
+class Movers:
+    """Things that are there for one scan only (traffic): their triangles, and a vertical
+    cylinder around each (centres (m, 2), radii (m,), bottom and top heights (m,), world frame)
+    that picks the rays worth casting at them."""
+
+    parts: list[MeshPart]
+    centres: np.ndarray
+    radii: np.ndarray
+    bottoms: np.ndarray
+    tops: np.ndarray
+
+
+class _Scene:
+    """Triangles of a fixed set of mesh parts and their lazily built Embree scene, shared by
+    every sensor model that scans them."""
+
+    def __init__(self, parts: list[MeshPart]):
+        self.parts = [p for p in parts if p.n_triangles > 0]
+        # One flat reflectivity table: geometry g's triangle k is at offsets[g] + k. Geometry ids
+        # are assigned by open3d in insertion order starting at 0, which build() checks.
+        counts = np.array([p.n_triangles for p in self.parts], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        self.reflectivity = (np.concatenate([p.reflectivity for p in self.parts])
+                             if self.parts else np.zeros(0, np.float32))
+        self.scene = None
+        self._lock = threading.Lock()
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["scene"] = None
+        state["_lock"] = None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    def get(self):
+        if self.scene is not None:
+            return self.scene
+        with self._lock:
+            if self.scene is None:
+                self.scene = raycasting_scene(self.parts, commit=True)
+        return self.scene
+
+
+def raycasting_scene(parts: list[MeshPart], commit: bool = True):
+    """An open3d RaycastingScene of ``parts`` (geometry id = index in ``parts``); ``commit``
+    builds its BVH now rather than at the first query."""
+    o3d = open3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    for expected_id, part in enumerate(parts):
+        gid = scene.add_triangles(o3d.core.Tensor(part.vertices), o3d.core.Tensor(part.triangles))
+        if gid != expected_id:
+            raise RuntimeError(f"open3d gave geometry id {gid} to mesh part {expected_id}")
+    if commit:
+        # Embree commits (builds the BVH) on the first query; do it here, not mid-drive.
+        probe = np.zeros((1, 6), np.float32)
+        probe[0, 5] = -1.0
+        scene.cast_rays(o3d.core.Tensor(probe), nthreads=0)
+    return scene
 
 
 class RaycastLidar:
@@ -162,31 +342,25 @@ class RaycastLidar:
 
     The Embree scene is built lazily (and not pickled): open3d scenes cannot be copied between
     processes, but the mesh parts can, and rebuilding from them gives the identical scene.
+    :meth:`with_model` gives another sensor over the same scene (built once for both).
     """
 
-    def __init__(self, parts: list[MeshPart], model: LidarModel | None = None):
+    def __init__(self, parts: list[MeshPart], model: LidarModel | None = None, *, _scene: _Scene | None = None):
         self.model = model or LidarModel()
-        self.parts = [p for p in parts if p.n_triangles > 0]
+        self._world = _scene if _scene is not None else _Scene(parts)
         self._tables = self._ray_tables(self.model)
-        # One flat reflectivity table: geometry g's triangle k is at offsets[g] + k. Geometry ids
-        # are assigned by open3d in insertion order starting at 0, which _build checks.
-        counts = np.array([p.n_triangles for p in self.parts], dtype=np.int64)
-        self._offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self._reflectivity = (np.concatenate([p.reflectivity for p in self.parts])
-                              if self.parts else np.zeros(0, np.float32))
-        self._scene = None
-        self._lock = threading.Lock()
+
+    def with_model(self, model: LidarModel) -> "RaycastLidar":
+        """The same world scanned by another sensor (sharing its triangles and scene)."""
+        return self if model == self.model else RaycastLidar([], model, _scene=self._world)
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        state["_scene"] = None
-        state["_lock"] = None
         state["_tables"] = None  # 12 MB that the model recomputes in milliseconds
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        self._lock = threading.Lock()
         self._tables = self._ray_tables(self.model)
 
     @staticmethod
@@ -194,53 +368,101 @@ class RaycastLidar:
         return [model.ray_directions(k / N_PHASES) for k in range(N_PHASES)]
 
     @property
+    def parts(self) -> list[MeshPart]:
+        return self._world.parts
+
+    @property
     def n_triangles(self) -> int:
-        return int(self._reflectivity.size)
+        return int(self._world.reflectivity.size)
 
     def build(self) -> None:
         """Build the scene and its BVH, and compile the scan kernels, now rather than in the
         first scan (which a caller may be timing)."""
-        self._scene_or_build()
+        self._world.get()
         _compile_kernels()
 
-    def _scene_or_build(self):
-        if self._scene is not None:
-            return self._scene
-        with self._lock:
-            if self._scene is None:
-                o3d = open3d()
-                scene = o3d.t.geometry.RaycastingScene()
-                for expected_id, part in enumerate(self.parts):
-                    gid = scene.add_triangles(o3d.core.Tensor(part.vertices), o3d.core.Tensor(part.triangles))
-                    if gid != expected_id:
-                        raise RuntimeError(f"open3d gave geometry id {gid} to mesh part {expected_id}")
-                # Embree commits (builds the BVH) on the first query; do it here, not mid-drive.
-                probe = np.zeros((1, 6), np.float32)
-                probe[0, 5] = -1.0
-                scene.cast_rays(o3d.core.Tensor(probe), nthreads=0)
-                self._scene = scene
-        return self._scene
+    def _column_poses(self, phase: int, sweep: Sweep) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation (n_azimuth, 3, 3) and origin (n_azimuth, 3), float32, of each firing column."""
+        n = self.model.n_azimuth
+        first_beam = self._tables[phase][:n].astype(np.float64)  # one direction per column
+        offsets = (sweep_fraction(np.arctan2(first_beam[:, 1], first_beam[:, 0])) - 0.5) * sweep.period
+        T = np.asarray(sweep.poses(offsets), np.float64)
+        return (np.ascontiguousarray(T[:, :3, :3], dtype=np.float32),
+                np.ascontiguousarray(T[:, :3, 3], dtype=np.float32))
 
-    def scan(self, T_world_sensor: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def scan(self, T_world_sensor: np.ndarray, rng: np.random.Generator, sweep: Sweep | None = None,
+             moving: Movers | None = None) -> np.ndarray:
         """One sweep from the sensor pose ``T_world_sensor`` (4×4): float32 (N, 4) x, y, z,
-        intensity in the sensor frame. Only rays that hit something within max_range return."""
+        intensity in the sensor frame. Only rays that hit something within max_range return.
+
+        ``sweep``: cast each firing column from the pose at its firing time and report its
+        points in that column's sensor frame (a skewed scan; ``T_world_sensor`` is then unused).
+        ``moving``: things that are there for this scan only (traffic); per ray the nearer of
+        the world's and their hit returns. The random draws of the rays that hit the world come
+        first and in the same order as without ``moving``, so both scans agree point for point
+        wherever the moving things are not in the way."""
         o3d = open3d()
-        scene = self._scene_or_build()
+        world = self._world
+        scene = world.get()
         model = self.model
-        dirs = self._tables[int(rng.integers(N_PHASES))]
-        T = np.asarray(T_world_sensor, dtype=np.float64)
+        phase = int(rng.integers(N_PHASES))
+        dirs = self._tables[phase]
         rays = np.empty((len(dirs), 6), dtype=np.float32)
-        _fill_rays(dirs, T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32), rays)
-        result = scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=0)
+        if sweep is None:
+            T = np.asarray(T_world_sensor, dtype=np.float64)
+            _fill_rays(dirs, T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32), rays)
+        else:
+            R_col, origin_col = self._column_poses(phase, sweep)
+            _fill_rays_per_column(dirs, model.n_azimuth, R_col, origin_col, rays)
+        rays_tensor = o3d.core.Tensor.from_numpy(rays)
+        result = scene.cast_rays(rays_tensor, nthreads=0)
         t_hit = result["t_hit"].numpy()
+        geometry, primitive = result["geometry_ids"].numpy(), result["primitive_ids"].numpy()
+        normals = result["primitive_normals"].numpy()
+        reflectivity, offsets = world.reflectivity, world.offsets
         hit = np.flatnonzero(t_hit <= model.max_range)
         n = len(hit)
         # Intensity noise need not be Gaussian: uniform with the same σ costs a sixth of the time.
         intensity_noise = (rng.random(n, dtype=np.float32) - np.float32(0.5)) * np.float32(math.sqrt(12.0))
         drop_draw = rng.random(n, dtype=np.float32)
         range_noise = rng.standard_normal(n, dtype=np.float32)
-        return _returns(hit, t_hit, result["geometry_ids"].numpy(), result["primitive_ids"].numpy(),
-                        result["primitive_normals"].numpy(), rays, dirs, self._reflectivity, self._offsets,
+        parts = [p for p in (moving.parts if moving is not None else []) if p.n_triangles > 0]
+        if parts:
+            origin = rays[len(rays) // 2, :3].astype(np.float64)
+            cast = _rays_toward(rays, model.n_azimuth, origin, np.asarray(moving.centres, np.float64),
+                                np.asarray(moving.radii, np.float64), np.asarray(moving.bottoms, np.float64),
+                                np.asarray(moving.tops, np.float64))
+            t2 = raycasting_scene(parts, commit=False).cast_rays(o3d.core.Tensor.from_numpy(rays[cast]), nthreads=0)
+            t_near = t2["t_hit"].numpy()
+            closer = t_near < t_hit[cast]
+            nearer = cast[closer]
+            if len(nearer):   # (the cast's own result arrays: changed in place)
+                t_hit[nearer] = t_near[closer]
+                geometry[nearer] = t2["geometry_ids"].numpy()[closer] + len(world.parts)
+                primitive[nearer] = t2["primitive_ids"].numpy()[closer]
+                normals[nearer] = t2["primitive_normals"].numpy()[closer]
+                counts = np.array([p.n_triangles for p in parts], np.int64)
+                offsets = np.concatenate([offsets, world.reflectivity.size
+                                          + np.concatenate([[0], np.cumsum(counts)[:-1]])]).astype(np.int64)
+                reflectivity = np.concatenate([reflectivity] + [p.reflectivity for p in parts])
+                was_hit = np.zeros(len(t_hit), bool)
+                was_hit[hit] = True
+                extra = nearer[~was_hit[nearer] & (t_hit[nearer] <= model.max_range)]
+                if len(extra):  # rays that return only because a mover is in their way
+                    m = len(extra)
+                    drawn = [intensity_noise, drop_draw, range_noise]
+                    more = [(rng.random(m, dtype=np.float32) - np.float32(0.5)) * np.float32(math.sqrt(12.0)),
+                            rng.random(m, dtype=np.float32), rng.standard_normal(m, dtype=np.float32)]
+                    was_hit[extra] = True
+                    all_hit = np.flatnonzero(was_hit)     # in ray order, as without movers
+                    for k in range(3):
+                        full = np.empty(len(t_hit), np.float32)
+                        full[hit] = drawn[k]
+                        full[extra] = more[k]
+                        drawn[k] = full[all_hit]
+                    hit = all_hit
+                    intensity_noise, drop_draw, range_noise = drawn
+        return _returns(hit, t_hit, geometry, primitive, normals, rays, dirs, reflectivity, offsets,
                         intensity_noise, drop_draw, range_noise, np.float32(model.max_range),
                         np.float32(model.range_sigma), np.float32(model.intensity_noise),
                         np.float32(model.dropout), np.float32(model.weak_dropout))

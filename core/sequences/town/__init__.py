@@ -1,4 +1,4 @@
-"""The built-in world: a generated town, a drive through it, and a simulated HDL-64E scanning it.
+"""The built-in world: a generated town, drives through it, and a simulated LiDAR scanning it.
 
 Two ways to lay out the town:
 
@@ -19,8 +19,14 @@ hedges on property lines, parked cars in the parking lanes, dashed centre lines,
 height field under everything with sidewalks and lots raised by a curb.
 
 Scans are simulated on demand from (seed, index) and nothing is written to disk. The town is
-built in its own frame ("town frame"); the sequence's world frame is the first LiDAR pose, as for
-every :class:`~..base.Sequence`; :attr:`TownSequence.town_to_world` maps one to the other.
+built in its own frame ("town frame"); the world frame of every drive through a town is the
+mapping drive's first LiDAR pose (for the mapping drive, its own first pose, as for every
+:class:`~..base.Sequence`); :attr:`TownSequence.town_to_world` maps one to the other.
+
+The prior map always comes from the **mapping drive** (route 1, the town as it was mapped,
+HDL-64E at 1.73 m, no motion skew, no traffic: :attr:`TownSequence.map_source`). The drive being
+localized may differ from it in its world options (``town.*`` in the configuration): changes
+since mapping, traffic, another sensor or mounting height, motion skew, a second route.
 
 The package, in the order a town is made:
 
@@ -30,7 +36,11 @@ The package, in the order a town is made:
 - :mod:`.drive`: the drive through the streets and the LiDAR poses along it;
 - :mod:`.objects`: buildings, trees, poles, cars … placed on the plan;
 - :mod:`.meshes`: triangles of the ground and the objects for the ray caster;
-- :mod:`.sequence`: :class:`TownSequence`, which puts it together and scans on demand.
+- :mod:`.world`: :class:`~.world.Town`, the town as mapped and its mapping drive, built once;
+- :mod:`.changes`: what changed since the mapping drive (``town.changes``);
+- :mod:`.traffic`: cars, cyclists and pedestrians moving through it (``town.traffic``);
+- :mod:`.routes`: the second drive through the same streets (``town.route = 2``);
+- :mod:`.sequence`: :class:`TownSequence`, a drive through a town, scanned on demand.
 """
 
 from .constants import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION

@@ -33,9 +33,14 @@ STOP_PROB = 0.35          # chance of a full stop (sign, red light) at an inters
 DS = 0.1                  # m, arc-length step of the dense drive path
 
 # Seeds of independent random streams: the town from [seed, TOWN_STREAM], scan i from [seed, i],
-# the body's sway on its suspension from [seed, SWAY_STREAM].
+# the body's sway on its suspension from [seed, SWAY_STREAM]; the world options draw from their
+# own streams, so that each leaves the mapped town and every other option's draws unchanged.
 TOWN_STREAM = (0x7A11, 0x70)
 SWAY_STREAM = (0x7A11, 0x5A)
+CHANGES_STREAM = (0x7A11, 0xC4)     # what changed since the mapping drive
+TRAFFIC_STREAM = (0x7A11, 0x7F)     # the traffic
+ROUTE2_STREAM = (0x7A11, 0x72)      # the second route and its speeds
+SWAY2_STREAM = (0x7A11, 0x5B)       # the second route's body sway
 SWAY_STD = 0.13 * math.pi / 180   # rad, pitch and roll of the body on its suspension at speed
 SWAY_TIME = 0.35                  # s, correlation time of the sway
 SWAY_FULL_SPEED = 5.0             # m/s; the sway grows linearly up to this speed (none at a stop)

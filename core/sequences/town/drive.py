@@ -232,11 +232,25 @@ def _grid_route(rng: np.random.Generator, grid: Grid, length_needed: float):
     return start_xy, cycle[k0], nodes
 
 
-def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float):
-    """The drive through the grid town: (times, x, y, yaw, driven dense path xy, stop count)."""
+@dataclass
+class GridDrive:
+    """A drive through the grid: the car at each scan time and what it drove."""
+
+    times: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    driven: np.ndarray        # (K, 2) dense path actually driven (plus 10 m)
+    n_stops: int
+    edges: list               # grid edges driven, in order: ((a, b), (a', b')) node pairs
+
+
+def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -> GridDrive:
+    """The drive through the grid town. ``plan_route(rng, grid, length_needed)`` gives the route
+    as (start point, node before the start, nodes); the default is :func:`_grid_route`."""
     duration = (n_scans - 1) / rate_hz
     length_needed = duration * max(grid.speed_x.max(), grid.speed_y.max()) + 200.0
-    start_xy, before_start, nodes = _grid_route(rng, grid, length_needed)
+    start_xy, before_start, nodes = (plan_route or _grid_route)(rng, grid, length_needed)
     route = np.vstack([start_xy] + [grid.node_xy(m) for m in nodes])
     path = _lane_path(route)
 
@@ -267,4 +281,25 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float):
     y = np.interp(s_scan, path.s, path.xy[:, 1])
     yaw = np.interp(s_scan, path.s, path.heading)
     driven = path.xy[path.s <= s_scan[-1] + 10.0]
-    return times, x, y, yaw, driven, len([st for st in stops if st[0] <= s_scan[-1]])
+    edges = [(chain[k], chain[k + 1]) for k in range(len(nodes)) if path.vertex_s[k] <= s_scan[-1]]
+    return GridDrive(times, x, y, yaw, driven, len([st for st in stops if st[0] <= s_scan[-1]]), edges)
+
+
+def interpolate_poses(times: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Poses (m, 4, 4) at times ``t`` (m,) between the poses (n, 4, 4) known at ``times`` (n,):
+    translation linear, rotation by Slerp between the two neighbouring poses, extrapolated at
+    constant velocity beyond the first and the last."""
+    from scipy.spatial.transform import Rotation
+
+    t = np.asarray(t, np.float64)
+    if len(times) < 2:
+        return np.broadcast_to(poses[0], (len(t), 4, 4)).copy()
+    i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    f = (t - times[i]) / np.maximum(times[i + 1] - times[i], 1e-12)
+    # A sweep's times fall into one or two intervals: one rotation step per interval.
+    intervals, which = np.unique(i, return_inverse=True)
+    step = Rotation.from_matrix(np.swapaxes(poses[intervals, :3, :3], 1, 2) @ poses[intervals + 1, :3, :3]).as_rotvec()
+    out = np.tile(np.eye(4), (len(t), 1, 1))
+    out[:, :3, :3] = poses[i, :3, :3] @ Rotation.from_rotvec(step[which] * f[:, None]).as_matrix()
+    out[:, :3, 3] = poses[i, :3, 3] + f[:, None] * (poses[i + 1, :3, 3] - poses[i, :3, 3])
+    return out

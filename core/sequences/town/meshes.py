@@ -42,6 +42,11 @@ def _boxes_mesh(rows):
     return V.reshape(-1, 3), T.reshape(-1, 3), np.repeat(refl, len(_BOX_FACES))
 
 
+def boxes_part(name: str, rows) -> MeshPart:
+    """One mesh part of upright boxes, rows (cx, cy, yaw, length, width, z0, z1, reflectivity)."""
+    return MeshPart(name, *_boxes_mesh(rows))
+
+
 def _prisms_mesh(rows):
     a = np.asarray(rows, float).reshape(-1, 8)
     cx, cy, yaw, L, W, z0, rise, refl = a.T
@@ -57,7 +62,10 @@ def _prisms_mesh(rows):
     return V.reshape(-1, 3), T.reshape(-1, 3), np.repeat(refl, len(faces))
 
 
-def _cylinders_mesh(rows, sides=8):
+_CYLINDER_SIDES = 8
+
+
+def _cylinders_mesh(rows, sides=_CYLINDER_SIDES):
     a = np.asarray(rows, float).reshape(-1, 6)
     cx, cy, r, z0, z1, refl = a.T
     ang = np.arange(sides) * 2 * np.pi / sides
@@ -210,3 +218,30 @@ def object_parts(solids: Solids, ground: HeightField, rng) -> list[MeshPart]:
             offset += len(V)
         parts.append(MeshPart(name, np.concatenate(vs), np.concatenate(ts), np.concatenate(rs).astype(np.float32)))
     return parts
+
+
+_STORES = ("boxes", "prisms", "cylinders", "blobs", "decals")   # the order object_parts meshes them in
+_TRIANGLES_PER_ROW = {"boxes": len(_BOX_FACES), "prisms": 6, "cylinders": 3 * _CYLINDER_SIDES - 2, "decals": 2}
+
+
+def row_triangles(solids: Solids) -> dict[tuple[str, str], np.ndarray]:
+    """Where each object row's triangles are in the part :func:`object_parts` makes for its
+    material: (store, material) → (rows + 1,) triangle offsets, row k's triangles being
+    ``offsets[k]:offsets[k + 1]`` of part ``material`` (blobs have ``n`` triangles per row)."""
+    out = {}
+    names = set()
+    for store in _STORES:
+        names |= set(getattr(solids, store))
+    for name in names:
+        start = 0
+        for store in _STORES:
+            rows = getattr(solids, store).get(name)
+            if not rows:
+                continue
+            if store == "blobs":
+                counts = np.asarray(rows, float).reshape(-1, 11)[:, 7].astype(np.int64)
+            else:
+                counts = np.full(len(rows), _TRIANGLES_PER_ROW[store], np.int64)
+            out[(store, name)] = start + np.concatenate([[0], np.cumsum(counts)])
+            start = int(out[(store, name)][-1])
+    return out

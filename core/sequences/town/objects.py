@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -16,6 +17,25 @@ from scipy.spatial import cKDTree
 from .constants import CELL, CURB, EGO_CLEARANCE, EGO_CLEARANCE_STATIC, JUNCTION_CLEAR, SIDEWALK_MIN
 from .layout import Plan
 from .raster import left_normal
+
+
+#: Objects of the mapped town that can plausibly move between two drives (a parked car drives
+#: off, a sign is put up elsewhere); bins are only ever added (see :mod:`.changes`).
+MOVABLE_KINDS = ("parked_car", "sign")
+
+
+@dataclass
+class Item:
+    """One object the town's changes can move, remove or regrow, and the rows that draw it: each
+    row is (store, material, index) into :class:`Solids` (e.g. ("boxes", "car", 12))."""
+
+    kind: str                 # "parked_car" | "sign" | "tree" | "bin"
+    x: float
+    y: float
+    yaw: float = 0.0
+    length: float = 0.0       # m, footprint on the ground (0 for posts and trunks)
+    width: float = 0.0
+    rows: list = field(default_factory=list)
 
 
 class Solids:
@@ -28,6 +48,17 @@ class Solids:
         self.blobs = defaultdict(list)     # (cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl)
         self.decals = defaultdict(list)    # flat quads on the ground: (cx, cy, yaw, length, width, refl)
         self.counts = defaultdict(int)
+        self.items: list[Item] = []        # the objects that can change between drives
+
+    def add(self, store: str, material: str, row: tuple) -> tuple[str, str, int]:
+        """Append ``row`` to ``store`` (boxes, cylinders, blobs …) under ``material``; returns its key."""
+        rows = getattr(self, store)[material]
+        rows.append(row)
+        return (store, material, len(rows) - 1)
+
+    def row(self, key: tuple[str, str, int]) -> tuple:
+        store, material, index = key
+        return getattr(self, store)[material][index]
 
 
 def _rect_points(cx, cy, yaw, length, width, step=CELL):
@@ -155,16 +186,17 @@ def _tree(plan: Plan, solids: Solids, rng, x, y, scale=1.0):
         crown_base = ground_z + rng.uniform(0.8, 2.0)
         trunk_top = crown_base + crown_h * 0.6
         n = int(np.clip(crown_r * crown_h * 12, 80, 450))
-        solids.blobs["crown"].append((x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1,
-                                      float(rng.uniform(0.4, 0.6))))
+        crown = solids.add("blobs", "crown", (x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1,
+                                              float(rng.uniform(0.4, 0.6))))
     else:
         crown_r = rng.uniform(1.5, 4.0) * scale
         crown_v = crown_r * rng.uniform(0.7, 1.2)
         trunk_top = ground_z + rng.uniform(2.2, 4.0) * scale
         n = int(np.clip(crown_r * crown_v * 22, 80, 450))
-        solids.blobs["crown"].append((x, y, trunk_top + crown_v * 0.7, crown_r, crown_r * rng.uniform(0.8, 1.2), crown_v,
-                                      rng.uniform(0, np.pi), n, 0.45, 0, float(rng.uniform(0.45, 0.7))))
-    solids.cylinders["trunk"].append((x, y, trunk_r, ground_z - 0.3, trunk_top, float(rng.uniform(0.25, 0.4))))
+        crown = solids.add("blobs", "crown", (x, y, trunk_top + crown_v * 0.7, crown_r, crown_r * rng.uniform(0.8, 1.2),
+                                              crown_v, rng.uniform(0, np.pi), n, 0.45, 0, float(rng.uniform(0.45, 0.7))))
+    trunk = solids.add("cylinders", "trunk", (x, y, trunk_r, ground_z - 0.3, trunk_top, float(rng.uniform(0.25, 0.4))))
+    solids.items.append(Item("tree", x, y, rows=[trunk, crown]))
     _mark_point(plan, x, y, max(trunk_r, 0.6))
     solids.counts["trees"] += 1
 
@@ -194,8 +226,9 @@ def _pole(plan: Plan, solids: Solids, rng, x, y, toward_road, kind):
                                      z + h - 1.1, z + h, 0.3))
     else:  # sign: thin post with a retro-reflective plate facing the road
         h = rng.uniform(2.2, 3.0)
-        solids.cylinders["pole"].append((x, y, 0.04, z - 0.3, z + h, 0.5))
-        solids.boxes["sign"].append((x, y, yaw, 0.03, 0.65, z + h - 0.7, z + h, 0.95))
+        post = solids.add("cylinders", "pole", (x, y, 0.04, z - 0.3, z + h, 0.5))
+        plate = solids.add("boxes", "sign", (x, y, yaw, 0.03, 0.65, z + h - 0.7, z + h, 0.95))
+        solids.items.append(Item("sign", x, y, yaw, rows=[post, plate]))
     _mark_point(plan, x, y, 0.5)
     solids.counts["poles"] += 1
 
@@ -210,16 +243,77 @@ def _parked_car(plan: Plan, solids: Solids, rng, x, y, yaw):
     z = float(plan.ground(fx, fy).min())
     c, s = math.cos(yaw), math.sin(yaw)
     refl = float(rng.uniform(0.1, 0.75))
-    solids.boxes["car"].append((x, y, yaw, length, width, z + 0.3, z + 0.3 + body_h, refl))
+    rows = [solids.add("boxes", "car", (x, y, yaw, length, width, z + 0.3, z + 0.3 + body_h, refl))]
     if cabin_h > 0:
         back = -0.15 * length
-        solids.boxes["glass"].append((x + back * c, y + back * s, yaw, 0.55 * length, width - 0.15,
-                                      z + 0.3 + body_h, z + 0.3 + body_h + cabin_h, 0.08))
+        rows.append(solids.add("boxes", "glass", (x + back * c, y + back * s, yaw, 0.55 * length, width - 0.15,
+                                                  z + 0.3 + body_h, z + 0.3 + body_h + cabin_h, 0.08)))
     for u in (-1, 1):
         for v in (-1, 1):
             ux, uy = u * (length / 2 - 0.85), v * (width / 2 - 0.12)
-            solids.boxes["wheel"].append((x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22, z, z + 0.62, 0.05))
+            rows.append(solids.add("boxes", "wheel", (x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22,
+                                                      z, z + 0.62, 0.05)))
+    solids.items.append(Item("parked_car", x, y, yaw, length, width, rows))
     solids.counts["parked_cars"] += 1
+
+
+def footprint(item: Item) -> tuple[np.ndarray, np.ndarray]:
+    """Corner x and y of an item's footprint (its post or trunk for point-like items)."""
+    return _rect_points(item.x, item.y, item.yaw, max(item.length, 1e-3), max(item.width, 1e-3),
+                        step=max(item.length, item.width, 1e-3))
+
+
+def car_spot_free(plan: Plan, x, y, yaw) -> bool:
+    """A car can park at (x, y) heading ``yaw``: free road clear of the drive and of junctions
+    (the checks of the parking lanes in :func:`populate`)."""
+    px, py = _rect_points(x, y, yaw, 5.0, 2.0)
+    i, j, ok = plan.raster.ij(px, py)
+    if not np.all(ok & plan.road[i, j] & ~plan.occupied[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE)):
+        return False
+    return not (len(plan.junctions) and np.min(np.hypot(*(plan.junctions - [x, y]).T)) < JUNCTION_CLEAR)
+
+
+def post_spot_free(plan: Plan, x, y) -> bool:
+    """A sign post can stand at (x, y) (the check of the signs in :func:`populate`)."""
+    return _point_free(plan, x, y, 0.3, min_road=0.1)
+
+
+def occupy(plan: Plan, item: Item) -> None:
+    """Mark the ground an item now stands on."""
+    if item.kind == "parked_car":
+        _mark_rect(plan, item.x, item.y, item.yaw, 4.8, 1.9)
+    else:
+        _mark_point(plan, item.x, item.y, 0.5)
+
+
+def add_parked_car(plan: Plan, solids: Solids, rng, x, y, yaw) -> bool:
+    """Park a car at (x, y) heading ``yaw`` if :func:`car_spot_free`; True if it was parked."""
+    if not car_spot_free(plan, x, y, yaw):
+        return False
+    _parked_car(plan, solids, rng, x, y, yaw)
+    _mark_rect(plan, x, y, yaw, 4.8, 1.9)
+    return True
+
+
+def add_sign(plan: Plan, solids: Solids, rng, x, y, toward_road) -> bool:
+    """Put up a sign post at (x, y) facing ``toward_road`` if the spot is free; True if it was."""
+    if not post_spot_free(plan, x, y):
+        return False
+    _pole(plan, solids, rng, x, y, toward_road, "sign")
+    return True
+
+
+def add_bin(plan: Plan, solids: Solids, rng, x, y, yaw) -> bool:
+    """Stand a wheelie bin (about 0.6 × 0.7 × 1.1 m) at (x, y) on the sidewalk if the spot is free."""
+    if not _point_free(plan, x, y, 0.5, min_road=0.3):
+        return False
+    z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
+    length, width, h = rng.uniform(0.55, 0.75), rng.uniform(0.6, 0.8), rng.uniform(0.95, 1.25)
+    row = solids.add("boxes", "bin", (x, y, yaw, length, width, z - 0.05, z + h, float(rng.uniform(0.15, 0.5))))
+    solids.items.append(Item("bin", x, y, yaw, length, width, [row]))
+    _mark_point(plan, x, y, 0.5)
+    solids.counts["bins"] += 1
+    return True
 
 
 def populate(plan: Plan, rng) -> Solids:

@@ -1,170 +1,145 @@
-"""The town as a :class:`~..base.Sequence`: lay it out, drive through it, and scan it on demand."""
+"""The town as a :class:`~..base.Sequence`: a drive through a :class:`~.world.Town`, scanned on
+demand, and the mapping drive its prior map comes from."""
 
 from __future__ import annotations
 
 import functools
-import hashlib
 import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
-from ...config import TownConfig
+from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
-from ...geometry import inv_pose, rotation_zyx
-from ..base import Sequence, check_poses, rebase_poses
-from ..kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
-from ..lidar_sim import LidarModel, RaycastLidar
-from .constants import BUILD_REACH, CELL, GROUND_MARGIN, SENSOR_HEIGHT, SWAY_STREAM, TOWN_STREAM, TOWN_VERSION
-from .drive import body_sway, grid_drive, vehicle_poses
-from .layout import centre_lines, grid_streets, heights_from_track, make_plan, plan_grid, trajectory_streets
-from .meshes import ground_parts, object_parts
-from .objects import populate
-from .raster import HeightField, Raster
+from ...geometry import inv_pose
+from ..base import Sequence, rebase_poses
+from ..lidar_sim import SENSORS, LidarModel, RaycastLidar, Sweep
+from .constants import SENSOR_HEIGHT
+from .drive import interpolate_poses
+from .world import Town
 
-
-def _file_digest(path: Path) -> str:
-    return hashlib.sha1(path.read_bytes()).hexdigest()[:12]
+#: The world options of the mapping drive (the town as it was mapped), in TownConfig's names.
+MAPPING_OPTIONS = dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1)
 
 
 class TownSequence(Sequence):
-    """A generated town and a drive through it, scanned on demand by a simulated HDL-64E.
+    """A generated town and a drive through it, scanned on demand by a simulated LiDAR.
 
     ``TownSequence(seed)`` lays out a ``size`` × ``size`` m grid town and drives ``n_scans`` scans
     at ``rate_hz``; with ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib``
     (its calib with the ``Tr:`` line), the drive is that trajectory and the town is grown around
     it (one scan per pose; ``size`` and ``n_scans`` are then ignored).
+
+    The world options describe the drive being localized (see :class:`~lidarloc.core.config.TownConfig`):
+    ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
+    ``traffic`` (:mod:`.traffic`), ``sensor`` (:data:`~..lidar_sim.SENSORS`), ``mount_height``
+    (m above the road), ``skew`` (each scan swept over 1/rate_hz while moving, not de-skewed;
+    :mod:`lidarloc.core.deskew`) and ``route`` (1, or 2: :mod:`.routes`). At their defaults the
+    sequence *is* the mapping drive. Otherwise :attr:`map_source` is the mapping drive — route 1,
+    the town as mapped, HDL-64E (or ``lidar``) at SENSOR_HEIGHT, no skew, no traffic — sharing
+    this sequence's streets, ground and objects (the town is laid out once). Every drive of one
+    town has the same world frame: the mapping drive's first LiDAR pose.
     """
 
     def __init__(self, seed: int = 0, size: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
                  trajectory: str | Path | None = None, calib: str | Path | None = None,
-                 lidar: LidarModel | None = None):
+                 lidar: LidarModel | None = None, *, changes: float = 0.0, traffic: bool = False,
+                 sensor: str = "hdl64e", mount_height: float = SENSOR_HEIGHT, skew: bool = False, route: int = 1):
         t_start = time.perf_counter()
-        self.seed = int(seed)
-        self.size = float(size)
-        self.rate_hz = float(rate_hz)
-        self.trajectory = Path(trajectory) if trajectory is not None else None
-        self.calib = Path(calib) if calib is not None else None
-        if (self.trajectory is None) != (self.calib is None):
-            raise DataError("town: a trajectory needs its calib (the Tr line converts cam0 poses to LiDAR poses)")
-        if self.size < 100.0:
-            raise DataError(f"town: size must be ≥ 100 m, got {self.size:g}")
-        if n_scans < 1:
-            raise DataError(f"town: n_scans must be ≥ 1, got {n_scans}")
-        if not self.rate_hz > 0:
-            raise DataError(f"town: rate_hz must be > 0, got {self.rate_hz:g}")
-        rng = np.random.default_rng([self.seed, *TOWN_STREAM])
-        self.stats: dict = {}
-
-        if self.trajectory is None:
-            self.name = f"town-seed{self.seed}"
-            poses_town, times, plan = self._build_grid(rng, int(n_scans))
-        else:
-            self.name = f"town-seed{self.seed}-{self.trajectory.stem}"
-            poses_town, times, plan = self._build_along_trajectory(rng)
-        self.n_scans = len(poses_town)
-        self.poses_town = poses_town
-        self._times = times - times[0]
-        self.town_to_world = inv_pose(poses_town[0])
-        self._poses = rebase_poses(poses_town)
-
-        solids = populate(plan, rng)
-        parts = ground_parts(plan, rng) + object_parts(solids, plan.ground, rng)
-        self.ground = plan.ground
-        self.raster = plan.raster
-        self.road = plan.road
-        self.streets = plan.streets
-        self.lidar = RaycastLidar(parts, lidar)
+        options = _check_options(dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height,
+                                      skew=skew, route=route))
+        self._setup(Town(seed, size, n_scans, rate_hz, trajectory, calib, lidar), options)
         self.lidar.build()
-        self.stats.update(dict(solids.counts), triangles=self.lidar.n_triangles, streets=len(plan.streets),
-                              build_seconds=time.perf_counter() - t_start)
+        self.stats["build_seconds"] = time.perf_counter() - t_start
 
-    # -------------------------------------------------------------- construction
-    def _build_grid(self, rng, n_scans):
-        size = self.size
-        grid = plan_grid(rng, size, loop_distance=6.5 * n_scans / self.rate_hz)
-        streets, junctions = grid_streets(grid, size)
-        times, x, y, yaw, driven, n_stops = grid_drive(rng, grid, n_scans, self.rate_hz)
-        raster = Raster.covering(-GROUND_MARGIN, -GROUND_MARGIN, size + GROUND_MARGIN, size + GROUND_MARGIN)
+    @classmethod
+    def _of_town(cls, town: Town, options: dict) -> "TownSequence":
+        seq = cls.__new__(cls)
+        seq._setup(town, options)
+        return seq
 
-        # Rolling hills: a few long plane waves, scaled to 3–6 m from lowest to highest point.
-        X, Y = HeightField.node_coordinates(raster)
-        z = np.zeros(X.shape)
-        for _ in range(4):
-            wavelength = rng.uniform(0.9, 2.2) * size
-            ang, phase = rng.uniform(0, 2 * np.pi, 2)
-            z += rng.uniform(0.4, 1.0) * np.sin(2 * np.pi * (X * np.cos(ang) + Y * np.sin(ang)) / wavelength + phase)
-        in_town = (X >= 0) & (X <= size) & (Y >= 0) & (Y <= size)
-        z *= rng.uniform(3.0, 6.0) / max(np.ptp(z[in_town]), 1e-9)
-        ground = HeightField(raster, z)
+    def with_world(self, **options) -> "TownSequence":
+        """Another drive through this same town (no new layout): this drive's world options
+        with ``options`` (changes, traffic, sensor, mount_height, skew, route) replaced."""
+        unknown = set(options) - set(MAPPING_OPTIONS)
+        if unknown:
+            raise DataError(f"town: unknown world option(s) {', '.join(sorted(unknown))}")
+        if self.town.plan is None and (options.get("changes") or options.get("traffic")):
+            raise DataError("town: a copied town cannot add changes or traffic; build it anew")
+        seq = TownSequence._of_town(self.town, _check_options(dict(self.options, **options)))
+        if not seq.is_mapping_drive:
+            seq.__dict__["_mapping_drive"] = self.map_source   # one mapping drive per town
+        seq.lidar.build()
+        return seq
 
-        xs, ys = raster.centres()
-        build_area = ((xs >= 0) & (xs <= size))[:, None] & ((ys >= 0) & (ys <= size))[None, :]
-        downtown = (rng.uniform(0.3, 0.7) * size, rng.uniform(0.3, 0.7) * size, 0.28 * size)
-        plan = make_plan(rng, raster, ground, streets, junctions, build_area, driven, downtown)
-        poses = vehicle_poses(x, y, yaw, ground)
-        speed = np.hypot(np.gradient(x, times), np.gradient(y, times)) if len(times) > 1 else np.zeros(1)
-        pitch, roll = body_sway(np.random.default_rng([self.seed, *SWAY_STREAM]), times, speed)
-        poses[:, :3, :3] = poses[:, :3, :3] @ rotation_zyx(0.0, pitch, roll)   # about the sensor
-        self.stats.update(stops=n_stops, route_loop=grid.loop)
-        return poses, times, plan
+    def _setup(self, town: Town, options: dict) -> None:
+        self.town = town
+        self.options = options
+        self.seed, self.size, self.rate_hz = town.seed, town.size, town.rate_hz
+        self.trajectory, self.calib, self.name = town.trajectory, town.calib, town.name
+        self.ground, self.raster, self.road, self.streets = town.ground, town.raster, town.road, town.streets
+        self.town_to_world = town.town_to_world
+        self.stats = dict(town.stats)
+        self.is_mapping_drive = options == MAPPING_OPTIONS
+        self.changes_made = None
 
-    def _build_along_trajectory(self, rng):
-        cam0 = read_pose_lines(self.trajectory)
-        Tr = read_tr(self.calib)
-        poses = rebase_poses(cam0_to_lidar_poses(cam0, Tr))
-        poses = check_poses(poses, len(cam0), str(self.trajectory))
-        if len(poses) < 2:
-            raise DataError(f"{self.trajectory}: a trajectory needs at least 2 poses")
-        times = self._trajectory_times(len(poses))
-        xy = poses[:, :2, 3]
-        streets, junctions, path = trajectory_streets(rng, xy)
-        lo = xy.min(axis=0) - BUILD_REACH - GROUND_MARGIN
-        hi = xy.max(axis=0) + BUILD_REACH + GROUND_MARGIN
-        raster = Raster.covering(lo[0], lo[1], hi[0], hi[1])
-        # The ground passes SENSOR_HEIGHT below each LiDAR pose, along the car's own up axis.
-        under = poses[:, :3, 3] - SENSOR_HEIGHT * poses[:, :3, 2]
-        step = np.linalg.norm(np.diff(under[:, :2], axis=0), axis=1)
-        cum = np.concatenate([[0.0], np.cumsum(step)])
-        s = np.arange(0.0, cum[-1] + 1e-9, 1.0)
-        moving = np.concatenate([[True], step > 1e-3])
-        samples = np.stack([np.interp(s, cum[moving], under[moving, k]) for k in range(3)], axis=1)
-        ground = HeightField(raster, heights_from_track(raster, samples))
-        centre_dist = ndimage.distance_transform_edt(~centre_lines(raster, streets), sampling=CELL)
-        build_area = centre_dist <= BUILD_REACH
-        plan = make_plan(rng, raster, ground, streets, junctions, build_area, path)
-        # Sensor height above the ground minus SENSOR_HEIGHT: ≈ 0, > 0 where the drive's own
-        # heights disagree between passes (see heights_from_track), < 0 would be a sunken car.
-        residual = samples[:, 2] - ground(samples[:, 0], samples[:, 1])
-        self.stats.update(ground_residual_median=float(np.median(np.abs(residual))),
-                          ground_residual_min=float(residual.min()), ground_residual_max=float(residual.max()))
-        return poses, times, plan
+        lidar = town.lidar
+        if options["changes"] > 0:
+            from .changes import changed_world
 
-    def _trajectory_times(self, n):
-        """Timestamps from the times file beside the poses (``…/times/SS.txt`` as in
-        kitti_odometry_poses, or ``sequences/SS/times.txt``), else ``rate_hz``."""
-        candidates = [self.trajectory.parent.parent / "times" / self.trajectory.name,
-                      self.trajectory.parent.parent / "sequences" / self.trajectory.stem / "times.txt"]
-        for path in candidates:
-            if path.is_file():
-                try:
-                    times = np.loadtxt(path, dtype=np.float64, ndmin=1)
-                except ValueError:
-                    raise DataError(f"{path}: not a column of numbers") from None
-                if len(times) != n:
-                    raise DataError(f"{path}: {len(times)} timestamps for {n} poses in {self.trajectory}")
-                self._times_source = str(path)
-                return times
-        self._times_source = f"{self.rate_hz:g} Hz"
-        return np.arange(n) / self.rate_hz
+            parts, self.changes_made, _ = changed_world(town, options["changes"])
+            lidar = RaycastLidar(parts, town.lidar.model)
+            self.stats.update(changes=self.changes_made.counts())
+        if options["sensor"] != MAPPING_OPTIONS["sensor"]:
+            lidar = lidar.with_model(SENSORS[options["sensor"]])
+        self.lidar = lidar
+
+        if options["route"] == 1:
+            poses_town, times = town.poses_town, town.times
+        else:
+            from .routes import second_route
+
+            poses_town, times = second_route(town)
+        lift = options["mount_height"] - SENSOR_HEIGHT
+        if lift != 0.0:   # the sensor higher or lower on the same car, along the car's up axis
+            poses_town = poses_town.copy()
+            poses_town[:, :3, 3] += lift * poses_town[:, :3, 2]
+        self.poses_town = poses_town
+        self.n_scans = len(poses_town)
+        self._times = times
+        if options["route"] == 1 and lift == 0.0:
+            self._poses = rebase_poses(poses_town)
+        else:
+            self._poses = town.town_to_world[None] @ poses_town
+
+        self._traffic = None
+        if options["traffic"]:
+            from .traffic import Traffic
+
+            self._traffic = Traffic(town, poses_town, times)
 
     @classmethod
     def from_config(cls, cfg: TownConfig, seed: int | None = None, trajectory: Path | None = None,
                     calib: Path | None = None) -> "TownSequence":
-        """The town of ``cfg`` (``seed`` overrides ``cfg.seed``), optionally along a trajectory."""
+        """The town of ``cfg`` (``seed`` overrides ``cfg.seed``), optionally along a trajectory,
+        driven with ``cfg``'s world options."""
         return cls(seed=cfg.seed if seed is None else seed, size=cfg.size, n_scans=cfg.n_scans,
-                   rate_hz=cfg.rate_hz, trajectory=trajectory, calib=calib)
+                   rate_hz=cfg.rate_hz, trajectory=trajectory, calib=calib, changes=cfg.changes,
+                   traffic=cfg.traffic, sensor=cfg.sensor, mount_height=cfg.mount_height, skew=cfg.skew,
+                   route=cfg.route)
+
+    def world_options(self) -> dict:
+        """The world options of this drive (changes, traffic, sensor, mount_height, skew, route)."""
+        return dict(self.options)
+
+    @functools.cached_property
+    def _mapping_drive(self) -> "TownSequence":
+        return TownSequence._of_town(self.town, dict(MAPPING_OPTIONS))
+
+    @property
+    def map_source(self) -> Sequence:
+        """The mapping drive (this sequence itself at the default world options)."""
+        return self if self.is_mapping_drive else self._mapping_drive
 
     # -------------------------------------------------------------- Sequence interface
     def __len__(self) -> int:
@@ -172,7 +147,18 @@ class TownSequence(Sequence):
 
     def _read_scan(self, i: int) -> np.ndarray:
         rng = np.random.default_rng([self.seed, int(i)])
-        return self.lidar.scan(self.poses_town[i], rng)
+        if self.is_mapping_drive or not (self.options["skew"] or self._traffic is not None):
+            return self.lidar.scan(self.poses_town[i], rng)
+        sweep = None
+        if self.options["skew"]:
+            t_i = float(self._times[i])
+            sweep = Sweep(1.0 / self.rate_hz, lambda offsets: interpolate_poses(self._times, self.poses_town,
+                                                                                t_i + offsets))
+        moving = None
+        if self._traffic is not None:
+            moving = self._traffic.movers_at(float(self._times[i]), self.poses_town[i, :2, 3],
+                                            self.lidar.model.max_range + 5.0)
+        return self.lidar.scan(self.poses_town[i], rng, sweep=sweep, moving=moving)
 
     def _describe_scan(self, i: int) -> str:
         return f"town seed {self.seed} scan {i}"
@@ -186,12 +172,10 @@ class TownSequence(Sequence):
         return self._poses
 
     def identity(self) -> str:
-        parts = [f"town|v{TOWN_VERSION}", f"seed={self.seed}", f"size={self.size:g}", f"n_scans={self.n_scans}",
-                 f"rate={self.rate_hz:g}", f"lidar={self.lidar.model}"]
-        if self.trajectory is not None:
-            parts += [f"trajectory={self.trajectory.resolve()}#{_file_digest(self.trajectory)}",
-                      f"calib={self.calib.resolve()}#{_file_digest(self.calib)}", f"times={self._times_source}"]
-        return "|".join(parts)
+        ident = self.town.identity()
+        if self.is_mapping_drive:
+            return ident
+        return ident + "|world=" + ",".join(f"{k}={v}" for k, v in self.options.items())
 
     # -------------------------------------------------------------- extras for display and tests
     @property
@@ -202,9 +186,22 @@ class TownSequence(Sequence):
         v = d / np.maximum(dt, 1e-9)
         return np.concatenate([v, v[-1:]]) if len(v) else np.zeros(1)
 
+    @property
+    def traffic(self):
+        """The drive's :class:`~.traffic.Traffic`, or None without traffic."""
+        return self._traffic
+
+    def traffic_boxes(self, i: int) -> np.ndarray:
+        """The traffic's boxes (k, 8) at scan i in the town frame (cx, cy, yaw, length, width,
+        z0, z1, reflectivity), as scanned; empty without traffic."""
+        if self._traffic is None:
+            return np.zeros((0, 8))
+        return self._traffic.boxes_at(float(self._times[i]), self.poses_town[i, :2, 3],
+                                      self.lidar.model.max_range + 5.0)
+
     def world_mesh(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
-        """The town's triangles in the world frame: [(material, vertices (V, 3) float32, triangles
-        (T, 3) uint32)], for display."""
+        """The triangles this drive scans (the changed town, without traffic) in the world
+        frame: [(material, vertices (V, 3) float32, triangles (T, 3) uint32)], for display."""
         R, t = self.town_to_world[:3, :3], self.town_to_world[:3, 3]
         return [(p.name, (p.vertices.astype(np.float64) @ R.T + t).astype(np.float32), p.triangles)
                 for p in self.lidar.parts]
@@ -226,3 +223,19 @@ class TownSequence(Sequence):
         p = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1) @ world_to_town[:3, :3].T + world_to_town[:3, 3]
         ground_town = np.stack([p[:, 0], p[:, 1], self.ground(p[:, 0], p[:, 1])], axis=1)
         return (ground_town @ self.town_to_world[:3, :3].T + self.town_to_world[:3, 3])[:, 2]
+
+
+def _check_options(options: dict) -> dict:
+    """The world options as plain values; DataError (one line) on an impossible one."""
+    changes = float(options["changes"])
+    if not 0.0 <= changes <= 1.0:
+        raise DataError(f"town: changes must be in [0, 1], got {changes:g}")
+    if options["sensor"] not in SENSORS or options["sensor"] not in TOWN_SENSORS:
+        raise DataError(f"town: sensor must be one of {'|'.join(TOWN_SENSORS)}, got {options['sensor']!r}")
+    mount = float(options["mount_height"])
+    if not 0.3 <= mount <= 5.0:
+        raise DataError(f"town: mount_height must be in 0.3..5 m, got {mount:g}")
+    if options["route"] not in (1, 2):
+        raise DataError(f"town: route must be 1 or 2, got {options['route']!r}")
+    return dict(changes=changes, traffic=bool(options["traffic"]), sensor=str(options["sensor"]),
+                mount_height=mount, skew=bool(options["skew"]), route=int(options["route"]))

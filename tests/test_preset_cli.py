@@ -1,0 +1,76 @@
+"""``--preset NAME`` on the command line: every command that takes a configuration offers it, it
+comes before --config and --set, ``lidarloc run`` records it in its summary, and a bad name is one
+line with exit status 2."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import typer
+
+from lidarloc.core.config import PRESETS
+
+# A small town (100 m, a 40-scan mapping drive) keeps the map build to seconds.
+SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
+# The commands with a configuration; bench robustness runs the presets as one of its axes instead.
+WITH_PRESET = {("demo",), ("view",), ("run",), ("synth",), ("map", "build"), *[
+    ("bench", b) for b in ("town", "map", "pf", "s2m", "rpe", "viewer", "startup", "stop", "localize")]}
+
+
+def cli(*args, cache):
+    env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
+    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True,
+                          env=env, timeout=300)
+
+
+def _commands(group, prefix=()):
+    for name, command in group.commands.items():
+        if hasattr(command, "commands"):
+            yield from _commands(command, prefix + (name,))
+        else:
+            yield prefix + (name,), command
+
+
+def test_every_command_with_a_configuration_takes_preset():
+    from lidarloc.app.cli import app
+
+    commands = dict(_commands(typer.main.get_command(app)))
+    with_config = {path for path, c in commands.items() if any("--config" in p.opts for p in c.params)}
+    with_preset = {path for path, c in commands.items() if any("--preset" in p.opts for p in c.params)}
+    assert with_preset == WITH_PRESET
+    assert with_config - with_preset == {("bench", "robustness")}
+
+
+def test_preset_comes_before_the_config_file_and_set(tmp_path):
+    from lidarloc.app.options import config_from
+
+    assert PRESETS["paper"]["s2m.reject_if_weight_drops"] is True     # the entry this test follows
+    assert config_from(None, None).s2m.reject_if_weight_drops is False
+    assert config_from(None, None, preset="default").s2m.reject_if_weight_drops is False
+    assert config_from(None, None, preset="paper").s2m.reject_if_weight_drops is True
+    f = tmp_path / "c.yaml"
+    f.write_text("s2m: {reject_if_weight_drops: false}\n")
+    assert config_from(f, None, preset="paper").s2m.reject_if_weight_drops is False
+    assert config_from(None, ["s2m.reject_if_weight_drops=false"], preset="paper").s2m.reject_if_weight_drops is False
+    assert config_from(None, None, seed=7, preset="paper").seed == 7
+
+
+def test_run_records_the_preset_in_its_summary(tmp_path, cache_root):
+    out = tmp_path / "run"
+    r = cli("run", "--preset", "paper", "--scans", "5", *SMALL_TOWN, "--out", str(out), "--json", cache=cache_root)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["preset"] == "paper"
+    assert json.loads((out / "summary.json").read_text())["preset"] == "paper"
+
+
+@pytest.mark.parametrize("command", [("run", "--out", "OUT"), ("map", "build"), ("bench", "localize", "--out", "OUT")])
+def test_a_bad_preset_is_one_line(tmp_path, command):
+    out = tmp_path / "out"
+    args = [str(out) if a == "OUT" else a for a in command]
+    r = cli(*args, "--preset", "fastest", "--scans", "2", cache=tmp_path / "cache")
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "unknown preset 'fastest'" in lines[0] and "paper" in lines[0]
+    assert not out.exists()

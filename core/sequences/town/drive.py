@@ -204,6 +204,15 @@ def vehicle_poses(x, y, yaw, ground: HeightField) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------- grid route
+def choose_next_node(rng: np.random.Generator, grid: Grid, prev, here, options: list):
+    """The next grid node of a drive arriving at ``here`` from ``prev``: straight on three times
+    as likely as a turn (the grid is axis-aligned)."""
+    heading_in = grid.node_xy(here) - grid.node_xy(prev)
+    weights = np.array([3.0 if float((grid.node_xy(m) - grid.node_xy(here)) @ heading_in) > 0 else 1.0
+                        for m in options])
+    return options[int(rng.choice(len(options), p=weights / weights.sum()))]
+
+
 def _grid_route(rng: np.random.Generator, grid: Grid, length_needed: float):
     """Nodes of the drive: half an edge, a full loop around the chosen rectangle (back past the
     start), then a random walk that prefers going straight and never U-turns."""
@@ -223,10 +232,7 @@ def _grid_route(rng: np.random.Generator, grid: Grid, length_needed: float):
         here = nodes[-1]
         prev = nodes[-2] if len(nodes) >= 2 else prev
         options = [m for m in grid.neighbours(here) if m != prev] or [prev]
-        heading_in = grid.node_xy(here) - grid.node_xy(prev)
-        weights = np.array([3.0 if float((grid.node_xy(m) - grid.node_xy(here)) @ heading_in) > 0 else 1.0
-                            for m in options])  # straight on (the grid is axis-aligned) or a turn
-        nxt = options[int(rng.choice(len(options), p=weights / weights.sum()))]
+        nxt = choose_next_node(rng, grid, prev, here, options)
         length += float(np.linalg.norm(grid.node_xy(nxt) - grid.node_xy(here)))
         nodes.append(nxt)
     return start_xy, cycle[k0], nodes

@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from .constants import LANE_OFFSET, ROUTE2_STREAM, SWAY2_STREAM
-from .drive import grid_drive
+from .drive import choose_next_node, grid_drive
 from .world import Town, drive_poses
 
 def second_route(town: Town) -> tuple[np.ndarray, np.ndarray]:
@@ -92,10 +92,7 @@ def _walk_on_mapped_streets(town: Town):
             else:   # a detour: the shortest way back onto the mapped streets
                 nearest = min(hops[m] for m in options)
                 options = [m for m in options if hops[m] == nearest]
-            heading_in = grid.node_xy(here) - grid.node_xy(prev)
-            weights = np.array([3.0 if float((grid.node_xy(m) - grid.node_xy(here)) @ heading_in) > 0 else 1.0
-                                for m in options])   # straight on (the grid is axis-aligned) or a turn
-            nxt = options[int(rng.choice(len(options), p=weights / weights.sum()))]
+            nxt = choose_next_node(rng, grid, prev, here, options)
             length += float(np.linalg.norm(grid.node_xy(nxt) - grid.node_xy(here)))
             nodes.append(nxt)
         return start_xy, before_start, nodes

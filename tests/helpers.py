@@ -199,3 +199,32 @@ def make_localizer(seq, cache_root, n_particles: int = 300):
 def browser_localizer(cache_root):
     """The localizer the browser test drives: long enough to pause mid-run."""
     return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000)
+
+
+# The drive that maps the town: a run's scans are localized inside its map. Shorter than the
+# default town's 1200 scans (a minute and a half to map) so that the map builds in seconds; the
+# localizer works the same.
+MAPPING_SCANS = 150
+
+
+def short_town(scans: int):
+    """The default town's first ``scans`` scans, mapped from a MAPPING_SCANS-scan drive."""
+    from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+    cfg = Config()
+    cfg.town.n_scans = MAPPING_SCANS
+    return open_sequence(SourceSpec(scans=scans), cfg)
+
+
+def assert_floor_keeps_the_weights(exact, floored, min_floored: int, margin: float = 800.0) -> None:
+    """The floored log-likelihood gives the exact weights: particles within ``margin`` nats of the
+    best are exact, the rest sit at the floor, and at least ``min_floored`` were floored."""
+    import pytest
+
+    w_exact = np.exp(exact - exact.max())
+    w_floor = np.exp(floored - floored.max())
+    np.testing.assert_allclose(w_floor / w_floor.sum(), w_exact / w_exact.sum(), rtol=1e-9, atol=1e-300)
+    kept = exact > exact.max() - margin
+    np.testing.assert_allclose(floored[kept], exact[kept], rtol=1e-9)
+    assert np.all(floored[~kept] == pytest.approx(exact.max() - margin, rel=1e-9))
+    assert (~kept).sum() > min_floored                           # the floor did apply

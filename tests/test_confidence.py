@@ -7,14 +7,13 @@ import math
 
 import numpy as np
 import pytest
-from helpers import scripted_std
+from helpers import scripted_std, short_town
 
 from lidarloc.core.config import Config
 from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.metrics import aggregate_confidence, confidence_metrics, inside_2sigma, mahalanobis_xy
 from lidarloc.core.results import summarize_run, write_records_csv
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 CONFIDENCE = ("n_particles", "n_eff_share", "converged", "inlier_share", "mean_residual_m", "cov_xx", "cov_xy",
               "cov_yy", "inside_2sigma")
@@ -60,14 +59,10 @@ def test_benchmark_aggregate():
 
 
 # ------------------------------------------------------------------------------ the localizer
-MAPPING_SCANS = 150    # the drive that maps the town (the default's 1200 would take a minute and a half)
-
 
 @pytest.fixture(scope="module")
 def town():
-    cfg = Config()
-    cfg.town.n_scans = MAPPING_SCANS       # a short mapping drive: its map builds in seconds
-    return open_sequence(SourceSpec(scans=40), cfg)
+    return short_town(40)
 
 
 def make(seq, cache_root, **localize) -> Localizer:

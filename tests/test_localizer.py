@@ -9,18 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import instant_matcher, process_gone, scripted_std, wait_for
+from helpers import instant_matcher, process_gone, scripted_std, short_town, wait_for
 
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.localizer import BlockError, Localizer
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 N_SCANS = 60
-# The drive that maps the town: the run's scans are localized inside its map. Shorter than the
-# default town's 1200 scans so that the map builds in seconds; the localizer works the same.
-MAPPING_SCANS = 150
-
 # A block that fails or dies must stop the run at once instead of hanging; these bounds only
 # catch a hang (the failure itself comes within a scan or two), with room for a loaded machine.
 HANG_BOUND_S = 30
@@ -28,9 +23,7 @@ HANG_BOUND_S = 30
 
 @pytest.fixture(scope="module")
 def town(cache_root):
-    cfg = Config()
-    cfg.town.n_scans = MAPPING_SCANS
-    return open_sequence(SourceSpec(scans=N_SCANS), cfg)
+    return short_town(N_SCANS)
 
 
 def make(seq, cache_root, **overrides) -> Localizer:

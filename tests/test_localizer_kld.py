@@ -5,20 +5,15 @@ inside the localizer's steps."""
 
 import numpy as np
 import pytest
-from helpers import instant_matcher
+from helpers import instant_matcher, short_town
 
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
-
-MAPPING_SCANS = 150    # the drive that maps the town (the default's 1200 would take a minute and a half)
 
 
 @pytest.fixture(scope="module")
 def town():
-    cfg = Config()
-    cfg.town.n_scans = MAPPING_SCANS
-    return open_sequence(SourceSpec(scans=20), cfg)
+    return short_town(20)
 
 
 def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root):

@@ -10,23 +10,21 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from helpers import short_town
+
 from lidarloc.core.bev import BEVPyramid
 from lidarloc.core.config import Config, apply_preset
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.mapping import PriorMap
 from lidarloc.core.s2m import S2MOutcome, ScanToMapMatcher
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 SHIFT_M = 15.0          # how far the stub's "match" is from the pose it started at
-MAPPING_SCANS = 150     # the drive that maps the town (the default's 1200 would take a minute and a half)
 
 
 @pytest.fixture(scope="module")
 def town():
-    cfg = Config()
-    cfg.town.n_scans = MAPPING_SCANS       # a short mapping drive: its map builds in seconds
-    return open_sequence(SourceSpec(scans=12), cfg)
+    return short_town(12)
 
 
 def wrong_matcher(loc):

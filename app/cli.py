@@ -55,6 +55,58 @@ def map_build(
                   f"{summary['seconds']} s ({'from cache' if cached else 'built'}) → {directory}")
 
 
+@map_app.command("info")
+def map_info(
+    file: Annotated[Path, typer.Argument(help="Map file: .pcd, .ply, .las, .laz, .npy or .npz.", show_default=False)],
+    as_json: JsonOpt = False,
+):
+    """Points, extent and origin (in the file's frame) and density of a point-cloud map file."""
+    from lidarloc.core.mapfile import describe_map, map_info_lines, read_map
+
+    with progress_bar() as bar:
+        task = bar.add_task(f"reading {file.name}", total=1)
+        cloud = read_map(file, progress=lambda done, total: bar.update(task, completed=done, total=total))
+    info = describe_map(cloud)
+    if as_json:
+        emit_json(info)
+    else:
+        err.print("\n".join(map_info_lines(info)), markup=False, highlight=False, soft_wrap=True)
+
+
+@map_app.command("export")
+def map_export(
+    out: Annotated[Path, typer.Option("--out", help="Map file to write: .pcd or .ply (binary, x y z).", show_default=False)],
+    as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """Write a source's prior map (built or from the cache) as a .pcd or .ply file.
+
+    The map is written in the source's frame: a map read from a georeferenced file goes back to its own coordinates, as float64."""
+    from lidarloc.core.mapfile import WRITE_SUFFIXES, write_map
+    from lidarloc.core.mapping import load_or_build_map
+    from lidarloc.core.sequences.factory import open_sequence
+
+    if out.suffix.lower() not in WRITE_SUFFIXES:     # before building a map that cannot be written
+        raise LidarlocError(f"{out}: cannot write a map of this type ({out.suffix or 'no extension'}); "
+                            f"supported: {', '.join(WRITE_SUFFIXES)}")
+    cfg = config_from(config, set_, preset=preset)
+    seq = open_sequence(source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans), cfg).map_source
+    with progress_bar() as bar:
+        task = bar.add_task(f"map of {seq.name}", total=None)
+        prior = load_or_build_map(seq, cfg.map, cache, progress=lambda i, n: bar.update(task, completed=i, total=n),
+                                  road_removal=False).value
+    origin = prior.origin if prior.origin.any() else None
+    write_map(out, prior.points, origin=origin)
+    summary = {"points": int(len(prior.points)), "out": str(out), "origin_m": [float(v) for v in prior.origin]}
+    if as_json:
+        emit_json(summary)
+    else:
+        err.print(f"wrote {summary['points']:,} map points to {out}", markup=False, highlight=False)
+
+
 # ---------------------------------------------------------------------------------------- synth
 @app.command()
 def synth(
@@ -102,24 +154,51 @@ def run(
         raise typer.Exit(130)
 
 
+@app.command()
+def inspect(
+    scan: Annotated[int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")],
+    out: Annotated[Path, typer.Option("--out", help="Directory for the likelihood surfaces (PNG + .npy), residuals.png and inspect.json.")],
+    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    best_over_yaw: Annotated[bool, typer.Option("--best-over-yaw", help="Each surface cell: the best of the yaws within ±10° in 2° steps, not the pose's yaw alone.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print inspect.json on stdout too.")] = False,
+    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
+    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
+    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Replay a run to one scan and write why the filter is where it is: the likelihood surface
+    around the estimate and around the truth, the scan's residuals to the map, and a JSON summary."""
+    from .inspect import run_inspect
+
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    result = run_inspect(spec, cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw)
+    if as_json:
+        emit_json(result)
+
+
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser):
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False):
     from .viewer.serve import serve_until_interrupted
 
-    serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser)
+    serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
+                            autoplay=autoplay)
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
 PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
+AutoplayOpt = Annotated[bool, typer.Option(
+    "--autoplay", help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).")]
 
 
 @app.command()
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
-         open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False):
+         open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
+         autoplay: AutoplayOpt = False):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(source_spec(None, None, None, None, None, cfg.town.seed, None, None, scans), cfg, host, port, cache, open_browser)
+    _serve(source_spec(None, None, None, None, None, cfg.town.seed, None, None, scans), cfg, host, port, cache, open_browser,
+           autoplay)
 
 
 @app.command()
@@ -129,11 +208,12 @@ def view(
     date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
     calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
+    autoplay: AutoplayOpt = False,
 ):
     """The live viewer on any sequence source."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
     spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    _serve(spec, cfg, host, port, cache, open_browser)
+    _serve(spec, cfg, host, port, cache, open_browser, autoplay)
 
 
 # -------------------------------------------------------------------------------------- benches
@@ -189,6 +269,46 @@ def bench_map(
     _result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
 
 
+@bench_app.command("mapfile")
+def bench_mapfile(
+    points: Annotated[int, typer.Option("--points", min=1000, help="Points of the generated map file.")] = 50_000_000,
+    as_json: JsonOpt = False,
+):
+    """Loading a large .pcd map and building its lookup table (target ≤ 2 min, ≤ 6 GB at 50 M points).
+
+    The map is generated in a temporary directory; reading, voxelizing and the lookup table are timed in a fresh process, then road removal apart."""
+    from .bench.mapfile import run as run_bench
+
+    _result("mapfile", run_bench(points), as_json)
+
+
+@bench_app.command("bag")
+def bench_bag(
+    ctx: typer.Context,
+    total: Annotated[int, typer.Option("--total", min=1, help="Scans in the bag (the source's scans, repeated).")] = 300,
+    storage: Annotated[str, typer.Option("--storage", help="Bag kind: mcap, sqlite3 (ROS 2) or ros1.")] = "mcap",
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times the whole bag is read (median).")] = 3,
+    as_json: JsonOpt = False,
+    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
+    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
+    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
+    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+):
+    """Reading scans from a bag: a PointCloud2 bag of the source's scans, written in a temporary
+    directory, opened (index) and read scan by scan (decode); target ≥ 200 scans/s.
+
+    Default source: the real KITTI raw drive (64-beam scans); --town-seed N for the town."""
+    from .bench.bag import run as run_bench
+    from .bench.common import require_real_drive
+
+    cfg = config_from(config, set_, preset=preset)
+    if given(ctx, SOURCE_CHOICE):
+        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    else:
+        spec = require_real_drive("bag", scans)
+    _result("bag", run_bench(spec, cfg, total=total, storage=storage, repeats=repeats), as_json)
+
+
 @bench_app.command("pf")
 def bench_pf(
     ctx: typer.Context,
@@ -216,6 +336,32 @@ def bench_pf(
     else:
         spec = require_real_drive("pf", scans)
     _result("pf", run_bench(spec, cfg, big_map=big_map, town=town_lookup), as_json)
+
+
+@bench_app.command("surface")
+def bench_surface(
+    ctx: typer.Context,
+    samples: Annotated[int, typer.Option("--samples", min=1, help="Scans to time, spread over the sequence.")] = 10,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Surfaces per scan, each around another offset of the truth.")] = 3,
+    seed: SeedOpt = None,
+    as_json: JsonOpt = False,
+    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
+    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
+    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
+    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+):
+    """The viewer's likelihood surface: time of an 81 × 81 grid (target ≤ 150 ms) and its maximum's error.
+
+    Default source: the real KITTI raw drive; --town-seed N for the town."""
+    from .bench.common import require_real_drive
+    from .bench.surface import run as run_bench
+
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    if given(ctx, SOURCE_CHOICE):
+        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
+    else:
+        spec = require_real_drive("surface", scans)
+    _result("surface", run_bench(spec, cfg, scans=samples, repeats=repeats), as_json)
 
 
 @bench_app.command("s2m")

@@ -83,6 +83,7 @@ from .metrics import inside_2sigma
 from .odometry import OdometryFeed
 from .rpe import load_or_build_odometry
 from .rules import LocalizationRules
+from .s2m_pending import S2MNotReady, in_daemon_thread
 from .s2m_schedule import S2MScheduler
 from .scanprep import voxel_downsample_random
 from .snapshot import Event, ScanRecord, Snapshot
@@ -103,7 +104,8 @@ INTERRUPT_POLL_S = 0.05
 
 class Localizer:
     def __init__(self, seq, cfg: Config, cache_root: Path | None = None,
-                 progress: Callable[[str, float], None] | None = None):
+                 progress: Callable[[str, float], None] | None = None,
+                 on_map: Callable[[object], None] | None = None, defer_s2m: bool = False):
         from .bev import load_or_build_pyramid
         from .lookup import load_or_build_lookup
         from .pf import ParticleFilter
@@ -114,13 +116,21 @@ class Localizer:
         # The prior map comes from the sequence's mapping drive, not from the scans being
         # localized (``--scans N`` plays N scans inside the whole drive's map; the town's drive
         # with changes, traffic or another sensor inside the town as it was mapped).
+        # ``defer_s2m``: what only S2M needs (road removal, BEV pyramid, its process) is built in
+        # the background after construction, and S2M joins at the first scan after it is ready —
+        # a scan that depends on timing, so only for a viewer's first start on an empty cache
         self.prior_map, self.map_dir, _ = load_or_build_map(
-            seq.map_source, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n))
+            seq.map_source, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n),
+            road_removal=not defer_s2m)
+        if on_map is not None:       # a viewer shows the map while the tables are still being built
+            on_map(self.prior_map)
         self._progress("lookup", 0.0)
         self.lookup = load_or_build_lookup(self.prior_map, self.map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max,
                                            progress=lambda f: self._progress("lookup", f)).value
-        self._progress("pyramid", 0.0)
-        self.pyramid = load_or_build_pyramid(self.prior_map, self.map_dir, cfg.s2m).value
+        self.pyramid = None
+        if self.prior_map.points_bev is not None:
+            self._progress("pyramid", 0.0)
+            self.pyramid = load_or_build_pyramid(self.prior_map, self.map_dir, cfg.s2m).value
         recorded_odometry = None
         if cfg.localize.recorded_odometry:
             self._progress("odometry", 0.0)
@@ -144,8 +154,12 @@ class Localizer:
         self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
         self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
-        self.s2m = S2MScheduler(cfg, self.prior_map, self.pyramid, self.map_dir, self._bounds, self._s2m_pool,
-                                wait=self._wait, event=self._event)
+        self._pending_s2m: Future | None = None
+        if self.pyramid is not None:
+            self.s2m = self._s2m_scheduler()
+        else:
+            self.s2m = S2MNotReady()
+            self._pending_s2m = in_daemon_thread(self._build_s2m_tables, "lidarloc-road-removal")
         self._progress("ready", 1.0)
         self.restart(cfg.seed)
 
@@ -259,6 +273,12 @@ class Localizer:
         return self._closed
 
     @property
+    def s2m_pending(self) -> bool:
+        """Whether S2M is still waiting for its tables (road-removed map, BEV pyramid) to be built
+        in the background (``defer_s2m``); it joins at the first scan after they are ready."""
+        return self._pending_s2m is not None
+
+    @property
     def rebuilding(self) -> bool:
         """Whether a lookup table or BEV pyramid is still being rebuilt in the background (after a
         live d_max or d_m change); a finished one is swapped in at the next scan."""
@@ -296,6 +316,7 @@ class Localizer:
             self.odometry.restart(origin=target)
             self._prev_t = None
             self.rules.reset()   # the odometry restarts: a window must not span the jump
+            self._refresh_snapshot()
             return target
 
     def set_params(self, **params) -> None:
@@ -322,6 +343,7 @@ class Localizer:
                     s2m.enabled = bool(value)
                     if not value:
                         self.s2m.cancel(self.k - 1, "S2M switched off")
+                        self._refresh_snapshot()
                 elif name in ("region_x", "region_y", "angle_step"):
                     setattr(s2m, name, float(value))
                 elif name == "match_resolution":
@@ -511,15 +533,41 @@ class Localizer:
                                         progress=progress).value
         self._pending_lookup = self._rebuild_pool.submit(build)
 
+    def _s2m_scheduler(self) -> S2MScheduler:
+        return S2MScheduler(self.cfg, self.prior_map, self.pyramid, self.map_dir, self._bounds, self._s2m_pool,
+                            wait=self._wait, event=self._event)
+
+    def _build_s2m_tables(self):
+        """The road-removed map and the BEV pyramid (cached both), on a background thread."""
+        from .bev import load_or_build_pyramid
+        from .mapping import load_or_build_road_removed
+
+        prior = load_or_build_road_removed(self.prior_map, self.map_dir, self.cfg.map)
+        return prior.points_bev, load_or_build_pyramid(prior, self.map_dir, replace(self.cfg.s2m)).value
+
+    def _join_s2m(self) -> None:
+        """S2M's tables are ready (``defer_s2m``): the real scheduler takes over from this scan."""
+        fut, self._pending_s2m = self._pending_s2m, None
+        bev, self.pyramid = self._wait(fut, "road removal and BEV pyramid", self.k)
+        self.prior_map.points_bev = bev     # in place: a viewer holding the map sees it too
+        self.s2m = self._s2m_scheduler()
+        self._event(self.k, "s2m_ready", "road-removed map and BEV pyramid built in the background")
+        if abs(self.pyramid.resolution - self.cfg.s2m.match_resolution) > 1e-9:   # changed meanwhile
+            self._rebuild_pyramid()
+
     def _rebuild_pyramid(self) -> None:
         from .bev import load_or_build_pyramid
 
+        if self._pending_s2m is not None:    # the pyramid being built follows the new value on arrival
+            return
         self.rebuild_progress = 0.0
         cfg = replace(self.cfg.s2m)
         self._pending_pyramid = self._rebuild_pool.submit(
             lambda: load_or_build_pyramid(self.prior_map, self.map_dir, cfg).value)
 
     def _swap_rebuilt_tables(self) -> None:
+        if self._pending_s2m is not None and self._pending_s2m.done():
+            self._join_s2m()
         if self._pending_lookup is not None and self._pending_lookup.done():
             fut, self._pending_lookup = self._pending_lookup, None
             self.lookup = self._wait(fut, "lookup rebuild", self.k)
@@ -535,6 +583,13 @@ class Localizer:
             self.rebuild_progress = None
 
     # ------------------------------------------------------------------------ outputs
+    def _refresh_snapshot(self) -> None:
+        """A control changed the state between scans (kidnap, S2M off): the snapshot says so at
+        once — a paused viewer shows it without waiting for the next scan."""
+        self._snapshot = replace(self._snapshot, events=tuple(self.events[-50:]), localized=self.rules.localized,
+                                 localized_since=self.rules.localized_since, s2m_running=self.s2m.job is not None,
+                                 s2m_pending=self.s2m_pending)
+
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
 
@@ -574,11 +629,13 @@ class Localizer:
                       else transform_points(mean_T, prepared).astype(np.float32))
         return Snapshot(
             scan_index=k, n_scans=self.n_scans, timestamp=self.seq.timestamp(k) if k >= 0 else 0.0,
-            particles=self.pf.states.copy(), weights=self.pf.weights.copy(), best_index=int(est.best_index),
+            particles=self.pf.states.copy(), weights=self.pf.weights.copy(), log_weights=self.pf.log_weights.copy(),
+            best_index=int(est.best_index),
             mean_pose=mean_T, cov_xyz=est.cov_xyz, std_xyz=est.std_xyz, ellipse_xy=tuple(est.ellipse_xy),
             n_eff=float(est.n_eff), localized=self.rules.localized, localized_since=self.rules.localized_since,
-            scan_world=scan_world, gt_pose=gt, error_m=err, pf_ms=pf_ms, s2m=self.s2m.last,
-            s2m_running=self.s2m.job is not None, s2m_acceptance=self.s2m.acceptance,
+            scan_world=scan_world, gt_pose=gt, error_m=err, pf_ms=pf_ms, rpe_ms=self.odometry.last_ms,
+            s2m=self.s2m.last, s2m_running=self.s2m.job is not None, s2m_acceptance=self.s2m.acceptance,
+            s2m_pending=self.s2m_pending,
             n_particles=int(n_weighed if n_weighed is not None else len(self.pf.states)),
             converged=bool(np.all(est.std_xyz < self.cfg.localize.std_threshold)),
             inlier_share=share, mean_residual_m=residual, inside_2sigma=inside,

@@ -31,6 +31,13 @@ d_m = 1 m, d_θ = 2.5°, median, 2 cores shared with other jobs): all-strided 38
 (fewest nodes per unit of work). DENSE_UPTO = 3 is that split; merging wins more on larger maps,
 where more coarse levels are searched.
 
+For inspection a search also reports (``MatchResult.candidates``, ``nodes_per_level``) the best
+level-0 poses it scored, best first, and the nodes it expanded per level. Keeping them costs one
+comparison per leaf scored, and the search's order and result are those of a search that keeps
+none, bit for bit (tests/test_m3rsm.py). They are the leaves of the blocks branch and bound did
+not prune, often only the four of the last level-1 block: the tighter the bounds, the fewer
+runners-up it ever scores.
+
 The heap is an array binary heap inside the numba kernel, so a whole search runs without the
 GIL (the particle filter's threads keep running). The alternative, Python's heapq driving a numba
 kernel that bounds a node's four children in one call, found the same optima in 70 ms vs 38 ms
@@ -42,7 +49,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
@@ -52,6 +59,8 @@ from .errors import LidarlocError
 
 #: Levels 1..DENSE_UPTO use the dense (stride-1 pooled) bound, coarser levels the strided one.
 DENSE_UPTO = 3
+#: Level-0 poses a search keeps for inspection (MatchResult.candidates), best first.
+N_CANDIDATES = 10
 
 
 @dataclass(frozen=True)
@@ -65,6 +74,13 @@ class MatchResult:
     n_points: int = 0      # scan cells matched (after down-sampling to d_m)
     region: tuple = ()     # (x_min, y_min, x_max, y_max) of the sensor positions searched
     n_angles: int = 0
+    # (K, 4) x, y, yaw, score of the best level-0 poses the search scored, best first (at most
+    # ``keep_candidates``); the first is the optimum when there is one. Branch and bound scores
+    # only the leaves of blocks it did not prune, so the others are the best it *saw*, not the
+    # search space's runners-up; the exhaustive search sees them all.
+    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)), compare=False)
+    nodes_per_level: tuple = ()   # nodes expanded per pyramid level (index = level); sums to
+                                  # nodes_expanded (the exhaustive search: all at level 0)
 
 
 # ------------------------------------------------------------------------------------ scan side
@@ -339,17 +355,52 @@ def _heap_pop(hs, hl, hr, hx, hy, n):
 
 
 @nb.njit(cache=True, nogil=True)
+def _keep_best(ts, tr, tx, ty, m, s, r, kx, ky):
+    """Insert leaf (s, r, kx, ky) into the list ts[:m], best first; an equal score goes after the
+    entries already there, so the first of equal scores stays first, as it does for the search's
+    own optimum (only a strictly better leaf replaces it). A full list drops its last entry.
+    Returns the new length."""
+    K = ts.shape[0]
+    if m == K:
+        if s <= ts[K - 1]:
+            return m
+        i = K - 1
+    else:
+        i = m
+        m += 1
+    while i > 0 and ts[i - 1] < s:
+        ts[i] = ts[i - 1]
+        tr[i] = tr[i - 1]
+        tx[i] = tx[i - 1]
+        ty[i] = ty[i - 1]
+        i -= 1
+    ts[i] = s
+    tr[i] = r
+    tx[i] = kx
+    ty[i] = ky
+    return m
+
+
+@nb.njit(cache=True, nogil=True)
 def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
-                      kx_lo, kx_hi, ky_lo, ky_hi, best_in):
+                      kx_lo, kx_hi, ky_lo, ky_hi, best_in, keep):
     """Best-first search over angles r and lattice translations k ∈ [kx_lo, kx_hi] × [ky_lo, ky_hi].
-    Returns (best score, r, kx, ky, nodes expanded). ``best_in`` is a score to beat (−1 for none):
-    only strictly better optima are reported (r = −1 if none)."""
+    Returns (best score, r, kx, ky, nodes expanded, nodes expanded per level, the ``keep`` best
+    leaves scored as (scores, r, kx, ky, count)). ``best_in`` is a score to beat (−1 for none):
+    only strictly better optima are reported (r = −1 if none). Keeping the leaves costs one
+    comparison per leaf scored; it changes neither the order of the search nor its result."""
     R = cx.shape[0]
     best = best_in
     best_r = -1
     best_kx = 0
     best_ky = 0
     nodes = 0
+    per_level = np.zeros(top + 1, np.int64)
+    ts = np.empty(keep, np.float64)
+    tr = np.empty(keep, np.int64)
+    tx = np.empty(keep, np.int64)
+    ty = np.empty(keep, np.int64)
+    m = 0
     cap = 1024
     hs = np.empty(cap, np.float64)
     hl = np.empty(cap, np.int32)
@@ -368,6 +419,8 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
                 if top == 0:
                     if kx >= kx_lo and ky >= ky_lo:
                         s = _score_l0(L0, cx[r], cy[r], kx, ky)
+                        if keep > 0 and (m < keep or s > ts[keep - 1]):
+                            m = _keep_best(ts, tr, tx, ty, m, s, r, kx, ky)
                         if s > best:
                             best, best_r, best_kx, best_ky = s, r, kx, ky
                 else:
@@ -390,6 +443,7 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
         if s <= best:
             break   # no block left can hold a better translation than the best leaf found
         nodes += 1
+        per_level[l] += 1
         h = l - 1
         half = np.int64(1) << h
         for q in range(4):
@@ -399,6 +453,8 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
                 continue   # quadrant entirely outside the search region
             if h == 0:
                 cs = _score_l0(L0, cx[r], cy[r], ckx, cky)
+                if keep > 0 and (m < keep or cs > ts[keep - 1]):
+                    m = _keep_best(ts, tr, tx, ty, m, cs, r, ckx, cky)
                 if cs > best:
                     best, best_r, best_kx, best_ky = cs, r, ckx, cky
             else:
@@ -409,23 +465,31 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
                                 ckx >> h, cky >> h)
                 if cs > best:
                     hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
-    return best, best_r, best_kx, best_ky, nodes
+    return best, best_r, best_kx, best_ky, nodes, per_level, ts, tr, tx, ty, m
 
 
 @nb.njit(cache=True, nogil=True)
-def _exhaustive(L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi):
-    """Every angle and lattice translation at L0; first maximum in (r, kx, ky) order."""
+def _exhaustive(L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi, keep):
+    """Every angle and lattice translation at L0; first maximum in (r, kx, ky) order. Also the
+    ``keep`` best poses as (scores, r, kx, ky, count), as :func:`_branch_and_bound` keeps them."""
     best = -1.0
     best_r = 0
     best_kx = kx_lo
     best_ky = ky_lo
+    ts = np.empty(keep, np.float64)
+    tr = np.empty(keep, np.int64)
+    tx = np.empty(keep, np.int64)
+    ty = np.empty(keep, np.int64)
+    m = 0
     for r in range(cx.shape[0]):
         for kx in range(kx_lo, kx_hi + 1):
             for ky in range(ky_lo, ky_hi + 1):
                 s = _score_l0(L0, cx[r], cy[r], kx, ky)
+                if keep > 0 and (m < keep or s > ts[keep - 1]):
+                    m = _keep_best(ts, tr, tx, ty, m, s, r, kx, ky)
                 if s > best:
                     best, best_r, best_kx, best_ky = s, r, kx, ky
-    return best, best_r, best_kx, best_ky
+    return best, best_r, best_kx, best_ky, ts, tr, tx, ty, m
 
 
 @nb.njit(cache=True, nogil=True)
@@ -543,7 +607,14 @@ def _top_level(n_levels: int, width: int, height: int) -> int:
     return int(min(n_levels - 1, max(0, math.ceil(math.log2(span)))))
 
 
-def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=False) -> MatchResult:
+def _wrap(yaw):
+    return (yaw + math.pi) % (2 * math.pi) - math.pi
+
+
+def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=False,
+            keep: int = N_CANDIDATES) -> MatchResult:
+    if keep < 0:
+        raise LidarlocError(f"keep_candidates must be ≥ 0, got {keep}")
     t0 = time.perf_counter()
     dense_upto = DENSE_UPTO
     prep = _prepared(pyramid, dense_upto)
@@ -553,29 +624,34 @@ def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=
     kx_hi, ky_hi = int(k_hi[0]), int(k_hi[1])
     region = (anchor[0] + kx_lo * d, anchor[1] + ky_lo * d, anchor[0] + kx_hi * d, anchor[1] + ky_hi * d)
     cx, cy = _cells(pyramid, B, angles, anchor)
+    keep = int(keep)
     if exhaustive:
-        score, r, kx, ky = _exhaustive(prep.L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi)
+        score, r, kx, ky, ts, tr, tx, ty, m = _exhaustive(prep.L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi, keep)
         nodes = (kx_hi - kx_lo + 1) * (ky_hi - ky_lo + 1) * len(angles)
+        per_level = (int(nodes),)
     else:
         top = _top_level(prep.n_levels, kx_hi - kx_lo + 1, ky_hi - ky_lo + 1)
         ex, ey, ec, ew, eoff = _level_entries(cx, cy, dense_upto + 1, top)
-        score, r, kx, ky, nodes = _branch_and_bound(prep.L0, prep.G, prep.gnx, prep.gny, prep.goff,
-                                                    prep.S, prep.snx, prep.sny, prep.soff, dense_upto, cx, cy,
-                                                    ex, ey, ec, ew, eoff, top, kx_lo, kx_hi, ky_lo, ky_hi,
-                                                    float(beat))
+        score, r, kx, ky, nodes, levels, ts, tr, tx, ty, m = _branch_and_bound(
+            prep.L0, prep.G, prep.gnx, prep.gny, prep.goff, prep.S, prep.snx, prep.sny, prep.soff, dense_upto,
+            cx, cy, ex, ey, ec, ew, eoff, top, kx_lo, kx_hi, ky_lo, ky_hi, float(beat), keep)
+        per_level = tuple(int(v) for v in levels)
     ms = (time.perf_counter() - t0) * 1e3
+    # the same arithmetic as the optimum's pose below, so the first candidate equals it exactly
+    candidates = np.column_stack([anchor[0] + tx[:m] * d, anchor[1] + ty[:m] * d, _wrap(angles[tr[:m]]),
+                                  ts[:m]]).astype(np.float64).reshape(-1, 4)
+    common = dict(nodes_expanded=int(nodes), ms=ms, n_points=len(B), region=region, n_angles=len(angles),
+                  candidates=candidates, nodes_per_level=per_level)
     if r < 0:  # nothing strictly better than `beat`
-        return MatchResult(x=math.nan, y=math.nan, yaw=math.nan, score=float(score), nodes_expanded=int(nodes),
-                           ms=ms, n_points=len(B), region=region, n_angles=len(angles))
-    yaw = float((angles[r] + math.pi) % (2 * math.pi) - math.pi)
-    return MatchResult(x=float(anchor[0] + kx * d), y=float(anchor[1] + ky * d), yaw=yaw, score=float(score),
-                       nodes_expanded=int(nodes), ms=ms, n_points=len(B), region=region, n_angles=len(angles))
+        return MatchResult(x=math.nan, y=math.nan, yaw=math.nan, score=float(score), **common)
+    return MatchResult(x=float(anchor[0] + kx * d), y=float(anchor[1] + ky * d), yaw=float(_wrap(angles[r])),
+                       score=float(score), **common)
 
 
 # ------------------------------------------------------------------------------------ public API
 def match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy, half_extent, yaw_center: float = 0.0,
           yaw_window: float = math.pi, angle_step: float = 2.5 * math.pi / 180.0,
-          min_score: float | None = None) -> MatchResult:
+          min_score: float | None = None, keep_candidates: int = N_CANDIDATES) -> MatchResult:
     """Local search (paper, "Scan-to-map matching"): translations center ± half_extent on a lattice
     of step d_m anchored at center_xy (the search rectangle's lower bound is center − half_extent,
     so the start position is on it), yaws θ_r = −π + r·d_θ within ± yaw_window of yaw_center (the
@@ -587,7 +663,10 @@ def match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy, half_extent, yaw_
     near the truth could never be beaten — and never refined by GICP.
 
     ``min_score``: report only an optimum strictly above it (blocks whose bound does not exceed it
-    are pruned from the start); if there is none, x, y, yaw are NaN and score = min_score."""
+    are pruned from the start); if there is none, x, y, yaw are NaN and score = min_score.
+
+    ``keep_candidates``: how many of the best level-0 poses the search scored to report in
+    ``MatchResult.candidates`` (0: none); keeping them changes neither the result nor the work."""
     if angle_step <= 0:
         raise LidarlocError(f"angle_step must be > 0, got {angle_step}")
     d = pyramid.resolution
@@ -600,7 +679,7 @@ def match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy, half_extent, yaw_
     # point (nx, ny).
     anchor = (float(center_xy[0]) - nx * d, float(center_xy[1]) - ny * d)
     beat = -1.0 if min_score is None else float(min_score)
-    return _search(pyramid, scan_xy, anchor, angles, (0, 0), (2 * nx, 2 * ny), beat=beat)
+    return _search(pyramid, scan_xy, anchor, angles, (0, 0), (2 * nx, 2 * ny), beat=beat, keep=keep_candidates)
 
 
 def _global_lattice(pyramid: BEVPyramid):
@@ -612,17 +691,19 @@ def _global_lattice(pyramid: BEVPyramid):
 
 
 def match_global(pyramid: BEVPyramid, scan_xy: np.ndarray,
-                 angle_step: float = 2.5 * math.pi / 180.0) -> MatchResult:
-    """Global search: every L0 cell centre of the map as sensor position, θ_r = −π + r·d_θ."""
+                 angle_step: float = 2.5 * math.pi / 180.0, keep_candidates: int = N_CANDIDATES) -> MatchResult:
+    """Global search: every L0 cell centre of the map as sensor position, θ_r = −π + r·d_θ.
+    ``keep_candidates`` as for :func:`match`."""
     if angle_step <= 0:
         raise LidarlocError(f"angle_step must be > 0, got {angle_step}")
     anchor, lo, hi = _global_lattice(pyramid)
-    return _search(pyramid, scan_xy, anchor, angle_lattice(angle_step), lo, hi)
+    return _search(pyramid, scan_xy, anchor, angle_lattice(angle_step), lo, hi, keep=keep_candidates)
 
 
 def exhaustive_match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy=None, half_extent=None,
                      yaw_center: float = 0.0, yaw_window: float = math.pi,
-                     angle_step: float = 2.5 * math.pi / 180.0) -> MatchResult:
+                     angle_step: float = 2.5 * math.pi / 180.0,
+                     keep_candidates: int = N_CANDIDATES) -> MatchResult:
     """Brute force over the same search space as :func:`match` (or :func:`match_global` when
     center_xy is None). For tests; O(angles × translations × points)."""
     d = pyramid.resolution
@@ -635,7 +716,7 @@ def exhaustive_match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy=None, h
         anchor = (float(center_xy[0]) - nx * d, float(center_xy[1]) - ny * d)
         lo, hi = (0, 0), (2 * nx, 2 * ny)
         angles = _angles_window(float(yaw_center), float(yaw_window), float(angle_step))
-    return _search(pyramid, scan_xy, anchor, angles, lo, hi, exhaustive=True)
+    return _search(pyramid, scan_xy, anchor, angles, lo, hi, exhaustive=True, keep=keep_candidates)
 
 
 def score_pose(pyramid: BEVPyramid, scan_xy: np.ndarray, x: float, y: float, yaw: float) -> float:

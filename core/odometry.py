@@ -10,6 +10,7 @@ odometry (``localize.recorded_odometry``) no ICP runs at all: the poses come fro
 from __future__ import annotations
 
 import math
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
 from typing import Any, Callable
@@ -40,6 +41,7 @@ class OdometryFeed:
         self._times: dict[int, float] = {}            # timestamps of the submitted scans
         self.origin = 0                 # first scan the current KISS-ICP run has seen
         self.used: int | None = None    # last odometry scan the rules consumed (real time)
+        self.last_ms: float | None = None   # wall time of the newest finished registration
 
     @property
     def recorded(self) -> bool:
@@ -59,6 +61,7 @@ class OdometryFeed:
         self._times.clear()
         self.origin = origin
         self.used = None
+        self.last_ms = None
 
     def _new_rpe(self) -> RelativePoseEstimator:
         if self._recorded is not None:
@@ -77,7 +80,9 @@ class OdometryFeed:
         self._times[k] = float(t)
 
     def _add(self, rpe, k, scan, t):
+        t0 = time.perf_counter()
         rpe.add(k, scan, t)
+        self.last_ms = (time.perf_counter() - t0) * 1000.0
 
     def wait_registered(self, k: int) -> None:
         """Block until scan k is registered (a failed registration raises here)."""

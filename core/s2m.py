@@ -86,7 +86,9 @@ class S2MOutcome:
     gicp: GICPResult | None = None
     scan_world: np.ndarray | None = None   # (M, 3) float32 road-removed scan at ``pose``
     timings: dict = field(default_factory=dict)   # ms per stage: prepare, m3rsm, gicp
-    stage: str = "m3rsm"        # what was accepted: "m3rsm" (2D match + GICP) or "refined_start"
+    stage: str = "m3rsm"        # what GICP refined, and if accepted what was accepted: "m3rsm"
+                                # (the 2D match) or "refined_start" (the start itself); "" when
+                                # rejected before GICP ran
 
 
 def carry_forward_poses(T_w_k: np.ndarray, odom_k: np.ndarray, odom_k_prime: np.ndarray) -> np.ndarray:
@@ -203,9 +205,12 @@ class ScanToMapMatcher:
                 if score > start_score:
                     return dataclasses.replace(refined, score=score, stage="refined_start",
                                                ms=(time.perf_counter() - t0) * 1e3)
-                reason += ", nor does the start refined by GICP"
+                reason += f", nor does the start refined by GICP (score {score:.0f})"
             else:
                 reason += f"; refining the start failed: {refined.reason}"
+            # what GICP did to the start stays in the outcome: the inspection shows it
+            return self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason,
+                                init=refined.match_pose, gicp=refined.gicp, stage="refined_start")
         return self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason)
 
     def match_global(self, scan_sensor: np.ndarray, road_removed: bool = False, bev_scan: np.ndarray | None = None,
@@ -264,7 +269,7 @@ class ScanToMapMatcher:
             reason = f"GICP left only {100 * g.inlier_ratio:.0f}% of the scan with map correspondences"
         if reason:
             return self._reject(start_pose, result.score, start_score, result, prep, t0, timings, reason,
-                                init=init, gicp=g)
+                                init=init, gicp=g, stage="m3rsm")
         pose = g.pose
         return S2MOutcome(accepted=True, pose=pose, score=result.score, start_score=start_score,
                           region=result.region, ms=(time.perf_counter() - t0) * 1e3, match=result,
@@ -273,12 +278,12 @@ class ScanToMapMatcher:
                           timings=timings)
 
     def _reject(self, start_pose, score, start_score, result, prep, t0, timings, reason, init=None, gicp=None,
-                region=None):
+                region=None, stage=""):
         return S2MOutcome(accepted=False, pose=np.asarray(start_pose, float).copy(), score=float(score),
                           start_score=float(start_score), region=tuple(region if result is None else result.region),
                           ms=(time.perf_counter() - t0) * 1e3, reason=reason, match=result, match_pose=init,
                           gicp=gicp, scan_world=transform_points(start_pose, prep.road_removed).astype(np.float32),
-                          timings=timings)
+                          timings=timings, stage=stage)
 
 
 class _GroundGrid:

@@ -13,6 +13,12 @@ particle's log-likelihood: see :meth:`S2MScheduler._write_unless_weight_drops`).
 
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
 ``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
+
+The last match that landed is kept as an :class:`~lidarloc.core.snapshot.S2MView` for the viewer's
+inspection: the verdict and, for a rejection, why (the search, GICP, the odometry or the particle's
+weight); whether it searched the whole map; the start pose; the best poses the branch and bound
+scored and the nodes it expanded per level; the 2D match, what GICP made of it and how far it
+moved it; and the pose carried forward to the landing scan.
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ class S2MJob:
     start_pose: np.ndarray
     future: Future
     deferrals: int = 0        # real time: scans at which the finished match could not land yet
+    mode: str = "local"       # "global": the search region covers the whole map
 
 
 class S2MScheduler:
@@ -108,11 +115,15 @@ class S2MScheduler:
             self.job.particle = int(index)
 
     # ------------------------------------------------------------------------ starting
+    def searches_whole_map(self, localized: bool) -> bool:
+        """Whether a match started now searches the whole map (not localized yet, and so configured)."""
+        return not localized and self.cfg.s2m.global_until_localized
+
     def job_config(self, state: np.ndarray, localized: bool):
         """The S2M settings for a job from a particle's ``state``: the whole map until localized
         (if so configured), the tracking region while tracking, else the configured local region."""
         cfg = replace(self.cfg.s2m)
-        if not localized and cfg.global_until_localized:
+        if self.searches_whole_map(localized):
             x, y = state[:2]
             (x0, y0, _), (x1, y1, _) = self._bounds
             cfg.region_x = max(cfg.region_x, x - x0, x1 - x)
@@ -140,7 +151,8 @@ class S2MScheduler:
         # before localization the particle's z, pitch and roll are as random as its position
         level = not localized
         future = self._pool.submit(self._run, self.matcher, scan, start_pose, self.job_config(state, localized), level)
-        self.job = S2MJob(k, j, self._generation, start_pose, future)
+        mode = "global" if self.searches_whole_map(localized) else "local"
+        self.job = S2MJob(k, j, self._generation, start_pose, future, mode=mode)
         self._last_start = k
         self._event(k, "s2m_started", f"particle {j}")
 
@@ -203,16 +215,39 @@ class S2MScheduler:
                 pf.reweight(job.particle, prepared)
         if accepted:
             self.n_accepted += 1
+        elif not reason:
+            reason = "the matcher gave no reason"
         self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
                     f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
                     + (f" ({reason})" if reason and not accepted else ""))
+        self.last = self._view(job, k, outcome, accepted, pose_k, reason)
+        return float(outcome.ms)
+
+    @staticmethod
+    def _view(job: S2MJob, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason: str) -> S2MView:
+        """What the viewer shows of a landed match: the verdict and why, and what the search and
+        GICP did on the way (any of them may be missing: a match refused before the search, or an
+        outcome made by a stand-in matcher)."""
         scan_world = outcome.scan_world if outcome.scan_world is not None else np.zeros((0, 3), np.float32)
-        self.last = S2MView(
+        result = getattr(outcome, "match", None)
+        gicp = getattr(outcome, "gicp", None)
+        match_pose = getattr(outcome, "match_pose", None)
+        candidates = np.zeros((0, 4))
+        if result is not None and getattr(result, "candidates", None) is not None:
+            candidates = np.asarray(result.candidates, np.float64).reshape(-1, 4)
+        return S2MView(
             started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
             start_score=float(outcome.start_score), pose=np.asarray(pose_k),
             scan_world=scan_world,
-            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "")
-        return float(outcome.ms)
+            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "",
+            mode=job.mode, start_pose=np.asarray(job.start_pose, np.float64).copy(),
+            candidates=candidates,
+            nodes_per_level=tuple(getattr(result, "nodes_per_level", ()) or ()) if result is not None else (),
+            match_pose=None if match_pose is None else np.asarray(match_pose, np.float64),
+            gicp_pose=None if gicp is None else np.asarray(gicp.pose, np.float64),
+            gicp_fitness=None if gicp is None else float(gicp.inlier_ratio),
+            gicp_correction=() if gicp is None else (float(gicp.correction_m), float(gicp.correction_rad)),
+            stage=str(getattr(outcome, "stage", "") or ""))
 
     @staticmethod
     def _write_unless_weight_drops(pf, j: int, state: np.ndarray, prepared: np.ndarray) -> tuple[bool, str]:

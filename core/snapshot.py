@@ -27,7 +27,7 @@ class Event:
     scan: int          # scan index at which it happened
     kind: str          # "localized", "false_positive", "loss", "reset", "kidnap", "tracking",
                        # "confidence_low", "s2m_started", "s2m_accepted", "s2m_rejected",
-                       # "s2m_cancelled", "error"
+                       # "s2m_cancelled", "s2m_ready", "error"
     detail: str = ""
 
 
@@ -43,6 +43,19 @@ class S2MView:
     region: tuple                 # (x_min, y_min, x_max, y_max) search rectangle, world metres
     ms: float                     # wall time of match + refinement
     reason: str = ""              # why rejected, if it was
+    # what the match did, for the viewer's S2M inspection (empty/None where not known)
+    mode: str = ""                # "global" (whole map) or "local" (region around the particle)
+    start_pose: np.ndarray | None = None   # 4×4 the particle's pose the match started from (scan started_at)
+    candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+                                  # (K, 4) x, y, yaw (rad), score: the best poses BnB scored at the
+                                  # finest level, best first (at most 10)
+    nodes_per_level: tuple = ()   # BnB nodes expanded per pyramid level (index = level)
+    match_pose: np.ndarray | None = None   # 4×4 the 2D match (GICP's initial guess), scan started_at
+    gicp_pose: np.ndarray | None = None    # 4×4 after GICP, scan started_at
+    gicp_fitness: float | None = None      # GICP inlier share (source points with a correspondence)
+    gicp_correction: tuple = ()   # (metres, radians) GICP moved the 2D match
+    stage: str = ""               # what GICP refined: "m3rsm" (the 2D match) or "refined_start" (the
+                                  # start itself); "" if GICP never ran
 
 
 @dataclass(frozen=True)
@@ -74,6 +87,9 @@ class Snapshot:
     inlier_share: float | None = None     # share of scan points within d_max of the map at the estimate
     mean_residual_m: float | None = None  # their mean distance to the map (m)
     inside_2sigma: bool | None = None     # truth inside the 2σ x-y ellipse
+    rpe_ms: float | None = None           # KISS-ICP registration time of the newest registered scan
+    s2m_pending: bool = False             # S2M waits for its tables, built in the background
+    log_weights: np.ndarray | None = None # (N,) log-weights (their order survives when the weights underflow to 0)
     events: tuple = field(default_factory=tuple)
     paused: bool = False
     done: bool = False

@@ -1,6 +1,7 @@
 """M3RSM branch and bound (core/m3rsm.py): admissible bounds, exactness against brute force,
-min-score pruning, the angle and translation lattices, recovery of synthetic 2D scans in local
-and global mode."""
+min-score pruning, the angle and translation lattices, the candidates and per-level node counts
+kept for inspection (and that keeping them changes no result), recovery of synthetic 2D scans in
+local and global mode."""
 
 import math
 
@@ -113,6 +114,65 @@ def test_local_lattices_translations_from_the_start_and_world_fixed_yaws():
     off_lattice = m3rsm.match(pyr, scan, start[:2], (3, 3), start[2] + 0.37 * step, 0.3, step)
     assert off_lattice.n_angles in (13, 14)
     assert np.min(np.abs(lattice - off_lattice.yaw)) < 1e-9
+
+
+# ------------------------------------------------------------------- candidates kept for inspection
+def _random_searches(seed):
+    """One random map and scan; a local search (with and without a score to beat), a global one,
+    and the exhaustive search over the same space as each."""
+    rng = np.random.default_rng(seed)
+    pyr = BEVPyramid.build(random_segments(rng, int(rng.integers(3, 12)), 40, 15), float(rng.choice([0.5, 1.0])),
+                           cell_value=str(rng.choice(["sat4", "binary", "count"])))
+    scan = rng.uniform(-12, 12, (int(rng.integers(5, 60)), 2))
+    step = float(rng.choice([5.0, 10.0, 30.0])) * DEG
+    local = (pyr, scan, rng.uniform(0, 40, 2), tuple(rng.uniform(1, 12, 2)), rng.uniform(-3, 3),
+             float(rng.choice([0.5, math.pi])), step)
+    return pyr, scan, step, local
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_candidates_are_the_best_leaves_best_first_and_the_first_is_the_result(seed):
+    pyr, scan, step, local = _random_searches(seed)
+    found = m3rsm.match(*local)
+    searches = [(found, m3rsm.exhaustive_match(*local)),
+                (m3rsm.match_global(pyr, scan, step), m3rsm.exhaustive_match(pyr, scan, angle_step=step))]
+    for bnb, brute in searches:
+        for res in (bnb, brute):
+            c = res.candidates
+            assert c.shape[1] == 4 and 1 <= len(c) <= m3rsm.N_CANDIDATES
+            assert np.all(np.diff(c[:, 3]) <= 0)                     # best first
+            assert tuple(c[0]) == (res.x, res.y, res.yaw, res.score)  # the result itself, exactly
+            assert sum(res.nodes_per_level) == res.nodes_expanded
+            assert len({tuple(row[:3]) for row in c}) == len(c)      # each pose once
+        # the exhaustive search's are the search space's best; branch and bound's are among what it scored
+        assert len(brute.candidates) == min(m3rsm.N_CANDIDATES, brute.nodes_expanded)
+        assert np.all(bnb.candidates[:, 3] <= brute.candidates[: len(bnb.candidates), 3])
+        # branch and bound never splits a leaf: level 0 expands nothing, the top level at least one node
+        assert bnb.nodes_per_level[0] == 0 and len(bnb.nodes_per_level) >= 1
+    # a score to beat that nothing beats: no result, but what the search scored is still there
+    unbeaten = m3rsm.match(*local, min_score=found.score)
+    assert math.isnan(unbeaten.x)
+    assert np.all(unbeaten.candidates[:, 3] <= found.score)
+    assert sum(unbeaten.nodes_per_level) == unbeaten.nodes_expanded
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_keeping_candidates_changes_no_result(seed):
+    """The same search keeping none and keeping the default number: same pose, score and work, bit
+    for bit (the leaves are only copied aside)."""
+    pyr, scan, step, local = _random_searches(100 + seed)
+    beat = m3rsm.match(*local).score - 1.0
+    pairs = [(m3rsm.match(*local, keep_candidates=0), m3rsm.match(*local)),
+             (m3rsm.match(*local, min_score=beat, keep_candidates=0), m3rsm.match(*local, min_score=beat)),
+             (m3rsm.match_global(pyr, scan, step, keep_candidates=0), m3rsm.match_global(pyr, scan, step)),
+             (m3rsm.exhaustive_match(*local, keep_candidates=0), m3rsm.exhaustive_match(*local))]
+    for without, kept in pairs:
+        assert len(without.candidates) == 0 and len(kept.candidates) > 0
+        for f in ("x", "y", "yaw", "score", "nodes_expanded", "nodes_per_level", "n_points", "region", "n_angles"):
+            a, b = getattr(without, f), getattr(kept, f)
+            assert a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b)), f
+    with pytest.raises(LidarlocError):
+        m3rsm.match(*local, keep_candidates=-1)
 
 
 # --------------------------------------------------------------------------- recovery

@@ -1,12 +1,16 @@
 """The scan-to-map matcher (core/s2m.py). On a synthetic 3D street scene (walls on a flat
 ground): acceptance rule, GICP refinement of the 2D match, global mode's z guess, carry-forward
-composition. On real KITTI scans: a scan rotated and shifted away from its true pose is brought
-back by M3RSM + GICP to within 0.2 m and 0.5°, in local and in global mode."""
+composition, what an outcome keeps for the inspection. On the town, through the localizer: what
+each landed match's view says, also when the match is refused at its landing. On real KITTI
+scans: a scan rotated and shifted away from its true pose is brought back by M3RSM + GICP to
+within 0.2 m and 0.5°, in local and in global mode."""
 
 import math
+import pickle
 
 import numpy as np
 import pytest
+from helpers import make_localizer, short_town
 
 from lidarloc.core.bev import BEVPyramid
 from lidarloc.core.config import MapConfig, S2MConfig
@@ -105,6 +109,9 @@ def test_match_that_does_not_beat_the_start_is_rejected(scene):
     assert "scores higher than the start pose, nor does the start refined by GICP" in out.reason
     assert out.score == out.start_score
     assert np.array_equal(out.pose, truth)
+    # what GICP made of the start stays with the rejection, for the inspection
+    assert out.stage == "refined_start" and np.array_equal(out.match_pose, truth) and out.gicp is not None
+    assert np.all(out.match.candidates[:, 3] <= out.start_score)
 
 
 @pytest.mark.parametrize("refine_unbeaten", [True, False])
@@ -137,6 +144,100 @@ def test_global_match_guesses_z_from_the_map_and_the_scan_ground(scene, matcher)
     assert abs(out.match_pose[2, 3] - SENSOR_HEIGHT) < 0.3     # initial z: ground 0 − scan ground −1.7
     dt, dr = pose_error(out.pose, truth)
     assert dt < 0.1 and dr < 0.3, (dt, dr)
+
+
+def test_outcome_keeps_what_the_search_and_gicp_did(scene, matcher):
+    """The 2D match is the search's best candidate, GICP's correction is the move from it to the
+    refined pose, and the whole outcome survives the trip to and from the S2M process."""
+    truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
+    x, y, z, yaw, _, _ = pose_to_xyz_ypr(truth)
+    out = matcher.match_local(cut_scan(scene, truth), pose_matrix(x + 6.2, y - 4.7, z, yaw + 25 * DEG, 0.0, 0.0))
+    assert out.accepted and out.stage == "m3rsm", out.reason
+    best = out.match.candidates[0]
+    assert (best[0], best[1]) == (out.match_pose[0, 3], out.match_pose[1, 3])
+    assert best[2] == pytest.approx(pose_to_xyz_ypr(out.match_pose)[3], abs=1e-9) and best[3] == out.score
+    assert sum(out.match.nodes_per_level) == out.match.nodes_expanded > 0
+    moved, turned = pose_error(out.gicp.pose, out.match_pose)
+    assert out.gicp.correction_m == pytest.approx(moved, abs=1e-6)
+    assert math.degrees(out.gicp.correction_rad) == pytest.approx(turned, abs=1e-4)
+    back = pickle.loads(pickle.dumps(out))
+    assert np.array_equal(back.match.candidates, out.match.candidates)
+    assert back.match.nodes_per_level == out.match.nodes_per_level
+    # small: beside the scan it carries, the inspection adds a few hundred bytes
+    assert len(pickle.dumps(out)) < out.scan_world.nbytes + 8_000
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_localizer_views_say_what_each_match_did(cache_root):
+    """A real run on the town, matches in the S2M process: every landed match's view says whether it
+    searched the whole map, where it started, what the search scored and expanded, what GICP did,
+    and why it was refused if it was."""
+    town = short_town(16)
+    views, localized = {}, {}
+    with make_localizer(town, cache_root, n_particles=300) as loc:
+        assert loc.cfg.localize.s2m_process
+        loc.reset(pose=town.poses[0])        # near the truth: the first matches land and are accepted
+        for _ in range(len(town)):
+            snap = loc.step()
+            localized[snap.scan_index] = snap.localized
+            if snap.s2m is not None:
+                views[snap.s2m.started_at] = snap.s2m
+    assert len(views) >= 3
+    assert any(v.accepted for v in views.values())
+    for v in views.values():
+        assert v.mode == ("local" if localized[v.started_at] else "global")
+        assert v.start_pose.shape == (4, 4) and np.isfinite(v.start_pose).all()
+        c = v.candidates
+        assert c.ndim == 2 and c.shape[1] == 4 and 1 <= len(c) <= 10
+        assert np.all(np.diff(c[:, 3]) <= 0)
+        assert len(v.nodes_per_level) >= 1 and sum(v.nodes_per_level) > 0
+        x0, y0, x1, y1 = v.region
+        assert np.all((c[:, 0] >= x0 - 1e-6) & (c[:, 0] <= x1 + 1e-6) & (c[:, 1] >= y0 - 1e-6) & (c[:, 1] <= y1 + 1e-6))
+        if v.accepted:
+            assert v.reason == "" and v.stage in ("m3rsm", "refined_start")
+            assert v.gicp_pose.shape == (4, 4) and v.match_pose.shape == (4, 4)
+            assert 0.0 <= v.gicp_fitness <= 1.0 and len(v.gicp_correction) == 2
+            moved = np.linalg.norm(v.gicp_pose[:3, 3] - v.match_pose[:3, 3])
+            assert v.gicp_correction[0] == pytest.approx(moved, abs=1e-6)
+            if v.stage == "m3rsm":           # the 2D match is the search's best candidate
+                assert (c[0, 0], c[0, 1]) == (v.match_pose[0, 3], v.match_pose[1, 3]) and c[0, 3] == v.score
+            else:                            # GICP refined the start itself
+                assert np.array_equal(v.match_pose, v.start_pose)
+        else:
+            assert v.reason
+
+
+@pytest.mark.slow
+def test_a_match_refused_at_its_landing_says_why_in_its_view(cache_root):
+    """With the paper's acceptance, a match that S2M accepted but that lowers its particle's weight
+    is refused when it lands: the view says so, and keeps the pose it would have written."""
+    from lidarloc.app.viewer.s2m_detail import carried_pose, s2m_detail_markdown
+    from lidarloc.core.config import Config, apply_preset
+    from lidarloc.core.localizer import Localizer
+    from lidarloc.core.s2m import S2MOutcome
+
+    town = short_town(6)
+    cfg = apply_preset(Config(), "paper")
+    cfg.pf.n_particles = 200
+    cfg.localize.s2m_process = False
+
+    def across_the_street(scan, pose, level=False):     # "accepted", 15 m off and turned 90°
+        wrong = np.asarray(pose, float) @ pose_matrix(0.0, 0.0, 0.0, math.pi / 2, 0.0, 0.0)
+        wrong[1, 3] += 15.0
+        return S2MOutcome(accepted=True, pose=wrong, score=2.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
+
+    with Localizer(town, cfg, cache_root) as loc:
+        loc.s2m.matcher.match_local = across_the_street
+        loc.reset(pose=town.poses[0])
+        for _ in range(cfg.s2m.n_s2m + 1):
+            snap = loc.step()
+    view = snap.s2m
+    assert view is not None and not view.accepted
+    assert view.reason.startswith("lowers the particle's weight")
+    assert carried_pose(view) is not None                      # carried forward, then not written
+    assert "**rejected**: lowers the particle's weight" in s2m_detail_markdown(view)
+    assert "(not written)" in s2m_detail_markdown(view)
 
 
 # ----------------------------------------------------------------------------- carry forward

@@ -352,9 +352,10 @@ def test_status_and_plots_follow_the_run(viewer):
     assert "Scan 3 of 24" in text and "paused" in text
     assert "N_eff" in text and "S2M" in text and "error to truth" in text
     assert "s2m started" in text                                  # recent events
-    x, std, err = v.controls.plot_std.data
-    assert list(x) == [0, 1, 2, 3] and (std > 0).all() and (err > 0).all()
-    x, pf_ms, s2m_ms = v.controls.plot_ms.data
+    plots = v.controls.plots.handles
+    x, std, spread, err = plots["std"].data
+    assert list(x) == [0, 1, 2, 3] and (std > 0).all() and (spread > 0).all() and (err > 0).all()
+    x, pf_ms, rpe_ms, s2m_ms, accepted, rejected = plots["latency"].data
     assert len(pf_ms) == 4 and (pf_ms > 0).all() and s2m_ms[-1] > 0
     # the scene shows this scan: its points in green at the estimate, the S2M match with its label
     snap = loc.snapshot()
@@ -376,7 +377,7 @@ def test_status_shows_the_scans_confidence_and_warns_while_it_is_low(viewer):
     snap, text = loc.snapshot(), v.controls.status.content
     assert snap.inlier_share is not None and snap.n_particles == 300
     assert f"| inlier share | {100 * snap.inlier_share:.0f}% · mean residual {snap.mean_residual_m:.2f} m |" in text
-    assert f"| N_eff / N | {snap.n_eff:.0f} / 300 ({100 * snap.n_eff_share:.0f}%) |" in text
+    assert f"| N_eff share | {100 * snap.n_eff_share:.1f}% ({snap.n_eff:.0f} of 300)" in text
     assert f"| converged | {'yes' if snap.converged else 'no'} |" in text
     # the warning line: while localized with fewer inliers than localize.min_inlier_share
     floor = loc.cfg.localize.min_inlier_share

@@ -51,6 +51,26 @@ def served(tmp_path_factory):
     loc.close()
 
 
+@pytest.fixture
+def playing(tmp_path_factory):
+    """A run already playing before any tab is open (the usual case: start the demo, then open
+    the page)."""
+    from lidarloc.app.viewer.serve import serve
+
+    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"))
+    handle = serve(loc, port=0, autoplay=True, speed="5")
+    yield handle
+    handle.stop()
+    loc.close()
+
+
+# each plot's chart in the page (viser registers them for tests): points, x range, newest x
+JS_PLOTS = """(() => Object.values((window.__viserTestpoints || {}).uplots || {}).map(t => {
+    const x = t.chart.data[0];
+    return {n: x.length, last: x[x.length - 1], min: t.chart.scales.x.min, max: t.chart.scales.x.max};
+}))()"""
+
+
 def scan_counter(page) -> int:
     return page.evaluate(JS_SCAN)
 
@@ -87,6 +107,38 @@ def open_viewer(browser, url):
     return page
 
 
+def test_tab_opened_while_playing_gets_the_history_and_live_plots(browser, playing):
+    ARTIFACTS.mkdir(exist_ok=True)
+    loc = playing.localizer
+    wait_for(lambda: loc.k >= 8, what="playback before the tab opens")
+    page = open_viewer(browser, playing.url)
+    n_plots = len(playing.viewer.controls.plots.handles)
+    page.wait_for_function(f"{JS_PLOTS}.length === {n_plots} && {JS_PLOTS}.every(p => p.n >= 8)",
+                           polling=250, timeout=STEP_TIMEOUT)
+    first = page.evaluate(JS_PLOTS)
+    # live updates: every chart grows, and the newest scan stays inside its x range (the whole run)
+    page.wait_for_function(f"{JS_PLOTS}.every(p => p.n >= {max(p['n'] for p in first) + 6})",
+                           polling=250, timeout=STEP_TIMEOUT)
+    for p in page.evaluate(JS_PLOTS):
+        assert p["min"] == 0 and p["max"] == loc.n_scans - 1, p
+        assert p["min"] <= p["last"] <= p["max"], p
+
+    # a message answers the tab that acted where it looks: a notification
+    page.get_by_role("button", name="Reset globally").click()
+    toast = page.locator(".mantine-Notification-root", has_text="particles reset globally")
+    toast.first.wait_for(timeout=STEP_TIMEOUT)
+
+    # the legend and the plots, for the eye
+    page.get_by_role("button", name="Pause").click()
+    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    assert page.get_by_text("particles by log-weight rank").count() == 1
+    page.get_by_text("particles by log-weight rank").scroll_into_view_if_needed()
+    page.screenshot(path=str(ARTIFACTS / "viewer-legend.png"))
+    page.locator(".uplot-container").last.scroll_into_view_if_needed()
+    page.screenshot(path=str(ARTIFACTS / "viewer-plots.png"))
+    page.close()
+
+
 def test_viewer_in_chromium(browser, served):
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
@@ -121,14 +173,14 @@ def test_viewer_in_chromium(browser, served):
     assert served.localizer.k == paused_at + 2
 
     # Reset globally: the particles spread over the whole map at once, while paused. The page
-    # with them drawn over the map is the README's picture (without the software-WebGL notice).
+    # with them drawn over the map is the README's picture (without the notifications).
+    page.get_by_role("button", name="Reset globally").click()
+    page.wait_for_function("document.body.innerText.includes('particles reset globally')", timeout=STEP_TIMEOUT)
     for close in page.locator(".mantine-Notification-closeButton").all():
         try:
             close.click(timeout=5_000)
         except PlaywrightTimeout:       # it closed by itself meanwhile
             pass
-    page.get_by_role("button", name="Reset globally").click()
-    page.wait_for_function("document.body.innerText.includes('particles reset globally')", timeout=STEP_TIMEOUT)
     wait_for(lambda: particle_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 5_000, timeout=STEP_TIMEOUT / 1000,
              what="the re-drawn particles on the canvas")
     page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)

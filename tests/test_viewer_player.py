@@ -96,3 +96,45 @@ def test_player_survives_a_failing_step():
         wait_for(lambda: loc.k >= 10, what="playing again")
     finally:
         player.stop()
+
+
+def test_player_reports_the_achieved_rate():
+    loc = InstantSteps()
+    player = Player(loc, lambda s: None, lambda m: None, speed=20.0)
+    player.start()
+    try:
+        assert player.achieved_rate() is None            # nothing played yet
+        player.play()
+        wait_for(lambda: loc.k >= 12, what="12 scans")
+        rate = player.achieved_rate()
+        # paced at 20 scans/s: never above it; well above half of it unless the machine stalls
+        assert rate is not None and 8.0 < rate <= 20.0 * 1.01
+        player.pause()
+        assert player.wait_idle(5)
+        assert player.achieved_rate() is None            # paused: no rate to show
+        assert player.lag_s is None                      # replay: no sensor clock to lag behind
+    finally:
+        player.stop()
+
+
+def test_player_reports_how_far_behind_the_sensor_clock_it_is():
+    class SlowSteps(InstantSteps):
+        """Scans every 0.1 s on the sensor clock, each taking 0.25 s to process."""
+
+        def step(self):
+            time.sleep(0.25)
+            self.k += 1
+            return self.k
+
+    loc = SlowSteps()
+    player = Player(loc, lambda s: None, lambda m: None, clock="realtime")
+    player.start()
+    try:
+        player.play()
+        wait_for(lambda: loc.k >= 4, what="4 scans")
+        # scan k arrives at 0.1·k s but starts at ≥ 0.25·k s: the 4th started ≥ 0.45 s late
+        lag = player.lag_s
+        assert lag is not None and lag >= 0.3
+        assert player.achieved_rate() <= 1 / 0.25 * 1.01
+    finally:
+        player.stop()

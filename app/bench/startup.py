@@ -6,7 +6,10 @@ way a user starts it): the moment the console prints the URL (the server answers
 then on, with a progress bar in the page) and the moment it prints ``ready:`` (map, lookup
 table and BEV pyramid loaded or built, the localizer constructed, playback started). The first
 run uses an empty temporary cache directory, so it builds everything; the later runs reuse it.
-Targets: first start ≤ 60 s, later starts ≤ 10 s.
+The demo is started with ``--autoplay`` (it would otherwise wait for a browser tab): ``ready:``
+is then the moment playback begins. On a first start S2M's own tables (road-removed map, BEV
+pyramid) are still being built in the background then; the filter plays meanwhile.
+Targets: first start playing ≤ 30 s, later starts ≤ 5 s.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
 
 
 def _one_start(args: list[str], cache: str, timeout_s: float) -> dict:
-    cmd = [sys.executable, "-m", "lidarloc.app.cli", *args, "--port", "0", "--cache", cache]
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", *args, "--autoplay", "--port", "0", "--cache", cache]
     env = dict(os.environ, COLUMNS="200")
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env)
@@ -77,7 +80,7 @@ def run(command: list[str], repeats: int = 3, timeout_s: float = 600.0) -> dict:
         "cached_ready_s_max": round(float(ready.max()), 2),
         "cached_url_s_median": round(float(np.median([c["url_s"] for c in cached])), 2),
         "http_status": first["http_status"],
-        "targets_s": {"first_start": 60.0, "cached": 10.0},
+        "targets_s": {"first_start": 30.0, "cached": 5.0},
         "load_average_1min": round(load_avg(), 2),
         "machine": machine(),
     }

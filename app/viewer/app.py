@@ -34,6 +34,7 @@ from .player import Player
 from .readouts import Readouts, status_markdown
 from .scene import SceneView
 from .style import MIN_DRAW_INTERVAL, SHIFT, error_markdown
+from .why import WhyViews
 
 if TYPE_CHECKING:
     from lidarloc.core.bev import BEVPyramid
@@ -44,8 +45,11 @@ class Viewer:
     """GUI, scene and threads around one Localizer. Use
     :func:`~lidarloc.app.viewer.serve.serve` to start one."""
 
-    def __init__(self, server: viser.ViserServer, *, autoplay: bool = True, speed: str = "10",
+    def __init__(self, server: viser.ViserServer, *, autoplay: bool | None = None, speed: str = "10",
                  display_thread: bool = True):
+        """``autoplay``: True plays as soon as the localizer is ready, False stays paused, None
+        (default) plays once the localizer is ready and a browser tab is open, so the user sees
+        the run from its first scan."""
         self.server = server
         self.localizer: Localizer | None = None
         self.player: Player | None = None
@@ -56,8 +60,16 @@ class Viewer:
         self.params = ParamForm(self.controls.params, self.controls.q)
         self.cameras = TabCameras(server, self.scene, lambda: self._latest, self._guarded,
                                   folder_order=self.controls.particles_folder.order + 0.5)
+        self.why = WhyViews(server, self.scene, localizer=lambda: self.localizer, drawn=lambda: self._drawn,
+                            guarded=self._guarded, show_message=self.show_message,
+                            folder_order=self.controls.particles_folder.order + 0.25)
         self.owns_localizer = False
         self._autoplay = autoplay
+        self._start_lock = threading.Lock()
+        self._tab_seen = False          # a browser tab has connected (autoplay=None starts then)
+        self._auto_started = False
+        self._map_shown = None          # the prior map the scene shows (show_map, before attach)
+        self._acting = threading.local()   # the tab whose GUI action is being handled
         self._latest: Snapshot | None = None
         self._drawn: Snapshot | None = None
         self._wake = threading.Event()
@@ -70,7 +82,7 @@ class Viewer:
         self._wire_particles()
         self._wire_parameters()
         self._wire_layers()
-        server.on_client_connect(self.cameras.connect)
+        server.on_client_connect(self._on_connect)
         server.on_client_disconnect(self.cameras.disconnect)
         # Without the display thread (benchmarks) the owner calls update_display() itself.
         self._display = threading.Thread(target=self._display_loop, name="lidarloc-display", daemon=True)
@@ -83,15 +95,20 @@ class Viewer:
         dead callback thread or a crashed server."""
         if self._syncing:
             return
+        client = getattr(event, "client", None)
+        # messages the action shows go to this tab as notifications too (show_message)
+        self._acting.client = client
         try:
             if needs_localizer and not self._ready.is_set():
                 raise LidarlocError("the localizer is still starting (map and tables are being built)")
             action()
         except LidarlocError as exc:
-            self.show_message(f"refused: {exc}", error=True, client=event.client)
+            self.show_message(f"refused: {exc}", error=True, client=client)
         except Exception as exc:  # keep the server alive and say what went wrong
             traceback.print_exc(file=sys.stderr)
-            self.show_message(f"internal error: {type(exc).__name__}: {exc}", error=True, client=event.client)
+            self.show_message(f"internal error: {type(exc).__name__}: {exc}", error=True, client=client)
+        finally:
+            self._acting.client = None
 
     def _guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
         """``action`` as a GUI callback, run through :meth:`_guard`."""
@@ -106,13 +123,22 @@ class Viewer:
         finally:
             self._syncing = False
 
-    def show_message(self, text: str, error: bool = False, client=None) -> None:
+    def show_message(self, text: str, error: bool = False, client=None, everyone: bool = False) -> None:
+        """A message in the panel (the last one stays there) and as a notification where the
+        user looks: to ``client``, else to the tab whose action is being handled, or to every
+        open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start)."""
         self._message = text
         self.controls.message.content = error_markdown(text) if error else text
         self.controls.message.visible = bool(text)
-        if client is not None and text:
+        if not text:
+            return
+        client = client if client is not None else getattr(self._acting, "client", None)
+        tabs = [client] if client is not None else (list(self.server.get_clients().values()) if everyone else [])
+        for tab in tabs:
             try:
-                client.add_notification("lidarloc", text, color="red" if error else "blue", auto_close_seconds=6.0)
+                tab.add_notification("lidarloc" if not error else "lidarloc: refused" if text.startswith("refused")
+                                     else "lidarloc: error", text, color="red" if error else "blue",
+                                     auto_close_seconds=6.0 if not error else 10.0)
             except Exception:  # the tab may have closed meanwhile; the panel message stays
                 pass
 
@@ -138,25 +164,41 @@ class Viewer:
 
     def startup_failed(self, message: str) -> None:
         self.readouts.failed(message)
-        self.show_message(f"could not start: {message}", error=True)
+        self.show_message(f"could not start: {message}", error=True, everyone=True)
+
+    def show_map(self, prior_map) -> None:
+        """Draw the prior map and move every tab's camera onto it, before the localizer is ready
+        (the Localizer's ``on_map`` callback, on the thread that builds it: the lookup table and
+        pyramid are still to come). :meth:`attach` then leaves the map as it is."""
+        if prior_map is self._map_shown:
+            return
+        self.scene.set_map(prior_map)
+        self._map_shown = prior_map
+        self.cameras.overview()
+        self._wake.set()
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        """A new tab: its camera folder; the first one starts playback when autoplay waits for it."""
+        self.cameras.connect(client)
+        with self._start_lock:
+            self._tab_seen = True
+            start = self._autoplay is None and self._ready.is_set() and not self._auto_started
+            if start:
+                self._auto_started = True
+        if start:
+            self.play()
 
     def attach(self, localizer: Localizer) -> None:
-        """Show a ready Localizer: its map (once), its parameters, and start playing it."""
+        """Show a ready Localizer: its map (once), its parameters, and start playing it (at once,
+        when the first tab opens, or not at all: see ``autoplay``)."""
         self.localizer = localizer
-        self.scene.set_map(localizer.prior_map)
+        self.show_map(localizer.prior_map)
+        self.readouts.set_scan_axis(localizer.n_scans)
         live = localizer.live_params()
         self._show_live_params(live)
-        pyr = self._pyramid()
-        if pyr is not None:
-            c = self.controls
-            c.layers["bev_level"].visible = True
-            with self._quietly():
-                c.bev_level.max = max(len(pyr.levels) - 1, 0)
-                c.bev_level.value = min(2, len(pyr.levels) - 1)
-            c.bev_level.visible = True
+        self._show_s2m_tables()
         if not localizer.seq.has_poses:
             self.readouts.no_ground_truth()
-        self.cameras.overview()
         speed = self.controls.speed.value
         self.player = Player(localizer, self._on_step, self._on_player_error,
                              speed=None if speed == "max" else float(speed), clock=live["clock"])
@@ -164,12 +206,31 @@ class Viewer:
         for h in (self.controls.play, self.controls.step, self.controls.restart, self.controls.reset,
                   self.controls.kidnap):
             h.disabled = False
+        self.why.attach(localizer)
         self.readouts.built()
         self.publish(localizer.snapshot())
-        self._ready.set()
-        if self._autoplay:
+        with self._start_lock:
+            self._ready.set()
+            start = self._autoplay is True or (self._autoplay is None and self._tab_seen)
+            self._auto_started = start
+        if start:
             self.play()
         self._wake.set()
+
+    def _show_s2m_tables(self) -> None:
+        """The road-removed map layer and the BEV level control, once the localizer has them (on
+        a first start they are built in the background while the filter plays)."""
+        loc = self.localizer
+        if loc.prior_map.points_bev is not None and not self.scene.has_map_bev:
+            self.scene.set_map_bev(loc.prior_map.points_bev)
+        pyr = self._pyramid()
+        c = self.controls
+        if pyr is not None and not c.bev_level.visible:
+            c.layers["bev_level"].visible = True
+            with self._quietly():
+                c.bev_level.max = max(len(pyr.levels) - 1, 0)
+                c.bev_level.value = min(2, len(pyr.levels) - 1)
+            c.bev_level.visible = True
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Block until a localizer is attached (False on timeout)."""
@@ -208,7 +269,7 @@ class Viewer:
             self.publish(snap)
 
     def _on_player_error(self, message: str) -> None:
-        self.show_message(message, error=True)
+        self.show_message(message, error=True, everyone=True)
         self._wake.set()
 
     def _display_loop(self) -> None:
@@ -236,6 +297,7 @@ class Viewer:
             with self.server.atomic():
                 self.scene.draw(snap, self.history)
             self._drawn = snap
+            self.why.on_draw(snap)
             self.readouts.update_status(self.status_markdown(snap))
             self.cameras.follow(snap)
             ms = (time.perf_counter() - t0) * 1000.0
@@ -244,6 +306,8 @@ class Viewer:
             self.readouts.update_status(self.status_markdown(snap))      # play/pause state may have changed
         self.readouts.update_plots(force_plots)
         self._sync_play_button()
+        if self._ready.is_set() and not self.controls.bev_level.visible:
+            self._show_s2m_tables()
         if self.localizer is not None and self.controls.layers["bev_level"].value:
             self._show_bev_level()
         return ms
@@ -259,10 +323,14 @@ class Viewer:
         return "paused" if p.idle else "stepping"
 
     def status_markdown(self, snap: Snapshot) -> str:
-        clock = self.player.clock if self.player else "replay"
-        floor = None if self.localizer is None else self.localizer.cfg.localize.min_inlier_share
+        p, loc = self.player, self.localizer
+        clock = p.clock if p else "replay"
+        floor = None if loc is None else loc.cfg.localize.min_inlier_share
         return status_markdown(snap, self._play_state(), clock, self.controls.speed.value,
-                               self.history.recent_events(), min_inlier_share=floor)
+                               self.history.recent_events(), min_inlier_share=floor,
+                               s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
+                               rate=None if p is None else p.achieved_rate(), lag_s=None if p is None else p.lag_s,
+                               next_scan=None if loc is None else loc.k)
 
     def _sync_play_button(self) -> None:
         p, play = self.player, self.controls.play
@@ -324,6 +392,8 @@ class Viewer:
         seed = _whole_number(self.controls.seed, "seed", 0)
         self.localizer.restart(seed=seed)
         self.history.clear()
+        self.scene.clear()
+        self.why.clear()
         self.player.rebase()
         self.publish(self.localizer.snapshot())
         self.show_message(f"restarted from scan 0 with seed {seed}")
@@ -366,8 +436,13 @@ class Viewer:
         self.player.rebase()
         if target is None:
             target = self.localizer.k
+        self._publish_after_control()
         self.show_message(f"kidnapped: the vehicle jumped from scan {before} to {target}; the filter was not told")
-        self._wake.set()
+
+    def _publish_after_control(self) -> None:
+        """Show what a control just changed at once, also while paused: the localizer brings its
+        snapshot up to date after a kidnap or S2M switched off."""
+        self.publish(self.localizer.snapshot())
 
     # ============================================================== Parameters folder
     def _wire_parameters(self) -> None:
@@ -393,6 +468,7 @@ class Viewer:
     def _apply_s2m_enabled(self) -> None:
         on = bool(self.controls.s2m_enabled.value)
         self.localizer.set_params(s2m_enabled=on)
+        self._publish_after_control()
         self.show_message(f"scan-to-map matching {'on' if on else 'off'} from the next scan")
 
     def apply_params(self) -> dict:
@@ -438,6 +514,7 @@ class Viewer:
     def stop(self) -> None:
         self._stopping.set()
         self._wake.set()
+        self.why.stop()
         if self.player is not None:
             self.player.stop(timeout=0.5)
         if self._display.is_alive():

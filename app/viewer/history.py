@@ -3,6 +3,7 @@ recent events."""
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -10,6 +11,34 @@ import numpy as np
 from lidarloc.core.snapshot import Event, Snapshot
 
 from .style import EVENTS_SHOWN
+
+#: per-scan float series (NaN where unknown: no ground truth, no KISS-ICP time yet)
+SERIES = ("std", "spread", "error", "along", "cross", "vertical", "heading", "n_eff_share",
+          "pf_ms", "rpe_ms", "s2m_ms")
+#: the events the plots mark on the scan axis
+MARKED_EVENTS = ("localized", "false_positive", "loss", "reset", "kidnap", "s2m_accepted", "s2m_rejected")
+
+
+def cloud_spread(particles: np.ndarray) -> float:
+    """The particle cloud's own spread: max of the unweighted x and y standard deviations (m). With
+    collapsed weights the weighted std reads ~0 while the cloud is still spread out."""
+    P = np.asarray(particles)
+    if len(P) < 2:
+        return 0.0
+    return float(np.max(P[:, :2].std(axis=0)))
+
+
+def error_components(mean_pose: np.ndarray, gt_pose: np.ndarray) -> tuple[float, float, float, float]:
+    """(along-track, cross-track, vertical, heading) error of the estimate against the truth: the
+    position error in the truth's heading frame (m; along = ahead of the truth is positive, cross
+    = to its left) and the yaw error wrapped to (−π, π] (rad)."""
+    T, G = np.asarray(mean_pose, float), np.asarray(gt_pose, float)
+    e = T[:3, 3] - G[:3, 3]
+    psi = math.atan2(G[1, 0], G[0, 0])
+    c, s = math.cos(psi), math.sin(psi)
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    d = (yaw - psi + math.pi) % (2 * math.pi) - math.pi
+    return float(c * e[0] + s * e[1]), float(-s * e[0] + c * e[1]), float(e[2]), float(d)
 
 
 class History:
@@ -22,32 +51,39 @@ class History:
         self._cap = capacity
         self._alloc(capacity)
         self.events: list[Event] = []
+        self.marks: list[tuple[int, str]] = []     # (scan, kind) of every marked event of the run
         self.version = 0
 
     def _alloc(self, cap: int) -> None:
         self.n = 0
         self.scan = np.zeros(cap, np.int64)
-        self.std = np.zeros(cap)            # max(std_x, std_y), m
-        self.error = np.full(cap, np.nan)   # m, NaN without ground truth
-        self.pf_ms = np.zeros(cap)
-        self.s2m_ms = np.zeros(cap)         # wall time of the last landed match (held between landings)
+        # std: max(std_x, std_y) weighted (m); spread: the cloud's unweighted one; error: |est − truth|
+        # (m); along/cross/vertical (m), heading (rad): see error_components; s2m_ms: the last landed
+        # match's wall time, held between landings
+        for name in SERIES:
+            setattr(self, name, np.full(cap, np.nan))
         self.est = np.zeros((cap, 3), np.float32)
         self.gt = np.full((cap, 3), np.nan, np.float32)
         self._last_s2m = None
 
     def _grow(self) -> None:
         cap = 2 * len(self.scan)
-        for name in ("scan", "std", "error", "pf_ms", "s2m_ms", "est", "gt"):
+        for name in ("scan", "est", "gt") + SERIES:
             old = getattr(self, name)
-            new = np.full((cap,) + old.shape[1:], np.nan if name in ("error", "gt") else 0, old.dtype)
+            fill = 0 if name in ("scan", "est") else np.nan
+            new = np.full((cap,) + old.shape[1:], fill, old.dtype)
             new[: self.n] = old[: self.n]
             setattr(self, name, new)
 
+    def _restart(self) -> None:
+        self.epoch += 1
+        self._alloc(self._cap)
+        self.events = []
+        self.marks = []
+
     def clear(self) -> None:
         with self._lock:
-            self.epoch += 1
-            self._alloc(self._cap)
-            self.events = []
+            self._restart()
             self.version += 1
 
     def record(self, snap: Snapshot) -> None:
@@ -55,9 +91,7 @@ class History:
             k = snap.scan_index
             if self.n and (k < self.scan[self.n - 1] or k < 0):
                 # the scan index went back: a restart; the old run's curves end here
-                self.epoch += 1
-                self._alloc(self._cap)
-                self.events = []
+                self._restart()
             self._merge_events(snap.events)
             if k >= 0:
                 if self.n and self.scan[self.n - 1] == k:
@@ -67,18 +101,26 @@ class History:
                         self._grow()
                     i = self.n
                     self.n += 1
-                self.scan[i] = k
-                std = np.asarray(snap.std_xyz, float)
-                self.std[i] = float(max(std[0], std[1]))
-                self.error[i] = np.nan if snap.error_m is None else float(snap.error_m)
-                self.pf_ms[i] = float(snap.pf_ms)
-                if snap.s2m is not None:
-                    self._last_s2m = snap.s2m
-                self.s2m_ms[i] = 0.0 if self._last_s2m is None else float(self._last_s2m.ms)
-                self.est[i] = np.asarray(snap.mean_pose)[:3, 3]
-                if snap.gt_pose is not None:
-                    self.gt[i] = np.asarray(snap.gt_pose)[:3, 3]
+                self._fill(i, snap)
             self.version += 1
+
+    def _fill(self, i: int, snap: Snapshot) -> None:
+        self.scan[i] = snap.scan_index
+        std = np.asarray(snap.std_xyz, float)
+        self.std[i] = float(max(std[0], std[1]))
+        self.spread[i] = cloud_spread(snap.particles)
+        self.error[i] = np.nan if snap.error_m is None else float(snap.error_m)
+        if snap.gt_pose is not None:
+            self.along[i], self.cross[i], self.vertical[i], self.heading[i] = error_components(
+                snap.mean_pose, snap.gt_pose)
+            self.gt[i] = np.asarray(snap.gt_pose)[:3, 3]
+        self.n_eff_share[i] = snap.n_eff_share
+        self.pf_ms[i] = float(snap.pf_ms)
+        self.rpe_ms[i] = np.nan if snap.rpe_ms is None else float(snap.rpe_ms)
+        if snap.s2m is not None:
+            self._last_s2m = snap.s2m
+        self.s2m_ms[i] = 0.0 if self._last_s2m is None else float(self._last_s2m.ms)
+        self.est[i] = np.asarray(snap.mean_pose)[:3, 3]
 
     def _merge_events(self, events: tuple) -> None:
         """Snapshots carry a rolling window of recent events; append only the ones not seen yet
@@ -90,15 +132,19 @@ class History:
         for overlap in range(min(len(mine), len(events)), -1, -1):
             if overlap == 0 or tuple(mine[-overlap:]) == events[:overlap]:
                 break
-        self.events.extend(events[overlap:])
+        new = events[overlap:]
+        self.events.extend(new)
+        self.marks.extend((e.scan, e.kind) for e in new if e.kind in MARKED_EVENTS)
         del self.events[:-200]
 
     def arrays(self) -> dict:
         with self._lock:
             n = self.n
-            return {"epoch": self.epoch, "version": self.version, "scan": self.scan[:n].copy(),
-                    "std": self.std[:n].copy(), "error": self.error[:n].copy(), "pf_ms": self.pf_ms[:n].copy(),
-                    "s2m_ms": self.s2m_ms[:n].copy(), "events": list(self.events[-EVENTS_SHOWN:])}
+            out = {"epoch": self.epoch, "version": self.version, "scan": self.scan[:n].copy(),
+                   "events": list(self.events[-EVENTS_SHOWN:]), "marks": list(self.marks)}
+            for name in SERIES:
+                out[name] = getattr(self, name)[:n].copy()
+            return out
 
     def recent_events(self) -> list[Event]:
         with self._lock:
@@ -108,4 +154,3 @@ class History:
         with self._lock:
             n = self.n
             return self.epoch, self.scan[:n].copy(), self.est[:n].copy(), self.gt[:n].copy()
-

@@ -5,17 +5,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
 import viser
-import viser.uplot as uplot
 
+from .legend import legend_markdown
 from .params import CLOCK, NUMBER_FIELDS, Q_STD, S2M_ENABLED, q_labels
+from .plots import Plots
 from .scene import Layers
 from .style import SPEEDS
 
 LAYER_LABELS = (("map", "Map"), ("map_bev", "Map, road removed"), ("particles", "Particles"),
                 ("scan", "Current scan (green)"), ("s2m", "Last S2M match"),
                 ("trajectories", "Trajectories (white: truth, orange: estimate)"),
+                ("vehicles", "Vehicles (white: truth, orange: estimate)"),
                 ("ellipse", "2σ ellipse"), ("bev_level", "BEV pyramid level"))
 
 
@@ -48,9 +49,10 @@ class Controls:
     # Layers
     layers: dict = field(default_factory=dict)
     bev_level: object = None
+    # Legend
+    legend: object = None
     # Plots
-    plot_std: object = None
-    plot_ms: object = None
+    plots: Plots | None = None
 
 
 @dataclass
@@ -60,13 +62,6 @@ class CameraControls:
     follow: object = None          # "follow the vehicle" checkbox
     top_down: object = None
     fit: object = None
-
-
-def std_series(has_truth: bool = True) -> tuple:
-    """Series of the position-std plot; without ground truth the error series is hidden."""
-    error = (uplot.Series(label="error (m)", stroke="#e6e6e6", width=2) if has_truth
-             else uplot.Series(label="error: no ground truth", show=False))
-    return (uplot.Series(label="scan"), uplot.Series(label="std (m)", stroke="#ff5a5a", width=2), error)
 
 
 def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
@@ -107,19 +102,10 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
         for name, label in LAYER_LABELS:
             c.layers[name] = gui.add_checkbox(label, getattr(layers, name), visible=name != "bev_level")
         c.bev_level = gui.add_slider("BEV level", 0, 8, 1, 0, visible=False)
+    with gui.add_folder("Legend"):
+        c.legend = gui.add_markdown(legend_markdown())
     with gui.add_folder("Plots"):
-        x = np.zeros(1)
-        c.plot_std = gui.add_uplot(
-            (x, x, x), std_series(),
-            title="Position std (max of x, y) and error", scales={"x": uplot.Scale(time=False, auto=True),
-                                                                   "y": uplot.Scale(distr=3, auto=True)},
-            aspect=1.6)
-        c.plot_ms = gui.add_uplot(
-            (x, x, x), (uplot.Series(label="scan"),
-                        uplot.Series(label="PF (ms)", stroke="#ff9620", width=2),
-                        uplot.Series(label="S2M (ms)", stroke="#ff3cff", width=2)),
-            title="Latency per scan", scales={"x": uplot.Scale(time=False, auto=True),
-                                              "y": uplot.Scale(auto=True)}, aspect=1.6)
+        c.plots = Plots(gui)
     return c
 
 

@@ -16,12 +16,15 @@ import sys
 import threading
 import time
 import traceback
+from collections import deque
 from typing import Callable, Protocol
 
 import numpy as np
 
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.snapshot import Snapshot
+
+from .style import RATE_WINDOW_S
 
 CLOCKS = ("replay", "realtime")
 
@@ -68,6 +71,8 @@ class Player:
         self._anchor: tuple[float, float] | None = None   # (wall time, sequence time) realtime pacing starts from
         self._last_start: float | None = None    # wall time the previous step started (replay pacing)
         self.steps_done = 0                      # steps completed since start (any reason)
+        self._finished_at: deque[float] = deque(maxlen=256)   # start times of steps finished while playing
+        self._lag: float | None = None           # realtime: how late the newest step started after its scan arrived
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
 
     # ------------------------------------------------------------------ controls (any thread)
@@ -80,6 +85,8 @@ class Player:
                 self._playing = True
                 self._anchor = None
                 self._last_start = None
+                self._finished_at.clear()
+                self._lag = None
             self._cond.notify_all()
 
     def pause(self) -> None:
@@ -114,7 +121,28 @@ class Player:
         with self._cond:
             self._anchor = None
             self._last_start = None
+            self._finished_at.clear()
+            self._lag = None
             self._cond.notify_all()
+
+    def achieved_rate(self, window: float = RATE_WINDOW_S) -> float | None:
+        """Scans per second actually processed while playing, over the last ``window`` seconds
+        (None while paused or before two scans finished in that window)."""
+        now = time.perf_counter()
+        with self._cond:
+            if not self._playing:
+                return None
+            t = [x for x in self._finished_at if x >= now - window]
+        if len(t) < 2 or t[-1] <= t[0]:
+            return None
+        return (len(t) - 1) / (t[-1] - t[0])
+
+    @property
+    def lag_s(self) -> float | None:
+        """Real-time clock, while playing: how long after its scan arrived (on the sensor clock,
+        replayed in real time) the newest step started; None in replay or while paused."""
+        with self._cond:
+            return self._lag if self._playing and self._clock == "realtime" else None
 
     @property
     def playing(self) -> bool:
@@ -168,6 +196,18 @@ class Player:
             return 0.0
         return self._last_start + 1.0 / self._speed - now
 
+    def _start_lag(self, now: float) -> float | None:
+        """How late a step starting ``now`` is after its scan's arrival (realtime, playing). Called
+        with the lock held."""
+        if self._clock != "realtime" or not self._playing or self._anchor is None:
+            return None
+        stamps = self._loc.seq.timestamps
+        k = self._loc.k
+        if k >= len(stamps):
+            return None
+        due = self._anchor[0] + (float(stamps[k]) - self._anchor[1])
+        return max(0.0, now - due)
+
     def _run(self) -> None:
         while True:
             with self._cond:
@@ -193,6 +233,7 @@ class Player:
                     self._cond.wait()
                 self._busy = True
                 self._last_start = time.perf_counter()
+                self._lag = self._start_lag(self._last_start)
             try:
                 snapshot = self._loc.step()
             except LidarlocError as exc:
@@ -212,6 +253,10 @@ class Player:
             with self._cond:
                 self._busy = False
                 self.steps_done += 1
+                if self._playing and snapshot is not None:
+                    # the step's start: starts are what the pacing spaces (finish times bunch up
+                    # after a slow scan), so the rate never reads above the set speed
+                    self._finished_at.append(self._last_start)
                 self._cond.notify_all()
 
     def _fail(self, message: str) -> None:

@@ -1,6 +1,6 @@
 """The panel's read-outs: the progress bar (while the localizer is built, and while a table is
 rebuilt in the background), the status table with the scan's confidence and the recent events,
-and the two plots."""
+and the plots (:mod:`~lidarloc.app.viewer.plots`)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import numpy as np
 from lidarloc.core.snapshot import Snapshot
 
 from .history import History
-from .panel import Controls, std_series
-from .style import PLOT_INTERVAL, PLOT_MAX_POINTS, error_markdown, shorten
+from .legend import legend_markdown
+from .panel import Controls
+from .style import COLLAPSED_N_EFF_SHARE, PLOT_INTERVAL, REALTIME_LATE_S, error_markdown, shorten
 
 BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior map",
                 "lookup": "Building the distance lookup table", "pyramid": "Building the BEV pyramid",
@@ -20,15 +21,30 @@ BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior
 
 
 def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list,
-                    min_inlier_share: float | None = None) -> str:
+                    min_inlier_share: float | None = None, *, s2m_enabled: bool = True,
+                    rate: float | None = None, lag_s: float | None = None, next_scan: int | None = None) -> str:
     """The status table: scan counter, play state, localized or not, the filter's figures, the
-    scan's confidence and the recent events (newest first). ``speed`` is the replay speed shown
-    (scans/s). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with fewer
-    of the scan's points fitting the map than this, a warning line says so (the
-    ``confidence_low`` condition)."""
-    speed = "" if clock == "realtime" else f", {speed} scans/s"
+    scan's confidence and the recent events (newest first). ``speed`` is the replay speed set
+    (scans/s); ``rate`` the scans/s achieved lately and ``lag_s`` how far behind the sensor clock
+    the filter is (real-time clock), both while playing (None: not shown). ``next_scan``: the
+    scan the localizer processes next, named when it is not the one after ``snap`` (the vehicle
+    was kidnapped). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with
+    fewer of the scan's points fitting the map than this, a warning line says so (the
+    ``confidence_low`` condition). ``s2m_enabled``: with S2M off its row says so instead of the
+    last match's figures."""
+    speed = "" if clock == "realtime" else f", set to {speed} scans/s"
     k = "–" if snap.scan_index < 0 else str(snap.scan_index)
     lines = [f"**Scan {k} of {snap.n_scans}** · {state} ({clock}{speed})"]
+    if rate is not None:
+        achieved = f"achieved {rate:.1f} scans/s"
+        if lag_s is not None:
+            achieved += f" · {1000 * lag_s:.0f} ms behind the sensor clock"
+        lines.append(achieved)
+        if lag_s is not None and lag_s > REALTIME_LATE_S:
+            lines.append(error_markdown(f"⚠ falling behind the sensor: {lag_s:.2f} s late"))
+    finished = state == "finished" or snap.done
+    if next_scan is not None and not finished and next_scan != snap.scan_index + 1:
+        lines.append(f"next scan: {next_scan} (the vehicle was moved; the filter was not told)")
     if snap.localized:
         since = "" if snap.localized_since is None else f" since scan {snap.localized_since}"
         lines.append(f"<span style='color:#5be35b'>**localized**{since}</span>")
@@ -39,23 +55,37 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
         lines.append(error_markdown(f"⚠ low confidence: {100 * share:.0f}% of the scan fits the map "
                                     f"(below {100 * min_inlier_share:.0f}%)"))
     std = np.asarray(snap.std_xyz, float)
+    P = np.asarray(snap.particles)
+    spread = P[:, :2].std(axis=0) if len(P) > 1 else np.zeros(2)
     err = "–" if snap.error_m is None else f"{snap.error_m:.2f} m"
     n = snap.n_particles if snap.n_particles else len(snap.weights)
-    s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
-    running = " · running" if snap.s2m_running else ""
+    n_eff = f"{100 * snap.n_eff_share:.1f}% ({snap.n_eff:.0f} of {n})"
+    if snap.scan_index >= 0 and snap.n_eff_share < COLLAPSED_N_EFF_SHARE:
+        n_eff += " · collapsed: see Legend"
     fit = "–" if share is None else f"{100 * share:.0f}%" + (
         "" if snap.mean_residual_m is None else f" · mean residual {snap.mean_residual_m:.2f} m")
+    if not s2m_enabled:
+        s2m = "off"
+    elif snap.s2m_pending:
+        s2m = "starting: the road-removed map and BEV pyramid are being built in the background"
+    else:
+        s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
+        running = " · running" if snap.s2m_running and not finished else ""
+        s2m = f"{s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running}"
+    rpe = "–" if snap.rpe_ms is None else f"{snap.rpe_ms:.1f} ms/scan"
     lines += [
         "",
         "| | |",
         "|---|---|",
-        f"| position std x/y/z | {std[0]:.2f} / {std[1]:.2f} / {std[2]:.2f} m |",
+        f"| position std x/y/z (weighted) | {std[0]:.2f} / {std[1]:.2f} / {std[2]:.2f} m |",
+        f"| particle cloud spread x/y | {spread[0]:.2f} / {spread[1]:.2f} m |",
         f"| converged | {'yes' if snap.converged else 'no'} |",
         f"| error to truth | {err} |",
-        f"| N_eff / N | {snap.n_eff:.0f} / {n} ({100 * snap.n_eff_share:.0f}%) |",
+        f"| N_eff share | {n_eff} |",
         f"| inlier share | {fit} |",
         f"| PF | {snap.pf_ms:.1f} ms/scan |",
-        f"| S2M | {s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running} |",
+        f"| RPE | {rpe} |",
+        f"| S2M | {s2m} |",
     ]
     if events:
         lines += ["", "**Recent events**"]
@@ -92,8 +122,12 @@ class Readouts:
         self.c.progress_text.content = error_markdown(f"could not start: {message}")
         self.c.progress.visible = False
 
+    def set_scan_axis(self, n_scans: int) -> None:
+        self.c.plots.set_scan_axis(n_scans)
+
     def no_ground_truth(self) -> None:
-        self.c.plot_std.series = std_series(has_truth=False)
+        self.c.plots.no_ground_truth()
+        self.c.legend.content = legend_markdown(has_truth=False)
 
     # ------------------------------------------------------------------ per display update
     def update_progress(self, rebuild: float | None) -> None:
@@ -135,14 +169,4 @@ class Readouts:
         if h["version"] == self._plot_version:
             return
         self._plot_version, self._last_plot = h["version"], now
-        x = h["scan"].astype(np.float64)
-        if len(x) == 0:
-            return
-        stride = int(np.ceil(len(x) / PLOT_MAX_POINTS))
-        sl = slice(None, None, stride)
-        # a log scale needs positive finite values; without ground truth the error series is hidden
-        std = np.maximum(h["std"], 1e-3)
-        err = h["error"]
-        err = np.where(np.isfinite(err), np.maximum(err, 1e-3), std)
-        self.c.plot_std.data = (x[sl], std[sl], err[sl])
-        self.c.plot_ms.data = (x[sl], h["pf_ms"][sl], h["s2m_ms"][sl])
+        self.c.plots.update(h)

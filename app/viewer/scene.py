@@ -17,8 +17,9 @@ from lidarloc.core.snapshot import Snapshot
 from .ground import GroundHeight
 from .history import History
 from .style import (BEST_COLOR, BEV_COLOR, DISPLAY_MAX_POINTS, DISPLAY_VOXEL, ELLIPSE_COLOR, EST_COLOR, GT_COLOR,
-                    PARTICLE_HIGH, PARTICLE_LOW, RESET_COLOR, S2M_ACCEPTED_COLOR, S2M_REJECTED_COLOR, SCAN_COLOR,
-                    TRAJ_CHUNK, height_colors, shorten)
+                    PARTICLE_ARROW_MAX, PARTICLE_ARROW_MIN, PARTICLE_HIGH, PARTICLE_LOW, RESET_COLOR,
+                    S2M_ACCEPTED_COLOR, S2M_REJECTED_COLOR, SCAN_COLOR, TRAJ_CHUNK, VEHICLE_LENGTH, VEHICLE_WIDTH,
+                    height_colors, shorten)
 
 
 def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
@@ -39,6 +40,51 @@ def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     return viser.transforms.SO3.from_matrix(np.asarray(R, float)).wxyz
+
+
+def log_weight_rank(log_w: np.ndarray) -> np.ndarray:
+    """Each particle's rank by log-weight scaled to 0 (lowest) … 1 (highest); equal log-weights
+    share their mean rank. With the paper's likelihood one particle holds nearly all the weight, but
+    the others' log-weights still order them: colouring by rank keeps the cloud's structure visible
+    where colouring by weight would paint all but one particle the same."""
+    lw = np.asarray(log_w, np.float64)
+    n = len(lw)
+    if n < 2:
+        return np.ones(n)
+    lw = np.where(np.isfinite(lw), lw, -np.inf)
+    order = np.argsort(lw, kind="stable")
+    sorted_lw = lw[order]
+    # mean rank of each run of equal values
+    starts = np.r_[0, np.flatnonzero(sorted_lw[1:] != sorted_lw[:-1]) + 1]
+    ends = np.r_[starts[1:], n]
+    mean_rank = (starts + ends - 1) / 2.0
+    ranks = np.empty(n)
+    ranks[order] = np.repeat(mean_rank, ends - starts)
+    return ranks / (n - 1)
+
+
+def snapshot_log_weights(snap: Snapshot) -> np.ndarray:
+    """The particles' log-weights: the snapshot's own where it has them (they keep the order of
+    particles whose weight underflows to 0), else the log of the weights."""
+    lw = snap.log_weights
+    if lw is not None and len(lw) == len(snap.weights):
+        return np.asarray(lw, np.float64)
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(snap.weights, np.float64))
+
+
+def vehicle_outline(T: np.ndarray) -> np.ndarray:
+    """Line segments (S, 2, 3) of a vehicle's footprint at pose ``T`` (the LiDAR's position and
+    heading): a rectangle with a nose pointing along the heading."""
+    L, W = VEHICLE_LENGTH / 2.0, VEHICLE_WIDTH / 2.0
+    pts = np.array([[-L, -W], [L - 1.0, -W], [L, 0.0], [L - 1.0, W], [-L, W]], np.float64)
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    xy = pts @ np.array([[c, s], [-s, c]]) + T[:2, 3]
+    ring = np.c_[xy, np.full(len(xy), T[2, 3])]
+    axle = np.array([[-L, 0.0], [L, 0.0]]) @ np.array([[c, s], [-s, c]]) + T[:2, 3]
+    segs = np.stack([ring, np.roll(ring, -1, axis=0)], axis=1)
+    return np.concatenate([segs, np.c_[axle, np.full(2, T[2, 3])][None]]).astype(np.float32)
 
 
 
@@ -107,6 +153,7 @@ class Layers:
     scan: bool = True
     s2m: bool = True
     trajectories: bool = True
+    vehicles: bool = True
     ellipse: bool = True
 
 
@@ -130,7 +177,9 @@ class SceneView:
         self._particles = self._particle_dots = self._best = self._ellipse = self._scan = None
         self._s2m_scan = self._s2m_box = self._s2m_label = None
         self._s2m_shown = None
+        self._gt_shown = False
         self._est_frame = None
+        self._est_vehicle = self._gt_vehicle = None
         self._reset_hint = None
         self._reset_hint_scan: int | None = None
         self.gt_line = ChunkedPolyline(scene, "/trajectory/ground_truth", GT_COLOR, 2.0)
@@ -140,7 +189,7 @@ class SceneView:
     #: the names :meth:`node` answers to, and the attribute holding each node
     _NODES = {"map": "_map", "map_bev": "_map_bev", "bev_level": "_bev_image", "particles": "_particles",
               "particle_dots": "_particle_dots", "best": "_best", "ellipse": "_ellipse", "scan": "_scan",
-              "pose": "_est_frame", "s2m_scan": "_s2m_scan", "s2m_region": "_s2m_box", "s2m_label": "_s2m_label",
+              "pose": "_est_frame", "est_vehicle": "_est_vehicle", "gt_vehicle": "_gt_vehicle", "s2m_scan": "_s2m_scan", "s2m_region": "_s2m_box", "s2m_label": "_s2m_label",
               "reset_area": "_reset_hint"}
 
     def node(self, name: str):
@@ -165,15 +214,33 @@ class SceneView:
         self._map = self.scene.add_point_cloud(
             "/map/full", pts, height_colors(pts[:, 2]), point_size=self.display_voxel * 0.8, precision="float32",
             point_shape="square", point_shading="flat", visible=self.layers.map)
-        bev, _ = downsample_for_display(prior_map.points_bev, self.display_voxel, max_points)
-        self._map_bev = self.scene.add_point_cloud(
-            "/map/road_removed", bev, height_colors(bev[:, 2]), point_size=self.display_voxel * 0.8,
-            precision="float32", point_shape="square", point_shading="flat", visible=self.layers.map_bev)
+        self._max_points = max_points
+        self._map_bev = None
+        if prior_map.points_bev is not None:      # else it is still being built: set_map_bev adds it
+            self._set_map_bev(prior_map.points_bev)
         self.ground = GroundHeight(pts)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         self.map_center = (lo + hi) / 2.0
         self.map_center[2] = self.ground.z_default
         self.map_extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 20.0))
+
+    @property
+    def has_map_bev(self) -> bool:
+        """Whether the road-removed map is drawn (it can arrive after the map: see set_map_bev)."""
+        return self._map_bev is not None
+
+    def set_map_bev(self, points_bev) -> None:
+        """The road-removed map, when it was built after the map was shown (a first start: road
+        removal runs in the background while the filter already plays)."""
+        with self._lock:
+            if self._map_bev is None:
+                self._set_map_bev(points_bev)
+
+    def _set_map_bev(self, points_bev) -> None:
+        bev, _ = downsample_for_display(points_bev, self.display_voxel, self._max_points)
+        self._map_bev = self.scene.add_point_cloud(
+            "/map/road_removed", bev, height_colors(bev[:, 2]), point_size=self.display_voxel * 0.8,
+            precision="float32", point_shape="square", point_shading="flat", visible=self.layers.map_bev)
 
     def set_pyramid(self, pyramid, level: int) -> None:
         """Show one BEV pyramid level as a flat image on the ground (cells with map points in
@@ -220,15 +287,34 @@ class SceneView:
         nodes = {"map": [self._map], "map_bev": [self._map_bev], "bev_level": [self._bev_image],
                  "particles": [self._particles, self._particle_dots, self._best],
                  "scan": [self._scan, self._est_frame], "s2m": [self._s2m_scan, self._s2m_box, self._s2m_label],
-                 "ellipse": [self._ellipse]}.get(name, [])
+                 "vehicles": [self._est_vehicle, self._gt_vehicle], "ellipse": [self._ellipse]}.get(name, [])
         for node in nodes:
             if node is not None:
-                node.visible = visible
+                # a node with nothing to show (no match yet in this run, no truth) stays hidden
+                node.visible = visible and self._has_content(node)
         if name == "trajectories":
             self.gt_line.set_visible(visible)
             self.est_line.set_visible(visible)
 
+    def _has_content(self, node) -> bool:
+        if node in (self._s2m_scan, self._s2m_box, self._s2m_label):
+            return self._s2m_shown is not None
+        if node is self._gt_vehicle:
+            return self._gt_shown
+        return True
+
     # -------------------------------------------------------------------- per snapshot
+    def clear(self) -> None:
+        """The run restarted: nothing of the old run stays (its S2M match, reset area, truth)."""
+        with self._lock:
+            self._hide_s2m()
+            if self._reset_hint is not None:
+                self._reset_hint.visible = False
+            self._reset_hint_scan = None
+            if self._gt_vehicle is not None:
+                self._gt_vehicle.visible = False
+            self._gt_shown = False
+
     def draw(self, snap: Snapshot, history: History) -> None:
         with self._lock:
             self._draw(snap, history)
@@ -262,6 +348,7 @@ class SceneView:
         self._draw_ellipse(snap)
         self._draw_scan(snap)
         self._draw_s2m(snap)
+        self._draw_vehicles(snap)
         self._draw_trajectories(history)
 
     def _node(self, attr: str, make, update, visible: bool):
@@ -280,10 +367,12 @@ class SceneView:
         xyz = P[:, :3].astype(np.float32)
         yaw = P[:, 3]
         head = np.stack([np.cos(yaw), np.sin(yaw), np.zeros_like(yaw)], axis=1).astype(np.float32)
-        length = (1.5 + 3.0 * w_rel).astype(np.float32)[:, None]           # longer = heavier
+        # as RViz draws a weighted pose array: longer = heavier; the colour orders them by log-weight
+        length = (PARTICLE_ARROW_MIN + (PARTICLE_ARROW_MAX - PARTICLE_ARROW_MIN) * w_rel).astype(np.float32)[:, None]
         tip = xyz + head * length
         segs = np.stack([xyz, tip], axis=1)
-        c = (PARTICLE_LOW + (PARTICLE_HIGH - PARTICLE_LOW) * w_rel[:, None].astype(np.float32)).astype(np.uint8)
+        rank = log_weight_rank(snapshot_log_weights(snap)).astype(np.float32)[:, None]
+        c = (PARTICLE_LOW + (PARTICLE_HIGH - PARTICLE_LOW) * rank).astype(np.uint8)
         colors = np.repeat(c[:, None, :], 2, axis=1)
         vis = self.layers.particles
         self._node("_particles",
@@ -344,9 +433,20 @@ class SceneView:
             else:
                 self._est_frame.wxyz, self._est_frame.position = wxyz, pos
 
+    def _hide_s2m(self) -> None:
+        self._s2m_shown = None
+        for node in (self._s2m_scan, self._s2m_box, self._s2m_label):
+            if node is not None:
+                node.visible = False
+
     def _draw_s2m(self, snap: Snapshot) -> None:
         s = snap.s2m
-        if s is None or s is self._s2m_shown:
+        if s is None:
+            # a new run (restart) has no match yet: the old run's must not stay
+            if self._s2m_shown is not None:
+                self._hide_s2m()
+            return
+        if s is self._s2m_shown:
             return
         self._s2m_shown = s
         color = S2M_ACCEPTED_COLOR if s.accepted else S2M_REJECTED_COLOR
@@ -366,6 +466,7 @@ class SceneView:
                                                          thickness_units="screen", visible=vis)
         else:
             self._set(self._s2m_box, points=box, colors=np.asarray(color, np.uint8))
+            self._show(self._s2m_box, vis)
         verdict = "accepted" if s.accepted else "rejected" + (f" ({shorten(s.reason, 60)})" if s.reason else "")
         text = (f"S2M: started at scan {s.started_at}, landed at {s.landed_at}\n{verdict}, "
                 f"score {s.score:.0f} (start {s.start_score:.0f}), {s.ms:.0f} ms")
@@ -375,6 +476,28 @@ class SceneView:
         else:
             self._s2m_label.text = text
             self._s2m_label.position = (x0, y1, z + 2.0)
+            self._show(self._s2m_label, vis)
+
+    def _draw_vehicles(self, snap: Snapshot) -> None:
+        """The estimate's vehicle (orange) and, where the source knows it, the true one (white)."""
+        vis = self.layers.vehicles
+        T = np.asarray(snap.mean_pose, float)
+        if snap.scan_index >= 0 and np.isfinite(T).all():
+            segs = vehicle_outline(T)
+            self._node("_est_vehicle",
+                       lambda v: self.scene.add_line_segments("/estimate/vehicle", segs, EST_COLOR, thickness=3.0,
+                                                              thickness_units="screen", visible=v),
+                       lambda h: self._set(h, points=segs), vis)
+        G = snap.gt_pose
+        self._gt_shown = G is not None and bool(np.isfinite(np.asarray(G, float)).all())
+        if self._gt_shown:
+            segs = vehicle_outline(np.asarray(G, float))
+            self._node("_gt_vehicle",
+                       lambda v: self.scene.add_line_segments("/truth/vehicle", segs, GT_COLOR, thickness=3.0,
+                                                              thickness_units="screen", visible=v),
+                       lambda h: (self._set(h, points=segs), self._show(h, vis)), vis)
+        elif self._gt_vehicle is not None:
+            self._gt_vehicle.visible = False
 
     def _draw_trajectories(self, history: History) -> None:
         epoch, scans, est, gt = history.trajectories()
@@ -388,6 +511,12 @@ class SceneView:
         if len(scans):
             est_connected[0] = False
         self.est_line.sync(epoch, est, est_connected)
+
+    @staticmethod
+    def _show(handle, visible: bool) -> None:
+        """Set a node's visibility, sending nothing when it does not change."""
+        if handle.visible != visible:
+            handle.visible = visible
 
     @staticmethod
     def _set(handle, **props) -> None:

@@ -71,25 +71,33 @@ class ViewerHandle:
         self._stopped.set()
 
 
-def _call_factory(factory: Callable[..., Localizer], progress) -> Localizer:
-    """Build the localizer, handing it the progress callback if it takes one."""
+def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> Localizer:
+    """Build the localizer, handing it the progress callback and the ``on_map`` callback (the
+    prior map, as soon as it exists) where it takes them."""
     try:
         params = inspect.signature(factory).parameters
     except (TypeError, ValueError):
         params = {}
-    if "progress" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        return factory(progress=progress)
-    return factory()
+    anything = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    kwargs = {}
+    if "progress" in params or anything:
+        kwargs["progress"] = progress
+    if on_map is not None and ("on_map" in params or anything):
+        kwargs["on_map"] = on_map
+    return factory(**kwargs)
 
 
 def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str = "127.0.0.1", port: int = 8080,
-          open_browser: bool = False, *, autoplay: bool = True, speed: str = "10") -> ViewerHandle:
+          open_browser: bool = False, *, autoplay: bool | None = None, speed: str = "10") -> ViewerHandle:
     """Start the viewer and return at once.
 
     ``localizer_or_factory``: a ready Localizer (the caller keeps ownership and closes it), or a
     callable returning one — called on a background thread, with ``progress=`` if it accepts it
-    (the Localizer's ``(stage, fraction)`` callback), while the page shows a progress bar; the
-    viewer then owns it and closes it on :meth:`ViewerHandle.stop`.
+    (the Localizer's ``(stage, fraction)`` callback) and ``on_map=`` (called with the prior map as
+    soon as it exists: the page shows it while the tables are built), while the page shows a
+    progress bar; the viewer then owns it and closes it on :meth:`ViewerHandle.stop`.
+    ``autoplay``: None (default) starts playback when the first browser tab is open and the
+    localizer ready, True as soon as it is ready, False never (the caller or the user plays).
     ``port``: the first port tried (viser moves up if it is taken; the handle has the real one).
     """
     if speed not in SPEEDS:
@@ -114,7 +122,7 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
 
         def build():
             try:
-                loc = _call_factory(factory, viewer.build_progress)
+                loc = _call_factory(factory, viewer.build_progress, viewer.show_map)
                 viewer.owns_localizer = True
                 if viewer.stopping:      # stopped while building: nobody will show it
                     loc.close()
@@ -133,20 +141,23 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
 
 
 def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
-                            console: Console, open_browser: bool = False) -> None:
+                            console: Console, open_browser: bool = False, autoplay: bool = False) -> None:
+    """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
+    once with ``autoplay``."""
     seq = open_sequence(spec, cfg)          # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
     ready = threading.Event()
     failure: list[BaseException] = []
 
-    def factory(progress=None):
+    def factory(progress=None, on_map=None):
         def report(stage, frac):
             bar.update(task, description=f"preparing {stage}", completed=100 * float(frac))
             if progress is not None:
                 progress(stage, frac)
         try:
-            return Localizer(seq, cfg, cache_root, progress=report)
+            # S2M's tables follow in the background on a first start: playback begins sooner
+            return Localizer(seq, cfg, cache_root, progress=report, on_map=on_map, defer_s2m=True)
         except BaseException as exc:   # the page shows it too; the console gets one line
             failure.append(exc)
             raise
@@ -158,7 +169,7 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     # before the server starts so an early Ctrl-C also shuts down in order.
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        handle = serve(factory, host=host, port=port, open_browser=open_browser)
+        handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None)
     except BaseException:
         signal.signal(signal.SIGINT, previous)
         raise
@@ -171,7 +182,9 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
             exc = failure[0]
             raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
         if not stop.is_set():
-            console.print("ready: playing; use the page's controls to pause, step and tune")
+            console.print("ready: playing; use the page's controls to pause, step and tune" if autoplay else
+                          "ready: playback starts when a browser tab is open; use the page's controls to pause, "
+                          "step and tune")
         stop.wait()
     finally:
         signal.signal(signal.SIGINT, previous)

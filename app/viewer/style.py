@@ -12,10 +12,10 @@ S2M_ACCEPTED_COLOR = (255, 60, 255)
 S2M_REJECTED_COLOR = (150, 150, 150)     # grey: discarded (and unlike the BEV yellow)
 BEST_COLOR = (0, 230, 255)
 ELLIPSE_COLOR = (255, 70, 70)
-GT_COLOR = (235, 235, 235)
+GT_COLOR = (235, 235, 235)               # the truth: its trajectory and its vehicle
 EST_COLOR = (255, 150, 30)
-PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # weight ≈ 0
-PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # the highest weight
+PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # lowest log-weight rank
+PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # highest log-weight rank
 BEV_COLOR = (255, 225, 90)
 RESET_COLOR = (255, 255, 255)
 ERROR_CSS = "#ff6b6b"                    # refusals and failures in the panel
@@ -27,6 +27,15 @@ PLOT_INTERVAL = 0.5          # s, the plots at most this often (they resend whol
 PLOT_MAX_POINTS = 1500       # longer series are decimated for the plots
 TRAJ_CHUNK = 256             # points per trajectory chunk (finished chunks are never re-sent)
 EVENTS_SHOWN = 6
+REALTIME_LATE_S = 0.1        # s behind the sensor clock from which the status warns (a late scan)
+RATE_WINDOW_S = 3.0          # s of recent steps the achieved scans/s is measured over
+COLLAPSED_N_EFF_SHARE = 0.01  # N_eff / N below this: the help line on weight collapse shows
+
+# particles: the arrow length grows with the particle's weight relative to the heaviest one
+PARTICLE_ARROW_MIN = 1.0     # m, weight ≈ 0
+PARTICLE_ARROW_MAX = 6.0     # m, the heaviest particle
+VEHICLE_LENGTH = 4.5         # m, the footprint drawn for the estimate and the truth
+VEHICLE_WIDTH = 1.8
 
 SPEEDS = ("1", "2", "5", "10", "20", "50", "max")        # scans per second in replay
 SHIFT = "shift"              # the modifier of the scene's pointer picks (reset the particles)
@@ -52,6 +61,11 @@ def height_colors(z: np.ndarray) -> np.ndarray:
     lo, hi = np.percentile(z, [2, 98])
     t = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
     return HEIGHT_LUT[(t * 255).astype(np.intp)]
+
+
+def css(rgb) -> str:
+    """An RGB triple as a CSS colour."""
+    return "#{:02x}{:02x}{:02x}".format(*(int(v) for v in rgb))
 
 
 def shorten(text: str, limit: int = 70) -> str:

@@ -1,0 +1,148 @@
+"""The panel's plots, all on the same scan axis: position std, cloud spread and error; the error
+against the truth split along-track, cross-track and vertical; the heading error; N_eff as a share
+of the particles; each block's latency. Localization events are marked on the curves (points-only
+series).
+
+Every plot's x axis is pinned to the whole sequence (scan 0 … n − 1) instead of following the
+data. viser's browser side keeps a user's x zoom across data updates by storing the x range
+relative to the data's extent; a page that handles several updates in one go (a tab opened while
+playing replays the backlog, and software WebGL keeps the page busy) stored a shrunken range
+before the previous one was applied, and the curves then seemed frozen at the left edge. A fixed
+range takes that path out (and keeps every plot on the same axis)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import viser.uplot as uplot
+
+from lidarloc.core.config import DEG
+
+from .history import MARKED_EVENTS
+from .style import PLOT_MAX_POINTS
+
+# events marked on the curves: (label, colour, the event kinds)
+RUN_MARKS = (("localized", "#5be35b", ("localized",)),
+             ("lost / false positive", "#ff5a5a", ("loss", "false_positive")),
+             ("reset / kidnap", "#ffffff", ("reset", "kidnap")))
+S2M_MARKS = (("S2M accepted", "#ff3cff", ("s2m_accepted",)),
+             ("S2M rejected", "#969696", ("s2m_rejected",)))
+assert {k for _, _, kinds in RUN_MARKS + S2M_MARKS for k in kinds} == set(MARKED_EVENTS)
+
+
+def _line(label: str, color: str, show: bool = True) -> uplot.Series:
+    return uplot.Series(label=label, stroke=color, width=2, show=show)
+
+
+def _marks(marks) -> tuple:
+    """Points-only series: no line, a dot per event (NaN elsewhere: nothing drawn)."""
+    return tuple(uplot.Series(label=label, stroke=color, width=0, auto=False,
+                              points={"show": True, "size": 8, "fill": color, "stroke": color})
+                 for label, color, _ in marks)
+
+
+@dataclass
+class PlotSpec:
+    key: str
+    title: str
+    lines: tuple            # (history series, label, colour, scale factor)
+    marks: tuple            # RUN_MARKS, S2M_MARKS or ()
+    log: bool = False
+    needs_truth: bool = False
+
+
+SPECS = (
+    PlotSpec("std", "Position std, cloud spread and error (m)",
+             (("std", "std, weighted", "#ff5a5a", 1.0), ("spread", "cloud spread", "#ffb347", 1.0),
+              ("error", "error to truth", "#e6e6e6", 1.0)), (), log=True),
+    PlotSpec("error", "Error to truth: along, cross-track, vertical (m)",
+             (("along", "along-track", "#5ab4ff", 1.0), ("cross", "cross-track", "#ffb347", 1.0),
+              ("vertical", "vertical", "#b48cff", 1.0)), RUN_MARKS, needs_truth=True),
+    PlotSpec("heading", "Heading error (°)", (("heading", "heading", "#5ab4ff", 1.0 / DEG),), RUN_MARKS,
+             needs_truth=True),
+    PlotSpec("n_eff", "N_eff share of the particles (%)", (("n_eff_share", "N_eff / N", "#5be35b", 100.0),),
+             RUN_MARKS),
+    PlotSpec("latency", "Latency per scan (ms)",
+             (("pf_ms", "PF", "#ff9620", 1.0), ("rpe_ms", "RPE (KISS-ICP)", "#5ab4ff", 1.0),
+              ("s2m_ms", "S2M", "#ff3cff", 1.0)), S2M_MARKS),
+)
+
+
+def _scales(n_scans: int, log: bool) -> dict:
+    y = uplot.Scale(auto=True, distr=3) if log else uplot.Scale(auto=True)
+    return {"x": uplot.Scale(time=False, range=(0.0, float(max(n_scans - 1, 1)))), "y": y}
+
+
+def decimate(n: int, max_points: int = PLOT_MAX_POINTS) -> slice:
+    """Every how many recorded scans one is plotted (long runs)."""
+    return slice(None, None, max(1, int(np.ceil(n / max_points))))
+
+
+def mark_series(x: np.ndarray, y: np.ndarray, marks: list, kinds: tuple) -> np.ndarray:
+    """A points-only series on ``x``: NaN except at the plotted scan nearest each event of ``kinds``
+    (at or after it), where it takes the curve's value ``y`` (0 where the curve has none)."""
+    out = np.full(len(x), np.nan)
+    if len(x) == 0:
+        return out
+    scans = np.array([s for s, kind in marks if kind in kinds], float)
+    if len(scans) == 0:
+        return out
+    i = np.clip(np.searchsorted(x, scans), 0, len(x) - 1)
+    v = y[i]
+    out[i] = np.where(np.isfinite(v), v, 0.0)
+    return out
+
+
+class Plots:
+    """The plot handles (``handles[key]``, keys of :data:`SPECS`) and their updates; built inside
+    the panel's Plots folder."""
+
+    def __init__(self, gui):
+        self.handles: dict = {}
+        x = np.zeros(1)
+        for spec in SPECS:
+            series = (uplot.Series(label="scan"),) + tuple(_line(lbl, c) for _, lbl, c, _ in spec.lines) + \
+                _marks(spec.marks)
+            self.handles[spec.key] = gui.add_uplot(
+                (x,) * len(series), series, title=spec.title, scales=_scales(1, spec.log), aspect=1.6,
+                legend=uplot.Legend(live=False))
+        self.n_scans = 1
+        self.has_truth = True
+
+    def set_scan_axis(self, n_scans: int) -> None:
+        """Pin every plot's x axis to the sequence's scans 0 … n − 1."""
+        self.n_scans = int(n_scans)
+        for spec in SPECS:
+            self.handles[spec.key].scales = _scales(self.n_scans, spec.log)
+
+    def no_ground_truth(self) -> None:
+        """The source has no truth: the plots against it go, the error curve is hidden."""
+        self.has_truth = False
+        for spec in SPECS:
+            h = self.handles[spec.key]
+            if spec.needs_truth:
+                h.visible = False
+            elif spec.key == "std":
+                h.series = tuple(s if s.get("label") != "error to truth" else
+                                 uplot.Series(label="error: no ground truth", show=False) for s in h.series)
+
+    def update(self, h: dict) -> None:
+        """Resend every visible plot's series from :meth:`History.arrays`."""
+        sl = decimate(len(h["scan"]))
+        x = h["scan"][sl].astype(np.float64)
+        if len(x) == 0:
+            return
+        for spec in SPECS:
+            if spec.needs_truth and not self.has_truth:
+                continue
+            ys = []
+            for key, _, _, factor in spec.lines:
+                y = h[key][sl] * factor
+                if spec.log:
+                    # a log scale needs positive finite values: a missing one takes the weighted std's
+                    y = np.where(np.isfinite(y), np.maximum(y, 1e-3), np.maximum(h["std"][sl], 1e-3))
+                ys.append(y)
+            first = ys[-1] if spec.key == "latency" else ys[0]     # S2M marks sit on the S2M curve
+            ys += [mark_series(x, first, h["marks"], kinds) for _, _, kinds in spec.marks]
+            self.handles[spec.key].data = (x, *ys)

@@ -1,0 +1,295 @@
+"""What a new user trips over in the viewer, each on a real viser server (no browser): the last
+S2M match after a restart, a kidnap while paused, the S2M status after the run and while S2M is
+off, playback that waits for the first tab, notifications to the tab that acted, the achieved
+rate, and the map shown before the localizer is ready. The browser side (late tabs, the plots)
+is in test_viewer_browser.py."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from helpers import StreetSequence, make_localizer, wait_for
+
+
+@pytest.fixture(scope="module")
+def street():
+    return StreetSequence()
+
+
+@pytest.fixture
+def viewer(street, cache_root):
+    from lidarloc.app.viewer.serve import serve
+
+    loc = make_localizer(street, cache_root)
+    handle = serve(loc, port=0, autoplay=False)
+    yield handle
+    handle.stop()
+    loc.close()
+
+
+class Tab:
+    """A browser tab as the server sees it: a websocket client speaking viser's protocol that
+    reads (and drops) everything the server sends, and can press a button."""
+
+    def __init__(self, port: int):
+        import viser
+        from websockets.sync.client import connect
+
+        import msgspec
+        from viser._messages import ViewerCameraMessage
+
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
+                          max_size=None, open_timeout=10)
+        # viser counts a tab as connected once it reports its camera
+        camera = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 10.0), fov=1.0, near=0.01,
+                                     far=1000.0, image_height=600, image_width=800, look_at=(0.0, 0.0, 0.0),
+                                     up_direction=(0.0, 0.0, 1.0))
+        self.ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        self._thread = threading.Thread(target=self._drain, daemon=True)
+        self._thread.start()
+
+    def _drain(self):
+        try:
+            for _ in self.ws:
+                pass
+        except Exception:  # closed at the end of the test
+            pass
+
+    def click(self, button) -> None:
+        import msgspec
+        from viser._messages import GuiUpdateMessage
+
+        self.ws.send(msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict()))
+
+    def close(self):
+        self.ws.close()
+        self._thread.join(timeout=2)
+
+
+def step(v, loc, n: int) -> None:
+    k = loc.k
+    for _ in range(n):
+        v.controls.step.value = True
+    wait_for(lambda: v.player.idle and loc.k == k + n, what=f"{n} steps")
+    v.update_display(force_plots=True)
+
+
+def s2m_row(text: str) -> str:
+    return next(line for line in text.splitlines() if line.startswith("| S2M |"))
+
+
+# ---------------------------------------------------------------------------------- restart
+def test_restart_removes_the_last_runs_s2m_match(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    step(v, loc, 4)
+    assert loc.snapshot().s2m is not None
+    nodes = [v.scene.node(n) for n in ("s2m_scan", "s2m_region", "s2m_label")]
+    assert all(n is not None and n.visible for n in nodes)
+    v.controls.restart.value = True
+    v.update_display()
+    assert v.drawn.scan_index == -1 and v.drawn.s2m is None
+    assert not any(n.visible for n in nodes)
+    # toggling the layer does not bring the old match back …
+    v.controls.layers["s2m"].value = False
+    v.controls.layers["s2m"].value = True
+    assert not any(n.visible for n in nodes)
+    # … and the new run's first match shows again
+    step(v, loc, 4)
+    assert v.drawn.s2m is not None
+    assert all(v.scene.node(n).visible for n in ("s2m_scan", "s2m_region", "s2m_label"))
+
+
+# ---------------------------------------------------------------------------------- kidnap while paused
+def test_kidnap_while_paused_updates_the_status_at_once(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    step(v, loc, 2)
+    before = v.controls.status.content
+    v.controls.kidnap_skip.value = 5
+    v.controls.kidnap.value = True
+    assert loc.k == 7 and not v.player.playing
+    v.update_display()                        # what the display thread does next; no step in between
+    text = v.controls.status.content
+    assert text != before
+    assert "next scan: 7" in text
+    assert "kidnap — vehicle moved from scan 2 to 7" in text       # the recent events
+    assert "not localized" in text
+
+
+# ---------------------------------------------------------------------------------- S2M status line
+def test_s2m_status_is_not_running_after_the_run_and_says_off_when_off(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    v.controls.speed.value = "max"
+    v.controls.play.value = True
+    wait_for(lambda: loc.done and v.player.idle, what="the end of the run")
+    v.update_display()
+    text = v.controls.status.content
+    assert "finished" in text and "running" not in s2m_row(text)
+    # even when a match was still in flight at the last scan
+    last = replace(loc.snapshot(), s2m_running=True)
+    assert "running" not in s2m_row(v.status_markdown(last))
+    # S2M off: the row says so instead of the last match's figures
+    v.controls.s2m_enabled.value = False
+    v.update_display()
+    assert s2m_row(v.controls.status.content) == "| S2M | off |"
+    v.controls.s2m_enabled.value = True
+    v.update_display()
+    assert s2m_row(v.controls.status.content) != "| S2M | off |"
+
+
+def test_s2m_status_says_running_while_a_match_is_in_flight():
+    from lidarloc.app.viewer.readouts import status_markdown
+    from lidarloc.core.snapshot import Snapshot
+
+    snap = Snapshot(scan_index=3, n_scans=10, timestamp=0.3, particles=np.zeros((4, 11)), weights=np.full(4, 0.25),
+                    best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3), std_xyz=np.ones(3),
+                    ellipse_xy=(2.0, 2.0, 0.0), n_eff=4.0, localized=False, localized_since=None,
+                    scan_world=np.zeros((0, 3), np.float32), gt_pose=None, error_m=None, pf_ms=5.0, s2m=None,
+                    s2m_running=True, s2m_acceptance=0.0)
+    assert "running" in s2m_row(status_markdown(snap, "playing", "replay", "10", []))
+    assert "running" not in s2m_row(status_markdown(snap, "finished", "replay", "10", []))
+    assert s2m_row(status_markdown(snap, "playing", "replay", "10", [], s2m_enabled=False)) == "| S2M | off |"
+
+
+# ---------------------------------------------------------------------------------- playback waits for a tab
+def test_playback_waits_for_the_first_tab(street, cache_root):
+    from lidarloc.app.viewer.serve import serve
+
+    loc = make_localizer(street, cache_root)
+    handle = serve(loc, port=0)
+    tab = None
+    try:
+        assert handle.wait_ready(30)
+        v = handle.viewer
+        assert not v.player.playing and loc.k == 0        # attach returned without playing
+        tab = Tab(handle.port)
+        wait_for(lambda: loc.k >= 2, what="playback after the first tab connected")
+        # a second tab does not resume a run the user paused
+        v.controls.play.value = True
+        wait_for(lambda: v.player.idle, what="pause")
+        k = loc.k
+        second = Tab(handle.port)
+        wait_for(lambda: len(handle.server.get_clients()) == 2, what="the second tab")
+        assert not v.player.playing and loc.k == k
+        second.close()
+    finally:
+        if tab is not None:
+            tab.close()
+        handle.stop()
+        loc.close()
+
+
+@pytest.mark.parametrize("command", ["demo", "view"])
+def test_autoplay_option(command, monkeypatch):
+    from typer.testing import CliRunner
+
+    from lidarloc.app import cli
+    from lidarloc.app.viewer import serve as serve_module
+
+    seen = {}
+
+    def fake(spec, cfg, **kwargs):
+        seen.update(kwargs)
+    monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
+    runner = CliRunner()
+    assert runner.invoke(cli.app, [command]).exit_code == 0 and seen["autoplay"] is False
+    assert runner.invoke(cli.app, [command, "--autoplay"]).exit_code == 0 and seen["autoplay"] is True
+
+
+def test_autoplay_true_plays_without_a_tab(street, cache_root):
+    from lidarloc.app.viewer.serve import serve
+
+    loc = make_localizer(street, cache_root)
+    handle = serve(loc, port=0, autoplay=True)
+    try:
+        assert handle.viewer.player.playing
+        wait_for(lambda: loc.k >= 2, what="autoplay")
+    finally:
+        handle.stop()
+        loc.close()
+
+
+# ---------------------------------------------------------------------------------- notifications
+def test_messages_are_notified_to_the_tab_that_acted(viewer, monkeypatch):
+    import viser
+
+    sent = []
+    real = viser.ClientHandle.add_notification
+
+    def record(self, title, body, **kwargs):
+        sent.append((self.client_id, body, kwargs.get("color")))
+        return real(self, title, body, **kwargs)
+    monkeypatch.setattr(viser.ClientHandle, "add_notification", record)
+    v, loc = viewer.viewer, viewer.localizer
+    a, b = Tab(viewer.port), Tab(viewer.port)
+    try:
+        wait_for(lambda: len(viewer.server.get_clients()) == 2, what="two tabs")
+        first, second = sorted(viewer.server.get_clients())
+        a.click(v.controls.reset)
+        wait_for(lambda: sent, what="a notification")
+        assert sent == [(first, "particles reset globally", "blue")]
+        assert v.message == "particles reset globally"           # the panel line stays
+        v.controls.kidnap_skip.value = 0
+        b.click(v.controls.kidnap)
+        wait_for(lambda: len(sent) == 2, what="the refusal")
+        assert sent[1][0] == second and sent[1][1].startswith("refused: kidnap skip") and sent[1][2] == "red"
+    finally:
+        a.close()
+        b.close()
+
+
+# ---------------------------------------------------------------------------------- achieved rate
+def test_status_shows_the_achieved_rate_while_playing(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    v.controls.speed.value = "5"
+    v.controls.play.value = True
+    wait_for(lambda: v.player.achieved_rate() is not None, what="a measured rate")
+    rate = v.player.achieved_rate()
+    assert 0 < rate <= 5.5                   # never faster than the set speed
+    wait_for(lambda: "achieved" in v.controls.status.content, what="the rate in the status")
+    assert "scans/s" in v.controls.status.content
+    v.controls.play.value = True             # pause: no rate
+    wait_for(lambda: v.player.idle)
+    v.update_display()
+    assert "achieved" not in v.controls.status.content
+
+
+# ---------------------------------------------------------------------------------- the map before the tables
+def test_map_is_shown_while_the_tables_are_built_and_sent_once(street, cache_root):
+    from lidarloc.app.viewer.serve import serve
+    from lidarloc.core.config import Config
+
+    seen = threading.Event()
+    go = threading.Event()
+    built = []
+
+    def factory(progress=None, on_map=None):
+        from lidarloc.core.localizer import Localizer
+
+        def shown(prior_map):
+            on_map(prior_map)
+            seen.set()
+            go.wait(30)                      # hold the build here: the tables are not built yet
+        cfg = Config()
+        cfg.pf.n_particles = 200
+        built.append(Localizer(street, cfg, cache_root, progress=progress, on_map=shown))
+        return built[-1]
+
+    handle = serve(factory, port=0, autoplay=False)
+    try:
+        v = handle.viewer
+        assert seen.wait(60)
+        cloud = v.scene.node("map")
+        assert cloud is not None and len(cloud.points) > 1000 and v.localizer is None
+        # new tabs look at it
+        assert np.allclose(handle.server.initial_camera.look_at, v.scene.map_center, atol=1e-3)
+        assert np.linalg.norm(v.scene.map_center[:2]) > 10
+        go.set()
+        assert handle.wait_ready(60)
+        assert v.scene.node("map") is cloud         # attach did not send it again
+    finally:
+        go.set()
+        handle.stop()
+    wait_for(lambda: built and built[0].closed, what="localizer closed")

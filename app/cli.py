@@ -4,6 +4,7 @@ source options; errors the user can fix print one line on stderr and exit with s
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -13,9 +14,9 @@ from lidarloc.core.errors import LidarlocError
 
 from .bench.common import DATA_ENV, DEFAULT_DATA, REAL_DRIVE, REAL_DRIVE_DATE
 from .console import emit_json, err, fail, peak_rss_mb, progress_bar, show_result
-from .options import (SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, CalibOpt, ConfigOpt, DateOpt, DriveOpt, JsonOpt,
-                      KittiOdometryOpt, KittiRawOpt, PresetOpt, ScansOpt, SequenceOpt, SetOpt, TownSeedOpt, TrajectoryOpt,
-                      config_from, given, source_options, source_spec)
+from .options import (OWN_DATA, SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, ConfigOpt, InitOpt, JsonOpt,
+                      PresetOpt, ScansOpt, SetOpt, config_from, given, open_source,
+                      source_spec, with_source)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="LiDAR-only localization in a prior 3D map: scan-matching particle filter with a live viewer.")
@@ -27,32 +28,55 @@ app.add_typer(bench_app, name="bench")
 
 # ------------------------------------------------------------------------------------------ map
 @map_app.command("build")
+@with_source()
 def map_build(
-    out: Annotated[Optional[Path], typer.Option("--out", help="Cache directory to build into (default: the cache).")] = None,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="A .pcd or .ply map file to write (the map, and its road-removed layer beside it as "
+                      "NAME_road_removed.pcd/.ply), or a cache directory to build into (default: the cache).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
-    """Build the prior map of a sequence from its scans and ground-truth poses (and cache it)."""
-    from lidarloc.core.mapping import load_or_build_map
-    from lidarloc.core.sequences.factory import open_sequence
+    """Build the prior map of a sequence from its scans and ground-truth poses (and cache it).
 
+    Any source with ground truth: a KITTI drive, the town, or a recording (--bag/--scans-dir) with --gt."""
+    from lidarloc.core.mapfile import WRITE_SUFFIXES, write_map
+    from lidarloc.core.mapping import load_or_build_map
+
+    to_file = out is not None and out.suffix.lower() in WRITE_SUFFIXES
+    if out is not None and not to_file and out.suffix:
+        raise LidarlocError(f"{out}: cannot write a map of this type ({out.suffix}); supported: "
+                            f"{', '.join(WRITE_SUFFIXES)} (or a cache directory)")
     cfg = config_from(config, set_, preset=preset)
     # the map of a source is its whole mapping drive (--scans N plays N scans inside it)
-    seq = open_sequence(source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans), cfg).map_source
+    seq = open_source(spec, cfg).map_source
+    if not hasattr(seq, "poses") or not seq.has_poses:
+        raise LidarlocError(f"{seq.name}: no ground-truth poses to fuse the scans with (give --gt)")
     t0 = time.perf_counter()
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=len(seq))
-        prior, directory, cached = load_or_build_map(seq, cfg.map, out, progress=lambda i, n: bar.update(task, completed=i))
+        prior, directory, cached = load_or_build_map(seq, cfg.map, cache if to_file else out,
+                                                     progress=lambda i, n: bar.update(task, completed=i))
     summary = {"points": int(len(prior.points)), "points_road_removed": int(len(prior.points_bev)),
                "seconds": round(time.perf_counter() - t0, 3), "peak_rss_mb": round(peak_rss_mb(), 1),
                "cached": cached, "cache_dir": str(directory), "scans": len(seq)}
+    if to_file:
+        road_removed = road_removed_path(out)
+        origin = prior.origin if prior.origin.any() else None
+        write_map(out, prior.points, origin=origin)
+        write_map(road_removed, prior.points_bev, origin=origin)
+        summary.update(out=str(out), out_road_removed=str(road_removed))
     if as_json:
         emit_json(summary)
     else:
+        where = f"{out} and {summary['out_road_removed']}" if to_file else str(directory)
         err.print(f"map: {summary['points']:,} points, {summary['points_road_removed']:,} after road removal, "
-                  f"{summary['seconds']} s ({'from cache' if cached else 'built'}) → {directory}")
+                  f"{summary['seconds']} s ({'from cache' if cached else 'built'}) → {where}",
+                  markup=False, highlight=False, soft_wrap=True)
+
+
+def road_removed_path(out: Path) -> Path:
+    """Where ``map build --out FILE`` writes the road-removed layer: beside FILE, ``NAME_road_removed``."""
+    return out.with_name(f"{out.stem}_road_removed{out.suffix}")
 
 
 @map_app.command("info")
@@ -74,12 +98,11 @@ def map_info(
 
 
 @map_app.command("export")
+@with_source()
 def map_export(
     out: Annotated[Path, typer.Option("--out", help="Map file to write: .pcd or .ply (binary, x y z).", show_default=False)],
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
     cache: CacheOpt = None,
 ):
     """Write a source's prior map (built or from the cache) as a .pcd or .ply file.
@@ -87,13 +110,12 @@ def map_export(
     The map is written in the source's frame: a map read from a georeferenced file goes back to its own coordinates, as float64."""
     from lidarloc.core.mapfile import WRITE_SUFFIXES, write_map
     from lidarloc.core.mapping import load_or_build_map
-    from lidarloc.core.sequences.factory import open_sequence
 
     if out.suffix.lower() not in WRITE_SUFFIXES:     # before building a map that cannot be written
         raise LidarlocError(f"{out}: cannot write a map of this type ({out.suffix or 'no extension'}); "
                             f"supported: {', '.join(WRITE_SUFFIXES)}")
     cfg = config_from(config, set_, preset=preset)
-    seq = open_sequence(source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans), cfg).map_source
+    seq = open_source(spec, cfg).map_source
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=None)
         prior = load_or_build_map(seq, cfg.map, cache, progress=lambda i, n: bar.update(task, completed=i, total=n),
@@ -109,19 +131,19 @@ def map_export(
 
 # ---------------------------------------------------------------------------------------- synth
 @app.command()
+@with_source(exclude=("kitti_odometry", "sequence", "kitti_raw", "date", "drive") + OWN_DATA)
 def synth(
     out: Annotated[Path, typer.Option("--out", help="Directory to write the KITTI odometry layout into.")],
     sequence_id: Annotated[str, typer.Option("--sequence-id", help="Sequence id to write as.")] = "00",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing exported sequence.")] = False,
-    town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None, calib: CalibOpt = None, scans: ScansOpt = None,
-    preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Export the built-in town's drive in KITTI odometry layout (velodyne/*.bin, calib, times, poses)."""
     from lidarloc.core.sequences.export import export_kitti_odometry
     from lidarloc.core.sequences.factory import open_sequence
 
     cfg = config_from(config, set_, preset=preset)
-    seq = open_sequence(source_spec(None, None, None, None, None, town_seed, trajectory, calib, scans), cfg)
+    seq = open_sequence(spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task(f"scans of {seq.name}", total=len(seq))
         export_kitti_odometry(seq, out, sequence=sequence_id, overwrite=overwrite,
@@ -131,23 +153,21 @@ def synth(
 
 # ------------------------------------------------------------------------------------ localize
 @app.command()
+@with_source()
 def run(
     out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events and summary.")],
     seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     clock: Annotated[Optional[str], typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")] = None,
     no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Localize headless over a sequence and write results to --out."""
     from .headless import run_headless
 
     overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
     cfg = config_from(config, overrides, seed=seed, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    summary, interrupted = run_headless(spec, cfg, out, cache_root=cache, console=err, preset=preset)
+    summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err, preset=preset)
     if as_json:
         emit_json(summary)
     if interrupted:
@@ -155,23 +175,21 @@ def run(
 
 
 @app.command()
+@with_source()
 def inspect(
     scan: Annotated[int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")],
     out: Annotated[Path, typer.Option("--out", help="Directory for the likelihood surfaces (PNG + .npy), residuals.png and inspect.json.")],
     seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     best_over_yaw: Annotated[bool, typer.Option("--best-over-yaw", help="Each surface cell: the best of the yaws within ±10° in 2° steps, not the pose's yaw alone.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print inspect.json on stdout too.")] = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Replay a run to one scan and write why the filter is where it is: the likelihood surface
     around the estimate and around the truth, the scan's residuals to the map, and a JSON summary."""
     from .inspect import run_inspect
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    result = run_inspect(spec, cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw)
+    result = run_inspect(replace(spec, init=init), cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw)
     if as_json:
         emit_json(result)
 
@@ -197,23 +215,20 @@ def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Opti
          autoplay: AutoplayOpt = False):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(source_spec(None, None, None, None, None, cfg.town.seed, None, None, scans), cfg, host, port, cache, open_browser,
-           autoplay)
+    _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay)
 
 
 @app.command()
+@with_source()
 def view(
     host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
     autoplay: AutoplayOpt = False,
 ):
     """The live viewer on any sequence source."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    _serve(spec, cfg, host, port, cache, open_browser, autoplay)
+    _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay)
 
 
 # -------------------------------------------------------------------------------------- benches
@@ -226,18 +241,26 @@ def _result(name: str, result: dict, as_json: bool) -> None:
         show_result(f"lidarloc bench {name}", result)
 
 
+def _real_drive_unless_given(ctx: typer.Context, spec, bench: str):
+    """``spec`` when a source was chosen, else the real KITTI drive (with ``spec``'s --scans and --map)."""
+    from .bench.common import require_real_drive
+
+    if given(ctx, SOURCE_CHOICE):
+        return spec
+    return replace(require_real_drive(bench, spec.scans), map=spec.map)
+
+
 SeedOpt = Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")]
-MapSource = source_options("Source (default: the built-in town and the real KITTI drive)")
-PfSource = source_options(f"Source (default: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} in ${DATA_ENV} or {DEFAULT_DATA})")
-ViewerSource = source_options("Source (none: the inputs are synthetic)")
+_MAP_PANEL = "Source (default: the built-in town and the real KITTI drive)"
+_PF_PANEL = f"Source (default: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} in ${DATA_ENV} or {DEFAULT_DATA})"
+_VIEWER_PANEL = "Source (none: the inputs are synthetic)"
 
 
 @bench_app.command("town")
+@with_source(exclude=OWN_DATA)
 def bench_town(
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Town generation time and simulated-scan time.
 
@@ -245,17 +268,14 @@ def bench_town(
     from .bench.town import run as run_bench
 
     cfg = config_from(config, set_, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("town", run_bench(spec, cfg), as_json)
 
 
 @bench_app.command("map")
+@with_source(_MAP_PANEL, exclude=OWN_DATA)
 def bench_map(
     ctx: typer.Context, as_json: JsonOpt = False,
-    kitti_odometry: MapSource.kitti_odometry = None, sequence: MapSource.sequence = None,
-    kitti_raw: MapSource.kitti_raw = None, date: MapSource.date = None, drive: MapSource.drive = None,
-    town_seed: MapSource.town_seed = 0, trajectory: MapSource.trajectory = None, calib: MapSource.calib = None,
-    scans: MapSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Prior-map build and cache-load times, default town and the real drive (fresh cache).
 
@@ -264,7 +284,6 @@ def bench_map(
     from .bench.map import default_sources, run as run_bench, source_name
 
     config_from(config, set_, preset=preset)      # a bad config fails here, not in the first child process
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE) else default_sources(spec)
     _result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
 
@@ -283,33 +302,28 @@ def bench_mapfile(
 
 
 @bench_app.command("bag")
+@with_source(_PF_PANEL)
 def bench_bag(
     ctx: typer.Context,
     total: Annotated[int, typer.Option("--total", min=1, help="Scans in the bag (the source's scans, repeated).")] = 300,
     storage: Annotated[str, typer.Option("--storage", help="Bag kind: mcap, sqlite3 (ROS 2) or ros1.")] = "mcap",
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times the whole bag is read (median).")] = 3,
     as_json: JsonOpt = False,
-    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
-    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
-    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
-    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Reading scans from a bag: a PointCloud2 bag of the source's scans, written in a temporary
     directory, opened (index) and read scan by scan (decode); target ≥ 200 scans/s.
 
     Default source: the real KITTI raw drive (64-beam scans); --town-seed N for the town."""
     from .bench.bag import run as run_bench
-    from .bench.common import require_real_drive
 
     cfg = config_from(config, set_, preset=preset)
-    if given(ctx, SOURCE_CHOICE):
-        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    else:
-        spec = require_real_drive("bag", scans)
+    spec = _real_drive_unless_given(ctx, spec, "bag")
     _result("bag", run_bench(spec, cfg, total=total, storage=storage, repeats=repeats), as_json)
 
 
 @bench_app.command("pf")
+@with_source(_PF_PANEL)
 def bench_pf(
     ctx: typer.Context,
     particles: Annotated[Optional[int], typer.Option("--particles", min=1, help="Particles (default: the config's).")] = None,
@@ -317,54 +331,42 @@ def bench_pf(
     big_map: Annotated[bool, typer.Option("--big-map/--no-big-map", help="Time the lookup table of a KITTI-05-sized synthetic map.")] = True,
     town_lookup: Annotated[bool, typer.Option("--town/--no-town", help="Time the lookup table of the default town's map.")] = True,
     as_json: JsonOpt = False,
-    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
-    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
-    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
-    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Particle-filter step time and lookup-table cost, against their targets.
 
     Default source: the real KITTI raw drive; --town-seed N for the town."""
-    from .bench.common import require_real_drive
     from .bench.pf import run as run_bench
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
     if particles is not None:
         cfg.pf.n_particles = particles
-    if given(ctx, SOURCE_CHOICE):
-        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    else:
-        spec = require_real_drive("pf", scans)
+    spec = _real_drive_unless_given(ctx, spec, "pf")
     _result("pf", run_bench(spec, cfg, big_map=big_map, town=town_lookup), as_json)
 
 
 @bench_app.command("surface")
+@with_source(_PF_PANEL)
 def bench_surface(
     ctx: typer.Context,
     samples: Annotated[int, typer.Option("--samples", min=1, help="Scans to time, spread over the sequence.")] = 10,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Surfaces per scan, each around another offset of the truth.")] = 3,
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
-    kitti_odometry: PfSource.kitti_odometry = None, sequence: PfSource.sequence = None,
-    kitti_raw: PfSource.kitti_raw = None, date: PfSource.date = None, drive: PfSource.drive = None,
-    town_seed: PfSource.town_seed = 0, trajectory: PfSource.trajectory = None, calib: PfSource.calib = None,
-    scans: PfSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """The viewer's likelihood surface: time of an 81 × 81 grid (target ≤ 150 ms) and its maximum's error.
 
     Default source: the real KITTI raw drive; --town-seed N for the town."""
-    from .bench.common import require_real_drive
     from .bench.surface import run as run_bench
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    if given(ctx, SOURCE_CHOICE):
-        spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
-    else:
-        spec = require_real_drive("surface", scans)
+    spec = _real_drive_unless_given(ctx, spec, "surface")
     _result("surface", run_bench(spec, cfg, scans=samples, repeats=repeats), as_json)
 
 
 @bench_app.command("s2m")
+@with_source()
 def bench_s2m(
     matches: Annotated[int, typer.Option("--matches", min=1, help="Random scans to match (at most all of the source's).")] = 350,
     seed: SeedOpt = None,
@@ -372,26 +374,22 @@ def bench_s2m(
     gicp_comparison: Annotated[bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")] = True,
     cell_study: Annotated[bool, typer.Option("--cell-study", help="Also match with every BEV cell value.")] = False,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment)."""
     from .bench.s2m import run as run_bench
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("s2m", run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison,
                              cell_study=cell_study), as_json)
 
 
 @bench_app.command("rpe")
+@with_source()
 def bench_rpe(
     convergence: Annotated[Optional[list[float]], typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")] = None,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """KISS-ICP odometry: registration time and error against the truth per convergence setting.
 
@@ -399,17 +397,14 @@ def bench_rpe(
     from .bench.rpe import run as run_bench
 
     cfg = config_from(config, set_, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     _result("rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json)
 
 
 @bench_app.command("viewer")
+@with_source(_VIEWER_PANEL)
 def bench_viewer(
     ctx: typer.Context, as_json: JsonOpt = False,
-    kitti_odometry: ViewerSource.kitti_odometry = None, sequence: ViewerSource.sequence = None,
-    kitti_raw: ViewerSource.kitti_raw = None, date: ViewerSource.date = None, drive: ViewerSource.drive = None,
-    town_seed: ViewerSource.town_seed = 0, trajectory: ViewerSource.trajectory = None, calib: ViewerSource.calib = None,
-    scans: ViewerSource.scans = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Server-side cost of one display update.
 
@@ -425,13 +420,12 @@ def bench_viewer(
 
 
 @bench_app.command("startup")
+@with_source(exclude=OWN_DATA)
 def bench_startup(
     ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
     """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts.
 
@@ -440,22 +434,20 @@ def bench_startup(
     from .bench.startup import run as run_bench
 
     config_from(config, set_, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     if given(ctx, SOURCE_CHOICE):
         command = ["view", *source_args(spec)]
     else:
-        command = ["demo"] + (["--scans", str(scans)] if scans is not None else [])
+        command = ["demo"] + (["--scans", str(spec.scans)] if spec.scans is not None else [])
     _result("startup", run_bench(command + config_args(config, set_, preset), repeats=repeats), as_json)
 
 
 @bench_app.command("stop")
+@with_source(exclude=OWN_DATA)
 def bench_stop(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
     delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s).
 
@@ -464,14 +456,14 @@ def bench_stop(
     from .bench.stop import run as run_bench
 
     config_from(config, set_, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib,
-                       300 if scans is None else scans)
+    spec = replace(spec, scans=300 if spec.scans is None else spec.scans)
     _result("stop", run_bench(source_args(spec) + config_args(config, set_, preset), repeats=repeats,
                               cache=None if cache is None else str(cache), **({"delays_s": tuple(delay)} if delay else {})),
             as_json)
 
 
 @bench_app.command("localize")
+@with_source()
 def bench_localize(
     runs: Annotated[int, typer.Option("--runs")] = 20,
     workers: Annotated[int, typer.Option("--workers")] = 2,
@@ -483,9 +475,7 @@ def bench_localize(
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section)."""
     from .bench.localize import run_bench
@@ -493,7 +483,6 @@ def bench_localize(
     overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
         + (["s2m.enabled=false"] if no_s2m else [])
     cfg = config_from(config, overrides, preset=preset)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
                         cache_root=cache, console=err, preset=preset)
     _result("localize", summary, as_json)
@@ -503,6 +492,7 @@ _AXES = "Matrix (comma-separated values; each axis restricts the matrix)"
 
 
 @bench_app.command("robustness")
+@with_source(exclude=OWN_DATA)
 def bench_robustness(
     runs: Annotated[int, typer.Option("--runs", help="Seeded runs per cell (seeds 0…N−1).")] = 5,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
@@ -514,9 +504,7 @@ def bench_robustness(
     configs: Annotated[str, typer.Option("--configs", help="Configurations: paper (the paper preset), default, no-S2M (default without S2M).", rich_help_panel=_AXES)] = "paper,default,no-S2M",
     real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive, same configurations (default: where its data is present).", rich_help_panel=_AXES)] = None,
     as_json: JsonOpt = False,
-    kitti_odometry: KittiOdometryOpt = None, sequence: SequenceOpt = None, kitti_raw: KittiRawOpt = None,
-    date: DateOpt = None, drive: DriveOpt = None, town_seed: TownSeedOpt = 0, trajectory: TrajectoryOpt = None,
-    calib: CalibOpt = None, scans: ScansOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Localization when the world is not the map: changes × traffic × sensor × skew × configuration.
 
@@ -524,7 +512,6 @@ def bench_robustness(
     from .bench.robustness import parse_matrix, run_robustness
 
     matrix = parse_matrix(changes, traffic, sensors, skew, configs)
-    spec = source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans)
     summary = run_robustness(spec, config, set_, matrix, runs=runs, workers=workers, out_dir=out,
                              real=real, cache_root=cache, console=err)
     if as_json:

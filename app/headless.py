@@ -1,6 +1,8 @@
 """``lidarloc run``: localize over a sequence without a viewer and write the results to disk.
 
-Ctrl-C stops after the scan in progress and still writes everything computed so far.
+Ctrl-C stops after the scan in progress and still writes everything computed so far. The
+source's notes (a bag's dropped scans, a folder without times) are printed before the run, and a
+map and scans found to be in different frames are warned about as soon as the localizer says so.
 """
 
 from __future__ import annotations
@@ -11,13 +13,15 @@ import time
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Interrupted, Localizer
 from lidarloc.core.results import make_out_dir, summarize_run, write_run
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from lidarloc.core.sequences.factory import SourceSpec
 
 from .console import progress_bar
+from .options import open_source
 
 
 def _main_thread() -> bool:
@@ -30,7 +34,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
     """Run the localizer over the whole sequence; returns (summary, interrupted). ``preset``: the
     named configuration ``cfg`` started from (``--preset``), recorded in the summary."""
     console = console or Console(stderr=True)
-    seq = open_sequence(spec, cfg)
+    seq = open_source(spec, cfg, console)
     make_out_dir(out)  # fail on an unwritable --out before the long part
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
@@ -54,6 +58,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         loc.interrupt()
     previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
+    warned = _warn_frames(console, loc.events, 0)
     t_start = time.perf_counter()
     try:
         console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
@@ -75,6 +80,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                     snap = loc.step()
                 except Interrupted:
                     break
+                warned = _warn_frames(console, loc.events, warned)
                 bar.update(task, completed=snap.scan_index + 1,
                            description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
     finally:
@@ -91,6 +97,16 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         summary = summarize_run(loc, wall, lags[: len(loc.records)] if realtime else None, cpu_used, preset=preset)
         summary["interrupted"] = interrupted
         write_run(loc, out, summary)
+    error = (f"RMSE after {summary['rmse_after_localized_m']}" if loc.seq.has_poses
+             else "no ground truth (no errors)")
     console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "
-                  f"RMSE after {summary['rmse_after_localized_m']}, PF {summary['pf_ms_median']} ms median")
+                  f"{error}, PF {summary['pf_ms_median']} ms median")
     return summary, interrupted
+
+
+def _warn_frames(console: Console, events, seen: int) -> int:
+    """Print the ``frame_mismatch`` events after the first ``seen`` events; returns how many were seen."""
+    for e in events[seen:]:
+        if e.kind == "frame_mismatch":
+            console.print(f"[yellow]warning:[/yellow] {escape(e.detail)}", highlight=False, soft_wrap=True)
+    return len(events)

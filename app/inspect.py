@@ -32,10 +32,11 @@ from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.residuals import scan_residuals
 from lidarloc.core.results import make_out_dir
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from lidarloc.core.sequences.factory import SourceSpec
 from lidarloc.core.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 
 from .console import progress_bar
+from .options import open_source
 from .viewer.why_style import RESIDUAL_LUT, residual_colors, surface_scale
 from .viewer.why_surface import scan_in_sensor_frame
 
@@ -61,7 +62,7 @@ def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root:
                 console: Console | None = None, best_over_yaw: bool = False) -> dict:
     """Replay to ``scan``, write the files (module docstring) and return the JSON's content."""
     console = console or Console(stderr=True)
-    seq = open_sequence(spec, cfg)
+    seq = open_source(spec, cfg, console)
     if not 0 <= int(scan) < len(seq):
         raise LidarlocError(f"--scan {scan} is beyond {seq.name}'s {len(seq)} scans (0…{len(seq) - 1})")
     make_out_dir(out)
@@ -80,7 +81,7 @@ def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root:
         if snap.scan_index != scan:      # a kidnap cannot happen here; the sequence ended early
             raise LidarlocError(f"the run ended at scan {snap.scan_index} before scan {scan}")
         model = LikelihoodModel.of(loc)
-        result = _write(snap, model, loc.prior_map.points, out, best_over_yaw)
+        result = _write(snap, model, loc.prior_map.points, out, best_over_yaw, origin=loc.prior_map.origin)
     finally:
         loc.close()
     err_m = result["surface_argmax_error_m"]
@@ -90,7 +91,8 @@ def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root:
     return result
 
 
-def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best_over_yaw: bool) -> dict:
+def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best_over_yaw: bool,
+           origin=(0.0, 0.0, 0.0)) -> dict:
     pts = scan_in_sensor_frame(snap)
     if len(pts) == 0:
         raise LidarlocError(f"scan {snap.scan_index} has no points left after preparation")
@@ -129,6 +131,8 @@ def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best
         "d_max_m": model.d_max,
         "sigma_m": model.sigma,
         "scan_points": int(len(pts)),
+        # poses and grids are in the map's local frame: add this for a georeferenced map file's own
+        "map_origin_m": [float(v) for v in origin],
         "files": files + ["inspect.json"],
     }
     (out / "inspect.json").write_text(json.dumps(result, indent=2) + "\n")

@@ -1,7 +1,14 @@
-"""Options every command shares: where the scans come from, and the configuration."""
+"""Options every command shares: where the scans come from, and the configuration.
+
+The source options are one unit: :func:`with_source` adds them to a command (under one help
+panel) and hands the command a :class:`~lidarloc.core.sequences.factory.SourceSpec` built from them
+by name, so a new source option is declared once, in :func:`source_parameters`.
+"""
 
 from __future__ import annotations
 
+import functools
+import inspect
 from pathlib import Path
 from typing import Annotated, Any, NamedTuple, Optional
 
@@ -46,6 +53,68 @@ def source_options(panel: str) -> SourceOptions:
 
 (KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt,
  ScansOpt) = source_options(_SRC)
+
+_MAP_HELP = ("Prior map file (.pcd, .ply, .las, .laz, .npy, .npz) instead of the map built from the drive; "
+             "results are written in its frame.")
+_GT_HELP = "Ground truth of --bag/--scans-dir: TUM (t x y z qx qy qz qw) or KITTI (12 numbers a line) poses file."
+
+
+def own_data_options(panel: str) -> dict[str, Any]:
+    """The options for a user's own data (map file, recording, truth), under ``panel``."""
+    return {
+        "map": Annotated[Optional[Path], typer.Option("--map", help=_MAP_HELP, rich_help_panel=panel)],
+        "bag": Annotated[Optional[Path], typer.Option("--bag", help="ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap with PointCloud2 scans.", rich_help_panel=panel)],
+        "topic": Annotated[Optional[str], typer.Option("--topic", help="PointCloud2 topic of --bag (default: its only one).", rich_help_panel=panel)],
+        "scans_dir": Annotated[Optional[Path], typer.Option("--scans-dir", help="Folder of scans (.pcd, .ply, .bin or .npy, in name order; times from its times.txt).", rich_help_panel=panel)],
+        "gt": Annotated[Optional[Path], typer.Option("--gt", help=_GT_HELP, rich_help_panel=panel)],
+        "gt_times": Annotated[Optional[Path], typer.Option("--gt-times", help="Times (s, one a line) of a KITTI-format --gt file.", rich_help_panel=panel)],
+        "extrinsic": Annotated[Optional[Path], typer.Option("--extrinsic", help="4×4 base ← LiDAR transform file for --gt (default: the bag's /tf_static, else identity).", rich_help_panel=panel)],
+    }
+
+
+#: the defaults of the source options (what SourceSpec has when an option is not given)
+_SOURCE_DEFAULTS = {"town_seed": 0}
+#: every source option's parameter name, in the order of the help
+SOURCE_PARAMS = ("kitti_odometry", "sequence", "kitti_raw", "date", "drive", "town_seed", "trajectory", "calib",
+                 "scans", "map", "bag", "topic", "scans_dir", "gt", "gt_times", "extrinsic")
+#: ``--init``: run, view and inspect start around a pose with it
+InitOpt = Annotated[Optional[str], typer.Option(
+    "--init", metavar="X,Y,YAW[,σXY,σYAW]",
+    help="Start the particles around this pose (map frame; metres, degrees; default σ 2 m, 10°) instead of over the whole map.")]
+
+
+def source_parameters(panel: str = _SRC, exclude: tuple[str, ...] = ()) -> list[inspect.Parameter]:
+    """The source options as keyword parameters of a command, under the help panel ``panel``."""
+    annotations = dict(zip(SOURCE_PARAMS[:9], source_options(panel)))
+    annotations.update(own_data_options(panel))
+    return [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotations[name],
+                              default=_SOURCE_DEFAULTS.get(name))
+            for name in SOURCE_PARAMS if name not in exclude]
+
+
+def with_source(panel: str = _SRC, exclude: tuple[str, ...] = ()):
+    """Decorator: the command gets every source option (but ``exclude``) under the help panel
+    ``panel``, and its ``spec`` parameter receives the SourceSpec they make. The options keep their
+    names, so :func:`given` still asks about them."""
+    def decorate(func):
+        # eval_str: the command's module may use string annotations (``from __future__ import annotations``)
+        signature = inspect.signature(func, eval_str=True)
+        params = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for name, p in signature.parameters.items()
+                  if name != "spec"] + source_parameters(panel, exclude)
+
+        @functools.wraps(func)
+        def command(**kwargs):
+            values = {name: kwargs.pop(name) for name in SOURCE_PARAMS if name in kwargs}
+            return func(spec=SourceSpec(**values), **kwargs)
+
+        # typer reads the signature (and the annotations) of the command it is given
+        del command.__wrapped__
+        command.__signature__ = signature.replace(parameters=params)
+        command.__annotations__ = {p.name: p.annotation for p in params}
+        return command
+    return decorate
+
+
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 or --set town.changes=0.3 (repeatable).", rich_help_panel=_CFG)]
 # a plain string checked by load_config, not a click Choice: a bad name is then one line and exit
@@ -60,8 +129,10 @@ CacheOpt = Annotated[Optional[Path], typer.Option("--cache", help="Cache directo
 
 # The options that choose which sequence (the others refine it): a command whose default source
 # is not the town asks whether one of them was given.
-SOURCE_CHOICE = ("kitti_odometry", "kitti_raw", "town_seed", "trajectory")
-SOURCE_OPTIONS = SOURCE_CHOICE + ("sequence", "date", "drive", "calib", "scans")
+SOURCE_CHOICE = ("kitti_odometry", "kitti_raw", "town_seed", "trajectory", "bag", "scans_dir")
+SOURCE_OPTIONS = SOURCE_PARAMS
+#: the options for a user's own data (commands whose work cannot take them exclude these)
+OWN_DATA = ("map", "bag", "topic", "scans_dir", "gt", "gt_times", "extrinsic")
 
 
 def given(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
@@ -70,9 +141,28 @@ def given(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
     return [n for n in names if getattr(ctx.get_parameter_source(n), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")]
 
 
-def source_spec(kitti_odometry, sequence, kitti_raw, date, drive, town_seed, trajectory, calib, scans) -> SourceSpec:
-    return SourceSpec(kitti_odometry=kitti_odometry, sequence=sequence, kitti_raw=kitti_raw, date=date,
-                      drive=drive, town_seed=town_seed, trajectory=trajectory, calib=calib, scans=scans)
+def source_spec(**values) -> SourceSpec:
+    """A SourceSpec from source options given by name (the others at their defaults)."""
+    return SourceSpec(**values)
+
+
+def open_source(spec: SourceSpec, cfg: Config, console=None):
+    """``open_sequence`` with a progress bar while a bag's topic is indexed, and the source's
+    notes printed on ``console`` (stderr), one line each."""
+    from lidarloc.core.sequences.factory import open_sequence, sequence_notes
+
+    from .console import err, progress_bar
+
+    console = console or err
+    if spec.bag is None:
+        seq = open_sequence(spec, cfg)
+    else:
+        with progress_bar() as bar:
+            task = bar.add_task(f"indexing {Path(spec.bag).name}", total=None)
+            seq = open_sequence(spec, cfg, progress=lambda i, n: bar.update(task, completed=i, total=n))
+    for line in sequence_notes(seq):
+        console.print(f"note: {line}", markup=False, highlight=False, soft_wrap=True)
+    return seq
 
 
 def config_from(config: Path | None, overrides: list[str] | None, seed: int | None = None,

@@ -28,7 +28,20 @@ The blocks around the scan loop: :class:`~lidarloc.core.odometry.OdometryFeed` f
 
 The prior map is built from the sequence's ``map_source`` (the whole mapping drive: ``--scans N``
 plays N scans inside it, and the generated town's drive with changes, traffic or another sensor
-is localized in the town as it was mapped), never from the scans being localized alone.
+is localized in the town as it was mapped), never from the scans being localized alone. A map
+file (``--map``) is the map source of a :class:`~lidarloc.core.sequences.framed.MapFramed`
+sequence, which learns the map's origin from the localizer to put its truth in the map's frame.
+
+Start: globally (the paper), or around the sequence's ``initial_guess`` (``--init``, in the map
+file's frame) at every (re)start; the guess's height is the ground under it (the lowest tenth of
+the map points within ``INIT_GROUND_RADIUS``) plus ``pf.sensor_height``. A guess with no map
+point that near is refused.
+
+Frames: a map and scans in different frames (another place, units or axes) do not fail
+silently. Over the first ``FRAME_CHECK_SCANS`` scans the localizer keeps the best inlier share
+at the highest-weight particle (after the global S2M matches that land there); if it never
+reaches ``FRAME_MIN_INLIER_SHARE`` a ``frame_mismatch`` event says so, and so does one at the
+start when the truth's first pose lies farther than d_max outside the map's bounds.
 
 Confidence: after each scan the localizer measures how well the scan fits the map at the
 estimate (the share of prepared scan points within d_max of the map and their mean distance,
@@ -100,6 +113,16 @@ class Interrupted(LidarlocError):
 
 #: How often a step waiting for a block checks for ``interrupt()`` (seconds).
 INTERRUPT_POLL_S = 0.05
+#: ``--init``: the ground under the guess is looked for within this radius (m)
+INIT_GROUND_RADIUS = 5.0
+#: ``--init``: spreads of the states the guess does not give (z in m; pitch, roll in rad)
+INIT_SIGMA_Z = 0.3
+INIT_SIGMA_TILT = np.radians(1.0)
+#: the frame check's window (scans) and the inlier share below which map and scans are taken
+#: to be in different frames (a scan in the map's frame, even before localization, finds map
+#: points within d_max at its best particle for several times this share)
+FRAME_CHECK_SCANS = 10
+FRAME_MIN_INLIER_SHARE = 0.05
 
 
 class Localizer:
@@ -113,6 +136,14 @@ class Localizer:
         self.seq, self.cfg = seq, cfg
         self.n_scans = len(seq)
         self._progress = progress or (lambda stage, frac: None)
+        # A viewer's start: KISS-ICP's child process sets up (~3 s of imports) while the map and
+        # tables are built, instead of in front of the first scan. Closed by __del__ if the
+        # construction fails.
+        early_rpe = None
+        if defer_s2m and cfg.localize.rpe_process and not cfg.localize.recorded_odometry:
+            from .rpe_worker import KissICPProcess
+
+            early_rpe = KissICPProcess()
         # The prior map comes from the sequence's mapping drive, not from the scans being
         # localized (``--scans N`` plays N scans inside the whole drive's map; the town's drive
         # with changes, traffic or another sensor inside the town as it was mapped).
@@ -122,6 +153,10 @@ class Localizer:
         self.prior_map, self.map_dir, _ = load_or_build_map(
             seq.map_source, cfg.map, cache_root, progress=lambda i, n: self._progress("map", i / n),
             road_removal=not defer_s2m)
+        use_origin = getattr(seq, "use_map_origin", None)
+        if use_origin is not None:   # a map file's sequence: its truth goes to the map's local frame
+            use_origin(self.prior_map.origin)
+        self._init_pose = self._initial_pose(getattr(seq, "initial_guess", None))
         if on_map is not None:       # a viewer shows the map while the tables are still being built
             on_map(self.prior_map)
         self._progress("lookup", 0.0)
@@ -154,11 +189,14 @@ class Localizer:
         self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
         self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
+        self.odometry.process = early_rpe
         self._pending_s2m: Future | None = None
+        self._road_removal = None            # its child process while it runs (defer_s2m)
         if self.pyramid is not None:
             self.s2m = self._s2m_scheduler()
         else:
             self.s2m = S2MNotReady()
+            # road removal runs in a niced child process: the first scans play at full speed
             self._pending_s2m = in_daemon_thread(self._build_s2m_tables, "lidarloc-road-removal")
         self._progress("ready", 1.0)
         self.restart(cfg.seed)
@@ -173,7 +211,10 @@ class Localizer:
             self._interrupt.clear()
             self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
                                map_points=self.prior_map.points)
-            self.pf.initialize()
+            if self._init_pose is None:
+                self.pf.initialize()
+            else:
+                self.pf.initialize(pose=self._init_pose[0], pose_std=self._init_pose[1])
             self.odometry.restart(origin=0)
             self.rules = LocalizationRules(self.cfg.localize)
             self._failed = None
@@ -184,6 +225,12 @@ class Localizer:
             self.est_trajectory: list[np.ndarray] = []
             self._prev_t: float | None = None
             self._confidence_armed = True    # confidence_low may fire (see _scan_fit)
+            self._frame_best_share = 0.0     # best inlier share at the best particle (frame check)
+            if self._init_pose is not None:
+                g = self.seq.initial_guess
+                self._event(-1, "initial_guess", f"particles around x {g.x:.2f} m, y {g.y:.2f} m, yaw "
+                            f"{np.degrees(g.yaw):.1f}° (σ {g.sigma_xy:g} m, {np.degrees(g.sigma_yaw):g}°)")
+            self._check_truth_frame()
             self._snapshot: Snapshot | None = None
             self._snapshot = self._make_snapshot(-1, None, 0.0, None)
 
@@ -201,8 +248,10 @@ class Localizer:
 
     def close(self) -> None:
         self._interrupt.set()            # a step in progress gives up instead of holding the lock
+        self._closed = True
+        if self._road_removal is not None:
+            self._road_removal.kill()
         with self._lock:
-            self._closed = True
             self.s2m.cancel(self.k - 1, "localizer closed")
         pools = (self._rpe_pool, self._s2m_pool, self._rebuild_pool)
         for pool in pools:               # queued work is dropped …
@@ -429,6 +478,7 @@ class Localizer:
         est = self.pf.estimate()
         n_weighed = self.pf.n
         pf_s += time.perf_counter() - t1
+        self._check_scan_frame(k, est, prepared)    # before resampling: best_index names a particle
 
         step_dist, yaw_odom = self.odometry.motion(k)
         outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
@@ -538,11 +588,19 @@ class Localizer:
                             wait=self._wait, event=self._event)
 
     def _build_s2m_tables(self):
-        """The road-removed map and the BEV pyramid (cached both), on a background thread."""
+        """The road-removed map and the BEV pyramid (cached both), on a background thread; the
+        road removal itself in a child process (:mod:`~lidarloc.core.road_removal`: open3d would
+        hold the GIL for its whole run)."""
         from .bev import load_or_build_pyramid
-        from .mapping import load_or_build_road_removed
+        from .mapping import BEV_FILE, load_or_build_road_removed
+        from .road_removal import RoadRemovalProcess
 
-        prior = load_or_build_road_removed(self.prior_map, self.map_dir, self.cfg.map)
+        if not (self.map_dir / BEV_FILE).is_file():
+            self._road_removal = RoadRemovalProcess(self.map_dir, self.cfg.map)
+            if self._closed:                 # closed meanwhile: nobody needs it
+                self._road_removal.kill()
+            self._road_removal.wait()
+        prior = load_or_build_road_removed(self.prior_map, self.map_dir, self.cfg.map)   # reads the child's file
         return prior.points_bev, load_or_build_pyramid(prior, self.map_dir, replace(self.cfg.s2m)).value
 
     def _join_s2m(self) -> None:
@@ -592,6 +650,53 @@ class Localizer:
 
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
+
+    def _initial_pose(self, guess):
+        """``--init``'s (4×4 pose in the map's local frame, 6 stds), or None for a global start."""
+        if guess is None:
+            return None
+        from .sequences.factory import initial_pose
+
+        pts = self.prior_map.points
+        origin = self.prior_map.origin
+        d = np.hypot(pts[:, 0] - (guess.x - origin[0]), pts[:, 1] - (guess.y - origin[1]))
+        near = pts[d <= INIT_GROUND_RADIUS, 2]
+        if near.size == 0:
+            raise LidarlocError(f"--init {guess.x:g},{guess.y:g}: no map point within {INIT_GROUND_RADIUS:g} m "
+                                f"(the nearest is {float(d.min()):.0f} m away); give a pose on the map, in its frame")
+        z = float(np.percentile(near, 10)) + self.cfg.pf.sensor_height
+        std = (guess.sigma_xy, guess.sigma_xy, INIT_SIGMA_Z, guess.sigma_yaw, INIT_SIGMA_TILT, INIT_SIGMA_TILT)
+        return initial_pose(guess, origin, z), std
+
+    def _check_truth_frame(self) -> None:
+        """A ``frame_mismatch`` event when the truth's first pose lies outside the map (by more than
+        d_max): a map file and a truth file in different frames."""
+        if not self.seq.has_poses or self.n_scans == 0:
+            return
+        p = self.seq.pose(0)[:2, 3]
+        lo, hi = self._bounds[0][:2], self._bounds[1][:2]
+        outside = float(np.linalg.norm(np.maximum(lo - p, 0) + np.maximum(p - hi, 0)))
+        if outside > self.cfg.pf.d_max:
+            origin = self.prior_map.origin
+            self._event(-1, "frame_mismatch", f"the ground truth's first pose ({p[0] + origin[0]:.1f}, "
+                        f"{p[1] + origin[1]:.1f}) lies {outside:.0f} m outside the map: are the map and the "
+                        "ground truth in the same frame?")
+
+    def _check_scan_frame(self, k: int, est, prepared: np.ndarray) -> None:
+        """The scan-side frame check (see the module docstring): over the first scans, the best
+        inlier share at the highest-weight particle."""
+        if self.steps >= FRAME_CHECK_SCANS:
+            return
+        from .likelihood import residual_stats
+
+        share, _ = residual_stats(self.pf.states[est.best_index][:6], prepared, self.lookup, self.effective_d_max)
+        self._frame_best_share = max(self._frame_best_share, float(share))
+        last = min(FRAME_CHECK_SCANS, self.n_scans) - 1
+        if self.steps == last and self._frame_best_share < FRAME_MIN_INLIER_SHARE:
+            self._event(k, "frame_mismatch", f"over the first {last + 1} scans at most "
+                        f"{100 * self._frame_best_share:.1f} % of a scan's points came within "
+                        f"{self.effective_d_max:g} m of the map: the scans and the map look to be in different "
+                        "frames (another place, units or axes)")
 
     def _scan_fit(self, k: int, est, prepared: np.ndarray) -> tuple[float, float | None]:
         """How well the scan fits the map at the estimate: (inlier share, mean residual m), see

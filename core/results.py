@@ -2,8 +2,11 @@
 CSV, the event list and the summary JSON (:func:`summarize_run`), written by :func:`write_run`.
 ``lidarloc run`` and every run of ``lidarloc bench localize`` write the same files.
 
-Poses are LiDAR poses in the map frame (world = first LiDAR pose of the sequence). The ground
-truth is written beside the estimate in the same frame and format (``groundtruth_*.txt``) so
+Poses are LiDAR poses in the map's frame: for a map built from a drive, the drive's first LiDAR
+pose; for a map file (``--map``), the file's own coordinates — the localizer's local frame plus the
+map's float64 origin, so a georeferenced (UTM) map gets UTM poses back at full precision (KITTI
+files then carry 13 significant digits, TUM files micrometres). The ground truth is written
+beside the estimate in the same frame and format (``groundtruth_*.txt``) so
 ``evo_ape kitti groundtruth_kitti.txt trajectory_kitti.txt`` compares like with like.
 """
 
@@ -27,10 +30,20 @@ if TYPE_CHECKING:
     from .localizer import Localizer
 
 
-def write_kitti(path: Path, poses: np.ndarray) -> None:
+def write_kitti(path: Path, poses: np.ndarray, digits: int = 6) -> None:
+    """KITTI rows with ``digits`` decimals in the mantissa (6: local frames; 12 keeps a
+    micrometre at UTM's 4·10⁶ m)."""
     with open(path, "w") as f:
         for T in poses:
-            f.write(" ".join(f"{v:.6e}" for v in np.asarray(T)[:3, :4].reshape(-1)) + "\n")
+            f.write(" ".join(f"{v:.{digits}e}" for v in np.asarray(T)[:3, :4].reshape(-1)) + "\n")
+
+
+def in_map_frame(poses: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """Local-frame poses (N, 4, 4) in the map file's frame (float64, + ``origin``)."""
+    poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if origin is not None:
+        poses[:, :3, 3] += np.asarray(origin, dtype=np.float64).reshape(3)
+    return poses
 
 
 def write_tum(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
@@ -102,12 +115,14 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     recs = loc.records
     times = np.array([r.time for r in recs])
-    poses = np.array(loc.est_trajectory).reshape(-1, 4, 4)
-    write_kitti(out / "trajectory_kitti.txt", poses)
+    origin = np.asarray(loc.prior_map.origin, dtype=np.float64)
+    digits = 12 if origin.any() else 6
+    poses = in_map_frame(loc.est_trajectory, origin)
+    write_kitti(out / "trajectory_kitti.txt", poses, digits)
     write_tum(out / "trajectory_tum.txt", times, poses)
     if loc.seq.has_poses and recs:
-        gt = np.array([loc.seq.pose(r.scan) for r in recs])
-        write_kitti(out / "groundtruth_kitti.txt", gt)
+        gt = in_map_frame([loc.seq.pose(r.scan) for r in recs], origin)
+        write_kitti(out / "groundtruth_kitti.txt", gt, digits)
         write_tum(out / "groundtruth_tum.txt", times, gt)
     write_records_csv(out / "scans.csv", recs)
     write_events(out / "events.json", loc.events)
@@ -154,6 +169,8 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         "s2m_accepted": kinds.count("s2m_accepted"),
         "s2m_cancelled": kinds.count("s2m_cancelled"),
         "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        "map_origin_m": [float(v) for v in loc.prior_map.origin],
+        "frame_mismatch": [e.detail for e in loc.events if e.kind == "frame_mismatch"],
         **confidence,
         **lag_summary(lags_ms),
         **cpu_summary(cpu_s, len(recs), wall_s),

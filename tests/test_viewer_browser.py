@@ -99,6 +99,17 @@ def particle_pixels(png: bytes) -> int:
     return int(((r > 100) & (r > 2 * g) & (r > 2 * b)).sum())
 
 
+def magenta_pixels(png: bytes) -> int:
+    """Pixels in the accepted S2M match's magenta (strong red and blue, little green)."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int32)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return int(((r > 170) & (b > 170) & (g < 120)).sum())
+
+
 def open_viewer(browser, url):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(url, timeout=LOAD_TIMEOUT)
@@ -246,4 +257,62 @@ def test_viewer_in_chromium(browser, served):
     page.wait_for_function("document.body.innerText.includes('applied from the next scan: σ (m)')",
                            polling=250, timeout=STEP_TIMEOUT)
     assert served.localizer.cfg.pf.sigma == 0.7 and served.localizer.pf.sigma == 0.7
+    page.close()
+
+
+@pytest.fixture
+def waiting(tmp_path_factory):
+    """A short run that waits for its first tab (the demo's default), played as fast as it goes."""
+    from helpers import StreetSequence, make_localizer
+
+    from lidarloc.app.viewer.serve import serve
+
+    loc = make_localizer(StreetSequence(n=24), tmp_path_factory.mktemp("waiting-cache"), n_particles=300)
+    handle = serve(loc, port=0, speed="max")
+    yield handle
+    handle.stop()
+    loc.close()
+
+
+JS_S2M_ROW = "(() => { const m = document.body.innerText.match(/\\nS2M\\s+([^\\n]*)/); return m ? m[1] : ''; })()"
+
+
+def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
+    """In a real page: playback waits for the first tab; a kidnap while paused shows at once;
+    Restart takes the last run's S2M match out of the scene; the S2M row is not "running" after
+    the end and says "off" when S2M is off."""
+    loc, viewer = waiting.localizer, waiting.viewer
+    assert waiting.wait_ready(60)
+    assert not viewer.player.playing and loc.k == 0          # nobody is watching yet: not playing
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(waiting.url, timeout=LOAD_TIMEOUT)
+    page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
+    page.wait_for_function(f"{JS_SCAN} >= 3", timeout=LOAD_TIMEOUT)     # the tab started it
+
+    # an S2M match has landed: its scan and search area are on the canvas (magenta)
+    canvas = page.locator("canvas").first
+    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500, timeout=STEP_TIMEOUT / 1000,
+             what="the landed S2M match on the canvas")
+
+    # kidnap while paused: the status shows it at once, without another scan
+    page.get_by_role("button", name="Pause").click()
+    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    at = scan_counter(page)
+    page.get_by_role("button", name="Kidnap").click()
+    page.wait_for_function("document.body.innerText.includes('kidnap')", timeout=STEP_TIMEOUT)
+    assert scan_counter(page) == at
+
+    # restart (still paused): the old run's S2M match leaves the scene
+    page.get_by_role("button", name="Restart from scan 0").click()
+    page.wait_for_function("document.body.innerText.includes('restarted from scan 0')", timeout=STEP_TIMEOUT)
+    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) < 50, timeout=STEP_TIMEOUT / 1000,
+             what="no S2M match on the canvas after the restart")
+
+    # to the end: the S2M row does not say "running"; switched off, it says "off"
+    page.get_by_role("button", name="Play").click()
+    page.wait_for_function("document.body.innerText.includes('· finished')", timeout=LOAD_TIMEOUT)
+    assert "running" not in page.evaluate(JS_S2M_ROW)
+    page.get_by_text("Parameters", exact=True).click()
+    page.get_by_label("S2M enabled").click()
+    page.wait_for_function(f"{JS_S2M_ROW}.startsWith('off')", timeout=STEP_TIMEOUT)
     page.close()

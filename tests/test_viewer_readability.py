@@ -16,7 +16,7 @@ from lidarloc.core.geometry import pose_matrix
 
 
 def test_log_weight_rank_orders_particles_that_hold_no_weight():
-    from lidarloc.app.viewer.scene import log_weight_rank
+    from lidarloc.app.viewer.shapes import log_weight_rank
 
     # one particle holds all the weight; the others differ by hundreds of nats (exp underflows)
     lw = np.array([-2000.0, 0.0, -900.0, -900.0, -1500.0])
@@ -78,7 +78,7 @@ def viewer(cache_root):
 
 
 def test_particles_truth_and_status_read_as_the_legend_says(viewer):
-    from lidarloc.app.viewer.scene import log_weight_rank, snapshot_log_weights
+    from lidarloc.app.viewer.shapes import log_weight_rank, snapshot_log_weights
     from lidarloc.app.viewer.style import PARTICLE_ARROW_MAX, PARTICLE_ARROW_MIN, PARTICLE_HIGH, PARTICLE_LOW
 
     v, loc = viewer.viewer, viewer.localizer

@@ -45,7 +45,7 @@ def require_real_drive(bench: str, scans: int | None = None) -> SourceSpec:
 
 
 def is_town(spec: SourceSpec) -> bool:
-    return spec.kitti_odometry is None and spec.kitti_raw is None
+    return spec.kind == "town"
 
 
 def require_town(spec: SourceSpec, bench: str, what: str) -> None:
@@ -69,11 +69,19 @@ def source_args(spec: SourceSpec) -> list[str]:
     elif spec.kitti_raw is not None:
         args = ["--kitti-raw", str(spec.kitti_raw)] + (["--date", spec.date] if spec.date else []) \
             + (["--drive", spec.drive] if spec.drive else [])
+    elif spec.bag is not None:
+        args = ["--bag", str(spec.bag)] + (["--topic", spec.topic] if spec.topic else [])
+    elif spec.scans_dir is not None:
+        args = ["--scans-dir", str(spec.scans_dir)]
     else:
         args = ["--town-seed", str(spec.town_seed)]
         for flag, path in (("--trajectory", spec.trajectory), ("--calib", spec.calib)):
             if path is not None:
                 args += [flag, str(path)]
+    for flag, value in (("--map", spec.map), ("--gt", spec.gt), ("--gt-times", spec.gt_times),
+                        ("--extrinsic", spec.extrinsic), ("--init", spec.init)):
+        if value is not None:
+            args += [flag, str(value)]
     return args + (["--scans", str(spec.scans)] if spec.scans is not None else [])
 
 

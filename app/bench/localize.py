@@ -72,7 +72,8 @@ def _spec_dict(spec: SourceSpec) -> dict:
 
 
 def _spec_from(d: dict) -> SourceSpec:
-    paths = ("kitti_odometry", "kitti_raw", "trajectory", "calib")
+    paths = ("kitti_odometry", "kitti_raw", "trajectory", "calib", "map", "bag", "scans_dir", "gt", "gt_times",
+             "extrinsic")
     return SourceSpec(**{k: (Path(v) if k in paths and v is not None else v) for k, v in d.items()})
 
 

@@ -3,12 +3,12 @@ is given): first start with nothing cached, then cached starts.
 
 What is timed, from launching the process (a real ``lidarloc demo`` in a child process, the
 way a user starts it): the moment the console prints the URL (the server answers HTTP from
-then on, with a progress bar in the page) and the moment it prints ``ready:`` (map, lookup
-table and BEV pyramid loaded or built, the localizer constructed, playback started). The first
-run uses an empty temporary cache directory, so it builds everything; the later runs reuse it.
-The demo is started with ``--autoplay`` (it would otherwise wait for a browser tab): ``ready:``
-is then the moment playback begins. On a first start S2M's own tables (road-removed map, BEV
-pyramid) are still being built in the background then; the filter plays meanwhile.
+then on, with a progress bar in the page) and the moment it prints ``ready:``. The demo is
+started with ``--autoplay`` (it would otherwise wait for a browser tab), so ``ready:`` comes once
+the first scan has been processed and drawn: it is playing. On a first start S2M's own tables
+(road-removed map, BEV pyramid) may still be building in the background then; the filter plays
+meanwhile. The first run uses an empty temporary cache directory, so it builds everything; the
+later runs reuse it.
 Targets: first start playing ≤ 30 s, later starts ≤ 5 s.
 """
 

@@ -15,7 +15,7 @@ Modules: ``serve`` starts a viewer (``serve``, ``serve_until_interrupted``); ``a
 :class:`~lidarloc.app.viewer.app.Viewer` that wires the panel to the localizer; ``panel`` builds the
 controls, ``params`` knows the live parameters' labels and units, ``readouts`` fills the progress
 bar and status, ``plots`` the plots on one scan axis, ``legend`` explains every colour, ``scene``
-draws the 3D nodes, ``camera`` moves each tab's camera, ``ground`` turns pointer picks into places
+draws the 3D nodes (with ``shapes``), ``camera`` moves each tab's camera, ``ground`` turns pointer picks into places
 on the map, ``history`` keeps the per-scan figures, ``style`` holds the look. ``why`` hosts the "why"
 views (``why_residuals``, ``why_surface``, ``why_particle``, ``s2m_detail``), their background
 thread (``why_worker``) and colours (``why_style``).

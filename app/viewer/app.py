@@ -77,6 +77,8 @@ class Viewer:
         self._ready = threading.Event()
         self._message = ""
         self._last_draw = 0.0
+        self._last_update = 0.0
+        self.first_scan_shown = threading.Event()    # set once a processed scan has been drawn
         self._syncing = False           # set while the viewer itself writes GUI values
         self._wire_playback()
         self._wire_particles()
@@ -278,13 +280,16 @@ class Viewer:
             self._wake.clear()
             if self._stopping.is_set():
                 return
-            wait = self._last_draw + MIN_DRAW_INTERVAL - time.perf_counter()
+            # at most MIN_DRAW_INTERVAL apart, whatever woke it: while the map is built, progress
+            # reports arrive once per fused scan (1200 for the town) and each update holds the GIL
+            wait = max(self._last_draw, self._last_update) + MIN_DRAW_INTERVAL - time.perf_counter()
             if wait > 0:
                 self._stopping.wait(wait)
             try:
                 self.update_display()
             except Exception:  # one bad frame must not end the display thread
                 traceback.print_exc(file=sys.stderr)
+            self._last_update = time.perf_counter()
 
     def update_display(self, force_plots: bool = False) -> float:
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
@@ -297,6 +302,8 @@ class Viewer:
             with self.server.atomic():
                 self.scene.draw(snap, self.history)
             self._drawn = snap
+            if snap.scan_index >= 0:
+                self.first_scan_shown.set()
             self.why.on_draw(snap)
             self.readouts.update_status(self.status_markdown(snap))
             self.cameras.follow(snap)

@@ -18,10 +18,11 @@ import viser
 from rich.console import Console
 
 from lidarloc.app.console import progress_bar
+from lidarloc.app.options import open_source
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from lidarloc.core.sequences.factory import SourceSpec
 
 from .app import Viewer
 from .style import SPEEDS
@@ -144,7 +145,7 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
                             console: Console, open_browser: bool = False, autoplay: bool = False) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``."""
-    seq = open_sequence(spec, cfg)          # bad paths fail here, before any server starts
+    seq = open_source(spec, cfg, console)   # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
     ready = threading.Event()
@@ -181,6 +182,10 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
         if failure:
             exc = failure[0]
             raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
+        if not stop.is_set() and autoplay:
+            # "playing" once the first scan is on the page, not merely once playback was told to start
+            while not stop.is_set() and not handle.viewer.first_scan_shown.wait(0.2):
+                pass
         if not stop.is_set():
             console.print("ready: playing; use the page's controls to pause, step and tune" if autoplay else
                           "ready: playback starts when a browser tab is open; use the page's controls to pause, "

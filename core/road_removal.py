@@ -1,0 +1,62 @@
+"""Road removal of a cached prior map in a child process.
+
+open3d's normal estimation holds Python's GIL for its whole run (~10 s on the built-in town's
+map): in a thread of the localizer's process it would stall the filter, the viewer and every
+other thread that long (measured: the first scan of a viewer's first start came 9 s late). In a
+child process it stalls nothing; the child also runs at a lower priority, in its own session so
+that its priority does not touch the parent's (see :func:`~lidarloc.core.worker_process.lower_priority`).
+
+``python -m lidarloc.core.road_removal MAP_DIR MAP_CONFIG_JSON NICE`` adds the road-removed map to
+the map's cache directory (:func:`~lidarloc.core.mapping.load_or_build_road_removed`).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from .config import MapConfig
+from .errors import LidarlocError
+
+
+class RoadRemovalProcess:
+    """The child process removing the road from the map cached in ``map_dir``."""
+
+    def __init__(self, map_dir: Path, cfg: MapConfig, nice: int = 10):
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "lidarloc.core.road_removal", str(map_dir), json.dumps(asdict(cfg)), str(int(nice))],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+
+    def wait(self) -> None:
+        """Block until it is done; a failure raises :class:`LidarlocError` with the child's last line."""
+        _, err = self._proc.communicate()
+        if self._proc.returncode != 0:
+            lines = [ln for ln in err.decode(errors="replace").splitlines() if ln.strip()]
+            raise LidarlocError(f"road removal failed: {lines[-1] if lines else f'exit code {self._proc.returncode}'}")
+
+    def kill(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+
+
+def main(argv: list[str]) -> int:
+    from .mapping import PriorMap, load_or_build_road_removed
+    from .worker_process import lower_priority
+
+    map_dir, cfg_json, nice = Path(argv[0]), argv[1], int(argv[2])
+    lower_priority(nice)
+    meta = json.loads((map_dir / "meta.json").read_text())
+    load_or_build_road_removed(PriorMap.load(map_dir, meta), map_dir, MapConfig(**json.loads(cfg_json)))
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main(sys.argv[1:]))
+    except LidarlocError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -272,7 +272,7 @@ def bench_town(
 
 
 @bench_app.command("map")
-@with_source(_MAP_PANEL, exclude=OWN_DATA)
+@with_source(_MAP_PANEL)
 def bench_map(
     ctx: typer.Context, as_json: JsonOpt = False,
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
@@ -284,7 +284,7 @@ def bench_map(
     from .bench.map import default_sources, run as run_bench, source_name
 
     config_from(config, set_, preset=preset)      # a bad config fails here, not in the first child process
-    sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE) else default_sources(spec)
+    sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE + ("map",)) else default_sources(spec)
     _result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
 
 
@@ -420,7 +420,7 @@ def bench_viewer(
 
 
 @bench_app.command("startup")
-@with_source(exclude=OWN_DATA)
+@with_source()
 def bench_startup(
     ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
@@ -434,7 +434,7 @@ def bench_startup(
     from .bench.startup import run as run_bench
 
     config_from(config, set_, preset=preset)
-    if given(ctx, SOURCE_CHOICE):
+    if given(ctx, SOURCE_CHOICE + ("map",)):
         command = ["view", *source_args(spec)]
     else:
         command = ["demo"] + (["--scans", str(spec.scans)] if spec.scans is not None else [])
@@ -442,7 +442,7 @@ def bench_startup(
 
 
 @bench_app.command("stop")
-@with_source(exclude=OWN_DATA)
+@with_source()
 def bench_stop(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
     delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,

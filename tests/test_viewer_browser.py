@@ -262,13 +262,13 @@ def test_viewer_in_chromium(browser, served):
 
 @pytest.fixture
 def waiting(tmp_path_factory):
-    """A short run that waits for its first tab (the demo's default), played as fast as it goes."""
+    """A short run that waits for its first tab (the demo's default)."""
     from helpers import StreetSequence, make_localizer
 
     from lidarloc.app.viewer.serve import serve
 
-    loc = make_localizer(StreetSequence(n=24), tmp_path_factory.mktemp("waiting-cache"), n_particles=300)
-    handle = serve(loc, port=0, speed="max")
+    loc = make_localizer(StreetSequence(n=40), tmp_path_factory.mktemp("waiting-cache"), n_particles=300)
+    handle = serve(loc, port=0, speed="10")
     yield handle
     handle.stop()
     loc.close()
@@ -287,16 +287,17 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(waiting.url, timeout=LOAD_TIMEOUT)
     page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
-    page.wait_for_function(f"{JS_SCAN} >= 3", timeout=LOAD_TIMEOUT)     # the tab started it
+    page.wait_for_function(f"{JS_SCAN} >= 1", timeout=LOAD_TIMEOUT)     # the tab started it
 
-    # an S2M match has landed: its scan and search area are on the canvas (magenta)
+    # pause once an S2M match has landed: its scan and search area are on the canvas (magenta)
+    wait_for(lambda: loc.snapshot().s2m is not None, timeout=STEP_TIMEOUT / 1000, what="an S2M match landing")
+    page.get_by_role("button", name="Pause").click()
+    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
     canvas = page.locator("canvas").first
     wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500, timeout=STEP_TIMEOUT / 1000,
              what="the landed S2M match on the canvas")
 
     # kidnap while paused: the status shows it at once, without another scan
-    page.get_by_role("button", name="Pause").click()
-    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
     at = scan_counter(page)
     page.get_by_role("button", name="Kidnap").click()
     page.wait_for_function("document.body.innerText.includes('kidnap')", timeout=STEP_TIMEOUT)

@@ -13,11 +13,11 @@ from pathlib import Path
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.sequences.factory import SourceSpec
 
-from .common import is_town, real_drive, source_args
+from .common import real_drive, source_args
 
 
 def source_name(spec: SourceSpec) -> str:
-    return "town" if is_town(spec) else ("kitti_raw" if spec.kitti_raw is not None else "kitti_odometry")
+    return spec.kind
 
 
 def default_sources(town: SourceSpec) -> dict[str, SourceSpec]:

@@ -76,3 +76,39 @@ def toy_world():
 
     pts = toy_map()
     return pts, LookupTable.build(pts, 0.25, 5.0)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium through Playwright (the browser tests skip without either)."""
+    from browser import CHROMIUM, CHROMIUM_ARGS
+
+    if not CHROMIUM.exists():
+        pytest.skip("/usr/bin/chromium not found (apt-get install -y chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="Python Playwright not installed")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def street():
+    """The small synthetic street the viewer tests drive."""
+    from helpers import StreetSequence
+
+    return StreetSequence()
+
+
+@pytest.fixture
+def viewer(street, cache_root):
+    """A paused viewer on the street, on a free port."""
+    from helpers import make_localizer
+
+    from lidarloc.app.viewer.serve import serve
+
+    loc = make_localizer(street, cache_root)
+    handle = serve(loc, port=0, autoplay=False)
+    yield handle
+    handle.stop()
+    loc.close()

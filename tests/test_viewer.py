@@ -11,29 +11,13 @@ import urllib.request
 
 import numpy as np
 import pytest
-from helpers import StreetSequence, make_localizer, wait_for
+from helpers import make_localizer, wait_for
 
 from lidarloc.core.config import DEG, Config
 from lidarloc.core.errors import LidarlocError
 
 
 # ---------------------------------------------------------------------------------- fixtures
-@pytest.fixture(scope="module")
-def street():
-    return StreetSequence()
-
-
-@pytest.fixture
-def viewer(street, cache_root):
-    from lidarloc.app.viewer.serve import serve
-
-    loc = make_localizer(street, cache_root)
-    handle = serve(loc, port=0, autoplay=False)
-    yield handle
-    handle.stop()
-    loc.close()
-
-
 # ---------------------------------------------------------------------------------- tests
 def test_page_is_served_and_map_sent_once(viewer):
     html = urllib.request.urlopen(viewer.url, timeout=5).read().decode()

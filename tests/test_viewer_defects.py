@@ -11,23 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from helpers import StreetSequence, make_localizer, wait_for
-
-
-@pytest.fixture(scope="module")
-def street():
-    return StreetSequence()
-
-
-@pytest.fixture
-def viewer(street, cache_root):
-    from lidarloc.app.viewer.serve import serve
-
-    loc = make_localizer(street, cache_root)
-    handle = serve(loc, port=0, autoplay=False)
-    yield handle
-    handle.stop()
-    loc.close()
+from helpers import make_localizer, wait_for
 
 
 class Tab:

@@ -10,36 +10,18 @@ from __future__ import annotations
 
 import io
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import ARTIFACTS, JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT
 from helpers import browser_localizer, wait_for
 
-CHROMIUM = Path("/usr/bin/chromium")
-ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--headless"]
-LOAD_TIMEOUT = 90_000      # ms: first load compiles the viewer's shaders in software
-STEP_TIMEOUT = 60_000
 PANEL_LEFT = 0.72          # share of the canvas's width left of the panel (1400 px viewport)
 LINE_TOL = 40              # lines are drawn with some shading: their pixels stray further from the colour
 SCANS_BEFORE = 4           # scans stepped before the page opens: an S2M match has landed by then
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
-JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+/); return m ? +m[1] : -1; })()"
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not CHROMIUM.exists():
-        pytest.skip("/usr/bin/chromium not found (apt-get install -y chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="Python Playwright not installed")
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -223,6 +223,10 @@ def test_particle_report_ranks_by_the_filters_likelihood(localized_town):
     assert f"| yaw | {math.degrees(P[worst, 3]):.3f} deg |" in text
     assert f"| x | {P[worst, 0]:.3f} m |" in text
     assert f"rank **{len(P)}**" in text
+    # a georeferenced map file: positions shown in its own frame, the rest as it is
+    utm = particle_markdown(particle_report(spread, worst, model, origin=(500_000.0, 4_000_000.0, 0.0)))
+    assert f"| x | {P[worst, 0] + 500_000.0:.3f} m |" in utm and f"| y | {P[worst, 1] + 4_000_000.0:.3f} m |" in utm
+    assert f"| yaw | {math.degrees(P[worst, 3]):.3f} deg |" in utm
     with pytest.raises(LidarlocError):
         particle_report(snap, len(P), model)
 

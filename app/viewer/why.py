@@ -219,7 +219,9 @@ class WhyViews:
             self._submit_report(snap, j, model)
 
     def _submit_report(self, snap: Snapshot, j: int, model: LikelihoodModel) -> None:
-        self.worker.submit("particle", lambda: particle_report(snap, j, model), done=self.particle.show,
+        loc = self._localizer()
+        origin = (0.0, 0.0, 0.0) if loc is None else tuple(loc.prior_map.origin)
+        self.worker.submit("particle", lambda: particle_report(snap, j, model, origin), done=self.particle.show,
                            failed=self.particle.failed)
 
     # ------------------------------------------------------------------ S2M details

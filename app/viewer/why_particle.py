@@ -72,11 +72,13 @@ class ParticleReport:
     rank: int                    # 1 = the highest log-likelihood (ties share a rank)
     n: int
     copies: int                  # particles with exactly this state (resampling copies), itself included
+    origin: tuple = (0.0, 0.0, 0.0)   # the map file's origin: x, y, z are shown in the map's own frame
 
 
-def particle_report(snap: Snapshot, j: int, model: LikelihoodModel) -> ParticleReport:
+def particle_report(snap: Snapshot, j: int, model: LikelihoodModel, origin=(0.0, 0.0, 0.0)) -> ParticleReport:
     """Particle ``j`` of ``snap`` with its log-likelihood and rank (the heavy part: every
-    particle's log-likelihood for the scan)."""
+    particle's log-likelihood for the scan). ``origin``: the prior map's (a georeferenced map
+    file's local frame is its own minus this)."""
     P = np.asarray(snap.particles, float)
     if not 0 <= j < len(P):
         raise LidarlocError(f"particle {j} is not in this scan's {len(P)} particles")
@@ -87,14 +89,17 @@ def particle_report(snap: Snapshot, j: int, model: LikelihoodModel) -> ParticleR
     copies = int(np.sum(np.all(P == P[j], axis=1)))
     return ParticleReport(index=j, scan_index=snap.scan_index, state=P[j].copy(), weight=float(w[j]),
                           best_weight=float(w.max()), log_likelihood=float(ll[j]),
-                          best_log_likelihood=float(ll.max()), rank=rank, n=len(P), copies=copies)
+                          best_log_likelihood=float(ll.max()), rank=rank, n=len(P), copies=copies,
+                          origin=tuple(float(v) for v in origin))
 
 
 def particle_markdown(r: ParticleReport) -> str:
     """The 11 states in the paper's units, the weight, the log-likelihood and the rank."""
     units = q_units()
     rows = []
-    for name, unit, angular, v in zip(STATE_NAMES, units, ANGULAR_STATE, r.state):
+    shift = np.zeros(len(r.state))
+    shift[:3] = r.origin                  # positions in the map file's own coordinates
+    for name, unit, angular, v in zip(STATE_NAMES, units, ANGULAR_STATE, r.state + shift):
         shown = math.degrees(v) if angular else v
         rows.append(f"| {name} | {shown:.3f} {unit} |")
     gap = r.log_likelihood - r.best_log_likelihood

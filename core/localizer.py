@@ -32,16 +32,8 @@ is localized in the town as it was mapped), never from the scans being localized
 file (``--map``) is the map source of a :class:`~lidarloc.core.sequences.framed.MapFramed`
 sequence, which learns the map's origin from the localizer to put its truth in the map's frame.
 
-Start: globally (the paper), or around the sequence's ``initial_guess`` (``--init``, in the map
-file's frame) at every (re)start; the guess's height is the ground under it (the lowest tenth of
-the map points within ``INIT_GROUND_RADIUS``) plus ``pf.sensor_height``. A guess with no map
-point that near is refused.
-
-Frames: a map and scans in different frames (another place, units or axes) do not fail
-silently. Over the first ``FRAME_CHECK_SCANS`` scans the localizer keeps the best inlier share
-at the highest-weight particle (after the global S2M matches that land there); if it never
-reaches ``FRAME_MIN_INLIER_SHARE`` a ``frame_mismatch`` event says so, and so does one at the
-start when the truth's first pose lies farther than d_max outside the map's bounds.
+Start, frames and confidence: :mod:`lidarloc.core.checks` (``--init``'s start around a guess,
+``frame_mismatch`` when map, truth and scans look to be in different frames, ``confidence_low``).
 
 Confidence: after each scan the localizer measures how well the scan fits the map at the
 estimate (the share of prepared scan points within d_max of the map and their mean distance,
@@ -88,6 +80,7 @@ from typing import Callable
 
 import numpy as np
 
+from .checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map, truth_outside_map
 from .config import LIVE_PARAMS, Config, check_live_changes
 from .errors import LidarlocError
 from .geometry import transform_points
@@ -113,16 +106,6 @@ class Interrupted(LidarlocError):
 
 #: How often a step waiting for a block checks for ``interrupt()`` (seconds).
 INTERRUPT_POLL_S = 0.05
-#: ``--init``: the ground under the guess is looked for within this radius (m)
-INIT_GROUND_RADIUS = 5.0
-#: ``--init``: spreads of the states the guess does not give (z in m; pitch, roll in rad)
-INIT_SIGMA_Z = 0.3
-INIT_SIGMA_TILT = np.radians(1.0)
-#: the frame check's window (scans) and the inlier share below which map and scans are taken
-#: to be in different frames (a scan in the map's frame, even before localization, finds map
-#: points within d_max at its best particle for several times this share)
-FRAME_CHECK_SCANS = 10
-FRAME_MIN_INLIER_SHARE = 0.05
 
 
 class Localizer:
@@ -156,7 +139,8 @@ class Localizer:
         use_origin = getattr(seq, "use_map_origin", None)
         if use_origin is not None:   # a map file's sequence: its truth goes to the map's local frame
             use_origin(self.prior_map.origin)
-        self._init_pose = self._initial_pose(getattr(seq, "initial_guess", None))
+        self._init_pose = initial_pose_on_map(getattr(seq, "initial_guess", None), self.prior_map,
+                                              cfg.pf.sensor_height)
         if on_map is not None:       # a viewer shows the map while the tables are still being built
             on_map(self.prior_map)
         self._progress("lookup", 0.0)
@@ -224,8 +208,8 @@ class Localizer:
             self.records: list[ScanRecord] = []
             self.est_trajectory: list[np.ndarray] = []
             self._prev_t: float | None = None
-            self._confidence_armed = True    # confidence_low may fire (see _scan_fit)
-            self._frame_best_share = 0.0     # best inlier share at the best particle (frame check)
+            self._confidence = ConfidenceWatch()
+            self._frame_check = ScanFrameCheck()
             if self._init_pose is not None:
                 g = self.seq.initial_guess
                 self._event(-1, "initial_guess", f"particles around x {g.x:.2f} m, y {g.y:.2f} m, yaw "
@@ -651,71 +635,34 @@ class Localizer:
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
 
-    def _initial_pose(self, guess):
-        """``--init``'s (4×4 pose in the map's local frame, 6 stds), or None for a global start."""
-        if guess is None:
-            return None
-        from .sequences.factory import initial_pose
-
-        pts = self.prior_map.points
-        origin = self.prior_map.origin
-        d = np.hypot(pts[:, 0] - (guess.x - origin[0]), pts[:, 1] - (guess.y - origin[1]))
-        near = pts[d <= INIT_GROUND_RADIUS, 2]
-        if near.size == 0:
-            raise LidarlocError(f"--init {guess.x:g},{guess.y:g}: no map point within {INIT_GROUND_RADIUS:g} m "
-                                f"(the nearest is {float(d.min()):.0f} m away); give a pose on the map, in its frame")
-        z = float(np.percentile(near, 10)) + self.cfg.pf.sensor_height
-        std = (guess.sigma_xy, guess.sigma_xy, INIT_SIGMA_Z, guess.sigma_yaw, INIT_SIGMA_TILT, INIT_SIGMA_TILT)
-        return initial_pose(guess, origin, z), std
-
     def _check_truth_frame(self) -> None:
-        """A ``frame_mismatch`` event when the truth's first pose lies outside the map (by more than
-        d_max): a map file and a truth file in different frames."""
-        if not self.seq.has_poses or self.n_scans == 0:
-            return
-        p = self.seq.pose(0)[:2, 3]
-        lo, hi = self._bounds[0][:2], self._bounds[1][:2]
-        outside = float(np.linalg.norm(np.maximum(lo - p, 0) + np.maximum(p - hi, 0)))
-        if outside > self.cfg.pf.d_max:
-            origin = self.prior_map.origin
-            self._event(-1, "frame_mismatch", f"the ground truth's first pose ({p[0] + origin[0]:.1f}, "
-                        f"{p[1] + origin[1]:.1f}) lies {outside:.0f} m outside the map: are the map and the "
-                        "ground truth in the same frame?")
+        why = truth_outside_map(self.seq, self._bounds, self.prior_map.origin, self.cfg.pf.d_max)
+        if why is not None:
+            self._event(-1, "frame_mismatch", why)
 
     def _check_scan_frame(self, k: int, est, prepared: np.ndarray) -> None:
-        """The scan-side frame check (see the module docstring): over the first scans, the best
-        inlier share at the highest-weight particle."""
-        if self.steps >= FRAME_CHECK_SCANS:
+        """The scan-side frame check (:class:`~lidarloc.core.checks.ScanFrameCheck`): the inlier
+        share at the highest-weight particle."""
+        if not self._frame_check.wanted(self.steps):
             return
         from .likelihood import residual_stats
 
         share, _ = residual_stats(self.pf.states[est.best_index][:6], prepared, self.lookup, self.effective_d_max)
-        self._frame_best_share = max(self._frame_best_share, float(share))
-        last = min(FRAME_CHECK_SCANS, self.n_scans) - 1
-        if self.steps == last and self._frame_best_share < FRAME_MIN_INLIER_SHARE:
-            self._event(k, "frame_mismatch", f"over the first {last + 1} scans at most "
-                        f"{100 * self._frame_best_share:.1f} % of a scan's points came within "
-                        f"{self.effective_d_max:g} m of the map: the scans and the map look to be in different "
-                        "frames (another place, units or axes)")
+        why = self._frame_check.update(self.steps, self.n_scans, share, self.effective_d_max)
+        if why is not None:
+            self._event(k, "frame_mismatch", why)
 
     def _scan_fit(self, k: int, est, prepared: np.ndarray) -> tuple[float, float | None]:
         """How well the scan fits the map at the estimate: (inlier share, mean residual m), see
-        :func:`~lidarloc.core.likelihood.residual_stats`. Records a ``confidence_low`` event when,
-        while localized, the inlier share falls below ``localize.min_inlier_share``: once, until
-        it recovers or localization ends (a new localization may fire it again)."""
+        :func:`~lidarloc.core.likelihood.residual_stats`; a ``confidence_low`` event when it
+        drops (:class:`~lidarloc.core.checks.ConfidenceWatch`)."""
         from .likelihood import residual_stats
 
         share, residual = residual_stats(est.state[:6], prepared, self.lookup, self.effective_d_max)
         share, residual = float(share), (float(residual) if np.isfinite(residual) else None)   # None: no inlier
-        low = share < self.cfg.localize.min_inlier_share
-        if self.rules.localized and low:
-            if self._confidence_armed:
-                self._event(k, "confidence_low", f"inlier share {share:.2f} < "
-                            f"{self.cfg.localize.min_inlier_share:g}"
-                            + ("" if residual is None else f", mean residual {residual:.2f} m"))
-                self._confidence_armed = False
-        else:
-            self._confidence_armed = True
+        why = self._confidence.update(self.rules.localized, share, residual, self.cfg.localize.min_inlier_share)
+        if why is not None:
+            self._event(k, "confidence_low", why)
         return share, residual
 
     def _make_snapshot(self, k: int, prepared, pf_ms: float, est, n_weighed: int | None = None,

@@ -270,13 +270,19 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
     page.wait_for_function(f"{JS_SCAN} >= 1", timeout=LOAD_TIMEOUT)     # the tab started it
 
-    # pause once an S2M match has landed: its scan and search area are on the canvas (magenta)
-    wait_for(lambda: loc.snapshot().s2m is not None, timeout=STEP_TIMEOUT / 1000, what="an S2M match landing")
+    # pause, then step until an accepted S2M match has landed: its scan and search area are on
+    # the canvas in magenta (a rejected one would be grey)
     page.get_by_role("button", name="Pause").click()
     page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    assert viewer.player.wait_idle(STEP_TIMEOUT / 1000)
+    while not (loc.snapshot().s2m is not None and loc.snapshot().s2m.accepted):
+        assert loc.k < loc.n_scans - 2, "no S2M match was accepted in the run"
+        before = loc.k
+        viewer.step_once()
+        wait_for(lambda: loc.k == before + 1 and viewer.player.idle, timeout=LOAD_TIMEOUT / 1000, what="one step")
     canvas = page.locator("canvas").first
-    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500, timeout=STEP_TIMEOUT / 1000,
-             what="the landed S2M match on the canvas")
+    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500, timeout=LOAD_TIMEOUT / 1000,
+             what="the accepted S2M match on the canvas")
 
     # kidnap while paused: the status shows it at once, without another scan
     at = scan_counter(page)

@@ -10,6 +10,7 @@ child process never leaves a half-written one, and readers never see one.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import tempfile
@@ -70,3 +71,24 @@ def atomic_write_file(final: Path, write: Callable[[Path], None]) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def file_identity(path) -> str:
+    """A file's (or a folder's files') path, sizes and modification times: a source re-recorded
+    under the same name is another source, and its cached map another entry."""
+    p = Path(path)
+    try:
+        files = sorted(p.iterdir()) if p.is_dir() else [p]
+        stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files if f.is_file()]
+    except OSError:
+        stats = []
+    return f"{p.resolve()}|{hashlib.sha1(repr(stats).encode()).hexdigest()[:12]}"
+
+
+def array_digest(array) -> str:
+    """A short digest of an array's bytes ("" for None), for cache keys."""
+    if array is None:
+        return ""
+    import numpy as np
+
+    return hashlib.sha1(np.ascontiguousarray(array).tobytes()).hexdigest()[:12]

@@ -199,6 +199,26 @@ class MatchedTruth:
     keep: np.ndarray
     poses: np.ndarray
     notes: list[str] = field(default_factory=list)
+    source: str = ""          # the truth's file
+
+    @property
+    def origin(self) -> np.ndarray:
+        """The first kept scan's LiDAR pose in the truth's frame (a sequence's ``truth_origin``)."""
+        return self.poses[0].copy()
+
+    @property
+    def rebased(self) -> np.ndarray:
+        """The poses in the frame of the first one, as every Sequence gives them."""
+        from .geometry import inv_pose
+
+        return inv_pose(self.poses[0])[None] @ self.poses
+
+    @property
+    def identity(self) -> str:
+        """The truth file's identity, for cache keys."""
+        from .cache import file_identity
+
+        return file_identity(self.source)
 
 
 def truth_for_scans(scan_times: np.ndarray, truth: Truth, T_base_lidar: np.ndarray | None,
@@ -217,4 +237,12 @@ def truth_for_scans(scan_times: np.ndarray, truth: Truth, T_base_lidar: np.ndarr
         after = dropped - before
         notes.append(f"{truth.source}: {dropped} of {len(has)} scans lie outside the ground truth's time span and "
                      f"are left out ({before} at the start, {after} at the end)")
-    return MatchedTruth(keep=keep, poses=lidar, notes=notes)
+    return MatchedTruth(keep=keep, poses=lidar, notes=notes, source=str(truth.source))
+
+
+def truth_of_recording(gt, gt_times, scan_times: np.ndarray, T_base_lidar: np.ndarray | None,
+                       tol: float = MATCH_TOL_S) -> MatchedTruth:
+    """A recording's ``--gt`` (a file, or a :class:`Truth` already read; ``gt_times`` for KITTI
+    files) matched to its scan times (seconds) and moved to the LiDAR (:func:`truth_for_scans`)."""
+    truth = gt if isinstance(gt, Truth) else load_truth(gt, gt_times)
+    return truth_for_scans(scan_times, truth, T_base_lidar, tol)

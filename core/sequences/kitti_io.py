@@ -85,11 +85,12 @@ def lidar_to_cam0_poses(poses_lidar: np.ndarray, Tr: np.ndarray) -> np.ndarray:
 
 
 class FileBackedSequence(Sequence):
-    """A sequence of KITTI ``.bin`` scan files, read through pykitti: one file per scan, read when
-    the scan is asked for; timestamps and poses read once when the sequence is opened.
+    """A sequence of scan files, one file per scan, read when the scan is asked for; timestamps
+    and poses read once when the sequence is opened.
 
-    A subclass opens its layout with :meth:`_open_pykitti` (which sets ``_kitti`` and ``_files``)
-    and sets ``_times`` and, where the layout has ground truth, ``_poses``.
+    A subclass sets ``_files``, ``_times`` and, where it has ground truth, ``_poses``. The KITTI
+    readers open their layout with :meth:`_open_pykitti` (which sets ``_kitti`` and ``_files``) and
+    read KITTI ``.bin`` scans; a reader of other files overrides :meth:`_read_scan`.
     """
 
     _files: list

@@ -41,7 +41,6 @@ process opens the bag again on its first read, without indexing it again.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import threading
 from pathlib import Path
@@ -49,10 +48,11 @@ from typing import Callable
 
 import numpy as np
 
+from ..cache import array_digest, file_identity
 from ..errors import DataError
 from ..extrinsic import from_tf_static, resolve_extrinsic, transform_from_ros
-from ..groundtruth import MATCH_TOL_S, Truth, load_truth, truth_for_scans
-from .base import Sequence, rebase_poses
+from ..groundtruth import MATCH_TOL_S, truth_of_recording
+from .base import Sequence
 from .pointcloud2 import check_xyz, to_xyzi
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -185,14 +185,13 @@ class BagSequence(Sequence):
         self.truth_origin = None
         self._gt_identity = ""
         if gt is not None:
-            truth = gt if isinstance(gt, Truth) else load_truth(gt, gt_times)
-            matched = truth_for_scans(stamps / 1e9, truth, T, match_tol)
+            matched = truth_of_recording(gt, gt_times, stamps / 1e9, T, match_tol)
             self.notes += matched.notes
             self._positions = self._positions[matched.keep]
             stamps = stamps[matched.keep]
-            self.truth_origin = matched.poses[0].copy()
-            self._poses = rebase_poses(matched.poses)
-            self._gt_identity = _file_identity(truth.source)
+            self.truth_origin = matched.origin
+            self._poses = matched.rebased
+            self._gt_identity = matched.identity
         self.stamps_ns = stamps
         self._times = (stamps - stamps[0]).astype(np.float64) / 1e9
 
@@ -304,8 +303,7 @@ class BagSequence(Sequence):
 
     # ------------------------------------------------------------------ identity, life cycle
     def identity(self) -> str:
-        T = "" if self.T_base_lidar is None else hashlib.sha1(np.asarray(self.T_base_lidar).tobytes()).hexdigest()[:12]
-        return f"bag|{_file_identity(self._bag)}|{self.topic}|gt={self._gt_identity}|ext={T}"
+        return f"bag|{file_identity(self._bag)}|{self.topic}|gt={self._gt_identity}|ext={array_digest(self.T_base_lidar)}"
 
     def close(self) -> None:
         with self._lock:
@@ -330,12 +328,3 @@ class BagSequence(Sequence):
         self._lock = threading.Lock()
 
 
-def _file_identity(path) -> str:
-    """Path, size and modification time: a re-recorded file with the same name is another source."""
-    p = Path(path)
-    try:
-        files = sorted(p.iterdir()) if p.is_dir() else [p]
-        stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files if f.is_file()]
-    except OSError:
-        stats = []
-    return f"{p.resolve()}|{hashlib.sha1(repr(stats).encode()).hexdigest()[:12]}"

@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..cache import array_digest
 from ..errors import DataError
 from ..extrinsic import resolve_extrinsic
-from ..groundtruth import MATCH_TOL_S, Truth, load_truth, read_times_precise, truth_for_scans
-from .base import Sequence, rebase_poses
-from .kitti_io import read_velodyne_bin
+from ..groundtruth import MATCH_TOL_S, read_times_precise, truth_of_recording
+from .kitti_io import FileBackedSequence, read_velodyne_bin
 
 SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")
 #: scan period assumed without times.txt: the rate of nearly every spinning LiDAR's default
@@ -69,7 +69,9 @@ def read_scan_file(path: Path) -> np.ndarray:
     return out
 
 
-class ScanFolderSequence(Sequence):
+class ScanFolderSequence(FileBackedSequence):
+    """The scans of a folder, one file each (the module docstring)."""
+
     def __init__(self, directory: str | os.PathLike, gt=None, extrinsic=None,
                  gt_times: str | os.PathLike | None = None, match_tol: float = MATCH_TOL_S):
         self.directory = Path(directory)
@@ -103,38 +105,22 @@ class ScanFolderSequence(Sequence):
         self.truth_origin = None
         self._gt_identity = ""
         if gt is not None:
-            truth = gt if isinstance(gt, Truth) else load_truth(gt, gt_times)
-            matched = truth_for_scans(stamps, truth, self.T_base_lidar, match_tol)
+            matched = truth_of_recording(gt, gt_times, stamps, self.T_base_lidar, match_tol)
             self.notes += matched.notes
             files = [files[k] for k in matched.keep]
             stamps, since_first = stamps[matched.keep], since_first[matched.keep]
-            self.truth_origin = matched.poses[0].copy()
-            self._poses = rebase_poses(matched.poses)
-            src = Path(truth.source)
-            self._gt_identity = f"{src.resolve()}|{src.stat().st_mtime_ns if src.is_file() else ''}"
+            self.truth_origin = matched.origin
+            self._poses = matched.rebased
+            self._gt_identity = matched.identity
         self._files = files
         self.stamps = stamps
         self._times = since_first - since_first[0]
 
-    def __len__(self) -> int:
-        return len(self._files)
-
     def _read_scan(self, i: int) -> np.ndarray:
         return read_scan_file(self._files[i])
-
-    def _describe_scan(self, i: int) -> str:
-        return str(self._files[i])
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses
 
     def identity(self) -> str:
         stats = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in self._files]
         digest = hashlib.sha1(repr(stats).encode()).hexdigest()[:12]
-        T = "" if self.T_base_lidar is None else hashlib.sha1(np.asarray(self.T_base_lidar).tobytes()).hexdigest()[:12]
-        return f"scan-folder|{self.directory.resolve()}|{digest}|gt={self._gt_identity}|ext={T}"
+        return (f"scan-folder|{self.directory.resolve()}|{digest}|gt={self._gt_identity}"
+                f"|ext={array_digest(self.T_base_lidar)}")

@@ -1,0 +1,175 @@
+"""A run's recording: every step's state appended as it happens, read back as it was."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidarloc.core import recording
+from lidarloc.core.config import Config
+from lidarloc.core.recording import RecordingError, RecordingWriter, ResumePayload
+from lidarloc.core.sequences.factory import SourceSpec
+
+
+@pytest.fixture(scope="module")
+def recorded(street, cache_root, tmp_path_factory):
+    """Twelve recorded steps of the street, with the snapshots the localizer returned."""
+    from helpers import make_localizer
+
+    run = tmp_path_factory.mktemp("run")
+    loc = make_localizer(street, cache_root)
+    snaps = []
+    try:
+        w = RecordingWriter(run, SourceSpec(), loc.cfg, street)
+        for _ in range(12):
+            snap = loc.step()
+            w.on_scan(loc, snap)
+            snaps.append(snap)
+        w.close({"scans": 12})
+        events = list(loc.events)
+    finally:
+        loc.close()
+    return run, snaps, events
+
+
+def test_every_step_reads_back_as_the_localizer_reported_it(recorded):
+    run, snaps, events = recorded
+    rec = recording.open(run)
+    assert rec.n == len(snaps) == 12
+    assert rec.path == run / "recording" and rec.run_dir == run
+    for i, snap in enumerate(snaps):
+        assert rec.scan_index[i] == snap.scan_index
+        assert np.array_equal(rec.mean_pose[i], snap.mean_pose)       # float64 kept exactly
+        assert np.array_equal(rec.cov_xyz[i], snap.cov_xyz)
+        assert rec.n_eff[i] == snap.n_eff and rec.localized[i] == snap.localized
+        assert np.array_equal(rec.particles(i), snap.particles.astype(np.float32))
+        assert np.allclose(rec.weights(i), snap.weights, atol=1e-6)
+        assert (rec.error_m[i] == snap.error_m) if snap.error_m is not None else np.isnan(rec.error_m[i])
+    # every event, in order, each after the step at which the localizer recorded it
+    assert [ev for _, ev in rec.events] == events
+    for step, ev in rec.events:
+        assert step == -1 if ev.scan < 0 else rec.scan_index[step] == ev.scan
+    assert rec.meta["seed"] == Config().seed and rec.meta["n_source_scans"] == 24
+    assert rec.meta["summary"] == {"scans": 12}
+
+
+def test_a_rebuilt_snapshot_is_the_step_the_viewer_saw(recorded, street):
+    run, snaps, _ = recorded
+    rec = recording.open(run / "recording")
+    i = 7
+    snap = rec.snapshot(i, street)
+    live = snaps[i]
+    assert snap.scan_index == live.scan_index and snap.best_index == live.best_index
+    assert np.array_equal(snap.mean_pose, live.mean_pose)
+    assert snap.ellipse_xy == pytest.approx(live.ellipse_xy)
+    # the scan is recomputed from the source with the filter's own voxel and seed: the same points
+    assert np.array_equal(snap.scan_world, live.scan_world)
+    assert [e.kind for e in snap.events] == [e.kind for e in live.events]
+    assert live.s2m is not None and rec.s2m_steps     # S2M matches landed by then: they are recorded
+    if live.s2m is not None:
+        view = rec.s2m(i)
+        assert view.started_at == live.s2m.started_at and view.accepted == live.s2m.accepted
+        assert np.array_equal(view.pose, live.s2m.pose) and view.region == pytest.approx(live.s2m.region)
+        # its scan is kept at a display's precision (float16 in the match's frame)
+        assert view.scan_world.shape == live.s2m.scan_world.shape
+        assert np.abs(view.scan_world - live.s2m.scan_world).max() < 0.07
+
+
+def test_a_recording_cut_short_opens_up_to_its_last_complete_step(recorded, tmp_path):
+    import shutil
+
+    run, snaps, _ = recorded
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    folder = copy / "recording"
+    # a kill in the middle of step 12's particles: its commit row and part of its particles are there
+    with open(folder / "particles.bin", "r+b") as f:
+        f.truncate(f.seek(0, 2) - 100)
+    rec = recording.open(copy)
+    assert rec.n == 11
+    assert np.array_equal(rec.mean_pose[10], snaps[10].mean_pose)
+    # a kill while step 11 was being committed (its commit row half written)
+    with open(folder / "steps.bin", "r+b") as f:
+        f.truncate(f.seek(0, 2) - 8 - 3)   # step 11 not committed, step 10 half
+    assert recording.open(copy).n == 10
+
+
+def test_foreign_missing_and_corrupt_folders_get_one_line(tmp_path):
+    with pytest.raises(RecordingError, match="no such run folder"):
+        recording.open(tmp_path / "nowhere")
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(RecordingError, match="not a recorded run"):
+        recording.open(tmp_path / "plain")
+    bad = tmp_path / "bad" / "recording"
+    bad.mkdir(parents=True)
+    (bad / "index.json").write_text("{ not json")
+    with pytest.raises(RecordingError, match="unreadable recording index"):
+        recording.open(bad.parent)
+    (bad / "index.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(RecordingError, match="not a lidarloc recording"):
+        recording.open(bad.parent)
+    for err in (RecordingError,):
+        assert "\n" not in str(err("x"))
+
+
+class _FakeLocalizer:
+    """Just enough of a Localizer for the writer: the resume payload's path through it."""
+
+    def __init__(self, cfg):
+        self.cfg, self.steps, self.events, self.records = cfg, 0, [], []
+
+    def resume_payload(self, step):
+        files = {"checkpoint": {"states": np.full((3, 11), step, np.float64), "rng": np.array('{"a": 1}')}} \
+            if step % 2 == 0 else {}
+        return ResumePayload(per_step={"odom_pose": np.eye(4) * (step + 1)}, files=files)
+
+
+def _snap(k: int):
+    from lidarloc.core.snapshot import Snapshot
+
+    return Snapshot(scan_index=k, n_scans=5, timestamp=0.1 * k, particles=np.zeros((3, 11)), weights=np.ones(3) / 3,
+                    best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3), std_xyz=np.ones(3), ellipse_xy=(1, 1, 0),
+                    n_eff=3.0, localized=False, localized_since=None, scan_world=np.zeros((0, 3), np.float32),
+                    gt_pose=None, error_m=None, pf_ms=1.0, s2m=None, s2m_running=False, s2m_acceptance=0.0)
+
+
+def test_the_resume_payload_is_stored_per_step_and_as_files(tmp_path):
+    cfg = Config()
+    loc = _FakeLocalizer(cfg)
+    w = RecordingWriter(tmp_path, SourceSpec(), cfg, [0] * 5)
+    for k in range(5):
+        loc.steps += 1
+        w.on_scan(loc, _snap(k))
+    with pytest.raises(RecordingError, match="not a new step"):
+        w.on_scan(loc, _snap(4))        # the same step again
+    w.close()
+    rec = recording.open(tmp_path)
+    assert rec.n == 5
+    assert np.array_equal(rec.field("odom_pose")[3], np.eye(4) * 4)
+    assert rec.resume_steps("checkpoint") == [0, 2, 4]
+    ck = rec.resume_file(2, "checkpoint")
+    assert np.array_equal(ck["states"], np.full((3, 11), 2.0)) and json.loads(str(ck["rng"])) == {"a": 1}
+    assert rec.resume_file(1, "checkpoint") is None
+    assert np.isnan(rec.error_m).all() and (rec.inside_2sigma == -1).all()
+    with pytest.raises(RecordingError, match="outside the recording"):
+        rec.particles(5)
+
+
+def test_the_source_round_trips_and_a_moved_source_is_named(tmp_path):
+    cfg = Config()
+    cfg.pf.sigma = 0.7
+    data = tmp_path / "drive.bag"
+    data.write_bytes(b"")
+    spec = SourceSpec(bag=data, map=Path("relative-map.pcd"), topic="/points", scans=40)
+    w = RecordingWriter(tmp_path / "run", spec, cfg, [0] * 40, preset="paper")
+    w.close()
+    rec = recording.open(tmp_path / "run")
+    back = rec.source_spec()
+    assert back.bag == data.resolve() and back.topic == "/points" and back.scans == 40
+    assert back.map.is_absolute()           # relative paths are stored absolute: the run opens from anywhere
+    assert rec.config().pf.sigma == 0.7 and rec.meta["preset"] == "paper"
+    with pytest.raises(RecordingError, match="relative-map.pcd: the run's source is not there"):
+        rec.check_source()
+    with pytest.raises(RecordingError, match="already there"):
+        RecordingWriter(tmp_path / "run", spec, cfg, [0] * 40)

@@ -487,6 +487,9 @@ def bench_stop(
             as_json)
 
 
+RecordBenchOpt = Annotated[bool, typer.Option("--record", help="Record every run into its folder (runs/seed_NNN/recording: scrub, branch and compare them later).")]
+
+
 @bench_app.command("localize")
 @with_source()
 def bench_localize(
@@ -499,6 +502,7 @@ def bench_localize(
                                 "per sequence (the same numbers; only slower).")] = False,
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
+    record: RecordBenchOpt = False,
     as_json: JsonOpt = False,
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
@@ -509,7 +513,7 @@ def bench_localize(
         + (["s2m.enabled=false"] if no_s2m else [])
     cfg = config_from(config, overrides, preset=preset)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
-                        cache_root=cache, console=err, preset=preset)
+                        cache_root=cache, console=err, preset=preset, record=record)
     _result("localize", summary, as_json)
 
 
@@ -528,6 +532,7 @@ def bench_robustness(
     skew: Annotated[str, typer.Option("--skew", help="Motion skew: off, on.", rich_help_panel=_AXES)] = "off,on",
     configs: Annotated[str, typer.Option("--configs", help="Configurations: paper (the paper preset), default, no-S2M (default without S2M).", rich_help_panel=_AXES)] = "paper,default,no-S2M",
     real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive, same configurations (default: where its data is present).", rich_help_panel=_AXES)] = None,
+    record: RecordBenchOpt = False,
     as_json: JsonOpt = False,
     spec=None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
@@ -538,7 +543,7 @@ def bench_robustness(
 
     matrix = parse_matrix(changes, traffic, sensors, skew, configs)
     summary = run_robustness(spec, config, set_, matrix, runs=runs, workers=workers, out_dir=out,
-                             real=real, cache_root=cache, console=err)
+                             real=real, cache_root=cache, console=err, record=record)
     if as_json:
         emit_json(summary)
     else:

@@ -173,3 +173,26 @@ def test_the_source_round_trips_and_a_moved_source_is_named(tmp_path):
         rec.check_source()
     with pytest.raises(RecordingError, match="already there"):
         RecordingWriter(tmp_path / "run", spec, cfg, [0] * 40)
+
+
+def test_a_benchmark_run_records_itself_with_record(cache_root, tmp_path):
+    """``lidarloc bench localize --record``: every run's folder gets its recording, which agrees
+    with the run's own per-scan results."""
+    import csv
+
+    from lidarloc.app.bench.localize import run_one
+
+    from helpers import MAPPING_SCANS
+
+    cfg = Config()
+    cfg.pf.n_particles = 300
+    cfg.localize.recorded_odometry = True
+    cfg.town.n_scans = MAPPING_SCANS
+    spec_d = {"scans": 12}
+    summary = run_one(spec_d, cfg.to_dict(), 3, str(cache_root), str(tmp_path / "seed_003"), 0, record=True)
+    rec = recording.open(tmp_path / "seed_003")
+    assert rec.n == summary["scans"] == 12 and rec.meta["seed"] == 3
+    rows = list(csv.DictReader(open(tmp_path / "seed_003" / "scans.csv")))
+    assert [int(r["scan"]) for r in rows] == rec.scan_index.tolist()
+    assert np.allclose([float(r["x"]) for r in rows], rec.mean_pose[:, 0, 3], atol=1e-6)
+    assert rec.summary["scans"] == 12

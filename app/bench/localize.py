@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -91,9 +92,10 @@ def _bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
 
 
 def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_dir: str, numba_threads: int,
-            preset: str | None = None) -> dict:
+            preset: str | None = None, record: bool = False) -> dict:
     """One seeded run (executed in a worker process or a Ray task). ``preset``: the named
-    configuration ``cfg_d`` came from, recorded in the run's summary."""
+    configuration ``cfg_d`` came from, recorded in the run's summary. ``record``: the run's
+    recording goes into its folder (``recording/``, see :mod:`lidarloc.core.recording`)."""
     _numba_threads(numba_threads)
     from lidarloc.core.localizer import Localizer
 
@@ -101,11 +103,22 @@ def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_di
     cfg.seed = seed
     cfg.localize.clock = "replay"
     seq = _bench_sequence(_spec_from(spec_d), cfg, Path(cache_root) if cache_root else None)
+    out = Path(run_dir)
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
         t0 = time.perf_counter()
-        loc.run()
+        if record:
+            from lidarloc.core.recording import RecordingWriter
+
+            if (out / "recording").exists():       # a run cut short before: its recording is redone
+                shutil.rmtree(out / "recording")
+            writer = RecordingWriter(out, _spec_from(spec_d), cfg, seq, preset=preset)
+            while not loc.done:
+                writer.on_scan(loc, loc.step())
+        else:
+            loc.run()
         summary = summarize_run(loc, time.perf_counter() - t0, preset=preset)
-        out = Path(run_dir)
+        if record:
+            writer.close(summary)
         out.mkdir(parents=True, exist_ok=True)
         # latencies first: summary.json (written last) marks the run as complete for a resume
         np.save(out / "pf_ms.npy", np.array([r.pf_ms for r in loc.records]))
@@ -154,9 +167,10 @@ class Plan:
     or version of lidarloc's code."""
 
     def __init__(self, out_dir: Path, spec: SourceSpec, cfg: Config, runs: int, preset: str | None = None,
-                 fingerprint: str | None = None):
+                 fingerprint: str | None = None, record: bool = False):
         make_out_dir(out_dir)
         self.out_dir, self.spec, self.cfg, self.runs, self.preset = Path(out_dir), spec, cfg, runs, preset
+        self.record = record
         self.spec_d, self.cfg_d = _spec_dict(spec), cfg.to_dict()
         self.cfg_d.pop("seed", None)
         # Resuming is only honest with the same source, configuration and code: refuse a mixed
@@ -180,7 +194,8 @@ class Plan:
 
     def tasks(self, cache: str | None, numba_threads: int) -> dict[int, tuple]:
         """:func:`run_one`'s arguments for each seed still to run."""
-        return {seed: (self.spec_d, self.cfg_d, seed, cache, d, numba_threads, self.preset) for seed, d in self.todo}
+        return {seed: (self.spec_d, self.cfg_d, seed, cache, d, numba_threads, self.preset, self.record)
+                for seed, d in self.todo}
 
     def done(self) -> list[dict]:
         """The summaries of every run, by seed (all must have run)."""
@@ -227,11 +242,12 @@ def check_runs(runs: int, workers: int, executor: str = "process") -> None:
 
 def run_bench(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: Path, executor: str = "process",
               address: str | None = None, cache_root: Path | None = None, console: Console | None = None,
-              preset: str | None = None) -> dict:
+              preset: str | None = None, record: bool = False) -> dict:
     """``runs`` seeded runs (seeds 0…runs−1) of ``cfg`` on ``spec`` into ``out_dir``; returns the
-    aggregate summary. ``preset``: the named configuration ``cfg`` came from (recorded)."""
+    aggregate summary. ``preset``: the named configuration ``cfg`` came from (recorded);
+    ``record``: each run records itself into its folder (``runs/seed_NNN/recording``)."""
     check_runs(runs, workers, executor)
-    plan = Plan(out_dir, spec, cfg, runs, preset)
+    plan = Plan(out_dir, spec, cfg, runs, preset, record=record)
     prepare_cache(spec, cfg, cache_root)
     cache = str(cache_root) if cache_root else None
     with progress_bar(transient=False) as bar:

@@ -216,7 +216,7 @@ def format_duration(seconds: float) -> str:
 
 def run_robustness(town: SourceSpec, config: Path | None, overrides: list[str] | None, matrix: Matrix, runs: int,
                    workers: int, out_dir: Path, real: bool | None = None, cache_root: Path | None = None,
-                   console: Console | None = None) -> dict:
+                   console: Console | None = None, record: bool = False) -> dict:
     """Run the ``matrix`` (``runs`` seeds per cell) on the town ``town`` and, with ``real`` (None:
     where its data is present), on the real drive; write the cells' directories and the report
     into ``out_dir``; returns the summary (summary.json)."""
@@ -237,7 +237,7 @@ def run_robustness(town: SourceSpec, config: Path | None, overrides: list[str] |
     fingerprint = code_fingerprint()
     out_dir = Path(out_dir)
     plans = {c.name: Plan(out_dir / "cells" / c.name, town if c.world is not None else real_spec, configs[c.name],
-                          runs, c.preset, fingerprint) for c in cells}
+                          runs, c.preset, fingerprint, record=record) for c in cells}
     todo_cells = [c for c in cells if plans[c.name].todo]
     worlds = list(dict.fromkeys(c.world for c in todo_cells if c.world is not None))
     total = sum(len(p.todo) for p in plans.values())

@@ -155,19 +155,33 @@ def synth(
 @app.command()
 @with_source()
 def run(
-    out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events and summary.")],
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events, summary and the recording.")],
     seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     clock: Annotated[Optional[str], typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")] = None,
     no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
+    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record the run's steps into OUT/recording/ (view --run, --branch, compare and export read it).")] = False,
+    branch: Annotated[Optional[str], typer.Option("--branch", metavar="RUN_DIR:STEP", help="Continue the recorded run in RUN_DIR from the filter's exact state after its step STEP (0-based), with --set changes, into --out; source and configuration come from the recording.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
-    """Localize headless over a sequence and write results to --out."""
-    from .headless import run_headless
-
+    """Localize headless over a sequence and write results to --out (recorded: scrub it with view --run)."""
     overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
-    cfg = config_from(config, overrides, seed=seed, preset=preset)
-    summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err, preset=preset)
+    if branch is not None:
+        if given(ctx, SOURCE_OPTIONS) or config or preset or init:
+            raise LidarlocError("--branch takes its source and configuration from the recording; give changes with --set")
+        from .branch import parse_branch, run_branch
+
+        run_dir, step = parse_branch(branch)
+        overrides += [f"seed={seed}"] if seed is not None else []
+        summary, interrupted = run_branch(run_dir, step, overrides, out, cache_root=cache, console=err,
+                                          record=not no_record)
+    else:
+        from .headless import run_headless
+
+        cfg = config_from(config, overrides, seed=seed, preset=preset)
+        summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err,
+                                            preset=preset, record=not no_record)
     if as_json:
         emit_json(summary)
     if interrupted:
@@ -194,28 +208,64 @@ def inspect(
         emit_json(result)
 
 
+# ------------------------------------------------------------------------------ runs: compare, share
+@app.command("compare")
+def compare(
+    runs: Annotated[list[Path], typer.Argument(help="Two or more run folders (lidarloc run, the viewer, a branch, a benchmark run).")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Write the overlay plot (trajectories; error, std and N_eff against the step) to this PNG.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the figures as JSON on stdout instead of the table.")] = False,
+):
+    """The summary figures of two or more runs side by side (A–E, success, RMSE, consistency, false fires, PF latency, scans) and an overlay plot for papers."""
+    from .compare import compare_runs
+
+    compare_runs(runs, out, as_json=as_json, console=err)
+
+
+@app.command("export")
+def export(
+    run: Annotated[Path, typer.Argument(help="A recorded run folder (with recording/).")],
+    out: Annotated[Path, typer.Option("--out", help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).")],
+    no_scans: Annotated[bool, typer.Option("--no-scans", help="Leave each step's scan out (a smaller file).")] = False,
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """Share a recorded run: a .viser recording of its scene and a static web folder that plays it in any browser from disk (no Python, no server)."""
+    from .export import export_run
+
+    result = export_run(run, out, console=err, cache_root=cache, scans=not no_scans)
+    if as_json:
+        emit_json(result)
+
+
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False):
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None):
     from .viewer.serve import serve_until_interrupted
 
     serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
-                            autoplay=autoplay)
+                            autoplay=autoplay, record_dir=record_dir, preset=preset)
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
 PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
 AutoplayOpt = Annotated[bool, typer.Option(
     "--autoplay", help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).")]
+RecordDirOpt = Annotated[Optional[Path], typer.Option(
+    "--record-dir", help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
+                         "(default: a new runs/<date-time> folder under the cache directory).")]
+RunOpt = Annotated[Optional[list[Path]], typer.Option(
+    "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
+                  "source side by side); the map and scans come from the source the run names.")]
 
 
 @app.command()
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-         autoplay: AutoplayOpt = False):
+         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay)
+    _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
+           record_dir=record_dir, preset=preset)
 
 
 @app.command()
@@ -224,11 +274,17 @@ def view(
     host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-    autoplay: AutoplayOpt = False,
+    autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, run: RunOpt = None,
 ):
-    """The live viewer on any sequence source."""
+    """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
+    if run:
+        from .viewer.runs import serve_runs
+
+        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
+        return
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay)
+    _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
+           preset=preset)
 
 
 # -------------------------------------------------------------------------------------- benches
@@ -388,6 +444,84 @@ def bench_record(
         task = bar.add_task("recording", total=len(seq))
         result = run_bench(spec, seq, cfg, cache_root=cache, progress=lambda i, n: bar.update(task, completed=i))
     _result("record", result, as_json)
+
+
+@bench_app.command("scrub")
+@with_source()
+def bench_scrub(
+    run_dir: Annotated[Optional[Path], typer.Option("--run", help="A recorded run folder to scrub (default: record the source's scans first).")] = None,
+    moves: Annotated[int, typer.Option("--moves", min=1, help="Slider moves timed.")] = 200,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Keep the run recorded first here (default: a temporary folder).")] = None,
+    seed: SeedOpt = None,
+    as_json: JsonOpt = False,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """The viewer's timeline: the server-side redraw per slider move on a recorded run (target
+    ≤ 50 ms median), and until the step's scan is drawn too.
+
+    Without --run, records the town's first 1000 scans first (unless the source options say otherwise)."""
+    from .bench.scrub import scrub
+
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    seq = None
+    if run_dir is None:
+        spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
+        seq = open_source(spec, cfg, err)
+    with progress_bar() as bar:
+        task = bar.add_task("recording", total=None if seq is None else len(seq))
+        result = scrub(run_dir, spec=spec, seq=seq, cfg=cfg, cache_root=cache, moves=moves, out=out,
+                       progress=lambda i, n: bar.update(task, completed=i))
+    _result("scrub", result, as_json)
+
+
+@bench_app.command("branch")
+@with_source()
+def bench_branch(
+    run_dir: Annotated[Optional[Path], typer.Option("--run", help="A recorded run to branch (default: record the source's scans first).")] = None,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times each of the last 10 steps is branched.")] = 3,
+    as_json: JsonOpt = False,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """How fast a branch of a recorded run starts (target ≤ 1 s, the sequence open) and what the
+    resume data costs per 1000 steps (checkpoints and per-step fields ≤ 10 MB at 1000 particles).
+
+    Records the town's first 1000 scans unless --run or the source options say otherwise."""
+    from .bench.branch import run as run_bench
+
+    cfg = config_from(config, set_, preset=preset)
+    seq = None
+    if run_dir is None:
+        spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
+        seq = open_source(spec, cfg, err)
+    with progress_bar() as bar:
+        task = bar.add_task("recording", total=len(seq) if seq is not None else None)
+        result = run_bench(spec, seq, cfg, cache_root=cache, run_dir=run_dir, repeats=repeats,
+                           progress=lambda i, n: bar.update(task, completed=i))
+    _result("branch", result, as_json)
+
+
+@bench_app.command("filter")
+@with_source(_PF_PANEL)
+def bench_filter(
+    ctx: typer.Context,
+    seeds: Annotated[int, typer.Option("--seeds", min=1, help="Runs per likelihood option (seeds 0…N−1).")] = 3,
+    option: Annotated[Optional[list[str]], typer.Option("--option", help="A likelihood option to study (repeatable): paper, T=10, T=100, per-point mean, unexplained 0.1 (default: all).")] = None,
+    as_json: JsonOpt = False,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Does the filter's uncertainty mean something while it tracks? Each likelihood option started
+    around the truth, no S2M: N_eff share, error and 2σ consistency (target ≥ 85 %).
+
+    Default source: the real KITTI raw drive; --town-seed N for the town."""
+    from .bench.filter import run as run_bench
+
+    cfg = config_from(config, set_, preset=preset)
+    spec = _real_drive_unless_given(ctx, spec, "filter")
+    with progress_bar() as bar:
+        task = bar.add_task("filter study", total=None)
+        result = run_bench(spec, lambda s: open_source(s, cfg, err), cfg, seeds=seeds, options=option,
+                           cache_root=cache, progress=lambda i, n: bar.update(task, completed=i, total=n))
+    _result("filter", result, as_json)
 
 
 @bench_app.command("s2m")

@@ -1,8 +1,11 @@
 """``lidarloc run``: localize over a sequence without a viewer and write the results to disk.
 
-Ctrl-C stops after the scan in progress and still writes everything computed so far. The
-source's notes (a bag's dropped scans, a folder without times) are printed before the run, and a
-map and scans found to be in different frames are warned about as soon as the localizer says so.
+Every run records its steps into ``--out``'s ``recording/`` folder unless told not to
+(:mod:`lidarloc.core.recording`); a branch of a recorded run (:mod:`lidarloc.app.branch`) goes
+through the same loop. Ctrl-C stops after the scan in progress and still writes everything
+computed so far. The source's notes (a bag's dropped scans, a folder without times) are printed
+before the run, and a map and scans found to be in different frames are warned about as soon as
+the localizer says so.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from rich.markup import escape
 
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Interrupted, Localizer
+from lidarloc.core.recording import RecordingWriter
 from lidarloc.core.results import make_out_dir, summarize_run, write_run
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -30,22 +34,51 @@ def _main_thread() -> bool:
 
 def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | None = None,
                  console: Console | None = None, stop_after: int | None = None,
-                 preset: str | None = None) -> tuple[dict, bool]:
+                 preset: str | None = None, record: bool = True) -> tuple[dict, bool]:
     """Run the localizer over the whole sequence; returns (summary, interrupted). ``preset``: the
-    named configuration ``cfg`` started from (``--preset``), recorded in the summary."""
+    named configuration ``cfg`` started from (``--preset``), recorded in the summary. ``record``:
+    write every step's state into ``out/recording/`` as it happens (:mod:`lidarloc.core.recording`;
+    what was finished stays after Ctrl-C or a crash)."""
     console = console or Console(stderr=True)
     seq = open_source(spec, cfg, console)
     make_out_dir(out)  # fail on an unwritable --out before the long part
+    if record:
+        check_recording_target(out)
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
         loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
             task, description=f"preparing {stage}", completed=100 * f))
+    try:
+        writer = RecordingWriter(out, spec, cfg, seq, preset=preset) if record else None
+    except BaseException:
+        loc.close()
+        raise
+    return localize(loc, out, console, writer=writer, stop_after=stop_after, preset=preset)
+
+
+def check_recording_target(out: Path) -> None:
+    """Refuse, before the long part, an ``out`` that already holds a recording."""
+    from lidarloc.core.recording import FOLDER, STEPS, RecordingError
+
+    if (Path(out) / FOLDER / STEPS).exists():
+        raise RecordingError(f"{Path(out) / FOLDER}: a recording is already there; choose another --out")
+
+
+def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_after: int | None = None,
+             preset: str | None = None, title: str | None = None) -> tuple[dict, bool]:
+    """Step ``loc`` to the end of its sequence (or ``stop_after`` steps in all, or Ctrl-C), record
+    each step with ``writer`` (a RecordingWriter, or None), and write the results into ``out``;
+    returns (summary, interrupted). Closes ``loc``. A localizer that does not start at scan 0 (a
+    branch) plays in real time from its first scan's time on."""
+    seq, cfg = loc.seq, loc.cfg
     realtime = cfg.localize.clock == "realtime"
     if realtime:
         try:
             loc.wait_ready()     # the sensor's clock starts once every block is up
         except BaseException:
             loc.close()
+            if writer is not None:
+                writer.close()
             raise
     lags: list[float] = []
     # Ctrl-C sets a flag that the loop checks between scans, and a step still waiting for a
@@ -59,16 +92,19 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
     previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
     warned = _warn_frames(console, loc.events, 0)
+    n_before = len(loc.records)       # a branch starts with the recorded run's
+    clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
     t_start = time.perf_counter()
     try:
-        console.print(f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)")
+        console.print(title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, "
+                      f"{cfg.localize.clock} clock)")
         with progress_bar(transient=False) as bar:
-            task = bar.add_task(f"localizing {seq.name}", total=len(seq))
+            task = bar.add_task(f"localizing {seq.name}", total=len(seq), completed=loc.k)
             while not loc.done and not stop.is_set() and (stop_after is None or loc.steps < stop_after):
                 if realtime:
                     # Scans arrive at the sequence's own rate; a step that starts after its scan's
                     # arrival time is late (we never drop scans, we count the lag).
-                    due = t_start + seq.timestamp(loc.k)
+                    due = t_start + seq.timestamp(loc.k) - clock_origin
                     now = time.perf_counter()
                     if now < due:
                         # sleep, not stop.wait(): the Ctrl-C handler sets ``stop`` on this same
@@ -80,6 +116,8 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                     snap = loc.step()
                 except Interrupted:
                     break
+                if writer is not None:
+                    writer.on_scan(loc, snap)
                 warned = _warn_frames(console, loc.events, warned)
                 bar.update(task, completed=snap.scan_index + 1,
                            description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
@@ -94,8 +132,13 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         interrupted = stop.is_set()
         if interrupted:
             console.print("[yellow]interrupted: writing what was computed[/yellow]")
-        summary = summarize_run(loc, wall, lags[: len(loc.records)] if realtime else None, cpu_used, preset=preset)
+        n_new = len(loc.records) - n_before
+        summary = summarize_run(loc, wall, lags[:n_new] if realtime else None, cpu_used, preset=preset)
         summary["interrupted"] = interrupted
+        if getattr(loc, "branch_of", None) is not None:
+            summary["branch_of"] = loc.branch_of
+        if writer is not None:
+            writer.close(summary)
         write_run(loc, out, summary)
     error = (f"RMSE after {summary['rmse_after_localized_m']}" if loc.seq.has_poses
              else "no ground truth (no errors)")

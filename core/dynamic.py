@@ -143,6 +143,17 @@ class DynamicPointFilter:
     def set_lookup(self, lookup: LookupTable) -> None:
         self.lookup = lookup
 
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """The far-cell history and the last scan's counts, as arrays (see :meth:`restore`)."""
+        return {"keys": self._keys.copy(), "counts": self._counts.copy(),
+                "stats": np.array([self.n_far, self.n_rejected, int(self.suspect)], np.int64)}
+
+    def restore(self, data: dict[str, np.ndarray]) -> None:
+        self._keys = np.array(data["keys"], dtype=np.int64)
+        self._counts = np.array(data["counts"], dtype=np.int32)
+        self.n_far, self.n_rejected, suspect = (int(v) for v in data["stats"])
+        self.suspect = bool(suspect)
+
     @property
     def n_cells(self) -> int:
         """Far cells remembered from the last scan."""

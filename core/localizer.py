@@ -61,6 +61,12 @@ Kidnap (viewer feature): the data index jumps ahead without telling the filter. 
 KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
 detect the failed registration the same way); the filter itself learns nothing.
 
+Resuming (:mod:`lidarloc.core.resume`, :mod:`lidarloc.core.branch`): after each step a recording
+asks :meth:`Localizer.resume_payload` for what resuming from that step needs (checkpoints of the
+exact state, the odometry, the raw S2M outcomes); ``known_odometry`` makes the odometry use a
+recorded run's poses instead of registering those scans again, and ``lazy_s2m`` starts the S2M
+matcher only when a match needs it (a resumed run replays recorded matches first).
+
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
 ``s2m_cancelled`` (the match could no longer land: re-initialised or resized particles, a kidnap,
 S2M switched off, a clock change, a rebuilt pyramid, or ``close()``). Stopping: ``interrupt()``
@@ -104,6 +110,9 @@ class Interrupted(LidarlocError):
     """``interrupt()`` stopped a step that was waiting for a block; that scan is not recorded."""
 
 
+#: The ``s2m_ready`` event's detail: S2M joins once its tables are built (``defer_s2m``).
+S2M_READY_DETAIL = "road-removed map and BEV pyramid built in the background"
+
 #: How often a step waiting for a block checks for ``interrupt()`` (seconds).
 INTERRUPT_POLL_S = 0.05
 
@@ -111,7 +120,8 @@ INTERRUPT_POLL_S = 0.05
 class Localizer:
     def __init__(self, seq, cfg: Config, cache_root: Path | None = None,
                  progress: Callable[[str, float], None] | None = None,
-                 on_map: Callable[[object], None] | None = None, defer_s2m: bool = False):
+                 on_map: Callable[[object], None] | None = None, defer_s2m: bool = False,
+                 known_odometry: dict | None = None, lazy_s2m: bool = False):
         from .bev import load_or_build_pyramid
         from .lookup import load_or_build_lookup
         from .pf import ParticleFilter
@@ -174,6 +184,14 @@ class Localizer:
         self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
         self.odometry.process = early_rpe
+        self.odometry.known = known_odometry
+        self.odometry.scan_source = self._odometry_scan
+        # controls that change the state between or inside steps (a recording checkpoints after
+        # each: see core/resume.py); events before this index belong to an earlier recording
+        self.controls = 0
+        self.recorded_events_base = 0
+        self.branch_of: dict | None = None     # {"run", "step"} of a branch (core/branch.py)
+        self._lazy_s2m = lazy_s2m             # the S2M matcher starts when first needed
         self._pending_s2m: Future | None = None
         self._road_removal = None            # its child process while it runs (defer_s2m)
         if self.pyramid is not None:
@@ -193,6 +211,12 @@ class Localizer:
                 self.cfg.seed = int(seed)
             self.s2m.restart()
             self._interrupt.clear()
+            self.controls += 1
+            self.recorded_events_base = 0
+            # a branch replayed a recorded run's real-time choices; a run from scan 0 makes its own
+            self.odometry.used_plan = None
+            if getattr(self.s2m, "recorded", None) is not None:
+                self.s2m.recorded.timing_until = -1
             self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
                                map_points=self.prior_map.points)
             if self._init_pose is None:
@@ -328,6 +352,7 @@ class Localizer:
                     raise LidarlocError("reset region must have a positive width and height")
             self._reinitialize(region=region, pose=pose, why="particles reset")
             self.rules.reset()
+            self.controls += 1
             where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
             # A paused viewer shows the new particles at once; the last scan stays as it was.
@@ -343,6 +368,7 @@ class Localizer:
             if self.k + 1 >= self.n_scans:
                 raise LidarlocError("cannot kidnap: the sequence has no scans left")
             target = min(self.k + skip, self.n_scans - 1)
+            self.controls += 1
             self.s2m.cancel(self.k - 1, "kidnap")
             self._event(self.k - 1, "kidnap", f"vehicle moved from scan {self.k} to {target}")
             self.k = target
@@ -359,6 +385,7 @@ class Localizer:
             if params.get("clock") == "realtime" and self.odometry.recorded:
                 raise LidarlocError("the real-time clock needs live odometry (localize.recorded_odometry is on)")
             check_live_changes(self.cfg, params)
+            self.controls += 1
             pf, s2m = self.cfg.pf, self.cfg.s2m
             for name, value in params.items():
                 if name == "d_max":
@@ -413,6 +440,19 @@ class Localizer:
 
     def snapshot(self) -> Snapshot:
         return self._snapshot
+
+    def resume_payload(self, step: int):
+        """What resuming from the step just recorded needs (a recording's ``step``-th row): see
+        :func:`lidarloc.core.resume.resume_payload`."""
+        from .resume import resume_payload
+
+        with self._lock:
+            return resume_payload(self, step)
+
+    def _odometry_scan(self, k: int) -> np.ndarray:
+        """Scan k as the odometry and S2M are given it (de-skewed if so configured)."""
+        scan = self.seq.scan(k)
+        return self._deskew(k, scan) if self.cfg.localize.deskew else scan
 
     # ------------------------------------------------------------------------ one scan
     def step(self) -> Snapshot:
@@ -540,6 +580,7 @@ class Localizer:
     def _reinitialize(self, region=None, pose=None, k: int | None = None, why: str = "re-initialised") -> None:
         """Spread the particles again (globally, in a region or around a pose), leaving tracking
         mode: the full particle count comes back."""
+        self.controls += 1
         self.s2m.cancel(self.k - 1 if k is None else k, why)
         if self.pf.n != self.cfg.pf.n_particles:
             self.pf.set_n_particles(self.cfg.pf.n_particles)
@@ -548,6 +589,7 @@ class Localizer:
     def _enter_tracking(self, k: int) -> None:
         """Tracking mode: resample down to fewer particles; S2M searches a smaller region."""
         n = min(self.cfg.localize.tracking_particles, self.cfg.pf.n_particles)
+        self.controls += 1
         self.s2m.cancel(k, "tracking mode: particle indices change")
         self.pf.set_n_particles(n)
         self._event(k, "tracking", f"{n} particles, S2M region ±{self.cfg.localize.tracking_region:g} m")
@@ -569,7 +611,7 @@ class Localizer:
 
     def _s2m_scheduler(self) -> S2MScheduler:
         return S2MScheduler(self.cfg, self.prior_map, self.pyramid, self.map_dir, self._bounds, self._s2m_pool,
-                            wait=self._wait, event=self._event)
+                            wait=self._wait, event=self._event, start_matcher=not self._lazy_s2m)
 
     def _build_s2m_tables(self):
         """The road-removed map and the BEV pyramid (cached both), on a background thread; the
@@ -593,7 +635,7 @@ class Localizer:
         bev, self.pyramid = self._wait(fut, "road removal and BEV pyramid", self.k)
         self.prior_map.points_bev = bev     # in place: a viewer holding the map sees it too
         self.s2m = self._s2m_scheduler()
-        self._event(self.k, "s2m_ready", "road-removed map and BEV pyramid built in the background")
+        self._event(self.k, "s2m_ready", S2M_READY_DETAIL)
         if abs(self.pyramid.resolution - self.cfg.s2m.match_resolution) > 1e-9:   # changed meanwhile
             self._rebuild_pyramid()
 

@@ -5,6 +5,15 @@ S2M landing read the odometry of the scans registered so far.
 KISS-ICP holds the GIL while it registers a scan, so by default it runs in a child process
 (:mod:`lidarloc.core.rpe_worker`), one per localizer, reset instead of restarted. With recorded
 odometry (``localize.recorded_odometry``) no ICP runs at all: the poses come from the cache.
+
+Resuming a recorded run (:mod:`lidarloc.core.branch`): ``known`` holds the poses the recorded
+run's odometry gave each scan (with the scan that odometry run started from); they are used bit
+for bit while they last, so a replayed step sees exactly the odometry the original saw. The first
+scan without one is registered by a fresh KISS-ICP, warmed up first on the ``WARMUP_SCANS`` scans
+before it (the recorded ones: KISS-ICP's local map and its adaptive threshold need a few scans of
+history; ten scans of the town are ~60 m of road) and anchored at the recorded pose of the first of
+them, so that its poses continue in the recorded run's odometry frame. In real time the rules read
+the newest odometry finished in time, a choice of timing: ``used_plan`` repeats the recorded run's.
 """
 
 from __future__ import annotations
@@ -21,6 +30,26 @@ from .config import Config
 from .geometry import euler_zyx
 from .rpe import RelativePoseEstimator
 from .rpe_worker import KissICPProcess
+
+
+#: Scans a resumed run's KISS-ICP registers before the first scan it has no recorded pose for.
+WARMUP_SCANS = 10
+
+
+class AnchoredICP:
+    """A KISS-ICP whose poses are reported in another odometry frame: ``anchor`` · its own pose
+    (its first registered scan is at the identity in its own frame)."""
+
+    def __init__(self, icp, anchor: np.ndarray):
+        self.icp = icp
+        self.anchor = np.asarray(anchor, dtype=np.float64)
+
+    def register_frame(self, points, times):
+        return self.icp.register_frame(points, times)
+
+    @property
+    def last_pose(self) -> np.ndarray:
+        return self.anchor @ np.asarray(self.icp.last_pose, dtype=np.float64)
 
 
 class OdometryFeed:
@@ -42,6 +71,13 @@ class OdometryFeed:
         self.origin = 0                 # first scan the current KISS-ICP run has seen
         self.used: int | None = None    # last odometry scan the rules consumed (real time)
         self.last_ms: float | None = None   # wall time of the newest finished registration
+        # resuming a recorded run (module docstring): scan → (its odometry run's first scan,
+        # T_odom←scan), and the scans as the odometry registers them, for the warm-up
+        self.known: dict[int, tuple[int, np.ndarray]] | None = None
+        self.scan_source: Callable[[int], np.ndarray] | None = None
+        self.live_from: int | None = None   # the first scan KISS-ICP registered after the known ones
+        # real time: scan → the odometry scan the recorded run's rules read at it (timing chose it)
+        self.used_plan: dict[int, int] | None = None
 
     @property
     def recorded(self) -> bool:
@@ -56,23 +92,92 @@ class OdometryFeed:
                 fut.result()
             except Exception:
                 pass
+        self.origin = origin
         self.rpe = self._new_rpe()
         self.futures.clear()
         self._times.clear()
-        self.origin = origin
         self.used = None
         self.last_ms = None
 
     def _new_rpe(self) -> RelativePoseEstimator:
         if self._recorded is not None:
             return RelativePoseEstimator(recorded=self._recorded)
+        if self.known is not None:
+            known = {k: pose for k, (origin, pose) in self.known.items() if origin == self.origin}
+            rpe = RelativePoseEstimator(known=known, make_icp=lambda k: self._warmed_up_icp(rpe, k))
+            return rpe
+        return RelativePoseEstimator(icp=self._fresh_icp())
+
+    def _fresh_icp(self):
+        """A KISS-ICP that has seen no scan: the child process (started once, then reset) or, with
+        ``localize.rpe_process`` off, one in this process."""
         if not self.cfg.localize.rpe_process:
-            return RelativePoseEstimator()
+            from kiss_icp.kiss_icp import KissICP
+
+            from .kiss import kiss_config
+
+            return KissICP(kiss_config(100.0, 2.5, None))
         if self.process is None:
             self.process = KissICPProcess()
         else:
             self.process.reset()
-        return RelativePoseEstimator(icp=self.process)
+        return self.process
+
+    def _warmed_up_icp(self, rpe: RelativePoseEstimator, k: int) -> AnchoredICP:
+        """The KISS-ICP that takes over at scan k from the known poses: registers the up to
+        ``WARMUP_SCANS`` scans before k that the odometry holds, and reports its poses in their
+        frame (anchored at the first of them)."""
+        self.live_from = k
+        held = {j: pose for j, pose, *_ in rpe.entries()}
+        window = [j for j in range(max(self.origin, k - WARMUP_SCANS), k) if j in held]
+        icp = self._fresh_icp()
+        for j in window:
+            pts = np.ascontiguousarray(np.asarray(self.scan_source(j))[:, :3], dtype=np.float64)
+            icp.register_frame(pts, np.zeros(0))
+        return AnchoredICP(icp, held[window[0]] if window else np.eye(4))
+
+    # ------------------------------------------------------------------------ resuming
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """The odometry as the filter sees it between two scans: the registered scans' poses,
+        times, path lengths and rotation sums, the run's first scan, and the rules' last scan."""
+        import json
+
+        entries = self.rpe.entries()
+        return {
+            "scans": np.array([e[0] for e in entries], np.int64),
+            "poses": np.array([e[1] for e in entries], np.float64).reshape(-1, 4, 4),
+            "times_path_turned": np.array([e[2:] for e in entries], np.float64).reshape(-1, 3),
+            "meta": np.array(json.dumps({"origin": self.origin, "used": self.used, "last_ms": self.last_ms})),
+        }
+
+    def restore(self, data: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`checkpoint`: the same odometry run, its registrations done."""
+        import json
+
+        meta = json.loads(str(data["meta"]))
+        self.restart(origin=int(meta["origin"]))
+        scans = [int(k) for k in data["scans"]]
+        tpt = np.asarray(data["times_path_turned"], np.float64)
+        self.rpe.restore([(k, data["poses"][i], *tpt[i]) for i, k in enumerate(scans)])
+        for i, k in enumerate(scans):
+            done: Future = Future()
+            done.set_result(None)
+            self.futures[k] = done
+            self._times[k] = float(tpt[i, 0])
+        self.used, self.last_ms = meta["used"], meta["last_ms"]
+
+    def pose_record(self, k: int) -> dict[str, np.ndarray]:
+        """Per-step resume fields after scan k: the odometry poses of scans k and k − 1 with their
+        path lengths and rotation sums (NaN where not registered yet: in real time scan k's may
+        still be in progress, and the next step's record then carries it as its k − 1), the
+        odometry run's first scan, and the rules' last odometry scan (−1: none)."""
+        out = {"odom_origin": np.int64(self.origin), "odom_used": np.int64(-1 if self.used is None else self.used)}
+        held = {j: (pose, path, turned) for j, pose, _, path, turned in self.rpe.entries(last=2)}
+        for name, j in (("odom", k), ("odom_prev", k - 1)):
+            pose, path, turned = held.get(j, (np.full((4, 4), np.nan), np.nan, np.nan))
+            out[f"{name}_pose"] = np.asarray(pose, np.float64)
+            out[f"{name}_path_turned"] = np.array([path, turned], np.float64)
+        return out
 
     def submit(self, k: int, scan: np.ndarray, t: float) -> None:
         """Register scan k in the background."""
@@ -104,7 +209,11 @@ class OdometryFeed:
         newest scan whose odometry is done, without waiting, so the PF of scan k+1 and KISS-ICP's
         registration of scan k overlap instead of taking turns (the rules then lag the odometry by
         a scan at most; the motion is counted once all the same)."""
-        if self.cfg.localize.clock == "realtime":
+        planned = self.used_plan.get(k) if self.used_plan is not None else None
+        if self.cfg.localize.clock == "realtime" and planned is not None and self.origin <= planned <= k:
+            self.wait_registered(planned)
+            latest = planned
+        elif self.cfg.localize.clock == "realtime":
             latest = None
             for i in range(k, max(self.origin, self.used or 0) - 1, -1):
                 fut = self.futures.get(i)

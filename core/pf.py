@@ -450,6 +450,43 @@ class ParticleFilter:
                         ellipse_xy=ellipse, state_std=state_std, n_eff=float(1.0 / np.dot(w, w)),
                         best_index=int(np.argmax(self.log_weights)))
 
+    # ------------------------------------------------------------------------ resuming
+    def checkpoint(self) -> dict[str, np.ndarray]:
+        """The filter's exact state between two scans, as arrays (float64 kept as it is, the random
+        generator's state as JSON): :meth:`restore` on a filter with the same configuration and
+        lookup table continues bit for bit as this one would."""
+        import json
+
+        out = {"states": self.states.copy(), "log_weights": self.log_weights.copy(),
+               "log_likelihoods": self.log_likelihoods.copy(),
+               "meta": np.array(json.dumps({
+                   "n": int(self.n), "rng": self.rng.bit_generator.state,
+                   "protected_index": self.protected_index, "kld_bins": self.kld_bins}))}
+        if self.dynamic is not None:
+            out.update({f"dynamic_{k}": v for k, v in self.dynamic.checkpoint().items()})
+        return out
+
+    def restore(self, data: dict[str, np.ndarray]) -> None:
+        """Take the state :meth:`checkpoint` saved."""
+        import json
+
+        meta = json.loads(str(data["meta"]))
+        self.states = np.array(data["states"], dtype=np.float64)
+        self.log_weights = np.array(data["log_weights"], dtype=np.float64)
+        self.log_likelihoods = np.array(data["log_likelihoods"], dtype=np.float64)
+        self.n = int(meta["n"])
+        if self.states.shape != (self.n, N_STATE) or self.log_weights.shape != (self.n,):
+            raise LidarlocError("particle filter checkpoint: inconsistent particle count")
+        self.rng.bit_generator.state = meta["rng"]
+        self.protected_index = meta["protected_index"]
+        self.kld_bins = meta["kld_bins"]
+        self._scan = self._scan_input = None
+        if self.dynamic is not None:
+            if "dynamic_keys" in data:
+                self.dynamic.restore({k[len("dynamic_"):]: v for k, v in data.items() if k.startswith("dynamic_")})
+            else:               # recorded without dynamic-point rejection
+                self.dynamic.reset()
+
     def step(self, scan: np.ndarray, dt: float, protect: int | None = None) -> Estimate:
         """predict(dt) → update(scan) → estimate() → resample_if_needed(protect). The estimate is
         taken before resampling (the weighted set is the better summary); ``resampled`` says

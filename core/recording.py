@@ -173,6 +173,14 @@ class RecordingWriter:
         self._last_s2m = None
         self.closed = False
 
+    def continue_from(self, loc) -> None:
+        """A branch's writer: the events up to ``loc.recorded_events_base``, the last scan and the
+        last S2M view ``loc`` already has are the recorded run's; record only what follows."""
+        self._n_events = int(loc.recorded_events_base)
+        self._last_scan = int(loc.snapshot().scan_index)
+        self._last_s2m = loc.s2m.last
+        self._last_steps = int(loc.steps)
+
     def _declare(self, name: str, dtype: str, shape: tuple, first_step: int) -> None:
         self.fields[name] = {"dtype": dtype, "shape": list(shape), "first_step": int(first_step)}
         self._files[name] = builtins.open(self.path / f"{name}.bin", "ab")

@@ -46,19 +46,26 @@ class RelativePoseEstimator:
     """KISS-ICP odometry over a bounded buffer of the most recent scans."""
 
     def __init__(self, max_buffer: int = 100, max_range: float = 100.0, min_range: float = 2.5,
-                 voxel_size: float | None = None, icp=None, recorded: np.ndarray | None = None):
+                 voxel_size: float | None = None, icp=None, recorded: np.ndarray | None = None,
+                 known: dict[int, np.ndarray] | None = None, make_icp=None):
         """``icp``: an object with KissICP's ``register_frame``/``last_pose`` (e.g. the
         process-backed :class:`~lidarloc.core.rpe_worker.KissICPProcess`); default: in-process.
         ``recorded``: (N, 4, 4) odometry poses of every scan of the sequence from an earlier run
         (:func:`load_or_build_odometry`); then no ICP runs, scan k gets inv(P_origin)·P_k with
         origin the first scan added — bit for bit what the live odometry gave when the recording
-        started at the same scan (replay benchmarks: the odometry does not depend on the seed)."""
+        started at the same scan (replay benchmarks: the odometry does not depend on the seed).
+        ``known``: scan → T_odom←scan of scans whose pose is already known (a recorded run being
+        resumed): those are taken as they are, bit for bit, and only the others registered;
+        ``make_icp(k)``: builds the ``icp`` when the first scan without a known pose, k, comes
+        (warmed up on the scans before it, see :mod:`lidarloc.core.odometry`)."""
         if max_buffer < 2:
             raise ValueError(f"max_buffer must be ≥ 2, got {max_buffer}")
         self.max_buffer = int(max_buffer)
         self._recorded = None if recorded is None else np.asarray(recorded, dtype=np.float64)
         self._origin: int | None = None
-        if icp is None and self._recorded is None:
+        self._known = known
+        self._make_icp = make_icp
+        if icp is None and self._recorded is None and make_icp is None:
             from kiss_icp.kiss_icp import KissICP
 
             icp = KissICP(kiss_config(max_range, min_range, voxel_size))
@@ -78,7 +85,11 @@ class RelativePoseEstimator:
             if self._origin is None:
                 self._origin = k
             pose = inv_pose(self._recorded[self._origin]) @ self._recorded[k]
+        elif self._known is not None and k in self._known:
+            pose = np.array(self._known[k], dtype=np.float64)
         else:
+            if self._icp is None:
+                self._icp = self._make_icp(k)
             pts = np.ascontiguousarray(np.asarray(scan_points)[:, :3], dtype=np.float64)
             # deskew is off, so KISS-ICP ignores per-point times; it still wants the argument
             self._icp.register_frame(pts, np.zeros(0))
@@ -96,6 +107,24 @@ class RelativePoseEstimator:
                 self._buf.popitem(last=False)
             self._latest = k
         return pose.copy()
+
+    def restore(self, entries) -> None:
+        """Refill the buffer with (scan, T_odom←scan, timestamp, path length, rotation sum) entries
+        in scan order, as :meth:`entries` gave them (resuming a recorded run)."""
+        with self._lock:
+            self._buf.clear()
+            for k, pose, t, path, turned in entries:
+                self._buf[int(k)] = (np.array(pose, dtype=np.float64), float(t), float(path), float(turned))
+            while len(self._buf) > self.max_buffer:
+                self._buf.popitem(last=False)
+            self._latest = next(reversed(self._buf)) if self._buf else None
+
+    def entries(self, last: int | None = None) -> list[tuple[int, np.ndarray, float, float, float]]:
+        """The buffer (its ``last`` newest entries if given), oldest first: (scan, T_odom←scan,
+        timestamp, path length, rotation sum)."""
+        with self._lock:
+            keys = list(self._buf) if last is None else list(self._buf)[-last:]
+            return [(k, self._buf[k][0].copy(), *self._buf[k][1:]) for k in keys]
 
     # ------------------------------------------------------------------------------ readers
     @property

@@ -14,6 +14,14 @@ particle's log-likelihood: see :meth:`S2MScheduler._write_unless_weight_drops`).
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
 ``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
 
+Resuming a recorded run (:mod:`lidarloc.core.branch`): ``recorded(started_at, start_pose, s2m_cfg,
+level)`` may return the outcome a recorded run's matcher gave for exactly that match; it then
+stands in for running the matcher. The matcher is a deterministic function of the scan (fixed by
+``started_at`` and the source), the start pose, the S2M settings and ``level``, so this changes no
+number; anything that differs runs the matcher for real. In real time such a match lands at the
+scan the recorded run landed it at (there its timing chose it). ``last_landing`` is the raw
+outcome of the last match that landed, with the job it belonged to, for the recording.
+
 The last match that landed is kept as an :class:`~lidarloc.core.snapshot.S2MView` for the viewer's
 inspection: the verdict and, for a rejection, why (the search, GICP, the odometry or the particle's
 weight); whether it searched the whole map; the start pose; the best poses the branch and bound
@@ -56,6 +64,8 @@ class S2MJob:
     future: Future
     deferrals: int = 0        # real time: scans at which the finished match could not land yet
     mode: str = "local"       # "global": the search region covers the whole map
+    cfg: Any = None           # the S2M settings it runs with (S2MConfig)
+    level: bool = False       # whether the start's z, pitch and roll are ignored (see s2m.match_local)
 
 
 class S2MScheduler:
@@ -67,23 +77,27 @@ class S2MScheduler:
     detail)`` records an event."""
 
     def __init__(self, cfg: Config, prior_map, pyramid, map_dir: Path, bounds: tuple, pool: ThreadPoolExecutor,
-                 wait: Callable[[Future, str, int], Any], event: Callable[[int, str, str], None]):
+                 wait: Callable[[Future, str, int], Any], event: Callable[[int, str, str], None],
+                 start_matcher: bool = True):
+        """``start_matcher`` False: the matcher starts at the first match that needs it, or at
+        :meth:`start_matcher` (a resumed run replays recorded matches first: its set-up would
+        only take the CPU from the replay)."""
         self.cfg = cfg
         self._prior_map = prior_map
+        self._pyramid = pyramid
         self._map_dir = map_dir
         self._bounds = bounds
         self._pool = pool
         self._wait = wait
         self._event = event
-        if cfg.localize.s2m_process:
-            # loads the cached map and pyramid and builds its GICP target while the caller goes on
-            self.matcher = S2MProcess(map_dir, cfg.map, cfg.s2m, self._nice())
-        else:
-            from .s2m import ScanToMapMatcher
-
-            self.matcher = ScanToMapMatcher(prior_map, pyramid, cfg.s2m, cfg.map)
+        self.matcher = None
+        if start_matcher:
+            self.start_matcher()
         self._retired_matchers: list = []    # S2M processes replaced by a clock change
         self.job: S2MJob | None = None
+        # resuming a recorded run: its matcher's outcomes (module docstring)
+        self.recorded: Callable[[int, np.ndarray, Any, bool], Any] | None = None
+        self.last_landing: tuple[int, S2MJob, Any] | None = None   # (scan, job, raw outcome)
         self.restart()
 
     def restart(self) -> None:
@@ -96,6 +110,19 @@ class S2MScheduler:
         self.n_landed = 0
         self.n_accepted = 0
         self.last: S2MView | None = None     # the last match that landed
+        self.last_landing = None
+
+    def start_matcher(self) -> None:
+        """Start the matcher unless it runs already (the S2M child process loads the cached map and
+        pyramid and builds its GICP target while the caller goes on)."""
+        if self.matcher is not None:
+            return
+        if self.cfg.localize.s2m_process:
+            self.matcher = S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, self._nice())
+        else:
+            from .s2m import ScanToMapMatcher
+
+            self.matcher = ScanToMapMatcher(self._prior_map, self._pyramid, self.cfg.s2m, self.cfg.map)
 
     @property
     def acceptance(self) -> float:
@@ -150,11 +177,28 @@ class S2MScheduler:
         self._generation += 1
         # before localization the particle's z, pitch and roll are as random as its position
         level = not localized
-        future = self._pool.submit(self._run, self.matcher, scan, start_pose, self.job_config(state, localized), level)
+        cfg = self.job_config(state, localized)
         mode = "global" if self.searches_whole_map(localized) else "local"
-        self.job = S2MJob(k, j, self._generation, start_pose, future, mode=mode)
+        self.job = S2MJob(k, j, self._generation, start_pose, self.submit(k, scan, start_pose, cfg, level),
+                          mode=mode, cfg=cfg, level=level)
         self._last_start = k
         self._event(k, "s2m_started", f"particle {j}")
+
+    def submit(self, k: int, scan, start_pose: np.ndarray, cfg, level: bool) -> Future:
+        """The match of scan k from ``start_pose``: a recorded run's outcome of exactly this match if
+        there is one (``recorded``), else the matcher's, in the background. ``scan``: the scan, or
+        a function returning it (called only if the matcher runs)."""
+        outcome = self.recorded(k, start_pose, cfg, level) if self.recorded is not None else None
+        if outcome is not None:
+            done: Future = Future()
+            done.set_result(outcome)
+            # real time: the recorded run landed it at a scan its timing chose; so does the replay
+            done.landing = getattr(self.recorded, "landing_scan", lambda k0: None)(k)
+            return done
+        if callable(scan):
+            scan = scan()
+        self.start_matcher()
+        return self._pool.submit(self._run, self.matcher, scan, start_pose, cfg, level)
 
     @staticmethod
     def _run(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):
@@ -180,13 +224,18 @@ class S2MScheduler:
         job = self.job
         if job is None:
             return None
+        planned = getattr(job.future, "landing", None)
         if self.cfg.localize.clock == "replay":
             if k < job.started_at + self.cfg.s2m.n_s2m:
+                return None
+        elif planned is not None:
+            if k < planned:
                 return None
         elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
             return None   # real time: land at a scan after the match finished (see there)
         self.job = None
         outcome = self._wait(job.future, "S2M", k)
+        self.last_landing = (k, job, outcome)
         self.n_landed += 1
         accepted = bool(outcome.accepted)
         pose_k = outcome.pose
@@ -309,7 +358,9 @@ class S2MScheduler:
     def use_pyramid(self, k: int, pyramid) -> None:
         """A rebuilt BEV pyramid (new d_m) from now on; the match in flight is cancelled at scan k."""
         self.cancel(k, "map pyramid rebuilt")
-        if not isinstance(self.matcher, S2MProcess):  # the S2M process reloads it from the cache itself
+        self._pyramid = pyramid
+        if self.matcher is not None and not isinstance(self.matcher, S2MProcess):
+            # (the S2M process reloads it from the cache itself)
             from .s2m import ScanToMapMatcher
 
             self.matcher = ScanToMapMatcher(self._prior_map, pyramid, self.cfg.s2m, self.cfg.map)

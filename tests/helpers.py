@@ -228,3 +228,23 @@ def assert_floor_keeps_the_weights(exact, floored, min_floored: int, margin: flo
     np.testing.assert_allclose(floored[kept], exact[kept], rtol=1e-9)
     assert np.all(floored[~kept] == pytest.approx(exact.max() - margin, rel=1e-9))
     assert (~kept).sum() > min_floored                           # the floor did apply
+
+
+def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> dict:
+    """A recorded run of the short town, made as ``lidarloc run`` makes it (summary.json, scans.csv,
+    recording/); its summary."""
+    import io
+
+    from rich.console import Console
+
+    from lidarloc.app.headless import run_headless
+    from lidarloc.core.sequences.factory import SourceSpec
+
+    cfg = Config()
+    cfg.town.n_scans = MAPPING_SCANS
+    cfg.pf.n_particles = 300
+    cfg.seed = seed
+    summary, interrupted = run_headless(SourceSpec(scans=scans), cfg, out, cache_root,
+                                        console=Console(file=io.StringIO()))
+    assert not interrupted and (out / "recording").is_dir()
+    return summary

@@ -337,9 +337,10 @@ def test_status_and_plots_follow_the_run(viewer):
     assert "N_eff" in text and "S2M" in text and "error to truth" in text
     assert "s2m started" in text                                  # recent events
     plots = v.controls.plots.handles
-    x, std, spread, err = plots["std"].data
+    x, std, spread, err, cursor = plots["std"].data
     assert list(x) == [0, 1, 2, 3] and (std > 0).all() and (spread > 0).all() and (err > 0).all()
-    x, pf_ms, rpe_ms, s2m_ms, accepted, rejected = plots["latency"].data
+    x, pf_ms, rpe_ms, s2m_ms, accepted, rejected, cursor = plots["latency"].data
+    assert not np.isfinite(cursor).any()          # live: no timeline cursor
     assert len(pf_ms) == 4 and (pf_ms > 0).all() and s2m_ms[-1] > 0
     # the scene shows this scan: its points in green at the estimate, the S2M match with its label
     snap = loc.snapshot()

@@ -19,4 +19,9 @@ draws the 3D nodes (with ``shapes``), ``camera`` moves each tab's camera, ``grou
 on the map, ``history`` keeps the per-scan figures, ``style`` holds the look. ``why`` hosts the "why"
 views (``why_residuals``, ``why_surface``, ``why_particle``, ``s2m_detail``), their background
 thread (``why_worker``) and colours (``why_style``).
+
+Time travel: ``travel`` is the viewer's handle on it — ``recorder`` records every run the viewer
+plays (first start, restarts, branches) into its own folder, ``recorded`` reads a recording back
+(a branch's first steps from its original), ``timeline`` is the slider and its buttons, ``compare``
+the table of two runs' figures, and ``runs`` opens finished runs (``lidarloc view --run``).
 """

@@ -28,16 +28,17 @@ from lidarloc.core.snapshot import Snapshot
 from .camera import TabCameras
 from .ground import clicked_point, dragged_region, pose_on_ground
 from .history import History
+from .layers import LayerFolder
 from .panel import build_panel
 from .params import ParamForm
 from .player import Player
 from .readouts import Readouts, status_markdown
 from .scene import SceneView
 from .style import MIN_DRAW_INTERVAL, SHIFT, error_markdown
+from .travel import TimeTravel
 from .why import WhyViews
 
 if TYPE_CHECKING:
-    from lidarloc.core.bev import BEVPyramid
     from lidarloc.core.localizer import Localizer
 
 
@@ -60,7 +61,12 @@ class Viewer:
         self.params = ParamForm(self.controls.params, self.controls.q)
         self.cameras = TabCameras(server, self.scene, lambda: self._latest, self._guarded,
                                   folder_order=self.controls.particles_folder.order + 0.5)
-        self.why = WhyViews(server, self.scene, localizer=lambda: self.localizer, drawn=lambda: self._drawn,
+        self.cache_root = None          # where a branch finds the map's tables (serve sets it)
+        self.replay_only = ""           # why controls that need a localizer refuse (a recorded run)
+        self.travel = TimeTravel(self, order=self.controls.message.order + 0.5)
+        # the Why views read the localizer, or a recorded run's map and table when there is none
+        self.why = WhyViews(server, self.scene, localizer=lambda: self.localizer or self.travel.context,
+                            drawn=lambda: self._drawn,
                             guarded=self._guarded, show_message=self.show_message,
                             folder_order=self.controls.particles_folder.order + 0.25)
         self.owns_localizer = False
@@ -83,7 +89,8 @@ class Viewer:
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
-        self._wire_layers()
+        self.layers = LayerFolder(self.controls, self.scene, guarded=self._guarded, localizer=lambda: self.localizer,
+                                  quietly=self._quietly, on_toggle=self.travel.set_layer)
         server.on_client_connect(self._on_connect)
         server.on_client_disconnect(self.cameras.disconnect)
         # Without the display thread (benchmarks) the owner calls update_display() itself.
@@ -102,7 +109,8 @@ class Viewer:
         self._acting.client = client
         try:
             if needs_localizer and not self._ready.is_set():
-                raise LidarlocError("the localizer is still starting (map and tables are being built)")
+                raise LidarlocError(self.replay_only or
+                                    "the localizer is still starting (map and tables are being built)")
             action()
         except LidarlocError as exc:
             self.show_message(f"refused: {exc}", error=True, client=client)
@@ -195,22 +203,7 @@ class Viewer:
         when the first tab opens, or not at all: see ``autoplay``)."""
         self.localizer = localizer
         self.show_map(localizer.prior_map)
-        self.readouts.set_scan_axis(localizer.n_scans)
-        live = localizer.live_params()
-        self._show_live_params(live)
-        self._show_s2m_tables()
-        if not localizer.seq.has_poses:
-            self.readouts.no_ground_truth()
-        speed = self.controls.speed.value
-        self.player = Player(localizer, self._on_step, self._on_player_error,
-                             speed=None if speed == "max" else float(speed), clock=live["clock"])
-        self.player.start()
-        for h in (self.controls.play, self.controls.step, self.controls.restart, self.controls.reset,
-                  self.controls.kidnap):
-            h.disabled = False
-        self.why.attach(localizer)
-        self.readouts.built()
-        self.publish(localizer.snapshot())
+        self._adopt(localizer)
         with self._start_lock:
             self._ready.set()
             start = self._autoplay is True or (self._autoplay is None and self._tab_seen)
@@ -219,20 +212,50 @@ class Viewer:
             self.play()
         self._wake.set()
 
-    def _show_s2m_tables(self) -> None:
-        """The road-removed map layer and the BEV level control, once the localizer has them (on
-        a first start they are built in the background while the filter plays)."""
-        loc = self.localizer
-        if loc.prior_map.points_bev is not None and not self.scene.has_map_bev:
-            self.scene.set_map_bev(loc.prior_map.points_bev)
-        pyr = self._pyramid()
-        c = self.controls
-        if pyr is not None and not c.bev_level.visible:
-            c.layers["bev_level"].visible = True
-            with self._quietly():
-                c.bev_level.max = max(len(pyr.levels) - 1, 0)
-                c.bev_level.value = min(2, len(pyr.levels) - 1)
-            c.bev_level.visible = True
+    def _adopt(self, localizer: Localizer, *, record: dict | None = None) -> None:
+        """Everything of :meth:`attach` but the map and autoplay: the panel shows ``localizer``,
+        a paused player drives it, its run is recorded (``record``: the recorder's ``start``
+        arguments; default a new run)."""
+        self.readouts.set_scan_axis(localizer.n_scans)
+        live = localizer.live_params()
+        self._show_live_params(live)
+        self.layers.show_s2m_tables()
+        if not localizer.seq.has_poses:
+            self.readouts.no_ground_truth()
+        speed = self.controls.speed.value
+        with self.travel.lock:
+            self.travel.started(localizer, **(record or {}))
+            self.player = Player(localizer, self._on_step, self._on_player_error,
+                                 speed=None if speed == "max" else float(speed), clock=live["clock"])
+        self.player.start()
+        for h in (self.controls.play, self.controls.step, self.controls.restart, self.controls.reset,
+                  self.controls.kidnap):
+            h.disabled = False
+        self.replay_only = ""
+        self.why.attach(localizer)
+        self.readouts.built()
+        self.publish(localizer.snapshot())
+
+    def switch_to(self, localizer: Localizer, *, head: dict, head_events: list, name: str,
+                  branch_of: dict, first_step: int) -> None:
+        """Carry on with ``localizer`` (a branch; the viewer owns it and closes it): the old run's
+        player stops (and its localizer closes if the viewer built it), the plots and the
+        trajectory start from the original's steps ``head`` (:meth:`RecordedRun.series`) and go
+        on with the branch's, recorded as ``name`` in the recorder's root."""
+        old, old_player, owned = self.localizer, self.player, self.owns_localizer
+        self.travel.stop_replay()
+        if old_player is not None:
+            old_player.stop(timeout=1.0)
+        with self.travel.lock:
+            self.travel.close()
+            self.localizer, self.owns_localizer = localizer, True
+            self.history.load(head, head_events)
+            self.why.clear()
+            self._adopt(localizer, record={"name": name, "branch_of": branch_of, "first_step": first_step})
+            self._ready.set()
+        if old is not None and owned and old is not localizer:
+            threading.Thread(target=old.close, name="lidarloc-close", daemon=True).start()
+        self._wake.set()
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Block until a localizer is attached (False on timeout)."""
@@ -241,10 +264,6 @@ class Viewer:
     @property
     def stopping(self) -> bool:
         return self._stopping.is_set()
-
-    def _pyramid(self) -> BEVPyramid | None:
-        """The localizer's BEV pyramid (None before one is attached)."""
-        return None if self.localizer is None else self.localizer.pyramid
 
     def _show_live_params(self, live: dict) -> None:
         """The localizer's current values (``Localizer.live_params()``) in the panel; they count
@@ -265,10 +284,17 @@ class Viewer:
         self._wake.set()
 
     def _on_step(self, snap: Snapshot) -> None:
-        """A snapshot from the player thread. A restart that landed between the step returning
-        and this call has replaced the localizer's snapshot: this one is from the old run, drop it."""
-        if snap is self.localizer.snapshot():
+        """A snapshot from the player thread: recorded, then shown. A restart that landed between
+        the step returning and this call has replaced the localizer's snapshot: this one is from
+        the old run, drop it."""
+        loc = self.localizer
+        if snap is loc.snapshot():
+            self.travel.on_step(loc, snap)
             self.publish(snap)
+
+    def wake(self) -> None:
+        """Have the display thread update soon (any thread)."""
+        self._wake.set()
 
     def _on_player_error(self, message: str) -> None:
         self.show_message(message, error=True, everyone=True)
@@ -295,7 +321,8 @@ class Viewer:
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
         on the scene and status (the per-scan cost)."""
         self.readouts.update_progress(None if self.localizer is None else self.localizer.rebuild_progress)
-        snap = self._latest
+        shown = self.travel.shown()       # a recorded step the timeline was moved to
+        snap = shown if shown is not None else self._latest
         ms = 0.0
         if snap is not None and snap is not self._drawn:
             t0 = time.perf_counter()
@@ -311,12 +338,10 @@ class Viewer:
             self._last_draw = time.perf_counter()
         elif snap is not None:
             self.readouts.update_status(self.status_markdown(snap))      # play/pause state may have changed
+        self.travel.after_draw(snap)
         self.readouts.update_plots(force_plots)
         self._sync_play_button()
-        if self._ready.is_set() and not self.controls.bev_level.visible:
-            self._show_s2m_tables()
-        if self.localizer is not None and self.controls.layers["bev_level"].value:
-            self._show_bev_level()
+        self.layers.on_display(self._ready.is_set())
         return ms
 
     def _play_state(self) -> str:
@@ -333,15 +358,28 @@ class Viewer:
         p, loc = self.player, self.localizer
         clock = p.clock if p else "replay"
         floor = None if loc is None else loc.cfg.localize.min_inlier_share
-        return status_markdown(snap, self._play_state(), clock, self.controls.speed.value,
-                               self.history.recent_events(), min_inlier_share=floor,
+        recorded = self.travel.scrubbing
+        if recorded:
+            # the scan on the timeline, as it was recorded: its own events, no live rates
+            state = "recorded" if loc is None else f"recorded (live run {self._play_state()})"
+            events = [e for e in snap.events][-6:]
+        else:
+            state, events = self._play_state(), self.history.recent_events()
+        return status_markdown(snap, state, clock, self.controls.speed.value,
+                               events, min_inlier_share=floor,
                                s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
-                               rate=None if p is None else p.achieved_rate(), lag_s=None if p is None else p.lag_s,
-                               next_scan=None if loc is None else loc.k)
+                               rate=None if p is None or recorded else p.achieved_rate(),
+                               lag_s=None if p is None or recorded else p.lag_s,
+                               next_scan=None if loc is None or recorded else loc.k)
 
     def _sync_play_button(self) -> None:
         p, play = self.player, self.controls.play
         if p is None:
+            if self.replay_only:
+                label = "Pause" if self.travel.replaying else "Play"
+                if play.label != label:
+                    play.label = label
+                    play.icon = viser.Icon.PLAYER_PAUSE if self.travel.replaying else viser.Icon.PLAYER_PLAY
             return
         label = "Pause" if p.playing else "Play"
         if play.label != label:
@@ -355,13 +393,15 @@ class Viewer:
     # ============================================================== Playback folder
     def _wire_playback(self) -> None:
         c = self.controls
-        c.play.on_click(self._guarded(self._toggle_play))
-        c.step.on_click(self._guarded(self.step_once))
-        c.speed.on_update(self._guarded(self._apply_speed))
+        # a recorded run without a localizer plays and steps its timeline (see _toggle_play)
+        c.play.on_click(self._guarded(self._toggle_play, needs_localizer=False))
+        c.step.on_click(self._guarded(self.step_once, needs_localizer=False))
+        c.speed.on_update(self._guarded(self._apply_speed, needs_localizer=False))
         c.clock.on_update(self._guarded(self._apply_clock))
         c.restart.on_click(self._guarded(self._restart))
 
     def play(self) -> None:
+        self.travel.to_live()
         self.player.play()
         self._wake.set()
 
@@ -369,7 +409,20 @@ class Viewer:
         self.player.pause()
         self._wake.set()
 
+    def _replaying(self) -> bool:
+        """No localizer: a recorded run is on screen (its timeline plays), or the localizer is
+        still being built (refused)."""
+        if self.localizer is not None:
+            return False
+        if not self.replay_only:
+            raise LidarlocError("the localizer is still starting (map and tables are being built)")
+        return True
+
     def _toggle_play(self) -> None:
+        if self._replaying():
+            self.travel.toggle_replay(self.controls.speed.value)
+            self._wake.set()
+            return
         if self.player.playing:
             self.pause()
         else:
@@ -378,13 +431,20 @@ class Viewer:
             self.play()
 
     def step_once(self) -> None:
+        if self._replaying():
+            self.travel.stop_replay()
+            self.travel.timeline.forward()
+            return
         if self.localizer.done:
             raise LidarlocError("end of the sequence: restart to play again")
+        self.travel.to_live()
         self.player.step_once()
         self._wake.set()
 
     def _apply_speed(self) -> None:
         v = self.controls.speed.value
+        if self.player is None:          # a recorded run's playback reads it when Play is pressed
+            return
         self.player.set_speed(None if v == "max" else float(v))
         self._wake.set()
 
@@ -397,7 +457,10 @@ class Viewer:
 
     def _restart(self) -> None:
         seed = _whole_number(self.controls.seed, "seed", 0)
-        self.localizer.restart(seed=seed)
+        with self.travel.lock:
+            self.travel.close()
+            self.localizer.restart(seed=seed)
+            self.travel.started(self.localizer)
         self.history.clear()
         self.scene.clear()
         self.why.clear()
@@ -414,7 +477,8 @@ class Viewer:
         self.server.scene.on_rect_select(modifier=SHIFT)(self.on_shift_rect)
 
     def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
-        self.localizer.reset(pose=pose, region=region)
+        with self.travel.lock:      # between two recorded steps, never inside one
+            self.localizer.reset(pose=pose, region=region)
         if pose is not None or region is not None:
             last = self._latest.scan_index if self._latest is not None else -1
             self.scene.show_reset_area(last, center=None if pose is None else pose[:3, 3], region=region)
@@ -439,7 +503,8 @@ class Viewer:
     def _kidnap(self) -> None:
         skip = _whole_number(self.controls.kidnap_skip, "kidnap skip", 1)
         before = self.localizer.k
-        target = self.localizer.kidnap(skip)
+        with self.travel.lock:
+            target = self.localizer.kidnap(skip)
         self.player.rebase()
         if target is None:
             target = self.localizer.k
@@ -454,14 +519,15 @@ class Viewer:
     # ============================================================== Parameters folder
     def _wire_parameters(self) -> None:
         c = self.controls
+        # no localizer needed: on a recorded run the numbers are what "Branch from here" takes
         for h in list(c.params.values()) + c.q:
-            h.on_update(self._guarded(self._mark_pending))
+            h.on_update(self._guarded(self._mark_pending, needs_localizer=False))
         c.s2m_enabled.on_update(self._guarded(self._apply_s2m_enabled))
         c.apply.on_click(self._guarded(self.apply_params))
 
     def _mark_pending(self) -> None:
         """The Apply button says how many numbers differ from what the localizer has."""
-        n = len(self.params.changed())
+        n = len(self.params.changed()) if self.params.applied else 0    # nothing shown yet: nothing changed
         apply = self.controls.apply
         label = f"Apply {n} change{'s' if n != 1 else ''}" if n else "Apply"
         # one message to the clients: with three, "Apply 1 change" could show while the button
@@ -486,36 +552,13 @@ class Viewer:
             return {}
         si = self.params.to_si(changed)
         check_live_changes(self.localizer.cfg, si)
-        self.localizer.set_params(**si)
+        with self.travel.lock:
+            self.localizer.set_params(**si)
         self.params.accept(changed)
         self._mark_pending()
         self.show_message(f"applied from the next scan: {self.params.names(changed)}")
         self._wake.set()
         return si
-
-    # ============================================================== Layers folder
-    def _wire_layers(self) -> None:
-        c = self.controls
-        for name, h in c.layers.items():
-            h.on_update(self._guarded(lambda name=name: self._toggle_layer(name), needs_localizer=False))
-        c.bev_level.on_update(self._guarded(self._show_bev_level))
-
-    def _toggle_layer(self, name: str) -> None:
-        visible = bool(self.controls.layers[name].value)
-        if name == "bev_level" and visible:
-            self._show_bev_level()
-        self.scene.set_layer(name, visible)
-
-    def _show_bev_level(self) -> None:
-        pyr, level = self._pyramid(), self.controls.bev_level
-        if pyr is None or not self.controls.layers["bev_level"].value:
-            return
-        top = max(len(pyr.levels) - 1, 0)
-        if level.max != top:      # a rebuilt pyramid (new d_m) has other levels
-            with self._quietly():
-                level.max = top
-                level.value = min(level.value, top)
-        self.scene.set_pyramid(pyr, int(level.value))
 
     # ============================================================== shutdown
     def stop(self) -> None:
@@ -524,6 +567,10 @@ class Viewer:
         self.why.stop()
         if self.player is not None:
             self.player.stop(timeout=0.5)
+        try:
+            self.travel.stop()
+        except Exception:  # stopping goes on: the recording stays readable up to its last step
+            traceback.print_exc(file=sys.stderr)
         if self._display.is_alive():
             self._display.join(timeout=0.3)
 

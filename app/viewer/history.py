@@ -104,6 +104,24 @@ class History:
                 self._fill(i, snap)
             self.version += 1
 
+    def load(self, series: dict, events: list | None = None) -> None:
+        """Start over with the figures of a recorded run (``RecordedRun.series``) and its events
+        (``[(step, Event), …]``): scrubbing, a branch's steps before it, ``view --run``."""
+        with self._lock:
+            self._restart()
+            n = len(series["scan"])
+            while len(self.scan) < n:
+                self._grow()
+            self.n = n
+            self.scan[:n] = series["scan"]
+            for name in SERIES:
+                getattr(self, name)[:n] = series[name]
+            self.est[:n] = series["est"]
+            self.gt[:n] = series["gt"]
+            self.marks = list(series["marks"])
+            self.events = [e for _, e in (events or [])][-200:]
+            self.version += 1
+
     def _fill(self, i: int, snap: Snapshot) -> None:
         self.scan[i] = snap.scan_index
         std = np.asarray(snap.std_xyz, float)

@@ -20,7 +20,7 @@ import viser.uplot as uplot
 from lidarloc.core.config import DEG
 
 from .history import MARKED_EVENTS
-from .style import PLOT_MAX_POINTS
+from .style import CURSOR_COLOR, PLOT_MAX_POINTS
 
 # events marked on the curves: (label, colour, the event kinds)
 RUN_MARKS = (("localized", "#5be35b", ("localized",)),
@@ -96,19 +96,43 @@ def mark_series(x: np.ndarray, y: np.ndarray, marks: list, kinds: tuple) -> np.n
 
 class Plots:
     """The plot handles (``handles[key]``, keys of :data:`SPECS`) and their updates; built inside
-    the panel's Plots folder."""
+    the panel's Plots folder.
+
+    Each plot also has a cursor (a points-only series: one dot on the first curve at the scan the
+    timeline shows) and, with a second run on screen, that run's curves dashed (labels end in its
+    name)."""
 
     def __init__(self, gui):
         self.handles: dict = {}
+        self.n_scans = 1
+        self.has_truth = True
+        self._ref_label: str | None = None
         x = np.zeros(1)
         for spec in SPECS:
-            series = (uplot.Series(label="scan"),) + tuple(_line(lbl, c) for _, lbl, c, _ in spec.lines) + \
-                _marks(spec.marks)
+            series = self._series(spec)
             self.handles[spec.key] = gui.add_uplot(
                 (x,) * len(series), series, title=spec.title, scales=_scales(1, spec.log), aspect=1.6,
                 legend=uplot.Legend(live=False))
-        self.n_scans = 1
-        self.has_truth = True
+
+    def _series(self, spec: PlotSpec) -> tuple:
+        lines = []
+        for _, lbl, c, _ in spec.lines:
+            if spec.key == "std" and lbl == "error to truth" and not self.has_truth:
+                lines.append(uplot.Series(label="error: no ground truth", show=False))
+            else:
+                lines.append(_line(lbl, c))
+        ref = ()
+        if self._ref_label is not None:
+            ref = tuple(uplot.Series(label=f"{lbl} ({self._ref_label})", stroke=c, width=1.5, dash=(6.0, 4.0))
+                        for _, lbl, c, _ in self._ref_lines(spec))
+        cursor = uplot.Series(label="scan on the timeline", stroke=CURSOR_COLOR, width=0, auto=False,
+                              points={"show": True, "size": 11, "fill": CURSOR_COLOR, "stroke": "#000000"})
+        return (uplot.Series(label="scan"),) + tuple(lines) + _marks(spec.marks) + ref + (cursor,)
+
+    def _ref_lines(self, spec: PlotSpec) -> tuple:
+        if spec.needs_truth and not self.has_truth:
+            return ()
+        return tuple(line for line in spec.lines if self.has_truth or line[0] != "error")
 
     def set_scan_axis(self, n_scans: int) -> None:
         """Pin every plot's x axis to the sequence's scans 0 … n − 1."""
@@ -124,25 +148,57 @@ class Plots:
             if spec.needs_truth:
                 h.visible = False
             elif spec.key == "std":
-                h.series = tuple(s if s.get("label") != "error to truth" else
-                                 uplot.Series(label="error: no ground truth", show=False) for s in h.series)
+                h.series = self._series(spec)
 
-    def update(self, h: dict) -> None:
-        """Resend every visible plot's series from :meth:`History.arrays`."""
-        sl = decimate(len(h["scan"]))
-        x = h["scan"][sl].astype(np.float64)
+    def _set_reference(self, label: str | None) -> None:
+        if label == self._ref_label:
+            return
+        self._ref_label = label
+        for spec in SPECS:
+            self.handles[spec.key].series = self._series(spec)
+
+    def update(self, h: dict, cursor: int | None = None, reference: tuple | None = None) -> None:
+        """Resend every visible plot's series from :meth:`History.arrays`; ``cursor``: the scan the
+        timeline shows; ``reference``: (label, series) of a second run."""
+        self._set_reference(None if reference is None else reference[0])
+        ref = None if reference is None else reference[1]
+        scans = h["scan"]
+        if ref is not None and len(ref["scan"]):
+            x_all = np.union1d(scans, ref["scan"])
+        else:
+            x_all = scans
+        sl = decimate(len(x_all))
+        x = np.asarray(x_all[sl], np.float64)
         if len(x) == 0:
             return
         for spec in SPECS:
             if spec.needs_truth and not self.has_truth:
                 continue
-            ys = []
-            for key, _, _, factor in spec.lines:
-                y = h[key][sl] * factor
-                if spec.log:
-                    # a log scale needs positive finite values: a missing one takes the weighted std's
-                    y = np.where(np.isfinite(y), np.maximum(y, 1e-3), np.maximum(h["std"][sl], 1e-3))
-                ys.append(y)
+            ys = [self._on(x, scans, h[key], factor, spec.log, h["std"]) for key, _, _, factor in spec.lines]
             first = ys[-1] if spec.key == "latency" else ys[0]     # S2M marks sit on the S2M curve
             ys += [mark_series(x, first, h["marks"], kinds) for _, _, kinds in spec.marks]
+            if self._ref_label is not None:
+                for key, _, _, factor in self._ref_lines(spec):
+                    ys.append(self._on(x, ref["scan"], ref[key], factor, spec.log, ref["std"]) if ref is not None
+                              else np.full(len(x), np.nan))
+            dot = np.full(len(x), np.nan)
+            if cursor is not None:
+                i = int(np.clip(np.searchsorted(x, cursor), 0, len(x) - 1))
+                dot[i] = first[i] if np.isfinite(first[i]) else (1e-3 if spec.log else 0.0)
+            ys.append(dot)
             self.handles[spec.key].data = (x, *ys)
+
+    @staticmethod
+    def _on(x: np.ndarray, scans: np.ndarray, values: np.ndarray, factor: float, log: bool,
+            std: np.ndarray) -> np.ndarray:
+        """``values`` (one per scan of ``scans``) at the plotted scans ``x`` (NaN where the run has none)."""
+        y = np.full(len(x), np.nan)
+        if len(scans):
+            i = np.clip(np.searchsorted(scans, x), 0, len(scans) - 1)
+            hit = scans[i] == x
+            v = np.asarray(values, float)[i] * factor
+            if log:
+                # a log scale needs positive finite values: a missing one takes the weighted std's
+                v = np.where(np.isfinite(v), np.maximum(v, 1e-3), np.maximum(np.asarray(std, float)[i], 1e-3))
+            y[hit] = v[hit]
+        return y

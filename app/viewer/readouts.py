@@ -25,16 +25,18 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
                     rate: float | None = None, lag_s: float | None = None, next_scan: int | None = None) -> str:
     """The status table: scan counter, play state, localized or not, the filter's figures, the
     scan's confidence and the recent events (newest first). ``speed`` is the replay speed set
-    (scans/s); ``rate`` the scans/s achieved lately and ``lag_s`` how far behind the sensor clock
+    (scans/s; None: not shown); a ``state`` "recorded…" (a scan the timeline shows) names no
+    clock; ``rate`` the scans/s achieved lately and ``lag_s`` how far behind the sensor clock
     the filter is (real-time clock), both while playing (None: not shown). ``next_scan``: the
     scan the localizer processes next, named when it is not the one after ``snap`` (the vehicle
     was kidnapped). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with
     fewer of the scan's points fitting the map than this, a warning line says so (the
     ``confidence_low`` condition). ``s2m_enabled``: with S2M off its row says so instead of the
     last match's figures."""
-    speed = "" if clock == "realtime" else f", set to {speed} scans/s"
+    speed = "" if clock == "realtime" or speed is None else f", set to {speed} scans/s"
     k = "–" if snap.scan_index < 0 else str(snap.scan_index)
-    lines = [f"**Scan {k} of {snap.n_scans}** · {state} ({clock}{speed})"]
+    clocked = "" if state.startswith("recorded") else f" ({clock}{speed})"
+    lines = [f"**Scan {k} of {snap.n_scans}** · {state}{clocked}"]
     if rate is not None:
         achieved = f"achieved {rate:.1f} scans/s"
         if lag_s is not None:
@@ -107,6 +109,8 @@ class Readouts:
         self._status_text = ""
         self._plot_version = None
         self._last_plot = 0.0
+        self.cursor: int | None = None          # the scan the timeline shows, marked on the plots
+        self.reference: tuple | None = None     # (label, series) of a second run drawn dashed
 
     # ------------------------------------------------------------------ start-up
     def building(self, stage, frac=None) -> None:
@@ -165,8 +169,10 @@ class Readouts:
         now = time.perf_counter()
         if not force and now - self._last_plot < PLOT_INTERVAL:
             return
-        h = self.history.arrays()
-        if h["version"] == self._plot_version:
+        cursor, ref = self.cursor, self.reference
+        version = (self.history.version, cursor, id(ref))
+        if version == self._plot_version:
             return
-        self._plot_version, self._last_plot = h["version"], now
-        self.c.plots.update(h)
+        h = self.history.arrays()
+        self._plot_version, self._last_plot = version, now
+        self.c.plots.update(h, cursor=cursor, reference=ref)

@@ -25,6 +25,7 @@ from lidarloc.core.localizer import Localizer
 from lidarloc.core.sequences.factory import SourceSpec
 
 from .app import Viewer
+from .recorder import Recorder, default_record_root
 from .style import SPEEDS
 
 
@@ -89,7 +90,9 @@ def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> L
 
 
 def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str = "127.0.0.1", port: int = 8080,
-          open_browser: bool = False, *, autoplay: bool | None = None, speed: str = "10") -> ViewerHandle:
+          open_browser: bool = False, *, autoplay: bool | None = None, speed: str = "10",
+          record_to: Path | None = None, spec: SourceSpec | None = None, preset: str | None = None,
+          cache_root: Path | None = None) -> ViewerHandle:
     """Start the viewer and return at once.
 
     ``localizer_or_factory``: a ready Localizer (the caller keeps ownership and closes it), or a
@@ -100,6 +103,10 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
     ``autoplay``: None (default) starts playback when the first browser tab is open and the
     localizer ready, True as soon as it is ready, False never (the caller or the user plays).
     ``port``: the first port tried (viser moves up if it is taken; the handle has the real one).
+    ``spec``: the source options the localizer's sequence was opened with; given, every run the
+    viewer plays is recorded under ``record_to`` (default: a new ``runs/<date-time>`` under the
+    cache root), so that the timeline can scrub it and branches can start from it.
+    ``cache_root``: where a branch finds the map's tables.
     """
     if speed not in SPEEDS:
         raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {speed!r}")
@@ -108,6 +115,11 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
     server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
     try:
         viewer = Viewer(server, autoplay=autoplay, speed=speed)
+        viewer.cache_root = cache_root
+        if spec is not None:
+            root = record_to if record_to is not None else default_record_root(cache_root)
+            viewer.travel.record_with(Recorder(root, spec, preset, on_failure=lambda message: viewer.show_message(
+                message, error=True, everyone=True)))
     except BaseException:
         server.stop()
         raise
@@ -142,9 +154,11 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
 
 
 def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
-                            console: Console, open_browser: bool = False, autoplay: bool = False) -> None:
+                            console: Console, open_browser: bool = False, autoplay: bool = False,
+                            record_dir: Path | None = None, preset: str | None = None) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
-    once with ``autoplay``."""
+    once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
+    ``runs/<date-time>`` folder under the cache root), which is printed."""
     seq = open_source(spec, cfg, console)   # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
@@ -170,11 +184,15 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     # before the server starts so an early Ctrl-C also shuts down in order.
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None)
+        root = record_dir if record_dir is not None else default_record_root(cache_root)
+        handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None,
+                       record_to=root, spec=spec, preset=preset, cache_root=cache_root)
     except BaseException:
         signal.signal(signal.SIGINT, previous)
         raise
     console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+    console.print(f"recording into {root} (open a run later with lidarloc view --run {root}/run)",
+                  markup=False, highlight=False, soft_wrap=True)
     try:
         with bar:
             while not ready.wait(0.2) and not stop.is_set():

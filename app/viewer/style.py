@@ -18,6 +18,11 @@ PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # lowest log-weight rank
 PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # highest log-weight rank
 BEV_COLOR = (255, 225, 90)
 RESET_COLOR = (255, 255, 255)
+# the second run on screen (a branch's original, or view --run's second run): a blue the scene
+# uses nowhere else, its particles darker
+REF_COLOR = (80, 170, 255)
+REF_PARTICLE_COLOR = (60, 120, 230)
+CURSOR_COLOR = "#ffe14d"                 # the plots' marker of the scan on the timeline
 ERROR_CSS = "#ff6b6b"                    # refusals and failures in the panel
 
 DISPLAY_VOXEL = 0.5          # m, first try for the displayed map's voxel size …

@@ -1,0 +1,151 @@
+"""``lidarloc view --run DIR [--run DIR2]``: finished runs in the viewer, without recomputing them.
+
+The map and the scans come from the source each run names (its recording's index): the map and
+its lookup table from the cache (built once if the cache lost them), the scans read on demand as
+the timeline moves. A source that moved is a one-line error naming the path the run expected.
+
+With two runs the first is drawn as usual and the second beside it in blue (trajectory, particle
+cloud and vehicle at the same step, dashed plot lines), stepped in lockstep by step; the Compare
+folder puts their summary figures side by side. Both runs must be of the same sequence (same
+source and scan count): their steps are compared one for one.
+
+"Branch from here" works on a recorded run too: it continues from the step on the timeline in a
+live localizer, recorded under a new ``runs/<date-time>`` folder of the cache root.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+
+import viser
+from rich.console import Console
+
+from lidarloc.core import recording
+from lidarloc.core.config import LIVE_PARAMS
+from lidarloc.core.errors import LidarlocError
+
+from .recorded import RecordedRun
+from .recorder import Recorder, default_record_root
+from .serve import ViewerHandle
+from .travel import RunContext
+
+REPLAY_ONLY = "a recorded run: play or move the timeline, or Branch from here to continue it with a live filter"
+
+
+def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> tuple[RecordedRun, RunContext]:
+    """A recorded run and what the viewer needs to show it: its sequence, map and lookup table.
+    One-line :class:`LidarlocError` for a missing, foreign or corrupt folder, or a moved source."""
+    from lidarloc.core.lookup import load_or_build_lookup
+    from lidarloc.core.mapping import load_or_build_map
+
+    rec = recording.open(path)
+    if rec.n == 0:
+        raise recording.RecordingError(f"{rec.path}: the recording has no complete step")
+    cfg = rec.config()
+    if seq is None:
+        seq = rec.open_sequence()          # checks the source first: one line naming the moved path
+    prior_map, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root, road_removal=False,
+                                              progress=None if progress is None else
+                                              (lambda i, n: progress("map", i / n)))
+    use_origin = getattr(seq, "use_map_origin", None)
+    if use_origin is not None:
+        use_origin(prior_map.origin)
+    lookup = load_or_build_lookup(prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max).value
+    return RecordedRun(rec.run_dir, seq), RunContext(cfg=cfg, seq=seq, prior_map=prior_map, lookup=lookup)
+
+
+def _same_sequence(a: RecordedRun, b: RecordedRun) -> bool:
+    return (a.meta.get("source") == b.meta.get("source")
+            and a.meta.get("n_source_scans") == b.meta.get("n_source_scans"))
+
+
+def show_runs(viewer, run: RecordedRun, context: RunContext, other: RecordedRun | None = None) -> None:
+    """Put recorded ``run`` (and ``other`` beside it) on a viewer that has no localizer."""
+    v = viewer
+    v.travel.context = context
+    v.replay_only = REPLAY_ONLY
+    v.show_map(context.prior_map)
+    v.readouts.set_scan_axis(len(context.seq))
+    if not context.seq.has_poses:
+        v.readouts.no_ground_truth()
+    cfg = context.cfg
+    live = {key: getattr(getattr(cfg, p.section), p.attr) for key, p in LIVE_PARAMS.items()}
+    with v._quietly():
+        v.params.show(live)
+        v.controls.s2m_enabled.value = bool(live["s2m_enabled"])
+        v.controls.clock.value = live["clock"]
+        v.controls.seed.value = int(cfg.seed)
+    v._mark_pending()
+    v.controls.play.label, v.controls.play.icon = "Play", viser.Icon.PLAYER_PLAY
+    v.controls.play.disabled = v.controls.step.disabled = False      # they play the timeline
+    v.why.attach(context)
+    v.history.load(run.series(), run.events())
+    v.readouts.built()
+    v.travel.timeline.set_run(run, live_available=False)
+    v.travel.timeline.recording_text.content = f"<small>recorded run `{run.path}`</small>"
+    if other is not None:
+        v.travel.set_reference(other, label=Path(other.path).name, primary_label=Path(run.path).name)
+    v.first_scan_shown.clear()
+    v.wake()
+
+
+def open_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: Path | None = None,
+              open_browser: bool = False, record_to: Path | None = None) -> ViewerHandle:
+    """Start a viewer on one or two recorded runs and return at once (the runs are read first: a
+    bad folder or a moved source raises before any server starts)."""
+    from .app import Viewer
+
+    dirs = [Path(d) for d in run_dirs]
+    if not dirs:
+        raise LidarlocError("view --run needs a run folder")
+    if len(dirs) > 2:
+        raise LidarlocError(f"view --run shows one or two runs side by side, got {len(dirs)}")
+    run, context = load_run(dirs[0], cache_root)
+    other = None
+    if len(dirs) == 2:
+        other = RecordedRun(dirs[1], context.seq)
+        if other.n == 0:
+            raise recording.RecordingError(f"{other.rec.path}: the recording has no complete step")
+        if not _same_sequence(run, other):
+            raise LidarlocError(f"{dirs[1]} is a run of another sequence than {dirs[0]} "
+                                f"({other.rec.meta.get('source_description')} vs {run.meta.get('source_description')})")
+    server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
+    try:
+        viewer = Viewer(server, autoplay=False)
+        viewer.cache_root = cache_root
+        root = record_to if record_to is not None else default_record_root(cache_root)
+        viewer.travel.record_with(Recorder(root, run.rec.source_spec(), run.meta.get("preset"),
+                                           on_failure=lambda m: viewer.show_message(m, error=True, everyone=True)))
+        show_runs(viewer, run, context, other)
+    except BaseException:
+        server.stop()
+        raise
+    handle = ViewerHandle(viewer, server, host)
+    if open_browser:
+        import webbrowser
+
+        threading.Thread(target=webbrowser.open, args=(handle.url,), daemon=True).start()
+    return handle
+
+
+def serve_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: Path | None = None,
+               open_browser: bool = False, console: Console | None = None) -> None:
+    """``lidarloc view --run DIR [--run DIR2]``: serve recorded runs until Ctrl-C."""
+    console = console or Console(stderr=True)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        handle = open_runs(run_dirs, host, port, cache_root, open_browser)
+        console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+        run = handle.viewer.travel.timeline.run
+        console.print(f"showing {run.n} recorded scans of {run.path}; branches are recorded under "
+                      f"{handle.viewer.travel.recorder.root}", markup=False, highlight=False, soft_wrap=True)
+        try:
+            stop.wait()
+        finally:
+            console.print("stopping viewer")
+            handle.stop()
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -1,0 +1,190 @@
+"""The timeline: a slider over the recorded steps of the run on screen, a step back and forward,
+the previous and next event (localized, false positive, loss, S2M accepted or rejected, kidnap,
+reset), "Live" back to the newest step, and "Branch from here".
+
+It keeps which step is on screen (``step``; None: live, the newest snapshot) and tells the viewer
+when the user moves it (``on_move``); the viewer pauses playback and draws that step from the
+recording. While live, the slider follows the newest recorded step. The viewer's own writes to the
+slider (following the live run) do not count as moves: they are made with a thread-local flag up,
+and viser runs an assigned value's callbacks on the assigning thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+from typing import Callable
+
+import numpy as np
+
+from lidarloc.core.errors import LidarlocError
+
+from .recorded import RecordedRun
+
+PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE = "◀ event", "◀", "▶", "event ▶", "Live"
+BUTTONS = (PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE)
+
+HELP = ("Drag to any processed scan: the scene, the status, the Why views and the plots' cursor show "
+        "that scan as it was recorded (playback pauses). ◀ ▶ step one scan; *event* jumps to the previous "
+        "or next localization, false positive, loss, S2M verdict, kidnap or reset; **Live** goes back to "
+        "the newest scan.")
+
+
+class Timeline:
+    """The Timeline folder and the step on screen. ``on_move(step)`` is called on the GUI thread
+    after the user moved to ``step`` (None: back to live); it must stay cheap."""
+
+    def __init__(self, gui, *, guarded: Callable, on_move: Callable[[int | None], None], order: float | None = None):
+        self._on_move = on_move
+        self._guarded = guarded
+        self._own = threading.local()
+        self._lock = threading.Lock()
+        self.run: RecordedRun | None = None
+        self.step: int | None = None     # the step on screen; None: live
+        self.live_available = True       # False for a finished recording (view --run): no live run
+        self._n = 0
+        with gui.add_folder("Timeline", order=order):
+            self.where = gui.add_markdown("No recording yet")
+            # over the steps (the processed scans in order: a kidnap skips scans, not steps)
+            self.slider = gui.add_slider("Step", 0, 1, 1, 0, disabled=True,
+                                         hint="Drag to a processed scan (pauses playback)")
+            # actions: the button group's callback names the button pressed; tests call the methods
+            self.buttons = gui.add_button_group("Go to", BUTTONS)
+            self.branch = gui.add_button("Branch from here", disabled=True,
+                                         hint="Continue from this scan's exact filter state with the parameters "
+                                              "in the Parameters folder (changed or not); recorded in its own folder")
+            self.recording_text = gui.add_markdown("")
+            gui.add_markdown(f"<small>{HELP}</small>")
+        self.slider.on_update(self._slider_moved)
+        self.buttons.on_click(guarded(self._button, needs_localizer=False))
+
+    # ------------------------------------------------------------------ the run on the slider
+    def set_run(self, run: RecordedRun | None, live_available: bool = True) -> None:
+        """The recording the slider moves over (a new run, a branch, a run opened with --run)."""
+        with self._lock:
+            self.run = run
+            self.live_available = live_available
+            self.step = None if live_available else (0 if run is not None and run.n else None)
+            self._n = 0
+        self.sync()
+
+    @property
+    def n(self) -> int:
+        """Steps the slider covers."""
+        return self._n
+
+    def sync(self, n: int | None = None) -> None:
+        """Bring the slider up to date with the recording's ``n`` steps (the display thread, after
+        each recorded step); while live it follows the newest one."""
+        run = self.run
+        if n is None:
+            n = 0 if run is None else run.n
+        with self._lock:
+            grew = n != self._n
+            self._n = n
+            step = self.step
+        with self._writing():
+            s = self.slider
+            if grew:
+                top = max(n - 1, 1)
+                if s.max != top:
+                    s.max = top
+                if s.disabled != (n < 2):
+                    s.disabled = n < 2
+            value = (n - 1 if step is None else step) if n else 0
+            if s.value != max(value, 0):
+                s.value = max(value, 0)
+            if self.branch.disabled != (n == 0):
+                self.branch.disabled = n == 0
+        self._describe()
+
+    def _describe(self) -> None:
+        run, step, n = self.run, self.step, self._n
+        if run is None or n == 0:
+            text = "No recorded scan yet"
+        else:
+            shown = n - 1 if step is None else step
+            try:
+                scan = run.scan_of(shown)
+            except LidarlocError:
+                scan = shown
+            where = "live" if step is None else ("recorded" if self.live_available else "recorded run")
+            text = f"**Scan {scan}** · step {shown} of 0…{n - 1} · {where}"
+        if self.where.content != text:
+            self.where.content = text
+
+    @contextmanager
+    def _writing(self):
+        self._own.active = True
+        try:
+            yield
+        finally:
+            self._own.active = False
+
+    # ------------------------------------------------------------------ moves
+    def _slider_moved(self, event) -> None:
+        if getattr(self._own, "active", False):
+            return
+        self._guarded(lambda: self.go(int(self.slider.value)), needs_localizer=False)(event)
+
+    def _button(self) -> None:
+        {PREV_EVENT: self.prev_event, BACK: self.back, FORWARD: self.forward,
+         NEXT_EVENT: self.next_event, LIVE: self.live}[self.buttons.value]()
+
+    def _require(self) -> RecordedRun:
+        if self.run is None or self._n == 0:
+            raise LidarlocError("nothing recorded yet: play or step first")
+        return self.run
+
+    def current(self) -> int:
+        """The step on screen (the newest while live)."""
+        self._require()
+        return self._n - 1 if self.step is None else self.step
+
+    def go(self, step: int) -> int:
+        """Show recorded ``step`` (clamped to the recording); returns it."""
+        self._require()
+        step = int(np.clip(step, 0, self._n - 1))
+        with self._lock:
+            self.step = step
+        self.sync()
+        self._on_move(step)
+        return step
+
+    def back(self) -> int:
+        return self.go(self.current() - 1)
+
+    def forward(self) -> int:
+        """One step later; past the newest recorded step, live again (if there is a live run)."""
+        cur = self.current()
+        if cur + 1 >= self._n and self.live_available:
+            self.live()
+            return cur
+        return self.go(cur + 1)
+
+    def next_event(self) -> int:
+        run, cur = self._require(), self.current()
+        steps = run.event_steps()
+        later = steps[(steps > cur) & (steps < self._n)]
+        if not later.size:
+            raise LidarlocError("no later event in the recording")
+        return self.go(int(later[0]))
+
+    def prev_event(self) -> int:
+        run, cur = self._require(), self.current()
+        steps = run.event_steps()
+        earlier = steps[steps < cur]
+        if not earlier.size:
+            raise LidarlocError("no earlier event in the recording")
+        return self.go(int(earlier[-1]))
+
+    def live(self) -> None:
+        """Back to the newest step (a finished recording: its last step)."""
+        if not self.live_available:
+            self.go(self._n - 1)
+            return
+        with self._lock:
+            self.step = None
+        self.sync()
+        self._on_move(None)
+

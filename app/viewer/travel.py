@@ -1,0 +1,377 @@
+"""Time travel in the viewer: what the timeline shows, the recording of the live run, "Branch from
+here", and a second run beside the first (the original of a branch, or ``view --run A --run B``).
+
+:class:`TimeTravel` is the viewer's one handle on all of it. The viewer calls it at a few points:
+``on_step`` (player thread: record the step), ``shown`` (display thread: the recorded snapshot to
+draw while scrubbing, else None), ``after_draw`` (display thread: the timeline, the second run's
+particles, the plots' cursor), ``started`` (a new run to record) and ``close``.
+
+The second run ("reference") is drawn in its own colour: its trajectory, its particles and
+estimate at the step on screen (in lockstep by step), dashed lines in the plots, and its summary
+figures beside the first run's in the Compare folder.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.snapshot import Snapshot
+
+from .compare import figures_of, summary_table
+from .recorded import RecordedRun
+from .recorder import Recorder
+from .shapes import ChunkedPolyline, vehicle_outline
+from .style import REF_COLOR, REF_PARTICLE_COLOR
+from .timeline import Timeline
+from .why_worker import LatestOnly
+
+if TYPE_CHECKING:
+    from .app import Viewer
+
+
+@dataclass
+class RunContext:
+    """What the Why views need of a localizer, for a recorded run shown without one: its
+    configuration, map, lookup table and sequence (``k``: every recorded scan counts as processed)."""
+
+    cfg: object
+    seq: object
+    prior_map: object
+    lookup: object
+    k: int = 1 << 62
+    pyramid: object = None
+
+    @property
+    def effective_d_max(self) -> float:
+        return min(self.cfg.pf.d_max, self.lookup.d_max_built)
+
+
+class TimeTravel:
+    def __init__(self, viewer: Viewer, order: float):
+        self.v = viewer
+        self.recorder: Recorder | None = None
+        self.context: RunContext | None = None        # a recorded run's map and table (no localizer)
+        self.reference: RecordedRun | None = None
+        self.reference_label = ""
+        self.primary_label = ""
+        self._ref_series: dict | None = None
+        self._ref_version = 0
+        self._ref_drawn: tuple | None = None
+        self._ref_nodes: dict = {}
+        self._lock = threading.Lock()
+        self._no_recorder_lock = threading.RLock()
+        # scrubbing: the scans of recorded steps are recomputed here, the newest asked for only
+        self._scans = LatestOnly("lidarloc-scrub")
+        self._full: tuple | None = None        # ((run id, step), snapshot with its scan)
+        self._pending: tuple | None = None
+        self._replay: threading.Thread | None = None     # plays a recorded run's timeline
+        self._replay_stop = threading.Event()
+        self.branching = False
+        gui = viewer.server.gui
+        self.timeline = Timeline(gui, guarded=viewer._guarded, on_move=self._moved, order=order)
+        self.timeline.branch.on_click(viewer._guarded(self.branch_from_here, needs_localizer=False))
+        with gui.add_folder("Compare", order=order + 0.01, expand_by_default=True, visible=False) as folder:
+            self.compare_folder = folder
+            self.compare_text = gui.add_markdown("")
+        self.ref_line = ChunkedPolyline(viewer.server.scene, "/reference/trajectory", REF_COLOR, 2.0)
+
+    # ================================================================== recording the live run
+    def record_with(self, recorder: Recorder) -> None:
+        self.recorder = recorder
+
+    @property
+    def lock(self):
+        """Held while a step is recorded; controls that change the filter between steps take it."""
+        return self.recorder.lock if self.recorder is not None else self._no_recorder_lock
+
+    def started(self, loc, name: str = "run", branch_of: dict | None = None, first_step: int = 0) -> None:
+        """``loc`` starts a run (attached, restarted, branched): record it and put it on the slider."""
+        rec = self.recorder
+        if rec is None:
+            self.timeline.recording_text.content = ("<small>not recorded: the timeline and branches need a viewer "
+                                                    "started with its source options (`lidarloc demo`, `view`)</small>")
+            self.timeline.set_run(None)
+            return
+        try:
+            path = rec.start(loc, name, branch_of=branch_of, first_step=first_step)
+        except LidarlocError as exc:
+            self.v.show_message(f"not recording: {exc}", error=True, everyone=True)
+            self.timeline.set_run(None)
+            return
+        self.timeline.recording_text.content = f"<small>recording into `{path}`</small>"
+        self.timeline.set_run(rec.run, live_available=True)
+
+    def on_step(self, loc, snap: Snapshot) -> None:
+        """Player thread, after each step: append it to the recording."""
+        if self.recorder is not None:
+            self.recorder.on_scan(loc, snap)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+
+    def stop(self) -> None:
+        """The viewer stops: the scan and replay threads too, and the recording is closed."""
+        self._replay_stop.set()
+        self._scans.stop()
+        self.close()
+
+    # ================================================================== what is on screen
+    @property
+    def scrubbing(self) -> bool:
+        return self.timeline.step is not None
+
+    def _moved(self, step: int | None) -> None:
+        """The user moved the timeline (GUI thread): dragging pauses live playback."""
+        p = self.v.player
+        if step is not None and p is not None and p.playing:
+            p.pause()
+        if threading.current_thread() is not self._replay:
+            self._replay_stop.set()          # a drag pauses a recorded run's playback too
+        self.v.wake()
+
+    def to_live(self) -> None:
+        """Play or Step was pressed: the scene shows the live run again."""
+        if self.timeline.step is not None and self.timeline.live_available:
+            self.timeline.live()
+
+    def shown(self) -> Snapshot | None:
+        """The recorded snapshot to draw (display thread), or None: draw the live one.
+
+        The step's figures come at once; its scan, recomputed from the source, on the scan
+        thread: until it is there the scene shows no scan (never another step's), then the
+        display draws the step again with it."""
+        step, run = self.timeline.step, self.timeline.run
+        if step is None or run is None:
+            return None
+        key = (id(run), step)
+        full = self._full
+        if full is not None and full[0] == key:
+            return full[1]
+        quick = run.figures(step)
+        if run.seq is not None and self._pending != key:
+            self._pending = key
+            self._scans.submit("scan", lambda: run.snapshot(step), done=lambda snap: self._scan_ready(key, snap),
+                               failed=lambda message: self.v.show_message(f"scan of step {step}: {message}",
+                                                                          error=True))
+        return quick
+
+    def _scan_ready(self, key: tuple, snap: Snapshot) -> None:
+        self._full = (key, snap)
+        self.v.wake()
+
+    @property
+    def scan_shown(self) -> bool:
+        """The scene shows the scan of the step on the timeline (or the live one)."""
+        step, run = self.timeline.step, self.timeline.run
+        if step is None or run is None or run.seq is None:
+            return True
+        full = self._full
+        return full is not None and full[0] == (id(run), step) and self.v.drawn is full[1]
+
+    def after_draw(self, snap: Snapshot | None) -> None:
+        """Display thread, after each update: the slider follows the recording, the second run
+        shows the same step, the plots' cursor sits on the scan on screen."""
+        tl = self.timeline
+        if tl.run is not None and tl.live_available and self.recorder is not None and self.recorder.run is tl.run:
+            n = self.recorder.n
+            if n != tl.n:
+                tl.sync(n)
+        self._draw_reference(tl.current() if tl.run is not None and tl.n else None)
+        self.v.readouts.cursor = snap.scan_index if (snap is not None and tl.step is not None) else None
+
+    # ================================================================== playing a recorded run
+    @property
+    def replaying(self) -> bool:
+        return self._replay is not None and self._replay.is_alive() and not self._replay_stop.is_set()
+
+    def toggle_replay(self, speed: str) -> None:
+        """Play (or pause) a recorded run's timeline at ``speed`` steps per second ("max": as
+        fast as the display draws)."""
+        if self.replaying:
+            self.stop_replay()
+            return
+        tl = self.timeline
+        if tl.run is None or tl.n == 0:
+            raise LidarlocError("nothing recorded to play")
+        if tl.current() >= tl.n - 1:
+            tl.go(0)                         # played to the end: from the start again
+        self._replay_stop = threading.Event()
+        interval = 1.0 / (30.0 if speed == "max" else float(speed))
+        self._replay = threading.Thread(target=self._replay_loop, args=(self._replay_stop, interval),
+                                        name="lidarloc-replay", daemon=True)
+        self._replay.start()
+
+    def stop_replay(self) -> None:
+        self._replay_stop.set()
+
+    def _replay_loop(self, stop: threading.Event, interval: float) -> None:
+        tl = self.timeline
+        while not stop.wait(interval):
+            try:
+                cur = tl.current()
+                if cur >= tl.n - 1:
+                    break
+                tl.go(cur + 1)
+            except LidarlocError:
+                break
+        stop.set()
+        self.v.wake()
+
+    # ================================================================== a second run
+    def set_reference(self, run: RecordedRun | None, label: str = "", primary_label: str = "") -> None:
+        """Show ``run`` beside the one on screen (None: no second run)."""
+        with self._lock:
+            self.reference, self.reference_label, self.primary_label = run, label, primary_label
+            self._ref_series = None if run is None else run.series()
+            self._ref_version += 1
+            self._ref_drawn = None
+        self.v.readouts.reference = None if run is None else (label, self._ref_series)
+        if run is None:
+            self.ref_line.sync(self._ref_version, np.zeros((0, 3)), np.zeros(0, bool))
+            for node in self._ref_nodes.values():
+                node.visible = False
+            self.compare_folder.visible = False
+            return
+        est = self._ref_series["est"]
+        connected = np.ones(len(est), bool)
+        if len(est):
+            connected[0] = False
+        self.ref_line.sync(self._ref_version, est, connected)
+        self.compare_folder.visible = True
+        self.update_compare_table()
+
+    def set_layer(self, name: str, visible: bool) -> None:
+        """A Layers checkbox: the second run's nodes of that layer follow it."""
+        node = {"particles": self._ref_nodes.get("particles"), "vehicles": self._ref_nodes.get("vehicle")}.get(name)
+        if node is not None:
+            node.visible = visible
+        if name == "trajectories":
+            self.ref_line.set_visible(visible)
+
+    def update_compare_table(self, primary_summary: dict | None = None) -> None:
+        ref = self.reference
+        if ref is None:
+            return
+        prim = self.timeline.run
+        a = primary_summary if primary_summary is not None else (None if prim is None else prim.rec.summary)
+        fig_a = figures_of(a, None if a or prim is None else prim.series())
+        fig_b = figures_of(ref.rec.summary, self._ref_series)
+        self.compare_text.content = summary_table(
+            [(self.primary_label or "this run", fig_a), (self.reference_label or "other run", fig_b)],
+            colours=(None, REF_COLOR))
+
+    def _draw_reference(self, step: int | None) -> None:
+        """The second run's particles and estimate at the step on screen (or its last one)."""
+        ref = self.reference
+        if ref is None or step is None or ref.n == 0:
+            return
+        i = min(step, ref.n - 1)
+        key = (self._ref_version, i)
+        if key == self._ref_drawn:
+            return
+        self._ref_drawn = key
+        rec, j = ref._locate(i)
+        P = rec.particles(j)
+        xyz = np.ascontiguousarray(P[:, :3], np.float32)
+        pose = rec.mean_pose[j]
+        scene = self.v.server.scene
+        layers = self.v.scene.layers
+        dots = self._ref_nodes.get("particles")
+        if dots is None:
+            self._ref_nodes["particles"] = scene.add_point_cloud(
+                "/reference/particles", xyz, REF_PARTICLE_COLOR, point_size=0.6, precision="float32",
+                point_shape="circle", point_shading="flat", visible=layers.particles)
+        else:
+            dots.points = xyz
+            dots.visible = layers.particles
+        if np.isfinite(pose).all():
+            segs = vehicle_outline(pose)
+            veh = self._ref_nodes.get("vehicle")
+            if veh is None:
+                self._ref_nodes["vehicle"] = scene.add_line_segments(
+                    "/reference/vehicle", segs, REF_COLOR, thickness=3.0, thickness_units="screen",
+                    visible=layers.vehicles)
+            else:
+                veh.points = segs
+                veh.visible = layers.vehicles
+
+    # ================================================================== branch from here
+    def branch_from_here(self) -> None:
+        """Continue from the step on the slider with the Parameters folder's values (GUI thread:
+        the branch is built on a thread of its own; the page says when it is ready)."""
+        tl = self.timeline
+        run = tl.run
+        if run is None or tl.n == 0:
+            raise LidarlocError("nothing recorded yet: play or step first")
+        if self.branching:
+            raise LidarlocError("a branch is being started already")
+        step = tl.current()
+        v = self.v
+        changed = v.params.changed()
+        overrides = v.params.to_si(changed) if changed else {}
+        scan = run.scan_of(step)
+        self.branching = True
+        v.show_message(f"branching after scan {scan}" + (f" with {v.params.names(changed)}" if changed else
+                                                           " (no parameter changed)") + "…")
+        client = getattr(v._acting, "client", None)
+        threading.Thread(target=self._branch, args=(run, step, scan, overrides, changed, client),
+                         name="lidarloc-branch", daemon=True).start()
+
+    def _branch(self, run: RecordedRun, step: int, scan: int, overrides: dict, changed: dict, client) -> None:
+        v = self.v
+        try:
+            loc = open_branch_at(run, step, overrides, v.cache_root)
+        except LidarlocError as exc:
+            v.show_message(f"refused: branch: {exc}", error=True, client=client)
+            self.branching = False
+            return
+        except Exception as exc:  # keep the viewer alive and say what went wrong
+            import sys
+            import traceback
+
+            traceback.print_exc(file=sys.stderr)
+            v.show_message(f"internal error: branch: {type(exc).__name__}: {exc}", error=True, client=client)
+            self.branching = False
+            return
+        try:
+            original = run
+            rec, j = run._locate(step)
+            branch_of = {"run": str(rec.run_dir), "step": int(j)}
+            v.switch_to(loc, head=original.series(step + 1), head_events=[(s, e) for s, e in original.events()
+                                                                         if s <= step],
+                        name=f"branch-scan-{scan}", branch_of=branch_of, first_step=step + 1)
+            if changed:
+                v.params.accept(changed)
+                v._mark_pending()
+            label = f"original ({Path(original.path).name})"
+            self.set_reference(_reopened(original), label=label, primary_label=f"branch after scan {scan}")
+            where = self.recorder.run_dir if self.recorder is not None and self.recorder.run_dir else None
+            v.show_message(f"branched after scan {scan}: press Play to continue"
+                           + (f"; recording into {where}" if where else ""), client=client)
+        finally:
+            self.branching = False
+
+
+def _reopened(run: RecordedRun) -> RecordedRun:
+    """The original run as it now stands (it stopped growing when the branch took over)."""
+    run.refresh()
+    run.live = False
+    return run
+
+
+def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
+    """A localizer in ``run``'s exact state after ``step``, ``overrides`` (live parameters, SI)
+    applied (:func:`lidarloc.core.branch.open_branch`)."""
+    try:
+        from lidarloc.core.branch import open_branch
+    except ImportError:
+        raise LidarlocError("branching is not available in this installation (lidarloc.core.branch missing)") from None
+    rec, j = run._locate(step)
+    return open_branch(rec, j, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

@@ -1,0 +1,307 @@
+"""The viewer's timeline on a recorded run: the viewer records what it plays, the slider shows a
+recorded step exactly as it was (particles, estimate, status, plots' cursor), dragging pauses
+playback, the event buttons land on event steps, "Branch from here" continues in a folder of its
+own beside the original, and ``view --run`` opens a finished run (a moved source is one line)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from helpers import MAPPING_SCANS, wait_for
+
+from lidarloc.core import recording
+from lidarloc.core.config import Config
+from lidarloc.core.errors import LidarlocError
+from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+SCANS = 30
+
+
+def show(v) -> None:
+    """Redraw until the scene shows the timeline's step with its scan (recomputed on a thread)."""
+    wait_for(lambda: v.update_display(force_plots=True) is not None and v.travel.scan_shown, timeout=30,
+             what="the recorded step's scan")
+
+
+def town_setup(scans: int = SCANS, n_particles: int = 300):
+    """The short town (helpers.short_town) with its configuration, so that a recording of it can
+    be reopened from its source: (spec, cfg, seq)."""
+    cfg = Config()
+    cfg.town.n_scans = MAPPING_SCANS
+    cfg.pf.n_particles = n_particles
+    spec = SourceSpec(scans=scans)
+    return spec, cfg, open_sequence(spec, cfg)
+
+
+@pytest.fixture(scope="module")
+def recorded(cache_root, tmp_path_factory):
+    """A paused viewer on the short town that recorded its first steps: (handle, record root)."""
+    from lidarloc.app.viewer.serve import serve
+    from lidarloc.core.localizer import Localizer
+
+    spec, cfg, seq = town_setup()
+    loc = Localizer(seq, cfg, cache_root)
+    root = tmp_path_factory.mktemp("viewer-runs")
+    handle = serve(loc, port=0, autoplay=False, record_to=root, spec=spec, cache_root=cache_root)
+    v = handle.viewer
+    for _ in range(12):
+        v.step_once()
+        wait_for(lambda: v.player.idle, what="a step")
+    wait_for(lambda: v.travel.recorder.n == 12, what="12 recorded steps")
+    v.update_display(force_plots=True)
+    yield handle, root
+    handle.stop()
+    loc.close()
+
+
+def test_the_viewer_records_what_it_plays(recorded):
+    handle, root = recorded
+    v, loc = handle.viewer, handle.localizer
+    run_dir = v.travel.recorder.run_dir
+    assert run_dir.parent == root
+    rec = recording.open(run_dir)
+    assert rec.n == loc.steps == 12
+    assert rec.meta["source"]["scans"] == SCANS
+    np.testing.assert_array_equal(rec.scan_index, np.arange(12))
+    # the last recorded step is the localizer's state now
+    snap = loc.snapshot()
+    np.testing.assert_allclose(rec.mean_pose[-1], snap.mean_pose)
+    np.testing.assert_allclose(rec.particles(11), snap.particles.astype(np.float32))
+    assert v.travel.timeline.n == 12 and v.travel.timeline.slider.value == 11
+
+
+def test_scrubbing_shows_the_recorded_step(recorded):
+    handle, _ = recorded
+    v = handle.viewer
+    tl = v.travel.timeline
+    rec = recording.open(v.travel.recorder.run_dir)
+    try:
+        tl.slider.value = 4                          # as a drag in the browser: the callbacks run
+        assert tl.step == 4
+        v.update_display(force_plots=True)           # at once: the step's particles and estimate …
+        np.testing.assert_allclose(v.scene.node("particle_dots").points, rec.particles(4)[:, :3], atol=1e-5)
+        show(v)                                      # … then its scan
+        drawn = v.drawn
+        assert drawn.scan_index == 4
+        np.testing.assert_allclose(v.scene.node("particle_dots").points, rec.particles(4)[:, :3], atol=1e-5)
+        np.testing.assert_allclose(v.scene.node("pose").position, rec.mean_pose[4][:3, 3], atol=1e-5)
+        assert len(v.scene.node("scan").points) > 1000          # the scan, recomputed from the source
+        assert "**Scan 4 of" in v.controls.status.content and "recorded" in v.controls.status.content
+        assert "**Scan 4**" in tl.where.content
+        # the plots' cursor: one dot, at scan 4
+        x, *series = v.controls.plots.handles["std"].data
+        cursor = series[-1]
+        assert np.count_nonzero(np.isfinite(cursor)) == 1 and x[np.isfinite(cursor)][0] == 4
+        # a step back and forward
+        assert tl.back() == 3
+        show(v)
+        assert v.drawn.scan_index == 3
+        assert tl.forward() == 4
+    finally:
+        tl.live()
+    v.update_display()
+    assert v.drawn is handle.localizer.snapshot()
+    assert tl.step is None and tl.slider.value == 11
+
+
+def test_dragging_pauses_live_playback(recorded):
+    handle, _ = recorded
+    v, loc = handle.viewer, handle.localizer
+    tl = v.travel.timeline
+    v.play()
+    wait_for(lambda: loc.k >= 14, what="playing")
+    try:
+        tl.slider.value = 2
+        assert not v.player.playing
+        wait_for(lambda: v.player.idle, what="the scan in progress")
+        v.update_display()
+        assert v.drawn.scan_index == 2
+    finally:
+        tl.live()
+    wait_for(lambda: v.travel.recorder.n == loc.steps, what="the last step recorded")
+    v.update_display()
+    assert tl.slider.value == loc.steps - 1
+
+
+def test_event_buttons_land_on_event_steps(recorded):
+    handle, _ = recorded
+    v = handle.viewer
+    tl = v.travel.timeline
+    rec = recording.open(v.travel.recorder.run_dir)
+    marked = ("localized", "false_positive", "loss", "s2m_accepted", "s2m_rejected", "kidnap", "reset")
+    steps = sorted({max(s, 0) for s, e in rec.events if e.kind in marked})
+    assert len(steps) >= 2, f"the run should have had events by now: {rec.events}"
+    try:
+        tl.go(0)
+        landed = []
+        while True:
+            try:
+                landed.append(tl.next_event())
+            except LidarlocError:
+                break
+        assert landed == [s for s in steps if s > 0 and s < tl.n]
+        back = tl.prev_event()
+        assert back == landed[-2]
+        tl.buttons.value = "◀"            # the button group, as clicked
+        assert tl.step == back - 1
+    finally:
+        tl.live()
+
+
+def test_view_run_opens_a_finished_run_and_a_moved_source_is_one_line(recorded, cache_root, tmp_path):
+    from lidarloc.app.viewer.runs import load_run, open_runs
+
+    handle, _ = recorded
+    run_dir = handle.viewer.travel.recorder.run_dir
+    h2 = open_runs([run_dir], port=0, cache_root=cache_root, record_to=tmp_path / "branches")
+    try:
+        v = h2.viewer
+        tl = v.travel.timeline
+        assert tl.n >= 12 and tl.step == 0
+        tl.go(7)
+        show(v)
+        rec = recording.open(run_dir)
+        assert v.drawn.scan_index == 7
+        np.testing.assert_allclose(v.scene.node("particle_dots").points, rec.particles(7)[:, :3], atol=1e-5)
+        assert len(v.scene.node("scan").points) > 1000
+        assert "**Scan 7 of" in v.controls.status.content
+        # the Why views work on the recorded scan: its residuals at the estimate
+        v.why.residuals.enabled.value = True
+        v.why.redraw_residuals()
+        assert v.why.residuals.last is not None and len(v.why.residuals.last.points) > 0
+        # Play plays the recording's timeline; a drag pauses it
+        v.controls.speed.value = "max"
+        v.controls.play.value = True
+        wait_for(lambda: tl.step >= 10, what="the recorded run to play")
+        tl.slider.value = 2
+        assert not v.travel.replaying and tl.step == 2
+        # controls that need a live filter say why they cannot
+        v.controls.reset.value = True
+        assert "recorded run" in v.message
+        # a branch turns the recorded run into a live one, recorded beside it, with the panel's numbers
+        tl.go(5)
+        v.controls.params["sigma"].value = 0.8
+        assert v.controls.apply.label == "Apply 1 change"
+        tl.branch.value = True
+        wait_for(lambda: v.localizer is not None and not v.travel.branching, timeout=120, what="the branch")
+        assert v.localizer.k == rec.scan_index[5] + 1 and v.localizer.cfg.pf.sigma == 0.8
+        v.step_once()
+        wait_for(lambda: v.player.idle and v.travel.recorder.n == 7, what="a recorded branch step")
+        branch = recording.open(v.travel.recorder.run_dir)
+        assert v.travel.recorder.run_dir.parent == tmp_path / "branches"
+        assert branch.n == 1 and branch.meta["branch_of"] == {"run": str(rec.run_dir), "step": 5}
+    finally:
+        h2.stop()
+    # a run whose source moved: one line naming the path it expected
+    moved = tmp_path / "moved-run"
+    shutil.copytree(run_dir, moved)
+    index = moved / "recording" / "index.json"
+    data = json.loads(index.read_text())
+    data["meta"]["source"]["scans_dir"] = str(tmp_path / "gone" / "scans")
+    data["meta"]["source"]["town_seed"] = None
+    index.write_text(json.dumps(data))
+    with pytest.raises(LidarlocError) as exc:
+        load_run(moved, cache_root)
+    msg = str(exc.value)
+    assert "\n" not in msg and str(tmp_path / "gone" / "scans") in msg
+    with pytest.raises(LidarlocError) as exc:
+        load_run(tmp_path / "no-such-run", cache_root)
+    assert "\n" not in str(exc.value)
+
+
+def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
+    from lidarloc.app.viewer.runs import open_runs
+
+    handle, root = recorded
+    v = handle.viewer
+    first = v.travel.recorder.run_dir
+    v.controls.seed.value = 1
+    v.controls.restart.value = True                 # a new run, recorded in a folder of its own
+    second = v.travel.recorder.run_dir
+    assert second != first and second.parent == root
+    for _ in range(10):
+        v.step_once()
+        wait_for(lambda: v.player.idle, what="a step")
+    wait_for(lambda: v.travel.recorder.n == 10, what="10 recorded steps")
+    v.travel.recorder.close()                       # as the viewer does on stop: the summary is written
+    assert recording.open(first).summary is not None
+    h2 = open_runs([first, second], port=0, cache_root=cache_root)
+    try:
+        w = h2.viewer
+        a, b = recording.open(first), recording.open(second)
+        tl = w.travel.timeline
+        assert tl.n == a.n
+        tl.go(6)
+        w.update_display(force_plots=True)
+        # both particle clouds at the same step, one colour each
+        np.testing.assert_allclose(w.scene.node("particle_dots").points, a.particles(6)[:, :3], atol=1e-5)
+        ref = w.travel._ref_nodes["particles"]
+        np.testing.assert_allclose(ref.points, b.particles(6)[:, :3], atol=1e-5)
+        assert tuple(ref.colors.reshape(-1, 3)[0]) != tuple(w.scene.node("particle_dots").colors.reshape(-1, 3)[0])
+        # both trajectories: the second in its own colour
+        ref_pts = np.concatenate([h.points.reshape(-1, 3) for h in w.travel.ref_line.handles])
+        assert np.allclose(ref_pts[-1], b.mean_pose[b.n - 1][:3, 3], atol=1e-4)
+        # a step past the second run's end shows its last step
+        tl.go(a.n - 1)
+        w.update_display()
+        np.testing.assert_allclose(ref.points, b.particles(b.n - 1)[:, :3], atol=1e-5)
+        # overlaid plots: the second run's curves, dashed, on the same scan axis
+        h = w.controls.plots.handles["n_eff"]
+        labels = [s["label"] for s in h.series]
+        i_ref = next(i for i, lbl in enumerate(labels) if second.name in lbl)
+        x, ys = h.data[0], h.data[1:]
+        y_ref = ys[i_ref - 1]
+        share = b.n_eff / b.n_particles * 100.0
+        np.testing.assert_allclose(y_ref[: b.n], share, rtol=1e-9)
+        # the table: both runs' figures side by side
+        table = w.travel.compare_text.content
+        assert first.name in table and second.name in table and "RMSE after localized" in table
+        assert table.count("|") > 20
+    finally:
+        h2.stop()
+
+
+def test_branch_from_here_continues_in_its_own_folder_beside_the_original(recorded):
+    """Last in the file: the branch takes the viewer over."""
+    handle, root = recorded
+    v = handle.viewer
+    tl = v.travel.timeline
+    original_dir = v.travel.recorder.run_dir
+    original_n = recording.open(original_dir).n
+    tl.go(8)
+    scan = tl.run.scan_of(8)
+    original = handle.localizer
+    v.controls.params["sigma"].value = 0.9          # a changed parameter for the branch
+    tl.branch.value = True                           # the button, as clicked
+    wait_for(lambda: v.localizer is not original and v.travel.reference is not None and not v.travel.branching,
+             timeout=120, what="the branch to start")
+    loc = v.localizer
+    assert loc.k == scan + 1 and loc.cfg.pf.sigma == 0.9 and v.controls.apply.disabled
+    branch_dir = v.travel.recorder.run_dir
+    assert branch_dir.parent == root and branch_dir != original_dir and "branch" in branch_dir.name
+    # the branch plays on from there, recorded in its folder; the original stays as it was
+    for _ in range(3):
+        v.step_once()
+        wait_for(lambda: v.player.idle, what="a branch step")
+    wait_for(lambda: v.travel.recorder.n == 12, what="the branch's steps recorded")
+    rec = recording.open(branch_dir)
+    assert rec.n == 3 and rec.meta["branch_of"]["step"] == 8 and rec.meta["first_step"] == 9
+    np.testing.assert_array_equal(rec.scan_index, [scan + 1, scan + 2, scan + 3])
+    assert recording.open(original_dir).n == original_n
+    # the original's trajectory in its own colour beside the branch's; its curves dashed in the plots
+    v.update_display(force_plots=True)
+    assert v.travel.ref_line.handles, "no trajectory of the original drawn"
+    ref_pts = np.concatenate([h.points.reshape(-1, 3) for h in v.travel.ref_line.handles])
+    orig = recording.open(original_dir)
+    assert np.allclose(ref_pts[-1], orig.mean_pose[orig.n - 1][:3, 3], atol=1e-4)
+    labels = [s["label"] for s in v.controls.plots.handles["std"].series]
+    assert any("original" in lbl for lbl in labels)
+    # the timeline covers the original's steps before the branch and the branch's after
+    assert tl.n == 12 and tl.run.scan_of(3) == 3 and tl.run.scan_of(10) == scan + 2
+    tl.go(2)
+    v.update_display()
+    np.testing.assert_allclose(v.scene.node("particle_dots").points, orig.particles(2)[:, :3], atol=1e-5)
+    assert "B: scans until the rule" in v.travel.compare_text.content

@@ -23,8 +23,9 @@ up to its last complete step after a crash:
   exact float64 state for resuming is in the resume payload's checkpoints.
 - ``events.jsonl``: one event per line with the step after which it was recorded (-1: before the
   first scan).
-- ``s2m/STEP.npz``: each S2M match that landed (an :class:`~lidarloc.core.snapshot.S2MView`; its
-  road-removed scan in the matched pose's frame as float16: a display's precision, ≤ 6 cm at 100 m).
+- ``s2m/STEP.json`` and ``s2m/STEP.f16``: each S2M match that landed (an
+  :class:`~lidarloc.core.snapshot.S2MView`; its road-removed scan in the matched pose's frame as
+  float16: a display's precision, ≤ 6 cm at 100 m).
 - ``resume/STEP-NAME.npz``: what resuming needs (:meth:`Localizer.resume_payload`: checkpoints of
   the filter's exact state, raw S2M outcomes); its per-step arrays are ordinary fields.
 - ``steps.bin``: the commit log, one int64 per step, written after everything else of the step.
@@ -62,6 +63,7 @@ FOLDER = "recording"
 INDEX = "index.json"
 STEPS = "steps.bin"
 N_STATE = 11
+COMPRESS_ABOVE_BYTES = 64 * 1024
 
 
 class RecordingError(LidarlocError):
@@ -92,7 +94,7 @@ _FIELDS: dict[str, tuple[str, tuple]] = {
 _PARTICLES = ("particles", "<f4", (N_STATE,))
 _LOG_WEIGHTS = ("log_weights", "<f4", ())
 
-_S2M_ARRAYS = ("pose", "scan_world", "start_pose", "candidates", "match_pose", "gicp_pose")
+_S2M_ARRAYS = ("pose", "start_pose", "candidates", "match_pose", "gicp_pose")
 
 
 def _nan(value) -> float:
@@ -230,7 +232,7 @@ class RecordingWriter:
         self._particle_row += n
         self._write_events(loc, i, snap.scan_index)
         if snap.s2m is not None and snap.s2m is not self._last_s2m:
-            _save_s2m(self.path / "s2m" / f"{i:06d}.npz", snap.s2m)
+            _save_s2m(self.path / "s2m", i, snap.s2m)
         self._last_s2m = snap.s2m
         payload = loc.resume_payload(i) if hasattr(loc, "resume_payload") else None
         if payload is not None:
@@ -270,7 +272,9 @@ class RecordingWriter:
                 new_field = True
             self._append(name, arr)
         for name, arrays in payload.files.items():
-            np.savez_compressed(self.path / "resume" / f"{i:06d}-{name}.npz", **arrays)
+            # a checkpoint (~0.1 MB at 1000 particles) compresses ~10×; a small file is not worth the time
+            big = sum(np.asarray(a).nbytes for a in arrays.values()) > COMPRESS_ABOVE_BYTES
+            (np.savez_compressed if big else np.savez)(self.path / "resume" / f"{i:06d}-{name}.npz", **arrays)
         if new_field:
             self._write_index()
 
@@ -289,57 +293,51 @@ class RecordingWriter:
         self._write_index()
 
 
-def _save_s2m(path: Path, view: S2MView) -> None:
-    data: dict[str, np.ndarray] = {}
+def _save_s2m(folder: Path, step: int, view: S2MView) -> None:
+    """``STEP.json`` (every field but the scan; JSON keeps float64 exactly) and ``STEP.f16`` (the
+    scan: its bulk, in the matched pose's frame as float16, ≤ 6 cm at 100 m, a display's needs,
+    about a quarter of the size of float32 world coordinates). Plain files, no zip: a match lands
+    every other scan, and compressing it cost more than the rest of the step's record."""
+    data: dict[str, Any] = {}
     for f in dataclasses.fields(view):
         value = getattr(view, f.name)
         if f.name == "scan_world":
-            # scan points, the bulk of a match: in the matched pose's frame as float16 (≤ 6 cm at
-            # 100 m, a display's needs), about a quarter of their float32 world coordinates' size
             pose = np.asarray(view.pose, np.float64)
-            local = (np.asarray(value, np.float64) - pose[:3, 3]) @ pose[:3, :3]
-            data["scan_local_f16"] = local.astype(np.float16)
-        elif f.name in _S2M_ARRAYS:
-            if value is not None:
-                data[f.name] = np.asarray(value)
-        elif f.name in ("region", "nodes_per_level", "gicp_correction"):
-            data[f.name] = np.asarray(value, dtype=np.float64)
-        elif isinstance(value, str):
-            data[f.name] = np.array(value)
-        elif value is None:
-            continue
+            local = (np.asarray(value, np.float64).reshape(-1, 3) - pose[:3, 3]) @ pose[:3, :3]
+            (folder / f"{step:06d}.f16").write_bytes(local.astype("<f2").tobytes())
+        elif isinstance(value, np.ndarray):
+            data[f.name] = np.asarray(value, np.float64).tolist()
+        elif isinstance(value, tuple):
+            data[f.name] = [float(v) for v in value]
         else:
-            data[f.name] = np.array(value)
-    np.savez_compressed(path, **data)
+            data[f.name] = _jsonable(value)
+    (folder / f"{step:06d}.json").write_text(json.dumps(data))
 
 
-def _load_s2m(path: Path) -> S2MView:
-    with np.load(path, allow_pickle=False) as z:
-        d = {k: z[k] for k in z.files}
+def _load_s2m(folder: Path, step: int) -> S2MView:
+    d = json.loads((folder / f"{step:06d}.json").read_text())
     kw: dict[str, Any] = {}
-    if "scan_local_f16" in d:
-        pose = d["pose"].astype(np.float64)
-        d["scan_world"] = (d["scan_local_f16"].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
     for f in dataclasses.fields(S2MView):
+        if f.name == "scan_world":
+            raw = folder / f"{step:06d}.f16"
+            local = np.frombuffer(raw.read_bytes(), "<f2").reshape(-1, 3).astype(np.float64) if raw.is_file() \
+                else np.zeros((0, 3))
+            pose = np.asarray(d["pose"], np.float64)
+            kw[f.name] = (local @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+            continue
         if f.name not in d:
             continue
         v = d[f.name]
         if f.name in _S2M_ARRAYS:
-            kw[f.name] = v
-        elif f.name == "region":
-            kw[f.name] = tuple(float(x) for x in v)
+            kw[f.name] = None if v is None else np.asarray(v, np.float64)
         elif f.name == "nodes_per_level":
             kw[f.name] = tuple(int(x) for x in v)
-        elif f.name == "gicp_correction":
+        elif f.name in ("region", "gicp_correction"):
             kw[f.name] = tuple(float(x) for x in v)
-        elif v.dtype.kind in "US":
-            kw[f.name] = str(v)
-        elif v.dtype.kind == "b":
-            kw[f.name] = bool(v)
-        elif v.dtype.kind in "iu":
-            kw[f.name] = int(v)
         else:
-            kw[f.name] = float(v)
+            kw[f.name] = v
+    if kw.get("candidates") is not None:
+        kw["candidates"] = kw["candidates"].reshape(-1, 4)
     return S2MView(**kw)
 
 
@@ -491,7 +489,7 @@ class Recording:
     def s2m_steps(self) -> list[int]:
         """Steps at which an S2M match landed."""
         steps = []
-        for f in (self.path / "s2m").glob("*.npz"):
+        for f in (self.path / "s2m").glob("*.json"):
             try:
                 step = int(f.stem)
             except ValueError:
@@ -509,9 +507,9 @@ class Recording:
         step = landed[-1]
         if step not in self._s2m_cache:
             try:
-                self._s2m_cache[step] = _load_s2m(self.path / "s2m" / f"{step:06d}.npz")
-            except (OSError, ValueError, KeyError) as exc:
-                raise RecordingError(f"{self.path}/s2m/{step:06d}.npz: unreadable ({exc})") from None
+                self._s2m_cache[step] = _load_s2m(self.path / "s2m", step)
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                raise RecordingError(f"{self.path}/s2m/{step:06d}.json: unreadable ({exc})") from None
         return self._s2m_cache[step]
 
     @property

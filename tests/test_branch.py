@@ -77,6 +77,27 @@ def test_a_run_records_by_default_and_not_with_no_record(original, tmp_path, cac
     assert (out / "summary.json").is_file() and not (out / "recording").exists()
 
 
+def branch_to_the_end(rec, seq, k: int, out, cache_root, check=None) -> None:
+    """Branch ``rec`` at step k with no change, record it into ``out`` to the end, and check it
+    repeats the original bit for bit (``check(branch)`` first, on the fresh branch)."""
+    from lidarloc.core.branch import continue_recording, open_branch
+    from lidarloc.core.recording import RecordingWriter
+
+    branch = open_branch(rec, k, seq=seq, cache_root=cache_root)
+    try:
+        if check is not None:
+            check(branch)
+        w = RecordingWriter(out, rec.source_spec(), branch.cfg, seq, branch_of={"run": str(rec.run_dir), "step": k},
+                            first_step=k + 1)
+        continue_recording(w, branch)
+        while not branch.done:
+            w.on_scan(branch, branch.step())
+        w.close()
+    finally:
+        branch.close()
+    branch_rows_equal_original(recording.open(out), rec, k)
+
+
 def branch_rows_equal_original(branch: recording.Recording, rec: recording.Recording, k: int) -> None:
     """Every row of the branch equals the original's from step k + 1 on, bit for bit."""
     assert branch.n == rec.n - (k + 1) and branch.n > 0
@@ -146,7 +167,6 @@ def test_a_branch_across_a_kidnap_in_the_original(tmp_path, cache_root):
     after it restores the restarted odometry and repeats the run from there bit for bit."""
     from helpers import short_town
 
-    from lidarloc.core.branch import continue_recording
     from lidarloc.core.localizer import Localizer
     from lidarloc.core.recording import RecordingWriter
 
@@ -166,18 +186,9 @@ def test_a_branch_across_a_kidnap_in_the_original(tmp_path, cache_root):
     assert any(e.kind == "kidnap" for _, e in rec.events) and rec.scan_index[6] == 9
     assert 6 in rec.resume_steps("checkpoint")            # the first step after the kidnap
     k = 8                                                 # replays steps 7 and 8
-    branch = open_branch(rec, k, seq=seq, cache_root=cache_root)
-    try:
+    def after_the_kidnap(branch):
         assert branch.odometry.origin == 9 and branch.k == rec.scan_index[k] + 1
-        w = RecordingWriter(tmp_path / "branch", SourceSpec(scans=24), branch.cfg, seq,
-                            branch_of={"run": str(run), "step": k}, first_step=k + 1)
-        continue_recording(w, branch)
-        while not branch.done:
-            w.on_scan(branch, branch.step())
-        w.close()
-    finally:
-        branch.close()
-    branch_rows_equal_original(recording.open(tmp_path / "branch"), rec, k)
+    branch_to_the_end(rec, seq, k, tmp_path / "branch", cache_root, after_the_kidnap)
     # before the kidnap: a branch repeats the original up to it, then drives on without it (the
     # kidnap was a control, not part of the recorded run's state)
     before = open_branch(rec, 4, seq=seq, cache_root=cache_root)
@@ -193,7 +204,6 @@ def test_s2m_joining_late_joins_the_replay_at_the_same_scan(tmp_path, cache_root
     the background, at a scan timing chose: a replay from before it holds S2M back until then."""
     from helpers import short_town
 
-    from lidarloc.core.branch import continue_recording
     from lidarloc.core.localizer import S2M_READY_DETAIL, Localizer
     from lidarloc.core.recording import RecordingWriter
     from lidarloc.core.resume import checkpoint_state
@@ -216,18 +226,7 @@ def test_s2m_joining_late_joins_the_replay_at_the_same_scan(tmp_path, cache_root
     rec = recording.open(run)
     assert checkpoint_state(rec.resume_file(10, "checkpoint"))["s2m"]["pending"]
     assert rec.s2m_steps and rec.s2m_steps[0] > 12
-    k = 11
-    branch = open_branch(rec, k, seq=seq, cache_root=cache_root)
-    try:
-        w = RecordingWriter(tmp_path / "branch", SourceSpec(scans=20), branch.cfg, seq,
-                            branch_of={"run": str(run), "step": k}, first_step=k + 1)
-        continue_recording(w, branch)
-        while not branch.done:
-            w.on_scan(branch, branch.step())
-        w.close()
-    finally:
-        branch.close()
-    branch_rows_equal_original(recording.open(tmp_path / "branch"), rec, k)
+    branch_to_the_end(rec, seq, 11, tmp_path / "branch", cache_root)
 
 
 def test_a_recording_cut_short_branches_at_its_last_complete_step(original, tmp_path, cache_root):

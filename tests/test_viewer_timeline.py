@@ -252,7 +252,7 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
         h = w.controls.plots.handles["n_eff"]
         labels = [s["label"] for s in h.series]
         i_ref = next(i for i, lbl in enumerate(labels) if second.name in lbl)
-        x, ys = h.data[0], h.data[1:]
+        ys = h.data[1:]
         y_ref = ys[i_ref - 1]
         share = b.n_eff / b.n_particles * 100.0
         np.testing.assert_allclose(y_ref[: b.n], share, rtol=1e-9)

@@ -22,7 +22,7 @@ SCANS = 20
 @pytest.fixture(scope="module")
 def recorded_run(cache_root, tmp_path_factory):
     """A finished 20-scan run of the short town, recorded as ``lidarloc run`` records."""
-    from lidarloc.app.bench.scrub import record_run
+    from lidarloc.app.bench.common import record_run
     from lidarloc.core.config import Config
     from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 

@@ -24,30 +24,15 @@ import numpy as np
 
 from lidarloc.core import recording
 from lidarloc.core.branch import open_branch
-from lidarloc.core.localizer import Localizer
 from lidarloc.core.resume import CHECKPOINT_EVERY
 
-from .common import load_avg, machine
+from .common import load_avg, machine, record_run
 
 TARGET_START_S = 1.0
 BUDGET_MB_PER_1000 = 10.0
 RESUME_FIELDS = ("odom_pose", "odom_prev_pose", "odom_path_turned", "odom_prev_path_turned", "odom_origin",
                  "odom_used", "s2m_landed_started")
 
-
-def record_run(spec, seq, cfg, out: Path, cache_root: Path | None = None, progress=None) -> Path:
-    """Record a run of ``seq`` into ``out`` (what ``lidarloc run`` records)."""
-    loc = Localizer(seq, cfg, cache_root)
-    try:
-        writer = recording.RecordingWriter(out, spec, cfg, seq)
-        while not loc.done:
-            writer.on_scan(loc, loc.step())
-            if progress is not None:
-                progress(loc.k, len(seq))
-        writer.close()
-    finally:
-        loc.close()
-    return out
 
 
 def sizes(rec: recording.Recording) -> dict:

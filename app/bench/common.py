@@ -128,3 +128,22 @@ def pose_error(T: np.ndarray, G: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) of the difference between pose T and the truth G."""
     D = inv_pose(G) @ T
     return float(np.linalg.norm(D[:3, 3])), math.degrees(math.acos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+
+
+def record_run(spec, seq, cfg, out: Path, cache_root: Path | None = None, progress=None) -> Path:
+    """Run ``seq`` to its end with a recording into ``out`` (what ``lidarloc run --out`` records);
+    ``progress(i, n)`` after each scan."""
+    from lidarloc.core import recording
+    from lidarloc.core.localizer import Localizer
+
+    loc = Localizer(seq, cfg, cache_root)
+    try:
+        writer = recording.RecordingWriter(out, spec, cfg, seq)
+        while not loc.done:
+            writer.on_scan(loc, loc.step())
+            if progress is not None:
+                progress(loc.k, loc.n_scans)
+        writer.close(None)
+    finally:
+        loc.close()
+    return out

@@ -25,27 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core import recording
-from lidarloc.core.localizer import Localizer
 
-from .common import load_avg, machine
+
+from .common import load_avg, machine, record_run
 
 TARGET_MS = 50.0
 
-
-def record_run(spec, seq, cfg, out: Path, cache_root: Path | None = None, progress=None) -> Path:
-    """Run ``seq`` to its end with a recording into ``out`` (what ``lidarloc run --out`` records)."""
-    loc = Localizer(seq, cfg, cache_root)
-    try:
-        writer = recording.RecordingWriter(out, spec, cfg, seq)
-        while not loc.done:
-            writer.on_scan(loc, loc.step())
-            if progress is not None:
-                progress(loc.k, loc.n_scans)
-        writer.close(None)
-    finally:
-        loc.close()
-    return out
 
 
 def _wait_quiet(client, quiet_s: float = 0.3, limit_s: float = 20.0) -> None:
@@ -139,6 +124,6 @@ def scrub(run_dir: Path | None = None, spec=None, seq=None, cfg=None, cache_root
         "open_run_s": round(open_s, 2),
         "record_run_s": None if record_s is None else round(record_s, 1),
         "source": run.meta.get("source_description"),
-        "load_avg": load_avg(),
+        "load_average_1min": load_avg(),
         "machine": machine(),
     }

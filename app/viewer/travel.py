@@ -16,7 +16,6 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,9 +29,6 @@ from .shapes import ChunkedPolyline, vehicle_outline
 from .style import REF_COLOR, REF_PARTICLE_COLOR
 from .timeline import Timeline
 from .why_worker import LatestOnly
-
-if TYPE_CHECKING:
-    from .app import Viewer
 
 
 @dataclass
@@ -53,7 +49,11 @@ class RunContext:
 
 
 class TimeTravel:
-    def __init__(self, viewer: Viewer, order: float):
+    """Scrubbing, branching and a second run beside the first, for ``viewer`` (the
+    :class:`~lidarloc.app.viewer.app.Viewer` that owns it; not imported here: the viewer imports
+    this module)."""
+
+    def __init__(self, viewer, order: float):
         self.v = viewer
         self.recorder: Recorder | None = None
         self.context: RunContext | None = None        # a recorded run's map and table (no localizer)

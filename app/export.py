@@ -17,6 +17,13 @@ estimate and an overlay in the page's corner.
 The map and the scans come from the run's source, which the recording names (one-line error if
 it moved); the map is thinned for display so that a 300-scan run of a real drive stays well under
 100 MB.
+
+Why viser's own serializer and not ``viser4d`` (a viser extension with a time-indexed scene, a
+scrub/step overlay and an HTML export): it was tried on the same 50-step scene and works (same
+sizes, plays offline from ``file://``), but it is an alpha by one author that reaches into viser's
+private internals (hence its pin below viser 1.2), needs Python ≥ 3.11 and numpy ≥ 2.4 where
+lidarloc supports Python 3.10 and numpy 1.24, and brings a dependency we do not use
+(``viser-audio``). viser's serializer and its embedded player do all that export needs.
 """
 
 from __future__ import annotations

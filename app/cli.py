@@ -421,6 +421,15 @@ def bench_surface(
     _result("surface", run_bench(spec, cfg, scans=samples, repeats=repeats), as_json)
 
 
+def _recorded_unless(run_dir: Path | None, spec, cfg):
+    """(spec, the sequence to record first): none with --run, else the source's first 1000 scans
+    unless --scans says otherwise."""
+    if run_dir is not None:
+        return spec, None
+    spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
+    return spec, open_source(spec, cfg, err)
+
+
 @bench_app.command("record")
 @with_source()
 def bench_record(
@@ -438,8 +447,7 @@ def bench_record(
     cfg = config_from(config, set_, seed=seed, preset=preset)
     if particles is not None:
         cfg.pf.n_particles = particles
-    spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
-    seq = open_source(spec, cfg, err)
+    spec, seq = _recorded_unless(None, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=len(seq))
         result = run_bench(spec, seq, cfg, cache_root=cache, progress=lambda i, n: bar.update(task, completed=i))
@@ -463,10 +471,7 @@ def bench_scrub(
     from .bench.scrub import scrub
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    seq = None
-    if run_dir is None:
-        spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
-        seq = open_source(spec, cfg, err)
+    spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=None if seq is None else len(seq))
         result = scrub(run_dir, spec=spec, seq=seq, cfg=cfg, cache_root=cache, moves=moves, out=out,
@@ -489,12 +494,9 @@ def bench_branch(
     from .bench.branch import run as run_bench
 
     cfg = config_from(config, set_, preset=preset)
-    seq = None
-    if run_dir is None:
-        spec = replace(spec, scans=1000 if spec.scans is None else spec.scans)
-        seq = open_source(spec, cfg, err)
+    spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
-        task = bar.add_task("recording", total=len(seq) if seq is not None else None)
+        task = bar.add_task("recording", total=None if seq is None else len(seq))
         result = run_bench(spec, seq, cfg, cache_root=cache, run_dir=run_dir, repeats=repeats,
                            progress=lambda i, n: bar.update(task, completed=i))
     _result("branch", result, as_json)

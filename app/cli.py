@@ -238,11 +238,11 @@ def export(
 
 
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None):
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True):
     from .viewer.serve import serve_until_interrupted
 
     serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
-                            autoplay=autoplay, record_dir=record_dir, preset=preset)
+                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record)
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
@@ -252,6 +252,8 @@ AutoplayOpt = Annotated[bool, typer.Option(
 RecordDirOpt = Annotated[Optional[Path], typer.Option(
     "--record-dir", help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
                          "(default: a new runs/<date-time> folder under the cache directory).")]
+NoRecordViewOpt = Annotated[bool, typer.Option(
+    "--no-record", help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).")]
 RunOpt = Annotated[Optional[list[Path]], typer.Option(
     "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
                   "source side by side); the map and scans come from the source the run names.")]
@@ -261,11 +263,11 @@ RunOpt = Annotated[Optional[list[Path]], typer.Option(
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None):
+         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
-           record_dir=record_dir, preset=preset)
+           record_dir=record_dir, preset=preset, record=not no_record)
 
 
 @app.command()
@@ -274,7 +276,8 @@ def view(
     host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-    autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, run: RunOpt = None,
+    autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
+    run: RunOpt = None,
 ):
     """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
     if run:
@@ -284,7 +287,7 @@ def view(
         return
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
-           preset=preset)
+           preset=preset, record=not no_record)
 
 
 # -------------------------------------------------------------------------------------- benches

@@ -305,3 +305,31 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     v.update_display()
     np.testing.assert_allclose(v.scene.node("particle_dots").points, orig.particles(2)[:, :3], atol=1e-5)
     assert "B: scans until the rule" in v.travel.compare_text.content
+
+
+@pytest.mark.parametrize("command", ["demo", "view"])
+def test_no_record_reaches_the_viewer(command, monkeypatch):
+    from typer.testing import CliRunner
+
+    from lidarloc.app import cli
+    from lidarloc.app.viewer import serve as serve_module
+
+    seen = {}
+
+    def fake(spec, cfg, **kwargs):
+        seen.update(kwargs)
+    monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
+    runner = CliRunner()
+    assert runner.invoke(cli.app, [command]).exit_code == 0 and seen["record"] is True
+    assert runner.invoke(cli.app, [command, "--no-record"]).exit_code == 0 and seen["record"] is False
+
+
+def test_a_viewer_that_does_not_record_says_so_on_branch(viewer):
+    """Served without a recording (``--no-record``): Branch from here is refused in one line that
+    says why, not "nothing recorded yet"."""
+    v = viewer.viewer
+    assert v.travel.recorder is None
+    v.step_once()
+    wait_for(lambda: v.localizer.k >= 1, what="a scan played")
+    with pytest.raises(LidarlocError, match="does not record"):
+        v.travel.branch_from_here()

@@ -155,10 +155,11 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
 
 def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
                             console: Console, open_browser: bool = False, autoplay: bool = False,
-                            record_dir: Path | None = None, preset: str | None = None) -> None:
+                            record_dir: Path | None = None, preset: str | None = None, record: bool = True) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
-    ``runs/<date-time>`` folder under the cache root), which is printed."""
+    ``runs/<date-time>`` folder under the cache root), which is printed; with ``record`` False
+    nothing is (``--no-record``: the timeline and Branch from here are then off)."""
     seq = open_source(spec, cfg, console)   # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
@@ -184,14 +185,15 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     # before the server starts so an early Ctrl-C also shuts down in order.
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        root = record_dir if record_dir is not None else default_record_root(cache_root)
+        root = None if not record else record_dir if record_dir is not None else default_record_root(cache_root)
         handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None,
-                       record_to=root, spec=spec, preset=preset, cache_root=cache_root)
+                       record_to=root, spec=spec if record else None, preset=preset, cache_root=cache_root)
     except BaseException:
         signal.signal(signal.SIGINT, previous)
         raise
     console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
-    console.print(f"recording into {root} (open a run later with lidarloc view --run {root}/run)",
+    console.print(f"recording into {root} (open a run later with lidarloc view --run {root}/run)" if root is not None
+                  else "not recording (--no-record): the timeline and Branch from here are off",
                   markup=False, highlight=False, soft_wrap=True)
     try:
         with bar:

@@ -308,6 +308,8 @@ class TimeTravel:
         the branch is built on a thread of its own; the page says when it is ready)."""
         tl = self.timeline
         run = tl.run
+        if run is None and self.recorder is None:
+            raise LidarlocError("this viewer does not record (started with --no-record): nothing to branch from")
         if run is None or tl.n == 0:
             raise LidarlocError("nothing recorded yet: play or step first")
         if self.branching:

@@ -28,7 +28,7 @@ into a checkpoint's state; :mod:`lidarloc.core.branch` then replays the steps af
 
 Sizes per 1000 steps (``lidarloc bench branch``, the built-in town's first 1000 scans, 1000
 particles): checkpoints 1.5 MB, per-step fields 0.3 MB (budget for both: 10 MB), S2M outcomes
-0.9 MB. A checkpoint is small because a resampled cloud holds runs of identical particles, which
+2.4 MB (a few kB each, stored uncompressed: compressing them cost more time than it saved space). A checkpoint is small because a resampled cloud holds runs of identical particles, which
 the compression folds; 1000 distinct particles would take ~0.1 MB per checkpoint, still within
 the budget.
 """

@@ -44,6 +44,7 @@ per-step fields, plus the resume payload: ~50 MB per 1000 steps at 1000 particle
 
 from __future__ import annotations
 
+import bisect
 import builtins
 import dataclasses
 import datetime as _dt
@@ -393,6 +394,7 @@ class Recording:
         self.n = int(n)
         self._cache.clear()
         self._s2m_cache: dict[int, S2MView] = {}
+        self._s2m_steps: list[int] | None = None
         self._events: list | None = None
 
     # ------------------------------------------------------------------ fields
@@ -487,24 +489,27 @@ class Recording:
 
     @property
     def s2m_steps(self) -> list[int]:
-        """Steps at which an S2M match landed."""
-        steps = []
-        for f in (self.path / "s2m").glob("*.json"):
-            try:
-                step = int(f.stem)
-            except ValueError:
-                continue
-            if step < self.n:
-                steps.append(step)
-        return sorted(steps)
+        """Steps at which an S2M match landed (listed once: the recording is read as it was opened)."""
+        if self._s2m_steps is None:
+            steps = []
+            for f in (self.path / "s2m").glob("*.json"):
+                try:
+                    step = int(f.stem)
+                except ValueError:
+                    continue
+                if step < self.n:
+                    steps.append(step)
+            self._s2m_steps = sorted(steps)
+        return self._s2m_steps
 
     def s2m(self, i: int) -> S2MView | None:
         """The last S2M match that landed at or before step i."""
         i = self._check(i)
-        landed = [s for s in self.s2m_steps if s <= i]
-        if not landed:
+        steps = self.s2m_steps
+        at = bisect.bisect_right(steps, i)
+        if at == 0:
             return None
-        step = landed[-1]
+        step = steps[at - 1]
         if step not in self._s2m_cache:
             try:
                 self._s2m_cache[step] = _load_s2m(self.path / "s2m", step)

@@ -45,7 +45,6 @@ class RecordedRun:
         if branch and self.first_step > 0:
             self.parent = RecordedRun(branch["run"], seq)
         self._snap: tuple[int, Snapshot] | None = None
-        self._s2m_steps: tuple[int, list[int]] | None = None
 
     # ------------------------------------------------------------------ steps
     @property
@@ -63,7 +62,6 @@ class RecordedRun:
         with self._lock:
             if self.live:
                 self._rec = recording.open(self._rec.path)
-                self._s2m_steps = None
             return self.n
 
     def _locate(self, i: int) -> tuple[recording.Recording, int]:

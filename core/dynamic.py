@@ -43,6 +43,7 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
+from .geometry import as_points
 from .lookup import MISS_CODE, LookupTable, lookup_code
 from .voxelhash import hash_slot, voxel_key
 
@@ -162,9 +163,7 @@ class DynamicPointFilter:
     def keep_mask(self, points: np.ndarray, pose_xyzypr) -> np.ndarray:
         """(M,) bool: which of the (M, ≥3) sensor-frame ``points`` to use at this scan, given the
         expected pose (x, y, z, yaw, pitch, roll). Records the scan's far cells for the next one."""
-        pts = np.asarray(points)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+        pts = as_points(points)
         pose = np.ascontiguousarray(np.asarray(pose_xyzypr, dtype=np.float64).reshape(-1)[:6])
         if pose.shape[0] != 6:
             raise LidarlocError("pose must be (x, y, z, yaw, pitch, roll)")

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import LidarlocError
+
 
 def wrap_angle(a):
     """Wrap angles to [-π, π)."""
@@ -74,3 +76,11 @@ def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Apply a 4×4 transform to (N, ≥3) points; returns (N, 3)."""
     pts = np.asarray(pts)
     return pts[:, :3] @ T[:3, :3].T + T[:3, 3]
+
+
+def as_points(points) -> np.ndarray:
+    """``points`` as an (M, ≥3) array (not copied), or a one-line error naming the shape it has."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    return pts

@@ -54,6 +54,7 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
+from .geometry import as_points
 from .lookup import BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MISS_CODE, LookupTable, lookup_code
 
 
@@ -227,9 +228,7 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     st = np.ascontiguousarray(states, dtype=np.float64)
     if st.ndim != 2 or st.shape[1] < 6:
         raise LidarlocError(f"states must be (N, ≥6); got shape {st.shape}")
-    pts = np.asarray(scan)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = as_points(scan)
     n = len(st)
     if n == 0 or len(pts) == 0:
         return np.zeros(n, np.float64)
@@ -264,9 +263,7 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
     st = np.ascontiguousarray(states, dtype=np.float64)
     prior = np.ascontiguousarray(prior_log_w, dtype=np.float64)
     n = len(st)
-    pts = np.asarray(scan)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = as_points(scan)
     m = len(pts)
     if n == 0 or m == 0:
         return np.zeros(n, np.float64)
@@ -332,9 +329,7 @@ def residual_stats(pose_xyzypr, scan_points: np.ndarray, lookup: LookupTable, d_
     pose = np.asarray(pose_xyzypr, dtype=np.float64).reshape(-1)
     if pose.shape[0] < 6:
         raise LidarlocError(f"pose must be (x, y, z, yaw, pitch, roll); got {pose.shape[0]} values")
-    pts = np.asarray(scan_points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = as_points(scan_points)
     d_max = float(d_max)
     if not d_max > 0:
         raise LidarlocError(f"d_max must be > 0, got {d_max}")

@@ -55,7 +55,7 @@ import numpy as np
 
 from .config import PFConfig
 from .errors import LidarlocError
-from .geometry import pose_matrix, pose_to_xyz_ypr, wrap_angle
+from .geometry import as_points, pose_matrix, pose_to_xyz_ypr, wrap_angle
 from .dynamic import MAX_SPREAD, DynamicPointFilter
 from .kld import bin_keys, kld_count
 from .likelihood import check_shape, effective_temperature, log_likelihood, log_likelihood_floored, scrambled_order
@@ -307,9 +307,7 @@ class ParticleFilter:
 
     def update(self, scan: np.ndarray) -> None:
         """Weight by the likelihood of a prepared (M, 3) scan; normalise in log space."""
-        pts = np.asarray(scan)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+        pts = as_points(scan)
         self._scan_input = scan
         self._scan = np.ascontiguousarray(pts[:, :3], dtype=np.float32)
         if self.dynamic is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import LidarlocError
-from .geometry import inv_pose, pose_matrix
+from .geometry import as_points, inv_pose, pose_matrix
 from .lookup import LookupTable
 
 
@@ -34,9 +34,7 @@ def as_pose(pose) -> np.ndarray:
 def move_scan(points_world: np.ndarray, from_pose, to_pose) -> np.ndarray:
     """(M, 3) float32: points placed at ``from_pose`` (world frame) moved to ``to_pose``:
     to · inv(from) · p."""
-    pts = np.asarray(points_world)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = as_points(points_world)
     T = as_pose(to_pose) @ inv_pose(as_pose(from_pose))
     return (pts[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
@@ -59,9 +57,7 @@ class Residuals:
 def scan_residuals(points_world: np.ndarray, lookup: LookupTable, d_max: float) -> Residuals:
     """The lookup-table distance of every (M, ≥3) world point to the map, capped at ``d_max``
     (and at the table's built d_max)."""
-    pts = np.asarray(points_world)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+    pts = as_points(points_world)
     d_max = float(d_max)
     if not d_max > 0:
         raise LidarlocError(f"d_max must be > 0, got {d_max}")

@@ -39,6 +39,7 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
+from .geometry import as_points
 from .likelihood import _rotation_zyx, check_shape, cost_table, effective_temperature, log_likelihood
 from .lookup import BRICK_MASK, BRICK_SHIFT, LookupTable
 
@@ -195,9 +196,7 @@ class LikelihoodModel:
         yaw_window, yaw_step = float(yaw_window), float(yaw_step)
         if not (yaw_window >= 0 and yaw_step > 0 and math.isfinite(yaw_window)):
             raise LidarlocError(f"yaw window must be ≥ 0 and yaw step > 0 (got {yaw_window}, {yaw_step})")
-        pts = np.asarray(points)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise LidarlocError(f"scan must be (M, ≥3); got shape {pts.shape}")
+        pts = as_points(points)
         pts = np.ascontiguousarray(pts[:, :3].T, dtype=np.float32)     # (3, M), as the filter reads them
         m = pts.shape[1]
         t0 = time.perf_counter()

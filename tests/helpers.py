@@ -248,3 +248,21 @@ def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> d
                                         console=Console(file=io.StringIO()))
     assert not interrupted and (out / "recording").is_dir()
     return summary
+
+
+def viewer_options(command: str, args: list[str], monkeypatch) -> dict:
+    """The keyword options ``lidarloc <command> <args>`` hands to the viewer's server (which is not
+    started: a stand-in records what it was given)."""
+    from typer.testing import CliRunner
+
+    from lidarloc.app import cli
+    from lidarloc.app.viewer import serve as serve_module
+
+    seen: dict = {}
+
+    def fake(spec, cfg, **kwargs):
+        seen.update(kwargs)
+    monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
+    result = CliRunner().invoke(cli.app, [command, *args])
+    assert result.exit_code == 0, result.output
+    return seen

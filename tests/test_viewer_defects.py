@@ -167,19 +167,10 @@ def test_playback_waits_for_the_first_tab(street, cache_root):
 
 @pytest.mark.parametrize("command", ["demo", "view"])
 def test_autoplay_option(command, monkeypatch):
-    from typer.testing import CliRunner
+    from helpers import viewer_options
 
-    from lidarloc.app import cli
-    from lidarloc.app.viewer import serve as serve_module
-
-    seen = {}
-
-    def fake(spec, cfg, **kwargs):
-        seen.update(kwargs)
-    monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
-    runner = CliRunner()
-    assert runner.invoke(cli.app, [command]).exit_code == 0 and seen["autoplay"] is False
-    assert runner.invoke(cli.app, [command, "--autoplay"]).exit_code == 0 and seen["autoplay"] is True
+    assert viewer_options(command, [], monkeypatch)["autoplay"] is False
+    assert viewer_options(command, ["--autoplay"], monkeypatch)["autoplay"] is True
 
 
 def test_autoplay_true_plays_without_a_tab(street, cache_root):

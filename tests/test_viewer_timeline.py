@@ -309,19 +309,10 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
 
 @pytest.mark.parametrize("command", ["demo", "view"])
 def test_no_record_reaches_the_viewer(command, monkeypatch):
-    from typer.testing import CliRunner
+    from helpers import viewer_options
 
-    from lidarloc.app import cli
-    from lidarloc.app.viewer import serve as serve_module
-
-    seen = {}
-
-    def fake(spec, cfg, **kwargs):
-        seen.update(kwargs)
-    monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
-    runner = CliRunner()
-    assert runner.invoke(cli.app, [command]).exit_code == 0 and seen["record"] is True
-    assert runner.invoke(cli.app, [command, "--no-record"]).exit_code == 0 and seen["record"] is False
+    assert viewer_options(command, [], monkeypatch)["record"] is True
+    assert viewer_options(command, ["--no-record"], monkeypatch)["record"] is False
 
 
 def test_a_viewer_that_does_not_record_says_so_on_branch(viewer):

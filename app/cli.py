@@ -510,7 +510,7 @@ def bench_branch(
 def bench_filter(
     ctx: typer.Context,
     seeds: Annotated[int, typer.Option("--seeds", min=1, help="Runs per likelihood option (seeds 0…N−1).")] = 3,
-    option: Annotated[Optional[list[str]], typer.Option("--option", help="A likelihood option to study (repeatable): paper, T=10, T=100, per-point mean, unexplained 0.1 (default: all).")] = None,
+    option: Annotated[Optional[list[str]], typer.Option("--option", help="A likelihood option to study (repeatable), each over the paper's likelihood: paper, default, T=<number>, per-point mean, unexplained 0.1 (default: paper, default, T=10, T=100, per-point mean, unexplained 0.1).")] = None,
     as_json: JsonOpt = False,
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):

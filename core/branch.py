@@ -259,10 +259,17 @@ class RecordedMatches:
         self.reused = 0
 
     def landing_scan(self, started_at: int) -> int | None:
-        """The scan at which the recorded run landed the match started at ``started_at``, if it
-        landed in a step up to ``timing_until`` (after it, a branch keeps its own time)."""
+        """The scan at which the replay lands the match started at ``started_at`` (real time): the
+        recorded run's, if it landed in a step up to ``timing_until``; if it landed later, the
+        scan after ``timing_until``'s (the recorded run had not landed it by then, and from there
+        the branch keeps its own time; landing it as soon as its recorded outcome is at hand
+        made the replay depend on timing). None: no recorded landing."""
         row = self.rows.get(int(started_at))
-        return None if row is None or row > self.timing_until else int(self.rec.scan_index[row])
+        if row is None:
+            return None
+        if row <= self.timing_until:
+            return int(self.rec.scan_index[row])
+        return int(self.rec.scan_index[self.timing_until]) + 1
 
     def __call__(self, started_at: int, start_pose, cfg, level: bool):
         from .resume import recorded_outcome

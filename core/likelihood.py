@@ -154,6 +154,12 @@ _costs_until = _make_costs_kernel(parallel=True)
 _costs_until_serial = _make_costs_kernel(parallel=False)
 
 
+# Below this many point reads (particles × points) the floored update sums in one thread: ~2 ms
+# of work gains little from a second thread, and loses a lot when another process (the S2M or
+# RPE child, another run) holds the other core and the parallel region waits for its thread.
+PARALLEL_MIN_READS = 1_000_000
+
+
 def scrambled_order(m: int) -> np.ndarray:
     """A fixed permutation of range(m) that spreads consecutive indices over the whole scan
     (golden-ratio stride, coprime with m)."""
@@ -191,11 +197,24 @@ def effective_temperature(temperature: float, n_points: int) -> float:
     return float(max(int(n_points), 1)) if float(temperature) == PER_POINT else float(temperature)
 
 
+def subset_for(n_points: int, max_points: int) -> np.ndarray | None:
+    """Indices (ascending) of the evenly spread ``max_points`` of ``n_points`` the likelihood
+    weighs, or None for all of them (``max_points`` 0 or ≥ n_points): the first ``max_points``
+    of :func:`scrambled_order`, whose golden-ratio stride spreads them over the whole scan.
+    Weighing each with ``point_weight`` n_points / max_points estimates the whole scan's
+    log-likelihood without bias."""
+    if max_points <= 0 or max_points >= n_points:
+        return None
+    return np.sort(scrambled_order(n_points)[:max_points])
+
+
 def cost_table(lookup: LookupTable, d_max: float, sigma: float, temperature: float = 1.0,
-               unexplained_share: float = 0.0) -> np.ndarray:
+               unexplained_share: float = 0.0, point_weight: float = 1.0) -> np.ndarray:
     """The per-point cost (minus the log-likelihood contribution, nats) of each of the 256
-    distance codes: −log((1 − z)·exp(−min(d², d_max²)/σ²) + z) / T. ``temperature`` here is the
-    effective T (see :func:`effective_temperature`), ≥ 1. At T = 1, z = 0 it is
+    distance codes: −log((1 − z)·exp(−min(d², d_max²)/σ²) + z) · w / T. ``temperature`` here is
+    the effective T (see :func:`effective_temperature`), ≥ 1; ``point_weight`` w ≥ 1 is how many
+    of the scan's points each weighed point stands for (M/N when N of M are weighed, see
+    :func:`subset_for`). At T = 1, z = 0 it is
     :func:`squared_cost_table` itself (the same array values, bit for bit)."""
     t, z = float(temperature), float(unexplained_share)
     if not (t >= 1.0 and math.isfinite(t)):
@@ -206,18 +225,22 @@ def cost_table(lookup: LookupTable, d_max: float, sigma: float, temperature: flo
     if z > 0.0:
         # −log(z + (1 − z)·e^−x) = −log1p(−(1 − z)·(1 − e^−x)): accurate for small x too
         table = -np.log1p((1.0 - z) * np.expm1(-table))
-    if t != 1.0:
-        table = table / t
+    if not (point_weight >= 1.0 and math.isfinite(point_weight)):
+        raise LidarlocError(f"point_weight must be ≥ 1, got {point_weight}")
+    if t != 1.0 or point_weight != 1.0:
+        table = table * (float(point_weight) / t)
     return table
 
 
 def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float,
-                   sigma: float, temperature: float = 1.0, unexplained_share: float = 0.0) -> np.ndarray:
+                   sigma: float, temperature: float = 1.0, unexplained_share: float = 0.0,
+                   point_weight: float = 1.0) -> np.ndarray:
     """(N,) float64 log-likelihoods of (N, ≥6) particle states for a prepared (M, 3) scan.
 
     ``d_max`` above the table's built value is capped at it (the table knows nothing beyond).
     ``temperature``, ``unexplained_share``: the likelihood shape (module docstring); the
-    defaults are the paper's likelihood.
+    defaults are the paper's likelihood. ``point_weight``: how many points each of ``scan``'s
+    stands for (see :func:`cost_table`).
     """
     temperature, unexplained_share = check_shape(temperature, unexplained_share)
     d_max, sigma = float(d_max), float(sigma)
@@ -234,7 +257,7 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
         return np.zeros(n, np.float64)
     pts_by_axis = np.ascontiguousarray(pts[:, :3].T, dtype=np.float32)
     costs = cost_table(lookup, min(d_max, lookup.d_max_built), sigma,
-                       effective_temperature(temperature, len(pts)), unexplained_share)
+                       effective_temperature(temperature, len(pts)), unexplained_share, point_weight)
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
     # the floored filter's kernel with no limit: the same sums in the same order
@@ -248,7 +271,7 @@ FLOOR_MARGIN = 800.0   # > 745: e^−margin is 0.0 in float64
 
 def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float, sigma: float,
                            prior_log_w: np.ndarray, margin: float = FLOOR_MARGIN, temperature: float = 1.0,
-                           unexplained_share: float = 0.0) -> np.ndarray:
+                           unexplained_share: float = 0.0, point_weight: float = 1.0) -> np.ndarray:
     """Log-likelihoods as :func:`log_likelihood`, except that where prior_log_w + ll would end
     more than ``margin`` below the best particle's, ll is raised to put it exactly at that floor
     (see the module docstring). Returns (N,) float64.
@@ -269,7 +292,7 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
         return np.zeros(n, np.float64)
     pts = np.ascontiguousarray(pts[scrambled_order(m), :3].T, dtype=np.float32)   # (3, m)
     costs = cost_table(lookup, min(d_max, lookup.d_max_built), sigma, effective_temperature(temperature, m),
-                       unexplained_share)
+                       unexplained_share, point_weight)
     args = (*lookup.flat_kernel_args, costs)
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
@@ -286,7 +309,8 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
     bound = float(np.max(prior[top] - top_cost))
     # 3. … so the sum of particle i can stop once prior_i − partial > bound − margin fails.
     limit = prior - bound + margin
-    _costs_until(st, pts, m, limit, *args, cost, complete)
+    kernel = _costs_until if n * m >= PARALLEL_MIN_READS else _costs_until_serial
+    kernel(st, pts, m, limit, *args, cost, complete)
     value = np.where(complete, prior - cost, -np.inf)
     floor = float(np.max(value)) - margin
     ll = -cost

@@ -97,7 +97,7 @@ from .rpe import load_or_build_odometry
 from .rules import LocalizationRules
 from .s2m_pending import S2MNotReady, in_daemon_thread
 from .s2m_schedule import S2MScheduler
-from .scanprep import voxel_downsample_random
+from .scanprep import prepare_scan, voxel_downsample_random
 from .snapshot import Event, ScanRecord, Snapshot
 from .worker_process import WorkerProxy
 
@@ -492,7 +492,7 @@ class Localizer:
         # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
         t0 = time.perf_counter()
         rng = np.random.default_rng([self.cfg.seed, k, 1])
-        prepared = voxel_downsample_random(scan[:, :3], self.cfg.pf.scan_voxel, rng)
+        prepared = prepare_scan(scan, self.cfg.pf, rng)
         self.pf.predict(dt)
         self.pf.update(prepared)
         pf_s = time.perf_counter() - t0

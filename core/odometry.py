@@ -166,6 +166,15 @@ class OdometryFeed:
             self._times[k] = float(tpt[i, 0])
         self.used, self.last_ms = meta["used"], meta["last_ms"]
 
+    def catch_up(self, upto: int, scan_of: Callable[[int], np.ndarray], time_of: Callable[[int], float]) -> None:
+        """Submit again the scans in [origin, upto) a restored checkpoint holds no registration
+        of. In real time the odometry lags the filter: a checkpoint taken after step k may have
+        scans up to k submitted but not yet registered, and the continuation must register them
+        (from the recorded poses when it has them, else live) before it can read them."""
+        for k in range(self.origin, upto):
+            if k not in self.futures:
+                self.submit(k, scan_of(k), time_of(k))
+
     def pose_record(self, k: int) -> dict[str, np.ndarray]:
         """Per-step resume fields after scan k: the odometry poses of scans k and k − 1 with their
         path lengths and rotation sums (NaN where not registered yet: in real time scan k's may

@@ -32,15 +32,19 @@ Options beyond the paper (all off at the defaults, where the filter is the paper
   temperature :data:`~lidarloc.core.likelihood.PER_POINT` (0) divides by the number of points
   the scan is weighed with (after dynamic-point rejection). reweight() uses the same T as the
   update of the same scan, so a particle's ll_new − ll_old stays consistent.
+- Point budget, ``cfg.max_points``: update() weighs an evenly spread subset of that many points
+  (after dynamic-point rejection) at the temperature scaled by subset/whole, an unbiased estimate
+  of the whole scan's log-likelihood (likelihood.subset_for); reweight() weighs the same subset.
 - Dynamic-point rejection, ``cfg.dynamic_rejection``: update() leaves out the points
   :class:`~lidarloc.core.dynamic.DynamicPointFilter` rejects at the prior estimate (the weighted
   mean of the predicted particles), but only while the particles' x/y std is below
   ``dynamic.MAX_SPREAD`` (a spread cloud's mean is no pose to judge the world by); otherwise
   the history is forgotten. reweight() with the same scan array weighs the same subset.
-- KLD-sampling, ``cfg.kld``: each resampling draws ``cfg.n_particles`` by systematic resampling
+- KLD-sampling, ``cfg.kld``: each resampling draws ``n_max`` particles by systematic resampling
   in a random order and keeps the shortest prefix Fox's bound accepts (core/kld.py), so the
   count falls to a few hundred once the cloud has converged and rises again when it spreads
-  (up to ``cfg.n_particles``). initialize() always starts from ``cfg.n_particles``. The
+  (up to ``n_max``: ``cfg.n_particles``, or the count set_n_particles() last set, e.g. tracking
+  mode's). initialize() always starts from ``n_max``. The
   protected particle keeps its slot if the new count still has it, else it takes the last slot:
   ``protected_index`` says where it is. ``kld_bins`` is the bin count of the last KLD resampling.
 """
@@ -58,7 +62,8 @@ from .errors import LidarlocError
 from .geometry import as_points, pose_matrix, pose_to_xyz_ypr, wrap_angle
 from .dynamic import MAX_SPREAD, DynamicPointFilter
 from .kld import bin_keys, kld_count
-from .likelihood import check_shape, effective_temperature, log_likelihood, log_likelihood_floored, scrambled_order
+from .likelihood import (check_shape, effective_temperature, log_likelihood, log_likelihood_floored, scrambled_order,
+                         subset_for)
 from .lookup import LookupTable
 from .motion import N_STATE, propagate
 
@@ -177,12 +182,14 @@ class ParticleFilter:
         self.n = int(cfg.n_particles)
         if self.n < 1:
             raise LidarlocError("particle filter: n_particles must be ≥ 1")
+        self.n_max = self.n          # the count a fresh cloud gets, and KLD-sampling's ceiling
         self.states = np.zeros((self.n, N_STATE))
         self.log_weights = np.full(self.n, -math.log(self.n))
         self.log_likelihoods = np.zeros(self.n)   # of the last update, per particle
         self._scan: np.ndarray | None = None      # the points the last update weighed with
         self._scan_input = None                   # the array update() was given (see reweight)
         self._temperature = 1.0                   # effective T of the last update
+        self._point_weight = 1.0                  # scan points each weighed point stood for
         self.protected_index: int | None = None   # where the last resampling put the protected particle
         self.kld_bins: int | None = None          # occupied bins at the last KLD resampling
         check_shape(cfg.temperature, cfg.unexplained_share)
@@ -250,11 +257,11 @@ class ParticleFilter:
         - ``pose`` (4×4): Gaussian around it with ``pose_std`` = 6 stds for x, y, z, yaw,
           pitch, roll (or one number: the x, y std; default DEFAULT_POSE_STD).
         ``speed``: initial speed for every particle instead of uniform [0, v_max].
-        With KLD-sampling the count goes back to ``cfg.n_particles`` (a fresh cloud is spread).
+        With KLD-sampling the count goes back to ``n_max`` (a fresh cloud is spread).
         """
         cfg, rng = self.cfg, self.rng
         if cfg.kld:
-            self.n = int(cfg.n_particles)
+            self.n = self.n_max
         n = self.n
         s = np.zeros((n, N_STATE))
         if pose is not None:
@@ -313,12 +320,24 @@ class ParticleFilter:
         if self.dynamic is not None:
             self._scan = self._reject_dynamic(self._scan)
         cfg = self.cfg
-        self._temperature = effective_temperature(cfg.temperature, len(self._scan))
+        self._weigh(self._scan)
         ll = log_likelihood_floored(self.states, self._scan, self.lookup, self._d_max, self._sigma, self.log_weights,
-                                    temperature=self._temperature, unexplained_share=cfg.unexplained_share)
+                                    temperature=self._temperature, unexplained_share=cfg.unexplained_share,
+                                    point_weight=self._point_weight)
         self.log_likelihoods = ll
         self.log_weights = self.log_weights + ll
         self._normalise()
+
+    def _weigh(self, pts: np.ndarray) -> None:
+        """Set the points the likelihood weighs, its effective temperature (T, or the number of
+        points for the per-point mean) and how many points each weighed one stands for: all of
+        ``pts`` at weight 1, or ``cfg.max_points`` of them at M/max_points, which estimates the
+        same log-likelihood."""
+        m = len(pts)
+        self._temperature = effective_temperature(self.cfg.temperature, m)
+        pick = subset_for(m, int(self.cfg.max_points))
+        self._scan = pts if pick is None else np.ascontiguousarray(pts[pick])
+        self._point_weight = 1.0 if pick is None else m / len(pick)
 
     def _reject_dynamic(self, pts: np.ndarray) -> np.ndarray:
         """The points of the scan the dynamic-point filter keeps, judged at the prior estimate
@@ -365,7 +384,7 @@ class ParticleFilter:
             return False
         cfg = self.cfg
         if cfg.kld:
-            n_max = int(cfg.n_particles)
+            n_max = self.n_max
             # a random order makes every prefix of the systematic draw a fair sample (module docstring)
             idx = systematic_resample(self.weights, n_max, self.rng)[self.rng.permutation(n_max)]
             n_new, self.kld_bins = kld_count(bin_keys(self.states[idx], cfg.kld_bin_xy, cfg.kld_bin_yaw),
@@ -383,14 +402,15 @@ class ParticleFilter:
         return True
 
     def set_n_particles(self, n: int) -> None:
-        """Resample (systematic, by the current weights) to ``n`` particles, uniform weights."""
+        """Resample (systematic, by the current weights) to ``n`` particles, uniform weights;
+        ``n`` is also the count of a fresh cloud and KLD-sampling's ceiling from now on."""
         n = int(n)
         if n < 1:
             raise LidarlocError(f"n_particles must be ≥ 1, got {n}")
         idx = systematic_resample(self.weights, n, self.rng)
         self.states = self.states[idx]
         self.log_likelihoods = self.log_likelihoods[idx]
-        self.n = n
+        self.n = self.n_max = n
         self.log_weights = np.full(n, -math.log(n))
         self.protected_index = None
 
@@ -409,15 +429,15 @@ class ParticleFilter:
         whole, with the temperature recomputed for its point count."""
         if scan is not None and scan is not self._scan_input:
             self._scan_input = scan
-            self._scan = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)
-            self._temperature = effective_temperature(self.cfg.temperature, len(self._scan))
+            self._weigh(np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32))
         if self._scan is None:
             raise LidarlocError("reweight needs a scan: call update() first or pass one")
         j = int(j)
         # same point order as update() sums in, so that ll_new − ll_old has no rounding offset
         pts = self._scan[scrambled_order(len(self._scan))]
         ll = float(log_likelihood(self.states[j:j + 1], pts, self.lookup, self._d_max, self._sigma,
-                                  temperature=self._temperature, unexplained_share=self.cfg.unexplained_share)[0])
+                                  temperature=self._temperature, unexplained_share=self.cfg.unexplained_share,
+                                  point_weight=self._point_weight)[0])
         self.log_weights[j] += ll - self.log_likelihoods[j]
         self.log_likelihoods[j] = ll
         self._normalise()
@@ -458,7 +478,7 @@ class ParticleFilter:
         out = {"states": self.states.copy(), "log_weights": self.log_weights.copy(),
                "log_likelihoods": self.log_likelihoods.copy(),
                "meta": np.array(json.dumps({
-                   "n": int(self.n), "rng": self.rng.bit_generator.state,
+                   "n": int(self.n), "n_max": int(self.n_max), "rng": self.rng.bit_generator.state,
                    "protected_index": self.protected_index, "kld_bins": self.kld_bins}))}
         if self.dynamic is not None:
             out.update({f"dynamic_{k}": v for k, v in self.dynamic.checkpoint().items()})
@@ -473,6 +493,7 @@ class ParticleFilter:
         self.log_weights = np.array(data["log_weights"], dtype=np.float64)
         self.log_likelihoods = np.array(data["log_likelihoods"], dtype=np.float64)
         self.n = int(meta["n"])
+        self.n_max = int(meta.get("n_max", self.cfg.n_particles))
         if self.states.shape != (self.n, N_STATE) or self.log_weights.shape != (self.n,):
             raise LidarlocError("particle filter checkpoint: inconsistent particle count")
         self.rng.bit_generator.state = meta["rng"]

@@ -588,6 +588,14 @@ class Recording:
 
         return update_from_dict(Config(), self.meta.get("config", {}))
 
+    @property
+    def _max_elevation(self) -> float:
+        """The run's pf.max_elevation (a scan is re-prepared as the run prepared it)."""
+        value = getattr(self, "_max_elevation_cache", None)
+        if value is None:
+            value = self._max_elevation_cache = float(self.config().pf.max_elevation)
+        return value
+
     # ------------------------------------------------------------------ snapshots
     def step_of_scan(self, scan: int) -> int | None:
         """The step that processed source scan ``scan`` (None if none did)."""
@@ -610,7 +618,7 @@ class Recording:
         scan_world = np.zeros((0, 3), np.float32)
         if seq is not None:
             rng = np.random.default_rng([int(self.meta.get("seed", 0)), k, 1])
-            prepared = voxel_downsample_random(seq.scan(k)[:, :3], float(self.scan_voxel[i]), rng)
+            prepared = voxel_downsample_random(seq.scan(k), float(self.scan_voxel[i]), rng, self._max_elevation)
             scan_world = transform_points(pose, prepared).astype(np.float32)
         gt = self.gt_pose[i]
         since = int(self.localized_since[i])

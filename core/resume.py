@@ -199,6 +199,7 @@ def restore(loc, data: dict[str, np.ndarray]) -> dict:
         loc._confidence.armed = bool(state["confidence_armed"])
         loc._frame_check.best_share = float(state["frame_best_share"])
         loc.k, loc.steps, loc._prev_t = int(state["k"]), int(state["steps"]), state["prev_t"]
+        loc.odometry.catch_up(loc.k, loc.seq.scan, loc.seq.timestamp)
         s2m, saved = loc.s2m, state["s2m"]
         s2m.restart()
         s2m._generation, s2m._last_start = int(saved["generation"]), saved["last_start"]

@@ -9,10 +9,18 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
+from lidarloc.core.config import Config, PFConfig, load_config
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
 from lidarloc.core.scanprep import voxel_downsample_random
 from lidarloc.core.sequences.base import Sequence
+
+
+# ---------------------------------------------------------------------------------- configs
+def paper_pf(**kw) -> PFConfig:
+    """The paper's particle filter (its likelihood untempered over every point, a fixed particle
+    count; the ``paper`` preset) with ``kw`` on top: what tests of the filter's own mechanics
+    use, whatever the defaults are."""
+    return replace(load_config(None, preset="paper").pf, **kw)
 
 
 # ---------------------------------------------------------------------------------- waiting

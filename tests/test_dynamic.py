@@ -7,9 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from helpers import toy_scan
+from helpers import paper_pf, toy_scan
 
-from lidarloc.core.config import PFConfig
 from lidarloc.core.dynamic import DynamicPointFilter
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
@@ -105,7 +104,7 @@ def test_bad_arguments(toy_world):
 def tracking_filter(table, **kw):
     q = np.zeros(11)
     q[0] = q[1] = 0.1
-    cfg = PFConfig(n_particles=300, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0,
+    cfg = paper_pf(n_particles=300, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0,
                    q_std=tuple(q), **kw)
     pf = ParticleFilter(cfg, table, [0, 0, 1.7], [40, 40, 1.7], seed=4)
     pf.initialize(pose=pose_matrix(*POSE), pose_std=(0.3, 0.3, 0.0, 0.0, 0.0, 0.0), speed=0.0)
@@ -165,7 +164,7 @@ def test_no_change_with_the_option_off_or_nothing_to_reject(toy_world):
 def test_a_spread_cloud_rejects_nothing(toy_world):
     pts, table = toy_world
     rng = np.random.default_rng(7)
-    pf = ParticleFilter(PFConfig(n_particles=300, dynamic_rejection=True, dynamic_scans=1), table,
+    pf = ParticleFilter(paper_pf(n_particles=300, dynamic_rejection=True, dynamic_scans=1), table,
                         [0, 0, 1.7], [40, 40, 1.7], seed=0)           # uniform over the map
     scan = np.concatenate([sensor_scan(pts[rng.integers(0, len(pts), 1000)]), sensor_scan(box([16, 13, 2.5], rng))])
     pf.update(scan)

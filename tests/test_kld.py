@@ -6,10 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from helpers import toy_scan
+from helpers import paper_pf, toy_scan
 from scipy.stats import chi2
 
-from lidarloc.core.config import PFConfig
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.kld import bin_keys, kld_bound, kld_count
 from lidarloc.core.motion import propagate
@@ -56,14 +55,14 @@ def test_bins_are_x_y_yaw():
     assert len(bin_keys(np.full((2, 11), np.nan), 1.0, 0.1)) == 2      # no crash on a lost particle
 
 
-def planar_cfg(**kw) -> PFConfig:
+def planar_cfg(**kw):
     q = np.zeros(11)
     q[0] = q[1] = 0.3
     q[6] = 0.1
     base = dict(n_particles=2000, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, v_max=2.0,
                 q_std=tuple(q), kld=True, kld_min=50)
     base.update(kw)
-    return PFConfig(**base)
+    return paper_pf(**base)
 
 
 def track(pf, pts, steps, seed=100):
@@ -134,7 +133,7 @@ def test_protected_particle_survives_a_count_change(toy_world, protect):
 
 def test_without_kld_the_count_and_the_protected_index_stay(toy_world):
     _, table = toy_world
-    pf = ParticleFilter(PFConfig(n_particles=500), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=500), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.log_weights[:] = -np.inf
     pf.log_weights[0] = 0.0
     assert pf.resample_if_needed(protect=321)
@@ -153,3 +152,20 @@ def test_same_seed_same_counts(toy_world):
     assert runs[0][0] == runs[1][0]
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
     assert runs[0][0] != runs[2][0] or not np.array_equal(runs[0][1], runs[2][1])
+
+
+def test_a_set_count_is_the_new_ceiling(toy_world):
+    """set_n_particles (tracking mode, the GUI's particle count) caps what KLD-sampling may draw
+    and what a fresh cloud gets, also through a checkpoint; below kld_min it is kept as it is."""
+    _, table = toy_world
+    pf = ParticleFilter(paper_pf(n_particles=500, kld=True, kld_min=200), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf.set_n_particles(120)
+    pf.log_weights[:] = np.log(np.full(120, 1 / 120) * np.r_[1.0, np.full(119, 1e-6)])
+    assert pf.resample_if_needed() and pf.n == 120           # kld_min 200 > 120: the set count holds
+    restored = ParticleFilter(paper_pf(n_particles=500, kld=True, kld_min=200), table, [0, 0, 0], [40, 40, 4], seed=0)
+    restored.restore(pf.checkpoint())
+    restored.initialize()
+    assert restored.n == 120 and len(restored.states) == 120
+    pf.set_n_particles(500)
+    pf.initialize()
+    assert pf.n == 500

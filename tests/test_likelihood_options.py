@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from helpers import assert_floor_keeps_the_weights
+from helpers import assert_floor_keeps_the_weights, paper_pf
 
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
@@ -177,12 +177,11 @@ def test_residual_stats_edge_cases(toy_world):
 def test_filter_reweight_agrees_with_its_update(toy_world, temperature, share):
     """The S2M landing re-weighs one particle with reweight(): for an unchanged particle it must
     give back the update's own log-likelihood (same T, same z, same points), whatever the shape."""
-    from lidarloc.core.config import PFConfig
     from lidarloc.core.pf import ParticleFilter
 
     pts, table = toy_world
     scan, _ = _problem(pts, m=2500)
-    pf = ParticleFilter(PFConfig(n_particles=200, temperature=temperature, unexplained_share=share), table,
+    pf = ParticleFilter(paper_pf(n_particles=200, temperature=temperature, unexplained_share=share), table,
                         [0, 0, 0], [40, 40, 4], seed=0)
     pf.initialize(pose=pose_matrix(12, 10, 1.7, 0, 0, 0), pose_std=1.0)
     pf.update(scan)
@@ -192,3 +191,71 @@ def test_filter_reweight_agrees_with_its_update(toy_world, temperature, share):
                               unexplained_share=share)[0]
     assert pf.reweight(j, scan) == pytest.approx(expected, rel=1e-9)
     np.testing.assert_allclose(pf.log_weights, before, rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------ point budget
+def test_subset_for_spreads_the_budget_over_the_whole_scan():
+    from lidarloc.core.likelihood import subset_for
+
+    assert subset_for(5000, 0) is None and subset_for(5000, 5000) is None and subset_for(5000, 9000) is None
+    pick = subset_for(15000, 2000)
+    assert len(pick) == len(np.unique(pick)) == 2000 and np.all(np.diff(pick) > 0)
+    # evenly spread: every tenth of the scan holds ~a tenth of the picks
+    counts = np.bincount(pick * 10 // 15000, minlength=10)
+    assert counts.min() >= 190 and counts.max() <= 210
+
+
+def test_point_weight_scales_the_log_likelihood(toy_world):
+    pts, table = toy_world
+    scan, states = _problem(pts)
+    plain = log_likelihood(states, scan, table, 5.0, 0.5, temperature=100.0)
+    np.testing.assert_allclose(log_likelihood(states, scan, table, 5.0, 0.5, temperature=100.0, point_weight=4.0),
+                               4.0 * plain, rtol=1e-12)
+    with pytest.raises(LidarlocError):
+        log_likelihood(states, scan, table, 5.0, 0.5, point_weight=0.5)
+
+
+@pytest.mark.parametrize("temperature", [1.0, 3000.0, PER_POINT])
+def test_filter_with_a_point_budget_estimates_the_whole_scans_likelihood(toy_world, temperature):
+    """max_points weighs an evenly spread subset whose sum is scaled to the whole scan: the
+    particles' log-likelihoods are those of the whole scan up to the subset's sampling error
+    (here a few %), their ranking is kept, reweight() agrees with the update, and a budget
+    of 0 or ≥ the scan's points is the filter without a budget, bit for bit."""
+    from lidarloc.core.pf import ParticleFilter
+
+    pts, table = toy_world
+    scan, _ = _problem(pts, m=6000, seed=3)
+
+    def filtered(max_points):
+        pf = ParticleFilter(paper_pf(n_particles=200, temperature=temperature, max_points=max_points), table,
+                            [0, 0, 0], [40, 40, 4], seed=0)
+        pf.initialize(pose=pose_matrix(12, 10, 1.7, 0, 0, 0), pose_std=1.0)
+        pf.update(scan)
+        return pf
+
+    whole = filtered(0)
+    np.testing.assert_array_equal(filtered(6000).log_likelihoods, whole.log_likelihoods)
+    budget = filtered(1500)
+    assert len(budget._scan) == 1500
+    exact = log_likelihood(budget.states, scan, table, 5.0, 0.5, temperature=temperature)
+    estimate = budget.log_likelihoods
+    if temperature == 1.0:
+        # untempered, all but a few particles sit at the weight floor: compare those above it
+        keep = budget.log_weights > np.max(budget.log_weights) - 700
+        estimate, exact = estimate[keep], exact[keep]
+        assert np.argmax(estimate) == np.argmax(exact)
+    else:
+        assert np.corrcoef(estimate, exact)[0, 1] > 0.99
+        # what sets the weights is how particles differ: the subset keeps that to ~10 % of its spread
+        err = (estimate - estimate.mean()) - (exact - exact.mean())
+        assert np.std(err) < 0.1 * np.std(exact)
+    assert abs(np.mean(estimate) / np.mean(exact) - 1) < 0.05          # no bias
+    j = int(np.argmax(budget.log_weights))
+    assert budget.reweight(j, scan) == pytest.approx(budget.log_likelihoods[j], rel=1e-9)
+
+
+def test_a_negative_point_budget_is_refused():
+    from lidarloc.core.config import load_config
+
+    with pytest.raises(LidarlocError, match="max_points"):
+        load_config(None, ["pf.max_points=-1"])

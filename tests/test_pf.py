@@ -6,9 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from helpers import toy_scan
+from helpers import paper_pf, toy_scan
 
-from lidarloc.core.config import PFConfig
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_matrix, wrap_angle
 from lidarloc.core.likelihood import log_likelihood
@@ -20,7 +19,7 @@ DEG = math.pi / 180
 ZERO_Q = np.zeros(11)
 
 
-def planar_cfg(**kw) -> PFConfig:
+def planar_cfg(**kw):
     """A 2-D problem (x, y, speed): heading and height known, no angular noise."""
     q = np.zeros(11)
     q[0] = q[1] = 0.3
@@ -28,7 +27,7 @@ def planar_cfg(**kw) -> PFConfig:
     base = dict(n_particles=2000, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, v_max=2.0,
                 q_std=tuple(q))
     base.update(kw)
-    return PFConfig(**base)
+    return paper_pf(**base)
 
 
 def run_toy(world_pts, table, cfg, seed, steps=12):
@@ -62,7 +61,7 @@ def test_systematic_resampling_preserves_the_weighted_mean():
 
 def test_resampling_keeps_the_protected_particle(toy_world):
     _, table = toy_world
-    cfg = PFConfig(n_particles=500)
+    cfg = paper_pf(n_particles=500)
     pf = ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0)
     lw = np.full(500, -50.0)
     lw[:5] = 0.0                                                 # five particles hold all weight
@@ -80,7 +79,7 @@ def test_resampling_keeps_the_protected_particle(toy_world):
 
 def test_set_n_particles_resamples_to_the_new_count(toy_world):
     _, table = toy_world
-    pf = ParticleFilter(PFConfig(n_particles=300), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=300), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.set_n_particles(1200)
     assert pf.states.shape == (1200, 11) and pf.log_weights.shape == (1200,) and pf.n == 1200
     assert pf.weights.sum() == pytest.approx(1.0)
@@ -109,7 +108,7 @@ def test_same_seed_same_particles_other_seed_differs(toy_world):
 
 def test_paper_initialisation_ranges(toy_world):
     _, table = toy_world
-    cfg = PFConfig(n_particles=5000)
+    cfg = paper_pf(n_particles=5000)
     pf = ParticleFilter(cfg, table, [0, 0, 0], [40, 30, 4], seed=0)
     s = pf.states
     assert np.all(s[:, :3] >= [0, 0, 0]) and np.all(s[:, :3] <= [40, 30, 4])
@@ -125,7 +124,7 @@ def test_map_support_init_stays_on_the_map_at_sensor_height(toy_world):
     pts, table = toy_world
     # a map whose points only cover x < 10: the other 30 m of the box must get no particles
     part = pts[pts[:, 0] < 10]
-    cfg = PFConfig(n_particles=4000, init_mode="map_support")
+    cfg = paper_pf(n_particles=4000, init_mode="map_support")
     pf = ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0, map_points=part)
     s = pf.states
     assert s[:, 0].max() <= 10.5
@@ -140,7 +139,7 @@ def test_map_support_init_stays_on_the_map_at_sensor_height(toy_world):
 
 def test_initialize_in_region_and_around_pose(toy_world):
     _, table = toy_world
-    pf = ParticleFilter(PFConfig(n_particles=2000), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=2000), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.initialize(region=(5, 6, 9, 8))
     assert pf.states[:, 0].min() >= 5 and pf.states[:, 0].max() <= 9
     assert pf.states[:, 1].min() >= 6 and pf.states[:, 1].max() <= 8
@@ -154,7 +153,7 @@ def test_initialize_in_region_and_around_pose(toy_world):
 
 def test_estimate_mean_covariance_ellipse(toy_world):
     _, table = toy_world
-    pf = ParticleFilter(PFConfig(n_particles=4), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=4), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.states = np.zeros((4, 11))
     pf.states[:, 0] = [0, 2, 0, 2]
     pf.states[:, 1] = [0, 0, 1, 1]
@@ -178,7 +177,7 @@ def test_update_normalises_in_log_space_without_underflow(toy_world):
     rng = np.random.default_rng(0)
     # 20 000 scan points: raw likelihoods are e^(−10⁵…−10⁶), far below the smallest double
     scan = (pts[rng.integers(0, len(pts), 20_000)] - [12, 10, 1.7]).astype(np.float32)
-    pf = ParticleFilter(PFConfig(n_particles=200), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=200), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.update(scan)
     assert np.all(np.isfinite(pf.log_weights))
     assert pf.weights.sum() == pytest.approx(1.0) and pf.log_likelihoods.max() < -1e3
@@ -189,7 +188,7 @@ def test_live_parameters_take_effect_at_the_next_update(toy_world):
     pts, table = toy_world
     rng = np.random.default_rng(0)
     scan = (pts[rng.integers(0, len(pts), 2000)] - [12, 10, 1.7]).astype(np.float32)
-    pf = ParticleFilter(PFConfig(n_particles=50), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=50), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.initialize(pose=pose_matrix(12, 10, 1.7, 0, 0, 0), pose_std=2.0)
     states = pf.states.copy()
     pf.set_d_max(2.0)                      # below the built 5 m: no rebuild
@@ -216,7 +215,7 @@ def test_set_particle_and_reweight(toy_world):
     truth = np.zeros(11)
     truth[:6] = [12, 10, 1.7, 0.2, 0, 0]
     scan = toy_scan(pts, truth, rng, 0)
-    pf = ParticleFilter(PFConfig(n_particles=300), table, [0, 0, 0], [40, 40, 4], seed=0)
+    pf = ParticleFilter(paper_pf(n_particles=300), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.update(scan)
     j = int(np.argmin(pf.log_weights))
     pf.set_particle(j, truth)
@@ -230,7 +229,7 @@ def test_set_particle_and_reweight(toy_world):
 def test_filter_step_on_real_scans_tracks_from_near_the_truth(kitti_raw_map):
     seq, prior, table = kitti_raw_map
     lo, hi = prior.bounds
-    pf = ParticleFilter(PFConfig(n_particles=500), table, lo, hi, seed=0, map_points=prior.points)
+    pf = ParticleFilter(paper_pf(n_particles=500), table, lo, hi, seed=0, map_points=prior.points)
     pf.initialize(pose=seq.pose(10), pose_std=(1.0, 1.0, 0.2, 3 * DEG, 1 * DEG, 1 * DEG),
                   speed=float(np.linalg.norm(seq.pose(11)[:3, 3] - seq.pose(10)[:3, 3]) / 0.1))
     errors = []

@@ -45,3 +45,27 @@ def test_voxel_downsample_runs_compiled():
         voxel_downsample_random(scan, 0.5, i)
         times.append(time.perf_counter() - t0)
     assert np.median(times) < 0.5
+
+
+def test_points_above_the_elevation_cap_are_left_out():
+    """pf.max_elevation: a scan's points seen above the cap (from the sensor at the origin) are
+    not weighed; π/2 keeps every point, bit for bit."""
+    import math
+
+    from lidarloc.core.config import PFConfig
+    from lidarloc.core.scanprep import prepare_scan
+
+    rng = np.random.default_rng(1)
+    r = rng.uniform(3, 60, 20_000)
+    elevation = np.radians(rng.uniform(-25, 25, len(r)))
+    azimuth = rng.uniform(-np.pi, np.pi, len(r))
+    pts = np.c_[r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth),
+                r * np.sin(elevation), np.zeros(len(r))].astype(np.float32)
+    cap = math.radians(2.0)
+    kept = prepare_scan(pts, PFConfig(scan_voxel=0.05, max_elevation=cap), 3)
+    seen = np.degrees(np.arctan2(kept[:, 2], np.hypot(kept[:, 0], kept[:, 1])))
+    assert seen.max() <= 2.0 + 1e-3
+    below = np.count_nonzero(np.degrees(elevation) <= 2.0)
+    assert 0.95 * below < len(kept) <= below           # 5 cm voxels: nearly every point below is kept
+    np.testing.assert_array_equal(prepare_scan(pts, PFConfig(scan_voxel=0.5), 3),
+                                  voxel_downsample_random(pts, 0.5, 3))

@@ -104,6 +104,11 @@ def test_why_views_in_chromium(browser, served):
     page.screenshot(path=str(ARTIFACTS / "why-residuals.png"))
 
     # --- likelihood surface: the read-out with its numbers, the colour map's bright end on the ground
+    # (seen from 15 m above the estimate: the default likelihood's peak is a few 0.5 m cells wide)
+    estimate = np.asarray(snap.mean_pose, float)[:3, 3]
+    look_down_at(served, estimate, 15.0)
+    wait_for(lambda: np.allclose(next(iter(served.server.get_clients().values())).camera.look_at, estimate, atol=0.05),
+             STEP_TIMEOUT / 1000, "the camera over the estimate")
     before = surface_yellows(pixels(canvas_png(page)))
     page.get_by_role("button", name="Likelihood surface here").click()
     page.wait_for_function(f"document.body.innerText.includes('scan {snap.scan_index}: maximum at (')",

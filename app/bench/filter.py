@@ -13,9 +13,12 @@ option, medians over the runs of:
   2σ ellipse (target ≥ 85 % for a filter whose uncertainty can be trusted);
 - ``pf_ms``: the PF step (median), as a cost indication (the machine's load is reported).
 
-Options (``--set`` names): ``paper`` (temperature 1), ``T=10``, ``T=100``, ``per-point mean``
+Options (``--set`` names), each over the paper's likelihood (untempered, every point, no
+unexplained share, a fixed particle count) whatever the defaults: ``paper``, ``default`` (the
+defaults' likelihood: unexplained share, temperature, point budget and KLD-sampling as in
+``core/config.py``), ``T=10``, ``T=100``, ``T=<any>`` (``pf.temperature``), ``per-point mean``
 (``pf.temperature=0``), ``unexplained 0.1`` (``pf.unexplained_share=0.1``, the beam model's
-z_rand at the paper's temperature).
+z_rand at the paper's temperature). Other ``--set`` values apply to every option.
 """
 
 from __future__ import annotations
@@ -25,15 +28,20 @@ import dataclasses
 
 import numpy as np
 
-from lidarloc.core.config import Config, apply_overrides
+from lidarloc.core.config import Config, PFConfig, apply_overrides
 from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.metrics import inside_2sigma
 
 from .common import load_avg, machine
 
+# the likelihood's fields, as the paper has them; every option starts from these
+PAPER_LIKELIHOOD = ["pf.temperature=1", "pf.unexplained_share=0", "pf.max_points=0", "pf.kld=false"]
+_DEFAULTS = PFConfig()
 OPTIONS: dict[str, list[str]] = {
     "paper": [],
+    "default": [f"pf.temperature={_DEFAULTS.temperature:g}", f"pf.unexplained_share={_DEFAULTS.unexplained_share:g}",
+                f"pf.max_points={_DEFAULTS.max_points}", f"pf.kld={str(_DEFAULTS.kld).lower()}"],
     "T=10": ["pf.temperature=10"],
     "T=100": ["pf.temperature=100"],
     "per-point mean": ["pf.temperature=0"],
@@ -98,7 +106,7 @@ def run(spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None =
         runs = []
         for seed in range(seeds):
             c = apply_overrides(copy.deepcopy(cfg), ["s2m.enabled=false", "localize.recorded_odometry=true",
-                                                     *chosen[name]])
+                                                     *PAPER_LIKELIHOOD, *chosen[name]])
             c.seed = seed
             runs.append(_one_run(seq, c, cache_root))
             done += 1

@@ -132,7 +132,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     from lidarloc.core.lookup import load_or_build_lookup
     from lidarloc.core.mapping import load_or_build_map
     from lidarloc.core.pf import ParticleFilter
-    from lidarloc.core.scanprep import voxel_downsample_random
+    from lidarloc.core.scanprep import prepare_scan
 
     n_particles, seed, scans = cfg.pf.n_particles, cfg.seed, n_scans_timed
     out: dict = {"particles": n_particles, "scans": scans, "seed": seed, "cpus": os.cpu_count(),
@@ -151,7 +151,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     for k in idx:
         raw = seq.scan(int(k))
         t0 = time.perf_counter()
-        prepared[int(k)] = voxel_downsample_random(raw, cfg.pf.scan_voxel, int(k))
+        prepared[int(k)] = prepare_scan(raw, cfg.pf, int(k))
         prep_t.append(time.perf_counter() - t0)
     out["scan_points"] = int(np.median([len(p) for p in prepared.values()]))
     out["scanprep_ms_median"] = median_ms(prep_t)

@@ -29,7 +29,7 @@ from lidarloc.core.config import Config
 from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.lookup import load_or_build_lookup
 from lidarloc.core.mapping import load_or_build_map
-from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.scanprep import prepare_scan
 from lidarloc.core.sequences.factory import SourceSpec
 from lidarloc.core.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
 
@@ -56,7 +56,7 @@ def run(spec: SourceSpec, cfg: Config, scans: int = 10, repeats: int = 3, cache_
     for k in picks:
         # prepared as the localizer prepares scan k (same voxel, same random stream)
         rng_k = np.random.default_rng([cfg.seed, int(k), 1])
-        pts = voxel_downsample_random(seq.scan(int(k))[:, :3], cfg.pf.scan_voxel, rng_k)
+        pts = prepare_scan(seq.scan(int(k)), cfg.pf, rng_k)
         truth = pose_to_xyz_ypr(seq.pose(int(k)))
         points.append(len(pts))
         if not warmed:                  # numba compiles (or loads its cache) at the first call

@@ -31,6 +31,11 @@ only reads another 256-entry cost table (:func:`cost_table`):
   costs at most −log z (2.3 nats at z = 0.1) instead of d_max²/σ² (100 nats at 5 m, 0.5 m): an
   object that is not in the map cannot outvote the rest of the scan.
 
+A third factor, ``point_weight`` w, scales every cost too: when only N of a scan's M points are
+weighed (the filter's ``max_points``, :func:`subset_for`), each stands for w = M/N of them and
+the sum estimates the whole scan's. The defaults (``core/config.py``) combine all three; the
+paper's likelihood is T = 1, z = 0, w = 1.
+
 Every cost is ≥ 0, so a partial sum still only grows and the early stop of the floored variant
 stays exact: its limits and its ``margin`` are in nats of the final (tempered) log-likelihood,
 because the table is scaled, not the sum. With T = 1 and z = 0 the table is the paper's,

@@ -26,15 +26,17 @@ Choices where the paper is silent, kept explicit:
   log_likelihood_floored), which makes the weight update several times faster; see there.
 - Process noise Q is applied once per step as the paper states it (not scaled by dt).
 
-Options beyond the paper (all off at the defaults, where the filter is the paper's, bit for bit):
+Options beyond the paper (with all of them off, as ``--preset paper`` sets them, the filter is the
+paper's, bit for bit; the defaults in core/config.py turn the likelihood options and KLD on):
 
 - Likelihood shape, ``cfg.temperature`` and ``cfg.unexplained_share``: see likelihood.py. The
   temperature :data:`~lidarloc.core.likelihood.PER_POINT` (0) divides by the number of points
   the scan is weighed with (after dynamic-point rejection). reweight() uses the same T as the
   update of the same scan, so a particle's ll_new − ll_old stays consistent.
 - Point budget, ``cfg.max_points``: update() weighs an evenly spread subset of that many points
-  (after dynamic-point rejection) at the temperature scaled by subset/whole, an unbiased estimate
-  of the whole scan's log-likelihood (likelihood.subset_for); reweight() weighs the same subset.
+  (after dynamic-point rejection), each standing for M/max_points of the scan's M points, an
+  unbiased estimate of the whole scan's log-likelihood (likelihood.subset_for); reweight()
+  weighs the same subset.
 - Dynamic-point rejection, ``cfg.dynamic_rejection``: update() leaves out the points
   :class:`~lidarloc.core.dynamic.DynamicPointFilter` rejects at the prior estimate (the weighted
   mean of the predicted particles), but only while the particles' x/y std is below

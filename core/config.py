@@ -83,7 +83,7 @@ class PFConfig:
     # each against the paper's (--preset paper restores it): on the real drive and in the lived-in
     # town (changes 0.3, traffic, skew) an unexplained share of 0.1 with T = 1000 is more accurate
     # than the paper's likelihood (RMSE after localization: real drive 0.20 m against 0.23; town
-    # HDL-64E 0.19 m against 0.29, OS1-128 0.17 against 1.44, VLP-16 0.40 against 1.59), and its
+    # HDL-64E 0.19 m against 0.29, OS1-128 0.17 against 1.54, VLP-16 0.40 against 1.71), and its
     # 2σ ellipse holds the truth in ~100 % of localized scans instead of ~0 %. Tempered, every
     # particle's sum runs to the end (none falls below the weight floor); max_points and
     # KLD-sampling pay that back: the PF step is ~8 ms instead of ~23 ms on the real drive.

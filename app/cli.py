@@ -491,7 +491,8 @@ def bench_branch(
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """How fast a branch of a recorded run starts (target ≤ 1 s, the sequence open) and what the
-    resume data costs per 1000 steps (checkpoints and per-step fields ≤ 10 MB at 1000 particles).
+    resume data costs per 1000 steps (checkpoints and per-step fields ≤ 10 MB at the run's own
+    particle counts; scaled to 1000 particles beside it).
 
     Records the town's first 1000 scans unless --run or the source options say otherwise."""
     from .bench.branch import run as run_bench

@@ -159,10 +159,16 @@ _costs_until = _make_costs_kernel(parallel=True)
 _costs_until_serial = _make_costs_kernel(parallel=False)
 
 
-# Below this many point reads (particles × points) the floored update sums in one thread: ~2 ms
-# of work gains little from a second thread, and loses a lot when another process (the S2M or
-# RPE child, another run) holds the other core and the parallel region waits for its thread.
+# Below this many point reads (particles × points) a full pass sums in one thread: ~2 ms of work
+# gains little from a second thread, and loses a lot when another process (the S2M or RPE child,
+# another run) holds the other core and the parallel region waits for its thread.
 PARALLEL_MIN_READS = 1_000_000
+
+
+def _kernel_for(n_particles: int, n_points: int):
+    """The parallel kernel for a full pass of at least PARALLEL_MIN_READS reads, else the serial
+    twin (the same sums either way)."""
+    return _costs_until if n_particles * n_points >= PARALLEL_MIN_READS else _costs_until_serial
 
 
 def scrambled_order(m: int) -> np.ndarray:
@@ -266,7 +272,7 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
     # the floored filter's kernel with no limit: the same sums in the same order
-    kernel = _costs_until if n > 64 else _costs_until_serial
+    kernel = _kernel_for(n, len(pts))
     kernel(st, pts_by_axis, len(pts), np.full(n, np.inf), *lookup.flat_kernel_args, costs, cost, complete)
     return -cost
 
@@ -314,7 +320,7 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
     bound = float(np.max(prior[top] - top_cost))
     # 3. … so the sum of particle i can stop once prior_i − partial > bound − margin fails.
     limit = prior - bound + margin
-    kernel = _costs_until if n * m >= PARALLEL_MIN_READS else _costs_until_serial
+    kernel = _kernel_for(n, m)
     kernel(st, pts, m, limit, *args, cost, complete)
     value = np.where(complete, prior - cost, -np.inf)
     floor = float(np.max(value)) - margin

@@ -13,15 +13,12 @@ import numba as nb
 import numpy as np
 
 from .errors import LidarlocError
-from .voxelhash import hash_slot, voxel_key
+from .voxelhash import hash_slot, mix64, voxel_key
 
 @nb.njit(nogil=True, cache=True)
 def _mix(z):
-    """splitmix64: a well-spread 64-bit hash of z."""
-    z = z + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
+    """splitmix64: a well-spread 64-bit hash of z (the golden-ratio step, then the finaliser)."""
+    return mix64(z + np.uint64(0x9E3779B97F4A7C15))
 
 
 @nb.njit(nogil=True, cache=True)

@@ -17,10 +17,14 @@ def voxel_key(x, y, z, inv_voxel):
 
 
 @nb.njit(cache=True, nogil=True)
-def hash_slot(key, mask):
-    """splitmix64 finaliser: mixes all 64 bits so the low bits used as the slot are uniform."""
-    z = np.uint64(key)
+def mix64(z):
+    """splitmix64 finaliser of the uint64 ``z``: every output bit depends on every input bit."""
     z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    z = z ^ (z >> np.uint64(31))
-    return np.int64(z & np.uint64(mask))
+    return z ^ (z >> np.uint64(31))
+
+
+@nb.njit(cache=True, nogil=True)
+def hash_slot(key, mask):
+    """The slot of ``key`` in a table of mask + 1 slots: mixed so that the low bits are uniform."""
+    return np.int64(mix64(np.uint64(key)) & np.uint64(mask))

@@ -57,7 +57,7 @@ def sizes(rec: recording.Recording) -> dict:
             n = data["pf_states"].shape[0] if "pf_states" in data.files else 0
         particle_bytes = sum(per_particle)
         scaled += f.stat().st_size - particle_bytes + (particle_bytes * 1000.0 / n if n else 0.0)
-    at_1000 = scaled / 1e6 * 1000.0 / max(rec.n, 1) + per_step * 1000.0 / max(float(np.mean(rec.n_particles)), 1.0)
+    at_1000 = scaled / 1e6 * 1000.0 / max(rec.n, 1) + per_step      # per-step fields hold no particle
     return {"checkpoints_mb_per_1000": round(checkpoints, 2),
             "s2m_outcomes_mb_per_1000": round(mb("*-s2m_outcome.npz"), 2),
             "per_step_fields_mb_per_1000": round(per_step, 2),

@@ -28,20 +28,20 @@ import dataclasses
 
 import numpy as np
 
-from lidarloc.core.config import Config, PFConfig, apply_overrides
+from lidarloc.core.config import PRESETS, Config, PFConfig, apply_overrides
 from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.metrics import inside_2sigma
 
 from .common import load_avg, machine
 
-# the likelihood's fields, as the paper has them; every option starts from these
-PAPER_LIKELIHOOD = ["pf.temperature=1", "pf.unexplained_share=0", "pf.max_points=0", "pf.kld=false"]
-_DEFAULTS = PFConfig()
+# the filter's settings as the paper preset pins them; every option starts from these, and
+# "default" puts the same settings back to the defaults
+_PAPER_PF = {key: value for key, value in PRESETS["paper"].items() if key.startswith("pf.")}
+PAPER_LIKELIHOOD = [f"{key}={value}" for key, value in _PAPER_PF.items()]
 OPTIONS: dict[str, list[str]] = {
     "paper": [],
-    "default": [f"pf.temperature={_DEFAULTS.temperature:g}", f"pf.unexplained_share={_DEFAULTS.unexplained_share:g}",
-                f"pf.max_points={_DEFAULTS.max_points}", f"pf.kld={str(_DEFAULTS.kld).lower()}"],
+    "default": [f"{key}={getattr(PFConfig(), key[len('pf.'):])}" for key in _PAPER_PF],
     "T=10": ["pf.temperature=10"],
     "T=100": ["pf.temperature=100"],
     "per-point mean": ["pf.temperature=0"],

@@ -96,6 +96,21 @@ def test_level_ignores_a_random_attitude_and_height_of_the_start(scene, matcher,
         assert not out.accepted and "GICP" in out.reason
 
 
+def test_a_start_tilted_beyond_a_vehicles_attitude_is_levelled(scene, matcher):
+    """A particle that tumbled (pitch −70°, roll 120°) is not trusted even without ``level``: the
+    search levels it and the match is accepted and right, as from a level start."""
+    from lidarloc.core.s2m import MAX_TRUSTED_TILT
+
+    truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
+    scan = cut_scan(scene, truth)
+    start = pose_matrix(70.3 + 6.2, 64.6 - 4.7, SENSOR_HEIGHT + 3.0, 0.9 + 25 * DEG, -70 * DEG, 120 * DEG)
+    assert 70 * DEG > MAX_TRUSTED_TILT
+    out = matcher.match_local(scan, start)
+    assert out.accepted, out.reason
+    dt, dr = pose_error(out.pose, truth)
+    assert dt < 0.1 and dr < 0.3, (dt, dr)
+
+
 def test_match_that_does_not_beat_the_start_is_rejected(scene):
     """Binary cells, and the start is the true pose of a scan made of the map's own wall points: every
     scan cell hits an occupied cell, the highest score any pose can reach, so nothing beats it."""

@@ -137,9 +137,11 @@ def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_afte
         summary["interrupted"] = interrupted
         if getattr(loc, "branch_of", None) is not None:
             summary["branch_of"] = loc.branch_of
-        if writer is not None:
-            writer.close(summary)
-        write_run(loc, out, summary)
+        try:
+            if writer is not None:
+                writer.close(summary)
+        finally:                             # a recording that failed never costs the results
+            write_run(loc, out, summary)
     error = (f"RMSE after {summary['rmse_after_localized_m']}" if loc.seq.has_poses
              else "no ground truth (no errors)")
     console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "

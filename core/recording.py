@@ -50,6 +50,9 @@ import dataclasses
 import datetime as _dt
 import json
 import os
+import queue
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +68,9 @@ INDEX = "index.json"
 STEPS = "steps.bin"
 N_STATE = 11
 COMPRESS_ABOVE_BYTES = 64 * 1024
+# Steps the writing thread may fall behind before a step waits for it (~50 kB each at 1000
+# particles, a checkpoint ~0.2 MB): a slow disk slows the run instead of filling the memory.
+_QUEUE_STEPS = 64
 
 
 class RecordingError(LidarlocError):
@@ -137,7 +143,12 @@ class RecordingWriter:
 
     Call :meth:`on_scan` after every successful ``Localizer.step()`` (on the stepping thread) and
     :meth:`close` at the end. One writer records one run from one (re)start: a restarted localizer
-    gets a new writer."""
+    gets a new writer.
+
+    ``on_scan`` only gathers copies of the step; a thread of the writer's own writes them, in
+    order, and commits each step once all of it is on disk. :attr:`committed` counts those (what
+    a reader sees), :meth:`flush` waits for the rest, :meth:`close` writes what is queued. A
+    failure to write is raised by the next ``on_scan``, ``flush`` or ``close``."""
 
     def __init__(self, run_dir, spec, cfg, seq, preset: str | None = None, branch_of: dict | None = None,
                  first_step: int = 0):
@@ -175,6 +186,15 @@ class RecordingWriter:
         self._last_scan: int | None = None
         self._last_s2m = None
         self.closed = False
+        # The disk work is done on a thread of its own, so that a step costs the filter only the
+        # copies it hands over; ``committed`` counts the steps on disk (what a reader sees).
+        self.committed = 0
+        self.writer_cpu_s = 0.0           # the writing thread's CPU time
+        self._error: RecordingError | None = None
+        self._queue: queue.Queue = queue.Queue(maxsize=_QUEUE_STEPS)
+        self._committed_changed = threading.Condition()
+        self._thread = threading.Thread(target=self._drain, name="lidarloc-recording", daemon=True)
+        self._thread.start()
 
     def continue_from(self, loc) -> None:
         """A branch's writer: the events up to ``loc.recorded_events_base``, the last scan and the
@@ -191,26 +211,21 @@ class RecordingWriter:
     def _write_index(self) -> None:
         _write_json(self.path / INDEX, {"format": FORMAT, "version": VERSION, "meta": self.meta, "fields": self.fields})
 
-    def _append(self, name: str, value) -> None:
-        info = self.fields[name]
-        arr = np.asarray(value, dtype=np.dtype(info["dtype"]))
-        if list(arr.shape) != info["shape"]:
-            raise RecordingError(f"recording field {name}: shape {arr.shape}, expected {tuple(info['shape'])}")
-        self._files[name].write(arr.tobytes())
-
     def on_scan(self, loc, snap: Snapshot) -> None:
-        """Append the step ``snap`` is the snapshot of (``loc`` just produced it)."""
+        """Append the step ``snap`` is the snapshot of (``loc`` just produced it; call it before
+        the next control changes ``loc``). What the step needs is gathered here, as copies; the
+        writing thread puts it on disk. Raises the writing thread's failure, if it had one."""
         if self.closed:
             raise RecordingError(f"{self.path}: the recording is closed")
+        if self._error is not None:
+            raise self._error
         steps = int(getattr(loc, "steps", self.n + 1))
         if snap.scan_index < 0 or (self._last_steps is not None and steps <= self._last_steps):
             raise RecordingError("recording: this snapshot is not a new step (a restarted run needs a new recording)")
         i = self.n
         record = loc.records[-1] if getattr(loc, "records", None) else None
         n = len(snap.particles)
-        self._files["particles"].write(np.asarray(snap.particles, np.float32).tobytes())
         lw = snap.log_weights if snap.log_weights is not None else np.log(np.maximum(snap.weights, 1e-300))
-        self._files["log_weights"].write(np.asarray(lw, np.float32).tobytes())
         values = {
             "scan_index": snap.scan_index, "timestamp": snap.timestamp, "mean_pose": snap.mean_pose,
             "cov_xyz": snap.cov_xyz, "std_xyz": snap.std_xyz, "ellipse_xy": np.asarray(snap.ellipse_xy, float),
@@ -228,27 +243,31 @@ class RecordingWriter:
             "s2m_pending": snap.s2m_pending, "s2m_acceptance": snap.s2m_acceptance, "done": snap.done,
             "particle_rows": (self._particle_row, n),
         }
-        for name, value in values.items():
-            self._append(name, value)
-        self._particle_row += n
-        self._write_events(loc, i, snap.scan_index)
-        if snap.s2m is not None and snap.s2m is not self._last_s2m:
-            _save_s2m(self.path / "s2m", i, snap.s2m)
-        self._last_s2m = snap.s2m
+        rows = {name: self._row(name, value) for name, value in values.items()}
         payload = loc.resume_payload(i) if hasattr(loc, "resume_payload") else None
-        if payload is not None:
-            self._write_payload(i, payload)
-        for f in self._files.values():
-            f.flush()
-        self._events.flush()
-        self._steps.write(np.int64(i).tobytes())     # the commit: the step exists from here on
-        self._steps.flush()
+        if payload is not None:   # the next step must not change what this one hands over
+            payload = ResumePayload(per_step={k: np.array(v) for k, v in payload.per_step.items()},
+                                    files={k: dict(v) for k, v in payload.files.items()})
+        s2m = snap.s2m if snap.s2m is not None and snap.s2m is not self._last_s2m else None
+        item = _Step(i, np.array(snap.particles, np.float32), np.array(lw, np.float32), rows,
+                     self._event_lines(loc, i, snap.scan_index), s2m, payload)
+        self._queue.put(item)        # blocks while the writing thread is _QUEUE_STEPS steps behind
+        self._particle_row += n
+        self._last_s2m = snap.s2m
         self.n += 1
         self._last_steps = steps
         self._last_scan = snap.scan_index
 
-    def _write_events(self, loc, i: int, scan: int) -> None:
+    def _row(self, name: str, value) -> bytes:
+        info = self.fields[name]
+        arr = np.asarray(value, dtype=np.dtype(info["dtype"]))
+        if list(arr.shape) != info["shape"]:
+            raise RecordingError(f"recording field {name}: shape {arr.shape}, expected {tuple(info['shape'])}")
+        return arr.tobytes()
+
+    def _event_lines(self, loc, i: int, scan: int) -> list[str]:
         events = getattr(loc, "events", [])
+        lines = []
         for ev in events[self._n_events:]:
             # an event from before the first scan (scan -1), or from a control between the previous
             # step and this one (a kidnap or reset names the previous scan), belongs to that step
@@ -258,9 +277,54 @@ class RecordingWriter:
                 step = i - 1
             else:
                 step = i
-            self._events.write(json.dumps({"step": step, "scan": int(ev.scan), "kind": ev.kind,
-                                           "detail": ev.detail}) + "\n")
+            lines.append(json.dumps({"step": step, "scan": int(ev.scan), "kind": ev.kind, "detail": ev.detail}) + "\n")
         self._n_events = len(events)
+        return lines
+
+    # ------------------------------------------------------------------------ the writing thread
+    def _drain(self) -> None:
+        """The writing thread: take the steps handed over, in order; write each, flush once for
+        all of those that were waiting, then commit them (their rows in ``steps.bin``)."""
+        while True:
+            batch = [self._queue.get()]
+            while batch[-1] is not None:
+                try:
+                    batch.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            items = [b for b in batch if b is not None]
+            t0 = time.thread_time()
+            if items and self._error is None:
+                try:
+                    for item in items:
+                        self._write_step(item)
+                    for f in self._files.values():
+                        f.flush()
+                    self._events.flush()
+                    self._steps.write(np.asarray([item.index for item in items], np.int64).tobytes())
+                    self._steps.flush()      # the commit: the steps exist from here on
+                except (OSError, ValueError, RecordingError) as exc:
+                    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+                    self._error = RecordingError(f"{self.path}: cannot write the recording ({why})")
+            self.writer_cpu_s += time.thread_time() - t0
+            with self._committed_changed:
+                if self._error is None:
+                    self.committed += len(items)
+                self._committed_changed.notify_all()
+            if batch[-1] is None:
+                return
+
+    def _write_step(self, item: "_Step") -> None:
+        self._files["particles"].write(item.particles.tobytes())
+        self._files["log_weights"].write(item.log_weights.tobytes())
+        for name, row in item.rows.items():
+            self._files[name].write(row)
+        for line in item.event_lines:
+            self._events.write(line)
+        if item.s2m is not None:
+            _save_s2m(self.path / "s2m", item.index, item.s2m)
+        if item.payload is not None:
+            self._write_payload(item.index, item.payload)
 
     def _write_payload(self, i: int, payload: ResumePayload) -> None:
         new_field = False
@@ -271,7 +335,7 @@ class RecordingWriter:
                     raise RecordingError(f"resume field {name} clashes with a display field")
                 self._declare(name, arr.dtype.newbyteorder("<").str, arr.shape, i)
                 new_field = True
-            self._append(name, arr)
+            self._files[name].write(self._row(name, arr))
         for name, arrays in payload.files.items():
             # a checkpoint (~0.1 MB at 1000 particles) compresses ~10×; a small file is not worth the time
             big = sum(np.asarray(a).nbytes for a in arrays.values()) > COMPRESS_ABOVE_BYTES
@@ -279,19 +343,53 @@ class RecordingWriter:
         if new_field:
             self._write_index()
 
+    def flush(self) -> None:
+        """Wait until every step handed over is on disk (readers see it); raises the writing
+        thread's failure, if it had one."""
+        with self._committed_changed:
+            self._committed_changed.wait_for(lambda: self.committed >= self.n or self._error is not None
+                                             or not self._thread.is_alive())
+        if self._error is not None:
+            raise self._error
+
     def close(self, summary: dict | None = None) -> None:
-        """Flush and close; ``summary`` (the run's summary.json content) goes into the index too."""
+        """Write what is still queued, then close; ``summary`` (the run's summary.json content)
+        goes into the index too. Raises the writing thread's failure after closing, if it had one."""
         if self.closed:
             return
         self.closed = True
+        self._queue.put(None)
+        self._thread.join()
         for f in self._files.values():
-            f.close()
+            try:
+                f.close()
+            except OSError:      # its failure is the one reported below
+                pass
         self._events.close()
         self._steps.close()
         if summary is not None:
             self.meta["summary"] = summary
         self.meta["closed"] = True
-        self._write_index()
+        try:
+            self._write_index()
+        except OSError as exc:
+            if self._error is None:
+                self._error = RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})")
+        if self._error is not None:
+            raise self._error
+
+
+@dataclasses.dataclass
+class _Step:
+    """One step as handed to the writing thread: copies of everything it writes."""
+
+    index: int
+    particles: np.ndarray
+    log_weights: np.ndarray
+    rows: dict[str, bytes]
+    event_lines: list[str]
+    s2m: S2MView | None
+    payload: ResumePayload | None
 
 
 def _save_s2m(folder: Path, step: int, view: S2MView) -> None:

@@ -196,3 +196,45 @@ def test_a_benchmark_run_records_itself_with_record(cache_root, tmp_path):
     assert [int(r["scan"]) for r in rows] == rec.scan_index.tolist()
     assert np.allclose([float(r["x"]) for r in rows], rec.mean_pose[:, 0, 3], atol=1e-6)
     assert rec.summary["scans"] == 12
+
+
+def test_a_step_is_recorded_as_it_was_handed_over_and_seen_after_flush(tmp_path):
+    """The writing thread writes copies: what the localizer changes after on_scan returned (its
+    next step) is not what the recording holds; flush() makes every step handed over readable."""
+    cfg = Config()
+    loc = _FakeLocalizer(cfg)
+    payload = ResumePayload(per_step={"odom_pose": np.eye(4)}, files={"checkpoint": {"states": np.zeros((3, 11))}})
+    loc.resume_payload = lambda step: payload
+    w = RecordingWriter(tmp_path, SourceSpec(), cfg, [0] * 5)
+    snap = _snap(0)
+    loc.steps = 1
+    w.on_scan(loc, snap)
+    snap.particles[:] = 7.0                     # the filter moves on: the next step's state
+    payload.per_step["odom_pose"][:] = 5.0
+    w.flush()
+    assert w.committed == w.n == 1 and recording.open(tmp_path).n == 1
+    rec = recording.open(tmp_path)
+    assert np.array_equal(rec.particles(0), np.zeros((3, 11), np.float32))
+    assert np.array_equal(rec.field("odom_pose")[0], np.eye(4))
+    w.close()
+    assert w.writer_cpu_s > 0.0
+
+
+def test_a_failure_to_write_is_one_line_at_the_next_step_and_at_close(tmp_path):
+    import shutil
+
+    cfg = Config()
+    loc = _FakeLocalizer(cfg)            # its payload has a checkpoint file at step 0
+    w = RecordingWriter(tmp_path, SourceSpec(), cfg, [0] * 5)
+    shutil.rmtree(tmp_path / "recording" / "resume")      # the disk loses the folder
+    loc.steps = 1
+    w.on_scan(loc, _snap(0))
+    with pytest.raises(RecordingError, match="cannot write the recording") as caught:
+        w.flush()
+    assert "\n" not in str(caught.value)
+    loc.steps = 2
+    with pytest.raises(RecordingError, match="cannot write the recording"):
+        w.on_scan(loc, _snap(1))
+    with pytest.raises(RecordingError, match="cannot write the recording"):
+        w.close()
+    assert recording.open(tmp_path).n == 0        # the failed step was never committed

@@ -4,8 +4,11 @@ A localizer runs over the source's scans (default: the town's first 1000, 1000 p
 :class:`~lidarloc.core.recording.RecordingWriter` attached, the way ``lidarloc run`` records.
 Measured:
 
-- the time ``on_scan`` takes per step (appending the display fields, the particles, the events
-  and the resume payload), against the PF step's own time: target ≤ 5 % (medians);
+- the time ``on_scan`` takes per step on the stepping thread (gathering copies of the display
+  fields, the particles, the events and the resume payload, and handing them to the writer's
+  thread), against the PF step's own time: target ≤ 5 % (medians); beside it the CPU time the
+  writer's thread spends per step putting them on disk (mean: it writes in batches), which runs
+  alongside the filter instead of in its step;
 - the recording's size per 1000 steps at the run's particle count: target ≤ 60 MB at 1000
   particles without scan points (the scans are a reference to the source, not stored; the
   road-removed scan of each S2M match is, at float16, and counted apart); the resume payload
@@ -61,6 +64,7 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
                 if progress is not None:
                     progress(len(record_ms), len(seq))
             writer.close()
+            writer_cpu_ms = writer.writer_cpu_s * 1000.0 / max(writer.n, 1)
             pf_ms = [r.pf_ms for r in loc.records]
             particles = [r.n_particles for r in loc.records]
         finally:
@@ -84,6 +88,8 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
         "record_ms_median": round(rec_median, 3), "record_ms_p95": round(float(np.percentile(record_ms, 95)), 3),
         "pf_ms_median": round(pf_median, 2),
         "record_share_of_pf": round(rec_median / pf_median, 4), "target_share": TARGET_SHARE,
+        "writer_thread_cpu_ms_per_step": round(writer_cpu_ms, 3),
+        "writer_thread_cpu_share_of_pf": round(writer_cpu_ms / pf_median, 4),
         "mb_per_1000_steps": round(per_1000, 1),
         "mb_per_1000_steps_without_scan_points": round(without_scans, 1),
         "s2m_scan_points_mb_per_1000_steps": round(scan_points / 1e6 * 1000.0 / max(n, 1), 1),

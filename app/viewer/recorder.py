@@ -66,11 +66,12 @@ class Recorder:
 
     @property
     def n(self) -> int:
-        """Steps of the current run recorded so far (a branch's original steps included)."""
+        """Steps of the current run on disk so far (a branch's original steps included): the
+        timeline can open every one of them."""
         w, run = self.writer, self.run
         if run is None:
             return 0
-        return run.first_step + (w.n if w is not None else run.rec.n)
+        return run.first_step + (w.committed if w is not None else run.rec.n)
 
     def start(self, loc, name: str = "run", branch_of: dict | None = None, first_step: int = 0) -> Path:
         """Close the current run's recording and start one for ``loc`` (just built, restarted or

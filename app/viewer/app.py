@@ -41,6 +41,10 @@ from .why import WhyViews
 if TYPE_CHECKING:
     from lidarloc.core.localizer import Localizer
 
+#: How long stopping waits for the player's step and the display's update in flight to finish
+#: (a GUI update after the server stopped is lost and warned about).
+STOP_WAIT_S = 5.0
+
 
 class Viewer:
     """GUI, scene and threads around one Localizer. Use
@@ -562,17 +566,19 @@ class Viewer:
 
     # ============================================================== shutdown
     def stop(self) -> None:
+        """Stop the threads that write to the GUI, and wait for them (bounded: a step waiting for
+        a block that hangs must not hang the exit), so that the server stops after them."""
         self._stopping.set()
         self._wake.set()
         self.why.stop()
         if self.player is not None:
-            self.player.stop(timeout=0.5)
+            self.player.stop(timeout=STOP_WAIT_S)
         try:
             self.travel.stop()
         except Exception:  # stopping goes on: the recording stays readable up to its last step
             traceback.print_exc(file=sys.stderr)
         if self._display.is_alive():
-            self._display.join(timeout=0.3)
+            self._display.join(timeout=STOP_WAIT_S)
 
 
 def _whole_number(handle, what: str, minimum: int) -> int:

@@ -62,6 +62,8 @@ def run_branch(run_dir: Path, step: int, overrides: list[str] | dict | None, out
             continue_recording(writer, loc)
     except BaseException:
         loc.close()
+        if writer is not None:
+            writer.close()
         raise
     title = (f"branching {rec.run_dir} at step {step} (scan {loc.snapshot().scan_index}): "
              f"{len(loc.seq) - loc.k} scans left of {loc.seq.name}")

@@ -14,7 +14,7 @@ from lidarloc.core.errors import LidarlocError
 
 from .bench.common import DATA_ENV, DEFAULT_DATA, REAL_DRIVE, REAL_DRIVE_DATE
 from .console import emit_json, err, fail, peak_rss_mb, progress_bar, show_result
-from .options import (OWN_DATA, SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, ConfigOpt, InitOpt, JsonOpt,
+from .options import (OWN_DATA, SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, ConfigOpt, InitOpt, JsonOpt, WorldOpt,
                       PresetOpt, ScansOpt, SetOpt, config_from, given, open_source,
                       source_spec, with_source)
 
@@ -643,15 +643,18 @@ def bench_localize(
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
     record: RecordBenchOpt = False,
+    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
-    """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section)."""
+    """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section).
+
+    On the built-in town the drive is lived-in unless --world kind says otherwise."""
     from .bench.localize import run_bench
 
     overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
         + (["s2m.enabled=false"] if no_s2m else [])
-    cfg = config_from(config, overrides, preset=preset)
+    cfg = config_from(config, overrides, preset=preset, world=world)
     summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
                         cache_root=cache, console=err, preset=preset, record=record)
     _result("localize", summary, as_json)

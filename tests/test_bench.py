@@ -53,6 +53,9 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert summary["false_fire_rate"] == sum(r["false_fire"] for r in runs) / 3
     assert [r["false_fire"] for r in rows] == [str(int(r["false_fire"])) for r in runs]
     assert "2σ ellipse" in (out / "report.md").read_text()
+    # the world of the town's drive is in the summary and the report
+    assert summary["world"] == runs[0]["world"] and summary["world"]["changes"] == 0.0
+    assert "World of the drive: changes 0" in (out / "report.md").read_text()
     # the odometry was computed once into the cache, and the town's scans stored once
     assert list((tmp_path / "cache").glob("map-*/odometry-kiss-*/poses.npy"))
     assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS

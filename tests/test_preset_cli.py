@@ -57,6 +57,35 @@ def test_preset_comes_before_the_config_file_and_set(tmp_path):
     assert config_from(None, None, seed=7, preset="paper").seed == 7
 
 
+def test_the_world_comes_after_the_preset_and_before_the_config_file_and_set(tmp_path):
+    from lidarloc.app.options import config_from
+    from lidarloc.core.config import WORLDS
+
+    lived_in = config_from(None, None, preset="paper", world="lived-in")
+    assert (lived_in.town.changes, lived_in.town.traffic, lived_in.town.skew) == (0.3, True, True)
+    assert lived_in.pf.temperature == 1.0                       # the preset is still applied
+    kind = config_from(None, None, world="kind")
+    assert (kind.town.changes, kind.town.traffic, kind.town.skew) == (0.0, False, False) and WORLDS["kind"] == {}
+    f = tmp_path / "c.yaml"
+    f.write_text("town: {traffic: false}\n")
+    assert config_from(f, None, world="lived-in").town.traffic is False
+    assert config_from(None, ["town.changes=0.6"], world="lived-in").town.changes == 0.6
+
+
+def test_bench_localize_defaults_to_the_lived_in_world_and_a_bad_world_is_one_line(tmp_path):
+    from lidarloc.app.cli import app
+
+    command = typer.main.get_command(app).commands["bench"].commands["localize"]
+    world = next(p for p in command.params if "--world" in p.opts)
+    assert world.default == "lived-in"
+    out = tmp_path / "out"
+    r = cli("bench", "localize", "--world", "nice", "--scans", "2", "--out", str(out), cache=tmp_path / "cache")
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "unknown world 'nice'" in lines[0] and "lived-in|kind" in lines[0]
+    assert not out.exists()
+
+
 def test_run_records_the_preset_in_its_summary(tmp_path, cache_root):
     out = tmp_path / "run"
     r = cli("run", "--preset", "paper", "--scans", "5", *SMALL_TOWN, "--out", str(out), "--json", cache=cache_root)

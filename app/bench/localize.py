@@ -308,6 +308,7 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
     agg["pf_ms_median"] = float(np.median(pf_ms)) if pf_ms.size else None
     agg["s2m_ms_median"] = float(np.median(s2m_ms)) if s2m_ms.size else None
     agg["source"] = spec.describe()
+    agg["world"] = summaries[0].get("world") if summaries else None   # the town's drive (None: other sources)
     agg["preset"] = preset
     agg["s2m"] = cfg.s2m.enabled
     agg["particles"] = cfg.pf.n_particles
@@ -362,6 +363,10 @@ def _plots(out_dir: Path, per_run: list[dict], pf_ms: np.ndarray, s2m_ms: np.nda
     plt.close(fig)
 
 
+def _world_text(world: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in world.items())
+
+
 def _report(out_dir: Path, agg: dict, plots: bool = True) -> None:
     def fmt(v):
         return "fail" if v is None else (f"{v:.0f}" if float(v).is_integer() else f"{v:.2f}")
@@ -369,7 +374,8 @@ def _report(out_dir: Path, agg: dict, plots: bool = True) -> None:
     lines = [f"# Localization benchmark: {agg['source']}", "",
              f"{agg['runs']} runs × {agg['scans_per_run']} scans, {agg['particles']} particles, "
              f"{'preset ' + agg['preset'] + ', ' if agg['preset'] else ''}"
-             f"S2M {'on' if agg['s2m'] else 'off'}, replay clock. Metrics in scans (lidarloc.core.metrics).", "",
+             f"S2M {'on' if agg['s2m'] else 'off'}, replay clock. Metrics in scans (lidarloc.core.metrics).",
+             *([f"World of the drive: {_world_text(agg['world'])}."] if agg.get("world") else []), "",
              "| metric | median | 75th pct | max | success | paper 75th | paper max |", "|---|---|---|---|---|---|---|"]
     for k in METRIC_KEYS:
         a, p = agg[k], PAPER[k]

@@ -303,8 +303,8 @@ class RecordingWriter:
                     self._events.flush()
                     self._steps.write(np.asarray([item.index for item in items], np.int64).tobytes())
                     self._steps.flush()      # the commit: the steps exist from here on
-                except (OSError, ValueError, RecordingError) as exc:
-                    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+                except Exception as exc:   # whatever it is, the thread lives on (a step waiting for it must not hang)
+                    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else (str(exc) or type(exc).__name__)
                     self._error = RecordingError(f"{self.path}: cannot write the recording ({why})")
             self.writer_cpu_s += time.thread_time() - t0
             with self._committed_changed:

@@ -20,6 +20,18 @@ def cli(*args, cache):
                           capture_output=True, text=True, env=env, timeout=300)
 
 
+def test_the_time_estimate_counts_each_configuration_at_its_own_pace():
+    from types import SimpleNamespace
+
+    from lidarloc.app.bench.robustness import CONFIGS, PREPARE_S_PER_SCAN, RUN_S_PER_SCAN, Matrix, estimate_s
+
+    assert set(RUN_S_PER_SCAN) == set(CONFIGS)
+    plans = {c.name: SimpleNamespace(todo=[(0, "d"), (1, "d")]) for c in Matrix(changes=(0.3,)).cells(real=True)}
+    per_world = 2 * 100 * sum(RUN_S_PER_SCAN.values())
+    # 12 worlds and the real drive, 2 runs of 100 scans per cell; 11 worlds left to prepare
+    assert estimate_s(plans, 11, 100, 2) == pytest.approx((13 * per_world + 11 * 100 * PREPARE_S_PER_SCAN) / 2)
+
+
 # ------------------------------------------------------------------------------ the matrix
 def test_the_full_matrix_has_108_cells_and_slices_restrict_it():
     from lidarloc.app.bench.robustness import Matrix, parse_matrix

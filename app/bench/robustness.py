@@ -54,12 +54,13 @@ CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
 MATRIX_KEYS = {"town.changes": "--changes", "town.traffic": "--traffic", "town.sensor": "--sensors",
                "town.skew": "--skew", "s2m.enabled": "--configs"}
 DEFAULT_SCANS = 300
-# Wall seconds per scan of one worker, for the estimate printed before the start (the progress
-# bar's remaining time then follows the real pace): a run of the town's first 300 scans in the
-# default configuration took 175 s (S2M searches the whole mapping drive's map until localized),
-# and a world's preparation (simulating its scans, KISS-ICP) 33 s for 300 scans, on the reference
-# 2-core machine at load 3–5. The one-time map build (~2.5 min for the default town) is not counted.
-RUN_S_PER_SCAN = 0.55
+# Wall seconds per scan of one worker, per configuration, for the estimate printed before the
+# start (the progress bar's remaining time then follows the real pace): runs of the town's first
+# 300 scans, two at a time, on the reference 2-core machine (the full matrix at 1 run per cell:
+# default 44 s a run, S2M searching the whole mapping drive's map until localized; paper 67 s, its
+# PF summing every point; no-S2M 4 s). A world's preparation (simulating its scans, KISS-ICP)
+# took 33 s for 300 scans; the one-time map build (~2.5 min for the default town) is not counted.
+RUN_S_PER_SCAN = {"paper": 0.22, "default": 0.15, "no-S2M": 0.014}
 PREPARE_S_PER_SCAN = 0.11
 
 
@@ -196,10 +197,11 @@ def cell_config(cell: Cell, config: Path | None, overrides: list[str] | None) ->
 
 # --------------------------------------------------------------------------------- running
 def estimate_s(plans: dict, worlds_to_prepare: int, scans: int, workers: int) -> float:
-    """Rough wall seconds of what is left (the module's constants; the real drive's runs, which
-    may be shorter, counted at ``scans``)."""
-    todo_scans = sum(len(p.todo) for p in plans.values()) * scans
-    return (todo_scans * RUN_S_PER_SCAN + worlds_to_prepare * scans * PREPARE_S_PER_SCAN) / workers
+    """Rough wall seconds of what is left (the module's constants; ``plans`` by cell name, which
+    ends in the configuration's; the real drive's runs, which may be shorter, counted at ``scans``)."""
+    run_s = sum(len(p.todo) * scans * RUN_S_PER_SCAN[next(c for c in CONFIGS if name.endswith("-" + c))]
+                for name, p in plans.items())
+    return (run_s + worlds_to_prepare * scans * PREPARE_S_PER_SCAN) / workers
 
 
 def _n(count: int, noun: str) -> str:

@@ -369,20 +369,20 @@ WORLDS: dict[str, dict[str, Any]] = {
 }
 
 
-def apply_world(cfg: Config, name: str | None) -> Config:
+def _apply_named(cfg: Config, name: str | None, table: dict[str, dict[str, Any]], what: str) -> Config:
     if name is None:
         return cfg
-    if name not in WORLDS:
-        raise LidarlocError(f"invalid configuration: unknown world '{name}' (choose {'|'.join(WORLDS)})")
-    return apply_overrides(cfg, [f"{key}={value}" for key, value in WORLDS[name].items()])
+    if name not in table:
+        raise LidarlocError(f"invalid configuration: unknown {what} '{name}' (choose {'|'.join(table)})")
+    return apply_overrides(cfg, [f"{key}={value}" for key, value in table[name].items()])
+
+
+def apply_world(cfg: Config, name: str | None) -> Config:
+    return _apply_named(cfg, name, WORLDS, "world")
 
 
 def apply_preset(cfg: Config, name: str | None) -> Config:
-    if name is None:
-        return cfg
-    if name not in PRESETS:
-        raise LidarlocError(f"invalid configuration: unknown preset '{name}' (choose {'|'.join(PRESETS)})")
-    return apply_overrides(cfg, [f"{key}={value}" for key, value in PRESETS[name].items()])
+    return _apply_named(cfg, name, PRESETS, "preset")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None,

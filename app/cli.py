@@ -538,13 +538,16 @@ def bench_s2m(
     out: Annotated[Optional[Path], typer.Option("--out", help="Write the result, per-scan rows and RMSE histogram PNG here.")] = None,
     gicp_comparison: Annotated[bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")] = True,
     cell_study: Annotated[bool, typer.Option("--cell-study", help="Also match with every BEV cell value.")] = False,
+    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
 ):
-    """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment)."""
+    """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment).
+
+    On the built-in town the scans come from a lived-in drive unless --world kind says otherwise."""
     from .bench.s2m import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
     _result("s2m", run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison,
                              cell_study=cell_study), as_json)
 

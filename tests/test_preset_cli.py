@@ -75,9 +75,11 @@ def test_the_world_comes_after_the_preset_and_before_the_config_file_and_set(tmp
 def test_bench_localize_defaults_to_the_lived_in_world_and_a_bad_world_is_one_line(tmp_path):
     from lidarloc.app.cli import app
 
-    command = typer.main.get_command(app).commands["bench"].commands["localize"]
-    world = next(p for p in command.params if "--world" in p.opts)
-    assert world.default == "lived-in"
+    bench = typer.main.get_command(app).commands["bench"]
+    with_world = {name for name, c in bench.commands.items() if any("--world" in p.opts for p in c.params)}
+    assert with_world == {"localize", "s2m"}           # the benchmarks of localization and matching quality
+    for name in with_world:
+        assert next(p for p in bench.commands[name].params if "--world" in p.opts).default == "lived-in"
     out = tmp_path / "out"
     r = cli("bench", "localize", "--world", "nice", "--scans", "2", "--out", str(out), cache=tmp_path / "cache")
     assert r.returncode == 2, r.stderr
@@ -104,3 +106,15 @@ def test_a_bad_preset_is_one_line(tmp_path, command):
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "unknown preset 'fastest'" in lines[0] and "paper" in lines[0]
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_bench_s2m_matches_a_lived_in_drive_unless_told_kind(tmp_path, cache_root):
+    worlds = {}
+    for world in ("lived-in", "kind"):
+        r = cli("bench", "s2m", "--world", world, "--matches", "3", "--no-gicp-comparison", "--scans", "12",
+                *SMALL_TOWN, "--json", cache=cache_root)
+        assert r.returncode == 0, r.stderr
+        worlds[world] = json.loads(r.stdout)["world"]
+    assert (worlds["lived-in"]["changes"], worlds["lived-in"]["traffic"], worlds["lived-in"]["skew"]) == (0.3, True, True)
+    assert (worlds["kind"]["changes"], worlds["kind"]["traffic"], worlds["kind"]["skew"]) == (0.0, False, False)

@@ -219,6 +219,7 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
     rm_gicp = np.array([r["rmse_gicp"] for r in rows])
     result = {
         "source": seq.name, "scans": n, "seed": seed,
+        "world": seq.world_options() if hasattr(seq, "world_options") else None,   # the town's drive only
         "map_points": int(len(prior.points)), "map_points_bev": int(len(prior.points_bev)),
         "pyramid_shape": list(pyramid.shape), "pyramid_levels": pyramid.n_levels, "cell_value": pyramid.cell_value,
         "match_resolution_m": cfg.match_resolution, "angle_step_deg": math.degrees(cfg.angle_step),

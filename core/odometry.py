@@ -170,10 +170,12 @@ class OdometryFeed:
         """Submit again the scans in [origin, upto) a restored checkpoint holds no registration
         of. In real time the odometry lags the filter: a checkpoint taken after step k may have
         scans up to k submitted but not yet registered, and the continuation must register them
-        (from the recorded poses when it has them, else live) before it can read them."""
-        for k in range(self.origin, upto):
-            if k not in self.futures:
-                self.submit(k, scan_of(k), time_of(k))
+        (from the recorded poses when it has them, else live) before it can read them. Only the
+        scans after the newest one the checkpoint holds: KISS-ICP registers in order, and the
+        checkpoint keeps only the odometry buffer's last scans, not every scan since ``origin``."""
+        first = max(self.futures) + 1 if self.futures else self.origin
+        for k in range(max(first, self.origin), upto):
+            self.submit(k, scan_of(k), time_of(k))
 
     def pose_record(self, k: int) -> dict[str, np.ndarray]:
         """Per-step resume fields after scan k: the odometry poses of scans k and k − 1 with their

@@ -38,7 +38,7 @@ filter used). With ``localize.deskew`` the filter saw the scan de-skewed with th
 that moment; the recomputed one is not de-skewed (a display difference of a few centimetres).
 
 Size: 48 bytes per particle per step (11 float32 states and a float32 log-weight), ~0.5 kB of
-per-step fields, plus the resume payload: ~50 MB per 1000 steps at 1000 particles
+per-step fields, plus the resume payload: ~55 MB per 1000 steps at 1000 particles
 (``lidarloc bench record``).
 """
 

@@ -333,3 +333,32 @@ def test_bench_branch_times_every_replay_length_and_sizes_the_payload(original, 
     assert 0 < result["checkpoints_and_per_step_mb_per_1000"] < BUDGET_MB_PER_1000
     assert result["checkpoints_and_per_step_mb_per_1000_at_1000_particles"] > result["checkpoints_and_per_step_mb_per_1000"]
     assert result["s2m_outcomes_mb_per_1000"] > 0
+
+
+def test_catching_up_after_a_checkpoint_registers_only_the_scans_after_its_newest():
+    """A checkpoint keeps the odometry buffer's last scans, not every scan since the run's first:
+    resuming at scan 1000 must not read and register the 990 scans before the buffer again."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lidarloc.core.config import Config
+    from lidarloc.core.geometry import pose_matrix
+    from lidarloc.core.odometry import OdometryFeed
+
+    recorded = np.stack([pose_matrix(1.0 * k, 0, 0, 0, 0, 0) for k in range(20)])
+    with ThreadPoolExecutor(1) as pool:
+        feed = OdometryFeed(Config(), recorded, pool, lambda fut, what, k: fut.result())
+        feed.restart(origin=0)
+        for k in range(12):
+            feed.submit(k, np.zeros((1, 3)), 0.1 * k)
+        for k in range(12):
+            feed.wait_registered(k)
+        saved = feed.checkpoint()
+        keep = slice(len(saved["scans"]) - 3, None)               # a buffer holding only scans 9–11
+        saved = {**saved, "scans": saved["scans"][keep], "poses": saved["poses"][keep],
+                 "times_path_turned": saved["times_path_turned"][keep]}
+        read = []
+        feed.restore(saved)
+        feed.catch_up(14, lambda k: read.append(k) or np.zeros((1, 3)), lambda k: 0.1 * k)
+        assert read == [12, 13]
+        for k in (12, 13):
+            feed.wait_registered(k)

@@ -167,8 +167,8 @@ class OdometryFeed:
         self.used, self.last_ms = meta["used"], meta["last_ms"]
 
     def catch_up(self, upto: int, scan_of: Callable[[int], np.ndarray], time_of: Callable[[int], float]) -> None:
-        """Submit again the scans in [origin, upto) a restored checkpoint holds no registration
-        of. In real time the odometry lags the filter: a checkpoint taken after step k may have
+        """Submit again the scans up to ``upto`` (exclusive) after the newest registration a
+        restored checkpoint holds. In real time the odometry lags the filter: a checkpoint taken after step k may have
         scans up to k submitted but not yet registered, and the continuation must register them
         (from the recorded poses when it has them, else live) before it can read them. Only the
         scans after the newest one the checkpoint holds: KISS-ICP registers in order, and the

@@ -238,3 +238,25 @@ def test_a_failure_to_write_is_one_line_at_the_next_step_and_at_close(tmp_path):
     with pytest.raises(RecordingError, match="cannot write the recording"):
         w.close()
     assert recording.open(tmp_path).n == 0        # the failed step was never committed
+
+
+def test_the_viewers_recorder_reports_a_write_that_failed_after_the_last_step(tmp_path):
+    """The writing thread fails after the last step was handed over: closing says so through the
+    viewer's message, it does not raise into the viewer's stop."""
+    import shutil
+
+    from lidarloc.app.viewer.recorder import Recorder
+
+    cfg = Config()
+    loc = _FakeLocalizer(cfg)
+    loc.seq = [0] * 5
+    snap = _snap(0)
+    loc.snapshot = lambda: snap
+    messages = []
+    rec = Recorder(tmp_path / "runs", SourceSpec(), on_failure=messages.append)
+    path = rec.start(loc)
+    shutil.rmtree(path / "recording" / "resume")          # the checkpoint of step 0 cannot be written
+    loc.steps = 1
+    assert rec.on_scan(loc, snap)
+    rec.close(None)
+    assert len(messages) == 1 and "recording stopped" in messages[0] and "cannot write" in messages[0]

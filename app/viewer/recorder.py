@@ -126,7 +126,10 @@ class Recorder:
                 return
             if summary == "auto":
                 summary = self._summary()
-            w.close(summary)
+            try:
+                w.close(summary)
+            except LidarlocError as exc:     # the writing thread failed after the last step
+                self._on_failure(f"recording stopped: {exc}")
             if summary is not None and self.run is not None:
                 import json
 

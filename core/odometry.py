@@ -167,14 +167,14 @@ class OdometryFeed:
         self.used, self.last_ms = meta["used"], meta["last_ms"]
 
     def catch_up(self, upto: int, scan_of: Callable[[int], np.ndarray], time_of: Callable[[int], float]) -> None:
-        """Submit again the scans up to ``upto`` (exclusive) after the newest registration a
-        restored checkpoint holds. In real time the odometry lags the filter: a checkpoint taken after step k may have
-        scans up to k submitted but not yet registered, and the continuation must register them
-        (from the recorded poses when it has them, else live) before it can read them. Only the
-        scans after the newest one the checkpoint holds: KISS-ICP registers in order, and the
-        checkpoint keeps only the odometry buffer's last scans, not every scan since ``origin``."""
+        """Submit again the scans after the newest registration a restored checkpoint holds, up
+        to ``upto`` (exclusive). In real time the odometry lags the filter: a checkpoint taken after
+        step k may have scans up to k submitted but not yet registered, and the continuation must
+        register them (from the recorded poses when it has them, else live) before it can read
+        them. KISS-ICP registers in order, and a checkpoint keeps only the odometry buffer's last
+        scans (not every scan since ``origin``), so nothing before the newest held one is missing."""
         first = max(self.futures) + 1 if self.futures else self.origin
-        for k in range(max(first, self.origin), upto):
+        for k in range(first, upto):
             self.submit(k, scan_of(k), time_of(k))
 
     def pose_record(self, k: int) -> dict[str, np.ndarray]:

@@ -130,6 +130,13 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
 
 
 # --------------------------------------------------------------------------------- run summary
+def world_of(seq) -> dict | None:
+    """The world options of the generated town's drive (changes, traffic, sensor, …); None for
+    every other source."""
+    world_options = getattr(seq, "world_options", None)     # only the generated town has one
+    return world_options() if callable(world_options) else None
+
+
 def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None,
                   cpu_s: dict | None = None, preset: str | None = None) -> dict:
     """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
@@ -152,10 +159,9 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
     kinds = [e.kind for e in loc.events]
     confidence = confidence_metrics(localized, err, [r.inside_2sigma for r in recs])
     n_particles = np.array([r.n_particles for r in recs], dtype=float)
-    world_options = getattr(loc.seq, "world_options", None)   # only the generated town has one
     return {
         "source": loc.seq.name, "seed": loc.cfg.seed, "scans": len(recs), "clock": loc.cfg.localize.clock,
-        "preset": preset, "world": world_options() if callable(world_options) else None,
+        "preset": preset, "world": world_of(loc.seq),
         "s2m": loc.cfg.s2m.enabled, "particles": loc.cfg.pf.n_particles,
         "n_particles_median": float(np.median(n_particles)) if n_particles.size else None,
         "localized_at_scan": first_loc,

@@ -32,6 +32,7 @@ from lidarloc.core.config import Config, MapConfig, S2MConfig
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr
 from lidarloc.core.gicp import GICPRefiner
 from lidarloc.core.mapping import load_or_build_map, range_filter
+from lidarloc.core.results import world_of
 from lidarloc.core.rpe import RelativePoseEstimator
 from lidarloc.core.s2m import ScanToMapMatcher
 from lidarloc.core.sequences.factory import SourceSpec
@@ -219,7 +220,7 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
     rm_gicp = np.array([r["rmse_gicp"] for r in rows])
     result = {
         "source": seq.name, "scans": n, "seed": seed,
-        "world": seq.world_options() if hasattr(seq, "world_options") else None,   # the town's drive only
+        "world": world_of(seq),
         "map_points": int(len(prior.points)), "map_points_bev": int(len(prior.points_bev)),
         "pyramid_shape": list(pyramid.shape), "pyramid_levels": pyramid.n_levels, "cell_value": pyramid.cell_value,
         "match_resolution_m": cfg.match_resolution, "angle_step_deg": math.degrees(cfg.angle_step),

@@ -697,6 +697,34 @@ def bench_robustness(
         err.print(f"report, cells.csv, summary.json and heatmap.png in {out}", highlight=False)
 
 
+@bench_app.command("integrity")
+@with_source()
+def bench_integrity(
+    runs: Annotated[int, typer.Option("--runs", help="Seeded runs per case and world (seeds 0…N−1).")] = 1,
+    workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
+    out: Annotated[Path, typer.Option("--out", help="Directory for the runs, report.md and summary.json.")] = Path("out/bench-integrity"),
+    cases: Annotated[str, typer.Option("--cases", help="Cases: s2m-at-0, s2m-at-20, s2m-at-50, s2m-at-100 (S2M held back until that scan), wrong-place (a start around a look-alike street), kidnap, moved (the particles moved 60 m unannounced).")] = "s2m-at-0,s2m-at-20,s2m-at-50,s2m-at-100,wrong-place,kidnap,moved",
+    sensors: Annotated[str, typer.Option("--sensors", help="Sensors of the town's drive: hdl64e, vlp16, vlp32c, os1-128.")] = "hdl64e,vlp16,os1-128",
+    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive (default: where its data is present).")] = None,
+    world: WorldOpt = "lived-in",
+    as_json: JsonOpt = False,
+    spec=None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Never green while wrong: S2M late, a wrong-place start, a kidnap, an estimate moved unannounced.
+
+    Per case: false fires, scans called localized while more than 5 m off, scans to recover (or to say lost), spurious relocalizations. The town's first 300 scans unless --scans says otherwise."""
+    from .bench.integrity import run_integrity
+
+    summary = run_integrity(spec, config, set_, [c.strip() for c in cases.split(",") if c.strip()],
+                            [s.strip() for s in sensors.split(",") if s.strip()], world, runs=runs, workers=workers,
+                            out_dir=out, real=real, cache_root=cache, console=err)
+    if as_json:
+        emit_json(summary)
+    else:
+        err.print((out / "report.md").read_text(), markup=False, highlight=False, soft_wrap=True)
+        err.print(f"report and summary.json in {out}", highlight=False)
+
+
 def main() -> None:
     """Entry point: click's usage errors behave as usual; LidarlocError becomes one line + exit 2."""
     command = typer.main.get_command(app)

@@ -162,6 +162,17 @@ class S2MConfig:
     # at nice 0: there it must make progress while the PF and the RPE keep the cores busy
     # (measured on the real drive at nice 10: no match landed, the filter never localized).
     replay_process_nice: int = 10
+    # Hold S2M back until this scan (0 = from the first scan): what a cold viewer start, a busy
+    # machine or a restarting S2M process does to a run, made repeatable in the replay clock.
+    join_at_scan: int = 0
+    # The second opinion, once localized: every this many scans (and at once when the confidence
+    # falls: the scan fits the map poorly, or local matches are rejected in a row) the next match
+    # searches the whole map instead of the local region. It confirms the estimate, or finds a
+    # clearly better pose far from it and re-localizes there (see core/integrity.py). 0 = never.
+    global_check_interval: int = 50
+    # A whole-map match far from the estimate moves the filter only if its BEV score is at least
+    # this many times the estimate's own (a look-alike street scores about as well as the truth).
+    relocalize_score_ratio: float = 1.25
 
 
 @dataclass
@@ -188,6 +199,18 @@ class LocalizeConfig:
     # Confidence ("is it lost?"): an event when, while localized, the share of scan points within
     # d_max of the map at the estimate falls below this.
     min_inlier_share: float = 0.5
+    # No localization without the matcher's word: the rule above fires only once an S2M match
+    # (after GICP) agreed with the estimate during the rule's window, within confirm_distance and
+    # confirm_yaw. While S2M is not available (its tables still being built, held back, switched
+    # off) the filter may converge, but it says "PF only, unconfirmed", never "localized". False =
+    # the paper's rule (the PF alone can fire it).
+    require_s2m_confirmation: bool = True
+    confirm_distance: float = 5.0      # m, the metrics' own "within 5 m"
+    confirm_yaw: float = 15.0 * DEG    # rad
+    # Loss detection beyond the paper's std rule: while localized, a scan fitting the map poorly
+    # (inlier share below min_inlier_share) for this many scans in a row, with no whole-map match
+    # agreeing with the estimate meanwhile, is a loss (re-initialise). 0 = only the std rule.
+    lost_after_scans: int = 30
     # De-skew each scan before the filter with the constant-velocity motion from the odometry
     # (per-point times from the azimuth, a spinning LiDAR's sweep of 1/rate seconds).
     deskew: bool = False
@@ -261,6 +284,12 @@ class Config:
             (self.s2m.region_x > 0 and self.s2m.region_y > 0, "s2m.region_x/region_y must be > 0"),
             (self.s2m.realtime_interval_localized >= 0, "s2m.realtime_interval_localized must be ≥ 0"),
             (0 <= self.s2m.replay_process_nice <= 19, "s2m.replay_process_nice must be in 0..19"),
+            (self.s2m.join_at_scan >= 0, "s2m.join_at_scan must be ≥ 0"),
+            (self.s2m.global_check_interval >= 0, "s2m.global_check_interval must be ≥ 0 (0 = never)"),
+            (self.s2m.relocalize_score_ratio >= 1, "s2m.relocalize_score_ratio must be ≥ 1"),
+            (self.localize.confirm_distance > 0, "localize.confirm_distance must be > 0"),
+            (0 < self.localize.confirm_yaw <= math.pi, "localize.confirm_yaw must be in (0, π]"),
+            (self.localize.lost_after_scans >= 0, "localize.lost_after_scans must be ≥ 0 (0 = off)"),
             (1 <= self.s2m.n_s2m <= 50, "s2m.n_s2m must be in 1..50 (the odometry keeps 100 scans)"),
             (self.seed >= 0 and self.town.seed >= 0, "seeds must be ≥ 0"),
             (self.localize.std_threshold > 0, "localize.std_threshold must be > 0"),
@@ -355,6 +384,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "pf.kld": False,
         "s2m.global_until_localized": False, "s2m.reject_if_weight_drops": True,
         "s2m.refine_unbeaten_start": False, "localize.deskew": False,
+        "localize.require_s2m_confirmation": False, "s2m.global_check_interval": 0,
+        "localize.lost_after_scans": 0,
     },
 }
 

@@ -87,6 +87,7 @@ from typing import Callable
 import numpy as np
 
 from .checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map, truth_outside_map
+from .integrity import Integrity, fits_clearly_better, truth_alarm
 from .config import LIVE_PARAMS, Config, check_live_changes
 from .errors import LidarlocError
 from .geometry import transform_points
@@ -181,6 +182,7 @@ class Localizer:
         self._pending_pyramid: Future | None = None
         self._closed = False
         self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
+        self._waiting: tuple[str, float] | None = None   # what a step waits for, since when
         self._failed: str | None = None      # a block's failure: steps refuse until restart()
         self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
         self.odometry.process = early_rpe
@@ -225,6 +227,8 @@ class Localizer:
                 self.pf.initialize(pose=self._init_pose[0], pose_std=self._init_pose[1])
             self.odometry.restart(origin=0)
             self.rules = LocalizationRules(self.cfg.localize)
+            self.integrity = Integrity(self.cfg)
+            self._alarm_on = False          # the truth alarm is raised (see _truth_check)
             self._failed = None
             self.k = 0                      # index of the next scan to process
             self.steps = 0                  # scans processed since the start (kidnap skips don't count)
@@ -335,6 +339,30 @@ class Localizer:
         in the background (``defer_s2m``); it joins at the first scan after they are ready."""
         return self._pending_s2m is not None
 
+    def s2m_status(self, k: int | None = None) -> tuple[str, str]:
+        """Whether S2M can give its word at scan ``k`` (default: the next scan), and why not:
+        ("ready", ""), ("building", "road removal 40 %"), ("held", "held back until scan 100") or
+        ("off", "switched off"). Safe from any thread (a viewer asks while a cold start builds
+        the tables)."""
+        k = self.k if k is None else k
+        if self._pending_s2m is not None:
+            removal = self._road_removal
+            if removal is not None and removal.progress < 1.0:
+                return "building", f"road removal {100 * removal.progress:.0f} %"
+            return "building", "road removal" if removal is None else "BEV pyramid"
+        if not self.cfg.s2m.enabled:
+            return "off", "switched off"
+        if k < self.cfg.s2m.join_at_scan:
+            return "held", f"held back until scan {self.cfg.s2m.join_at_scan}"
+        return "ready", ""
+
+    def waiting(self) -> tuple[str, float] | None:
+        """While a step waits for a block: what it waits for and for how many seconds so far
+        (e.g. ("the S2M match started at scan 412", 4.2)); None otherwise. Lock-free: a viewer
+        asks while the step holds the lock."""
+        w = self._waiting
+        return None if w is None else (w[0], time.monotonic() - w[1])
+
     @property
     def rebuilding(self) -> bool:
         """Whether a lookup table or BEV pyramid is still being rebuilt in the background (after a
@@ -352,6 +380,7 @@ class Localizer:
                     raise LidarlocError("reset region must have a positive width and height")
             self._reinitialize(region=region, pose=pose, why="particles reset")
             self.rules.reset()
+            self.integrity.reset()
             self.controls += 1
             where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
@@ -375,8 +404,23 @@ class Localizer:
             self.odometry.restart(origin=target)
             self._prev_t = None
             self.rules.reset()   # the odometry restarts: a window must not span the jump
+            self.integrity.reset()
             self._refresh_snapshot()
             return target
+
+    def move_estimate(self, dx: float, dy: float) -> None:
+        """Move every particle by (dx, dy) metres without telling the filter: a wrong estimate
+        that nobody announced (what a wrongly accepted match or a long stretch without features
+        leaves behind), to test that the filter notices (``lidarloc bench integrity``). The S2M
+        match in flight is dropped (its pose would put the filter right at once); the rules and
+        the second opinion are not told."""
+        with self._lock:
+            self.controls += 1
+            self.s2m.cancel(self.k - 1, "particles moved")
+            self.pf.states[:, 0] += float(dx)
+            self.pf.states[:, 1] += float(dy)
+            self._event(self.k - 1, "kidnap", f"particles moved {float(np.hypot(dx, dy)):.0f} m; the filter was not told")
+            self._refresh_snapshot()
 
     def set_params(self, **params) -> None:
         """Live parameter changes (:data:`~lidarloc.core.config.LIVE_PARAMS`, SI units), validated
@@ -496,7 +540,13 @@ class Localizer:
         self.pf.predict(dt)
         self.pf.update(prepared)
         pf_s = time.perf_counter() - t0
-        s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry)
+        s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there)
+        verdict = self.s2m.verdict
+        relocalized = verdict is not None and verdict.kind == "relocalize"
+        if verdict is not None:
+            self.integrity.note_verdict(k, verdict)
+        if relocalized:
+            self._relocalize(k, verdict)
         t1 = time.perf_counter()
         # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
         est = self.pf.estimate()
@@ -504,13 +554,30 @@ class Localizer:
         pf_s += time.perf_counter() - t1
         self._check_scan_frame(k, est, prepared)    # before resampling: best_index names a particle
 
+        if self.s2m_status(k)[0] == "ready" and k == self.cfg.s2m.join_at_scan > 0:
+            self._event(k, "s2m_ready", f"held back until scan {k} (s2m.join_at_scan)")
         step_dist, yaw_odom = self.odometry.motion(k)
-        outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom)
-        reinit = False
+        confirmed = self.integrity.confirmed_since if self.integrity.required else None
+        outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom, confirmed)
+        reinit = relocalized
         if outcome.event is not None:
-            self._event(k, outcome.event, f"max std {float(np.max(est.std_xyz)):.1f} m")
-        if outcome.reinit:
-            self._reinitialize(k=k, why=f"re-initialised after a {outcome.event.replace('_', ' ')}")
+            detail = f"max std {float(np.max(est.std_xyz)):.1f} m"
+            if outcome.event == "localized" and self.integrity.required:
+                detail += f", confirmed by the S2M match landed at scan {self.integrity.confirmed_at}"
+            self._event(k, outcome.event, detail)
+        if outcome.event == "localized":
+            self.integrity.on_localized(k)
+        # how well the scan fits the map at the estimate: a poor fit asks for the second opinion
+        # at the match starting below, and a long one is a loss
+        fit = self._scan_fit(k, est, prepared)
+        lost = None if outcome.reinit else self.integrity.note_fit(k, self.rules.localized, *fit)
+        if lost is not None:
+            self._event(k, "loss", lost)
+            self.rules.reset()
+        if outcome.reinit or lost is not None:
+            self.integrity.reset()
+            why = "a loss" if lost is not None else f"a {outcome.event.replace('_', ' ')}"
+            self._reinitialize(k=k, why=f"re-initialised after {why}")
             reinit = True
             est = self.pf.estimate()
             n_weighed = self.pf.n
@@ -520,9 +587,12 @@ class Localizer:
                 self._enter_tracking(k)
             # S2M starts from the highest-weight particle of this posterior; that slot is
             # then protected through every resampling until the match lands.
-            if not entering_tracking and self.s2m.due(k, self.rules.localized):
+            check = self.integrity.check_due(k, self.rules.localized)
+            if not entering_tracking and self.s2m.due(k, self.rules.localized, check is not None):
                 j = est.best_index
-                self.s2m.start(k, j, self.pf.states[j], scan, self.rules.localized)
+                self.s2m.start(k, j, self.pf.states[j], scan, self.rules.localized, check, est.pose)
+                if check is not None:
+                    self.integrity.check_started(k)
             t2 = time.perf_counter()
             self.pf.resample_if_needed(protect=self.s2m.protected_particle)
             # KLD-sampling may shrink the count below the protected slot: the filter moves that
@@ -530,7 +600,7 @@ class Localizer:
             self.s2m.follow_particle(self.pf.protected_index)
             pf_s += time.perf_counter() - t2
         pf_ms = pf_s * 1000.0
-        fit = self._scan_fit(k, est, prepared)
+        self._truth_check(k, est)
 
         self.k += 1
         self.steps += 1
@@ -561,11 +631,17 @@ class Localizer:
         velocity, angular_velocity = twist_from_relative_pose(*step)
         return deskew(scan, sweep_offsets(scan, self._sweep_period), velocity, angular_velocity)
 
-    def _wait(self, future: Future, block: str, k: int):
-        while not future.done():
-            if self._interrupt.is_set():     # step() refuses further steps until restart()
-                raise Interrupted(f"interrupted at scan {k} while waiting for {block}")
-            wait_futures([future], timeout=INTERRUPT_POLL_S)
+    def _wait(self, future: Future, block: str, k: int, what: str | None = None):
+        if not future.done():
+            self._waiting = (what or (f"KISS-ICP's registration of scan {k}" if block == "RPE" else block),
+                             time.monotonic())
+        try:
+            while not future.done():
+                if self._interrupt.is_set():     # step() refuses further steps until restart()
+                    raise Interrupted(f"interrupted at scan {k} while waiting for {block}")
+                wait_futures([future], timeout=INTERRUPT_POLL_S)
+        finally:
+            self._waiting = None
         try:
             return future.result()
         except LidarlocError:
@@ -577,14 +653,55 @@ class Localizer:
             self._failed = f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}"
             raise BlockError(self._failed) from exc
 
-    def _reinitialize(self, region=None, pose=None, k: int | None = None, why: str = "re-initialised") -> None:
+    def _reinitialize(self, region=None, pose=None, k: int | None = None, why: str = "re-initialised",
+                      speed: float | None = None) -> None:
         """Spread the particles again (globally, in a region or around a pose), leaving tracking
         mode: the full particle count comes back."""
         self.controls += 1
         self.s2m.cancel(self.k - 1 if k is None else k, why)
         if self.pf.n != self.cfg.pf.n_particles:
             self.pf.set_n_particles(self.cfg.pf.n_particles)
-        self.pf.initialize(region=region, pose=pose)
+        if speed is None:
+            self.pf.initialize(region=region, pose=pose)
+        else:
+            self.pf.initialize(region=region, pose=pose, speed=speed)
+
+    def _fits_better_there(self, pose: np.ndarray, prepared: np.ndarray) -> tuple[bool, str]:
+        """Whether the scan fits the map clearly better in 3D at ``pose`` than at the estimate
+        (:func:`~lidarloc.core.integrity.fits_clearly_better`), and both fits in words: the
+        second test a whole-map check's far pose must pass to move the filter."""
+        from .geometry import pose_to_xyz_ypr
+        from .likelihood import residual_stats
+
+        d_max = self.effective_d_max
+        here = residual_stats(self.pf.estimate().state[:6], prepared, self.lookup, d_max)
+        there = residual_stats(pose_to_xyz_ypr(pose), prepared, self.lookup, d_max)
+        words = (f"in 3D mean residual {there[1]:.2f} m against the estimate's {here[1]:.2f} m, inlier share "
+                 f"{there[0]:.2f} against {here[0]:.2f}")
+        return fits_clearly_better(there, here), words
+
+    def _relocalize(self, k: int, verdict) -> None:
+        """A whole-map check found a pose far from the estimate that both blocks clearly prefer:
+        the particles start again around it, and the rule must fire again (with S2M's word)
+        before the filter says localized (see :mod:`lidarloc.core.integrity`)."""
+        self._event(k, "relocalized", f"from the estimate to {verdict.describe()}")
+        self._reinitialize(pose=verdict.pose, k=k, why="re-localized by the whole-map check",
+                           speed=self.odometry.rpe.speed(k) if self.odometry.rpe is not None else None)
+        self.rules.reset()
+        self.integrity.reset()
+
+    def _truth_check(self, k: int, est) -> None:
+        """A ``false_fire`` event when the rule says localized while the truth is farther than
+        the metrics' 5 m (at the onset, or later while still localized): truth grades the filter,
+        it never steers it."""
+        if not self.seq.has_poses:
+            return
+        err = float(np.linalg.norm(est.pose[:3, 3] - self.seq.pose(k)[:3, 3]))
+        alarm = truth_alarm(self.rules.localized, err)
+        if alarm is not None and not self._alarm_on:
+            onset = self.rules.localized_since == k
+            self._event(k, "false_fire", alarm + ("" if onset else f" (localized since scan {self.rules.localized_since})"))
+        self._alarm_on = alarm is not None
 
     def _enter_tracking(self, k: int) -> None:
         """Tracking mode: resample down to fewer particles; S2M searches a smaller region."""
@@ -670,9 +787,12 @@ class Localizer:
     def _refresh_snapshot(self) -> None:
         """A control changed the state between scans (kidnap, S2M off): the snapshot says so at
         once — a paused viewer shows it without waiting for the next scan."""
+        status, status_detail = self.s2m_status()
         self._snapshot = replace(self._snapshot, events=tuple(self.events[-50:]), localized=self.rules.localized,
                                  localized_since=self.rules.localized_since, s2m_running=self.s2m.job is not None,
-                                 s2m_pending=self.s2m_pending)
+                                 s2m_pending=self.s2m_pending, s2m_status=status, s2m_status_detail=status_detail,
+                                 awaiting_confirmation=False,
+                                 truth_alarm=truth_alarm(self.rules.localized, self._snapshot.error_m))
 
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
@@ -719,6 +839,7 @@ class Localizer:
         err = None if gt is None else float(np.linalg.norm(mean_T[:3, 3] - gt[:3, 3]))
         inside = None if gt is None else inside_2sigma(mean_T[:2, 3] - gt[:2, 3], est.cov_xyz[:2, :2])
         share, residual = (None, None) if fit is None else fit
+        status, status_detail = self.s2m_status(max(k, 0))
         scan_world = (np.zeros((0, 3), np.float32) if prepared is None
                       else transform_points(mean_T, prepared).astype(np.float32))
         return Snapshot(
@@ -733,4 +854,7 @@ class Localizer:
             n_particles=int(n_weighed if n_weighed is not None else len(self.pf.states)),
             converged=bool(np.all(est.std_xyz < self.cfg.localize.std_threshold)),
             inlier_share=share, mean_residual_m=residual, inside_2sigma=inside,
-            events=tuple(self.events[-50:]), done=self.k >= self.n_scans)
+            events=tuple(self.events[-50:]), done=self.k >= self.n_scans,
+            s2m_status=status, s2m_status_detail=status_detail,
+            awaiting_confirmation=bool(self.rules.awaiting_confirmation and not self.rules.localized),
+            confirmed_at=self.integrity.confirmed_at, truth_alarm=truth_alarm(self.rules.localized, err))

@@ -157,14 +157,45 @@ def range_filter(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
     return points[(r2 >= cfg.scan_min_range**2) & (r2 <= cfg.scan_max_range**2)]
 
 
-def flat_surface_mask(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
+def flat_surface_mask(points: np.ndarray, cfg: MapConfig,
+                      progress: Callable[[float], None] | None = None) -> np.ndarray:
     """True where a point lies on a flat (road-like) surface: |normal_z| > cfg.road_normal_z.
 
     The paper removes points "with z-coordinate of its normal greater than 0.75"; normals from PCA
     have no consistent sign, so the absolute value is compared.
+
+    ``progress(fraction)``: the normals are estimated strip by strip along x (at most
+    ``FLAT_MASK_STRIPS`` strips of at least ``FLAT_MASK_STRIP_M``), each with every point within
+    the normal radius beyond its edges, so each point sees exactly the neighbours it would see in
+    the whole map, and the fraction done is reported after each strip.
     """
+    pts = np.asarray(points[:, :3], dtype=np.float64)
+    if progress is None or len(pts) == 0:
+        return _flat_mask(pts, cfg)
+    x = pts[:, 0]
+    lo, hi = float(x.min()), float(x.max())
+    n = int(np.clip(np.ceil((hi - lo) / FLAT_MASK_STRIP_M), 1, FLAT_MASK_STRIPS))
+    edges = np.linspace(lo, hi, n + 1)
+    edges[-1] = np.inf
+    halo = cfg.normal_radius * 1.01
+    mask = np.zeros(len(pts), dtype=bool)
+    for i in range(n):
+        core = (x >= edges[i]) & (x < edges[i + 1])
+        near = (x >= edges[i] - halo) & (x < edges[i + 1] + halo)
+        idx = np.flatnonzero(near)
+        mask[core] = _flat_mask(pts[idx], cfg)[core[idx]]
+        progress((i + 1) / n)
+    return mask
+
+
+#: Road removal's strips (see :func:`flat_surface_mask`): at most this many, at least this wide (m).
+FLAT_MASK_STRIPS = 20
+FLAT_MASK_STRIP_M = 20.0
+
+
+def _flat_mask(pts: np.ndarray, cfg: MapConfig) -> np.ndarray:
     o3d = open3d()
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points[:, :3], dtype=np.float64)))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius, max_nn=cfg.normal_max_nn))
     normals = np.asarray(pcd.normals)
     return np.abs(normals[:, 2]) > cfg.road_normal_z
@@ -283,9 +314,9 @@ def build_prior_map_from_file(source, cfg: MapConfig, progress: Callable[[int, i
     return remove_road(prior, cfg) if road_removal else prior
 
 
-def remove_road(prior: PriorMap, cfg: MapConfig) -> PriorMap:
+def remove_road(prior: PriorMap, cfg: MapConfig, progress: Callable[[float], None] | None = None) -> PriorMap:
     """``prior`` with its road-removed copy (the points not on a flat surface) filled in."""
-    bev = prior.points[~flat_surface_mask(prior.points, cfg)]
+    bev = prior.points[~flat_surface_mask(prior.points, cfg, progress)]
     return PriorMap(points=prior.points, points_bev=bev.astype(np.float32), voxel_size=prior.voxel_size,
                     source=prior.source, origin=prior.origin)
 
@@ -341,7 +372,8 @@ def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
     return Cached(prior, directory, False)
 
 
-def load_or_build_road_removed(prior: PriorMap, directory: Path, cfg: MapConfig) -> PriorMap:
+def load_or_build_road_removed(prior: PriorMap, directory: Path, cfg: MapConfig,
+                               progress: Callable[[float], None] | None = None) -> PriorMap:
     """``prior`` with its road-removed copy: from the map's cache ``directory`` if there, else
     computed and added to it (the file appears whole or not at all: written aside, then renamed)."""
     if prior.points_bev is not None:
@@ -353,7 +385,7 @@ def load_or_build_road_removed(prior: PriorMap, directory: Path, cfg: MapConfig)
                             source=prior.source, origin=prior.origin)
         except (OSError, ValueError):
             pass  # unreadable: compute it again below
-    done = remove_road(prior, cfg)
+    done = remove_road(prior, cfg, progress)
     tmp = directory / f".{BEV_FILE}.{os.getpid()}.{threading.get_ident()}.tmp.npy"
     try:
         np.save(tmp, done.points_bev)

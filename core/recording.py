@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from .errors import LidarlocError
+from .integrity import truth_alarm
 from .snapshot import Event, S2MView, Snapshot
 
 FORMAT = "lidarloc-recording"
@@ -97,7 +98,10 @@ _FIELDS: dict[str, tuple[str, tuple]] = {
     "mean_residual_m": ("<f8", ()), "inside_2sigma": ("|i1", ()), "scan_voxel": ("<f8", ()),
     "s2m_running": ("|u1", ()), "s2m_pending": ("|u1", ()), "s2m_acceptance": ("<f8", ()),
     "done": ("|u1", ()), "particle_rows": ("<i8", (2,)),
+    "awaiting_confirmation": ("|u1", ()), "confirmed_at": ("<i8", ()), "s2m_status": ("|i1", ()),
 }
+#: ``s2m_status`` as recorded (the index into this tuple)
+S2M_STATUSES = ("ready", "building", "held", "off")
 _PARTICLES = ("particles", "<f4", (N_STATE,))
 _LOG_WEIGHTS = ("log_weights", "<f4", ())
 
@@ -242,6 +246,9 @@ class RecordingWriter:
             "scan_voxel": float(loc.cfg.pf.scan_voxel), "s2m_running": snap.s2m_running,
             "s2m_pending": snap.s2m_pending, "s2m_acceptance": snap.s2m_acceptance, "done": snap.done,
             "particle_rows": (self._particle_row, n),
+            "awaiting_confirmation": snap.awaiting_confirmation,
+            "confirmed_at": -1 if snap.confirmed_at is None else snap.confirmed_at,
+            "s2m_status": S2M_STATUSES.index(snap.s2m_status) if snap.s2m_status in S2M_STATUSES else 0,
         }
         rows = {name: self._row(name, value) for name, value in values.items()}
         payload = loc.resume_payload(i) if hasattr(loc, "resume_payload") else None
@@ -724,6 +731,12 @@ class Recording:
 
         def opt(v):
             return None if not np.isfinite(v) else float(v)
+
+        def recorded(name, default):    # a field recordings made before it appeared do not have
+            return self.field(name)[i] if name in self._fields else default
+        confirmed_at = int(recorded("confirmed_at", -1))
+        status = S2M_STATUSES[int(recorded("s2m_status", 0))]
+
         return Snapshot(
             scan_index=k, n_scans=int(self.meta.get("n_source_scans", self.n)), timestamp=float(self.timestamp[i]),
             particles=self.particles(i).astype(np.float64), weights=self.weights(i),
@@ -737,7 +750,10 @@ class Recording:
             s2m_pending=bool(self.s2m_pending[i]), n_particles=int(self.n_particles[i]),
             converged=bool(self.converged[i]), inlier_share=opt(self.inlier_share[i]),
             mean_residual_m=opt(self.mean_residual_m[i]), inside_2sigma=None if inside < 0 else bool(inside),
-            events=tuple(self.events_until(i)[-50:]), done=bool(self.done[i]))
+            events=tuple(self.events_until(i)[-50:]), done=bool(self.done[i]),
+            awaiting_confirmation=bool(recorded("awaiting_confirmation", False)),
+            confirmed_at=None if confirmed_at < 0 else confirmed_at, s2m_status=status,
+            truth_alarm=truth_alarm(bool(self.localized[i]), opt(self.error_m[i])))
 
     def size_bytes(self) -> int:
         """Bytes on disk of the whole recording."""

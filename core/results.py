@@ -175,6 +175,7 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         "s2m_accepted": kinds.count("s2m_accepted"),
         "s2m_cancelled": kinds.count("s2m_cancelled"),
         "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        **integrity_summary(loc.events, recs),
         "map_origin_m": [float(v) for v in loc.prior_map.origin],
         "frame_mismatch": [e.detail for e in loc.events if e.kind == "frame_mismatch"],
         **confidence,
@@ -182,6 +183,24 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         **cpu_summary(cpu_s, len(recs), wall_s),
         "metrics": metrics,
     }
+
+
+def integrity_summary(events: list, records: list) -> dict:
+    """How far the filter's word can be trusted (:mod:`lidarloc.core.integrity`):
+    ``relocalizations`` (the whole-map check moved the filter), ``spurious_relocalizations``
+    (of those, the ones whose estimate was within the metrics' 5 m of the truth on the scan
+    before: a correct estimate overturned) and ``localized_wrong_scans`` (scans the rule called
+    localized while the truth was more than 5 m away). The last two need truth (else None)."""
+    from .metrics import FALSE_FIRE_M
+
+    by_scan = {r.scan: r for r in records}
+    has_truth = any(r.error_m is not None for r in records)
+    moves = [e.scan for e in events if e.kind == "relocalized"]
+    spurious = sum(1 for k in moves if by_scan.get(k - 1) is not None and by_scan[k - 1].error_m is not None
+                   and by_scan[k - 1].error_m <= FALSE_FIRE_M)
+    wrong = sum(1 for r in records if r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)
+    return {"relocalizations": len(moves), "spurious_relocalizations": spurious if has_truth else None,
+            "localized_wrong_scans": wrong if has_truth else None}
 
 
 def cpu_summary(cpu_s: dict | None, scans: int, wall_s: float) -> dict:

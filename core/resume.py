@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 
@@ -82,7 +83,8 @@ def _outcome_arrays(job, outcome) -> dict[str, np.ndarray]:
         "timings": {k: float(v) for k, v in (getattr(outcome, "timings", None) or {}).items()},
         "match": None if match is None else {"nodes_per_level": [int(v) for v in
                                                                  (getattr(match, "nodes_per_level", ()) or ())],
-                                             "candidates": candidates is not None},
+                                             "candidates": candidates is not None,
+                                             "found": bool(np.isfinite(getattr(match, "x", 0.0)))},
         "match_pose": match_pose is not None,
         "gicp": None if gicp is None else {"converged": bool(gicp.converged), "iterations": int(gicp.iterations)},
     }
@@ -105,6 +107,7 @@ class RecordedMatch:
 
     candidates: np.ndarray | None
     nodes_per_level: tuple
+    x: float = 0.0      # NaN: the search found no pose scoring higher than its start
 
 
 def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, start_pose, cfg,
@@ -126,7 +129,8 @@ def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, st
     match = None
     if text["match"] is not None:
         match = RecordedMatch(d["candidates"] if text["match"]["candidates"] else None,
-                              tuple(text["match"]["nodes_per_level"]))
+                              tuple(text["match"]["nodes_per_level"]),
+                              0.0 if text["match"].get("found", True) else math.nan)
     i = 2
     match_pose = None
     if text["match_pose"]:
@@ -151,7 +155,9 @@ def _checkpoint(loc) -> dict[str, np.ndarray]:
         "n_events": len(loc.events) - loc.recorded_events_base,
         "rules": {"localized": loc.rules.localized, "localized_since": loc.rules.localized_since,
                   "streak_start": loc.rules.streak_start, "streak_path": loc.rules.streak_path,
-                  "streak_yaw0": float(loc.rules.streak_yaw0)},
+                  "streak_yaw0": float(loc.rules.streak_yaw0),
+                  "awaiting_confirmation": bool(loc.rules.awaiting_confirmation)},
+        "integrity": loc.integrity.state(), "alarm_on": bool(loc._alarm_on),
         "confidence_armed": loc._confidence.armed, "frame_best_share": float(loc._frame_check.best_share),
         "s2m": {"pending": bool(loc.s2m_pending) or not hasattr(s2m, "_generation"),
                 "generation": getattr(s2m, "_generation", 0), "last_start": getattr(s2m, "_last_start", None),
@@ -165,6 +171,7 @@ def _checkpoint(loc) -> dict[str, np.ndarray]:
     out = {"state": np.array(json.dumps(state))}
     if job is not None:
         out["s2m_job_start_pose"] = np.asarray(job.start_pose, np.float64)
+        out["s2m_job_estimate_pose"] = np.asarray(job.estimate_pose, np.float64)
     out.update({f"pf_{k}": v for k, v in loc.pf.checkpoint().items()})
     out.update({f"odometry_{k}": v for k, v in loc.odometry.checkpoint().items()})
     return out
@@ -198,6 +205,8 @@ def restore(loc, data: dict[str, np.ndarray]) -> dict:
             setattr(rules, name, value)
         loc._confidence.armed = bool(state["confidence_armed"])
         loc._frame_check.best_share = float(state["frame_best_share"])
+        loc.integrity.load(state.get("integrity", {}))     # absent in recordings made before the checks
+        loc._alarm_on = bool(state.get("alarm_on", False))
         loc.k, loc.steps, loc._prev_t = int(state["k"]), int(state["steps"]), state["prev_t"]
         loc.odometry.catch_up(loc.k, loc.seq.scan, loc.seq.timestamp)
         s2m, saved = loc.s2m, state["s2m"]
@@ -211,6 +220,7 @@ def restore(loc, data: dict[str, np.ndarray]) -> dict:
             k0 = int(job["started_at"])
             future = s2m.submit(k0, lambda: loc._odometry_scan(k0), start_pose, cfg, bool(job["level"]))
             s2m.job = S2MJob(k0, int(job["particle"]), int(job["generation"]), start_pose, future,
-                             deferrals=int(job["deferrals"]), mode=str(job["mode"]), cfg=cfg, level=bool(job["level"]))
+                             deferrals=int(job["deferrals"]), mode=str(job["mode"]), cfg=cfg, level=bool(job["level"]),
+                             estimate_pose=np.array(data.get("s2m_job_estimate_pose", start_pose), np.float64))
         loc._controls_checkpointed = loc.controls
     return state

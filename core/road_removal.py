@@ -15,6 +15,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
+import threading
 from dataclasses import asdict
 from pathlib import Path
 
@@ -23,16 +25,32 @@ from .errors import LidarlocError
 
 
 class RoadRemovalProcess:
-    """The child process removing the road from the map cached in ``map_dir``."""
+    """The child process removing the road from the map cached in ``map_dir``. ``progress`` is
+    the share of the map done so far (0…1), as the child reports it on its standard output."""
 
     def __init__(self, map_dir: Path, cfg: MapConfig, nice: int = 10):
+        self.progress = 0.0
+        self._err = tempfile.TemporaryFile()      # a file, not a pipe: a chatty child never blocks
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "lidarloc.core.road_removal", str(map_dir), json.dumps(asdict(cfg)), str(int(nice))],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+            stdout=subprocess.PIPE, stderr=self._err, start_new_session=True)
+        self._reader = threading.Thread(target=self._read_progress, name="lidarloc-road-removal-progress", daemon=True)
+        self._reader.start()
+
+    def _read_progress(self) -> None:
+        for line in self._proc.stdout:
+            try:
+                self.progress = float(line.decode().split()[-1])
+            except (ValueError, IndexError):
+                pass
 
     def wait(self) -> None:
         """Block until it is done; a failure raises :class:`LidarlocError` with the child's last line."""
-        _, err = self._proc.communicate()
+        self._proc.wait()
+        self._reader.join()
+        self._err.seek(0)
+        err = self._err.read()
+        self._err.close()
         if self._proc.returncode != 0:
             lines = [ln for ln in err.decode(errors="replace").splitlines() if ln.strip()]
             raise LidarlocError(f"road removal failed: {lines[-1] if lines else f'exit code {self._proc.returncode}'}")
@@ -50,7 +68,10 @@ def main(argv: list[str]) -> int:
     map_dir, cfg_json, nice = Path(argv[0]), argv[1], int(argv[2])
     lower_priority(nice)
     meta = json.loads((map_dir / "meta.json").read_text())
-    load_or_build_road_removed(PriorMap.load(map_dir, meta), map_dir, MapConfig(**json.loads(cfg_json)))
+
+    def report(fraction: float) -> None:
+        print(f"progress {fraction:.3f}", flush=True)
+    load_or_build_road_removed(PriorMap.load(map_dir, meta), map_dir, MapConfig(**json.loads(cfg_json)), report)
     return 0
 
 

@@ -12,11 +12,17 @@ Choices where the paper is vague, written down:
   turn), "moved" the path length over the window (sum of RPE steps).
 - A streak that is still running and long enough but not yet moved/turned enough is neither
   localized nor false: we wait (a stopped car keeps its streak).
+
+Beyond the paper (``localize.require_s2m_confirmation``, see :mod:`lidarloc.core.integrity`): the
+rule also needs an S2M match that agreed with the estimate at or after the streak's first scan.
+A streak that meets the paper's conditions without it waits (``awaiting_confirmation``) like a
+streak that has not moved enough: it is neither localized nor false.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -41,10 +47,13 @@ class LocalizationRules:
         self.streak_start: int | None = None
         self.streak_path = 0.0          # metres driven since the streak started
         self.streak_yaw0 = 0.0
+        self.awaiting_confirmation = False   # the paper's conditions hold; S2M has not agreed yet
 
-    def update(self, k: int, std_xyz: np.ndarray, step_distance: float, yaw_odom: float) -> RuleOutcome:
+    def update(self, k: int, std_xyz: np.ndarray, step_distance: float, yaw_odom: float,
+               confirmed: Callable[[int], bool] | None = None) -> RuleOutcome:
         """Feed scan k: the filter's per-axis std, the RPE distance since scan k−1, and the
-        RPE (odometry-frame) yaw at scan k."""
+        RPE (odometry-frame) yaw at scan k. ``confirmed(k0)``: whether an S2M match agreed with
+        the estimate at or after scan k0 (None: the paper's rule, no confirmation needed)."""
         cfg = self.cfg
         max_std = float(np.max(std_xyz))
         if self.localized:
@@ -60,7 +69,11 @@ class LocalizationRules:
             length = k - self.streak_start + 1
             turned = abs((yaw_odom - self.streak_yaw0 + np.pi) % (2 * np.pi) - np.pi)
             if length >= cfg.min_consecutive and (self.streak_path >= cfg.min_moved or turned >= cfg.min_turned):
+                if confirmed is not None and not confirmed(self.streak_start):
+                    self.awaiting_confirmation = True
+                    return RuleOutcome(False)
                 self.localized, self.localized_since = True, k
+                self.awaiting_confirmation = False
                 return RuleOutcome(True, "localized")
             return RuleOutcome(False)
         if self.streak_start is not None:

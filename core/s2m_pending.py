@@ -24,14 +24,18 @@ class S2MNotReady:
     protected_particle = None
     n_landed = 0
     n_accepted = 0
+    verdict = None
 
     def restart(self) -> None:
         pass
 
-    def due(self, k: int, localized: bool) -> bool:
+    def held_back(self, k: int) -> bool:
+        return True
+
+    def due(self, k: int, localized: bool, check: bool = False) -> bool:
         return False
 
-    def land(self, k, prepared, pf, odometry) -> None:
+    def land(self, k, prepared, pf, odometry, fits_better=None) -> None:
         return None
 
     def cancel(self, k: int, why: str) -> None:

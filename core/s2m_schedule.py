@@ -32,6 +32,7 @@ moved it; and the pose carried forward to the landing scan.
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -41,6 +42,7 @@ import numpy as np
 from .config import Config
 from .geometry import pose_matrix, pose_to_xyz_ypr
 from .odometry import OdometryFeed
+from .integrity import VERDICT_TEXT, Verdict, judge
 from .s2m_worker import S2MProcess
 from .snapshot import S2MView
 
@@ -63,9 +65,12 @@ class S2MJob:
     start_pose: np.ndarray
     future: Future
     deferrals: int = 0        # real time: scans at which the finished match could not land yet
-    mode: str = "local"       # "global": the search region covers the whole map
+    mode: str = "local"       # "global": the search region covers the whole map (not localized);
+                              # "check": the whole-map second opinion once localized
     cfg: Any = None           # the S2M settings it runs with (S2MConfig)
     level: bool = False       # whether the start's z, pitch and roll are ignored (see s2m.match_local)
+    estimate_pose: np.ndarray | None = None   # the filter's estimate at k₀, 4×4: what the match is
+                                              # judged against (core/integrity.py)
 
 
 class S2MScheduler:
@@ -98,6 +103,7 @@ class S2MScheduler:
         # resuming a recorded run: its matcher's outcomes (module docstring)
         self.recorded: Callable[[int, np.ndarray, Any, bool], Any] | None = None
         self.last_landing: tuple[int, S2MJob, Any] | None = None   # (scan, job, raw outcome)
+        self.verdict: Verdict | None = None   # what the match that landed at the last step said
         self.restart()
 
     def restart(self) -> None:
@@ -111,6 +117,7 @@ class S2MScheduler:
         self.n_accepted = 0
         self.last: S2MView | None = None     # the last match that landed
         self.last_landing = None
+        self.verdict = None
 
     def start_matcher(self) -> None:
         """Start the matcher unless it runs already (the S2M child process loads the cached map and
@@ -146,11 +153,12 @@ class S2MScheduler:
         """Whether a match started now searches the whole map (not localized yet, and so configured)."""
         return not localized and self.cfg.s2m.global_until_localized
 
-    def job_config(self, state: np.ndarray, localized: bool):
+    def job_config(self, state: np.ndarray, localized: bool, check: bool = False):
         """The S2M settings for a job from a particle's ``state``: the whole map until localized
-        (if so configured), the tracking region while tracking, else the configured local region."""
+        (if so configured) and for a second-opinion ``check``, the tracking region while
+        tracking, else the configured local region."""
         cfg = replace(self.cfg.s2m)
-        if self.searches_whole_map(localized):
+        if check or self.searches_whole_map(localized):
             x, y = state[:2]
             (x0, y0, _), (x1, y1, _) = self._bounds
             cfg.region_x = max(cfg.region_x, x - x0, x1 - x)
@@ -160,29 +168,42 @@ class S2MScheduler:
             cfg.region_y = min(cfg.region_y, self.cfg.localize.tracking_region)
         return cfg
 
-    def due(self, k: int, localized: bool) -> bool:
-        """Whether a match should start at scan k: S2M is on and none is in flight. Back to back,
-        except in real time once localized: then every ``s2m.realtime_interval_localized`` scans
-        at most (CPU for the PF and the RPE first)."""
-        if not self.cfg.s2m.enabled or self.job is not None:
+    def held_back(self, k: int) -> bool:
+        """Whether S2M is held back at scan k (``s2m.join_at_scan``)."""
+        return k < self.cfg.s2m.join_at_scan
+
+    def due(self, k: int, localized: bool, check: bool = False) -> bool:
+        """Whether a match should start at scan k: S2M is on, not held back, and none is in
+        flight. Back to back, except in real time once localized: then every
+        ``s2m.realtime_interval_localized`` scans at most (CPU for the PF and the RPE first) —
+        but a second-opinion ``check`` goes out at once."""
+        if not self.cfg.s2m.enabled or self.job is not None or self.held_back(k):
             return False
+        if check:
+            return True
         every = self.cfg.s2m.realtime_interval_localized
         if self.cfg.localize.clock != "realtime" or not localized or every <= 0:
             return True
         return self._last_start is None or k - self._last_start >= every
 
-    def start(self, k: int, j: int, state: np.ndarray, scan: np.ndarray, localized: bool) -> None:
-        """Start a match of scan k from particle j (whose ``state`` it is) in the background."""
+    def start(self, k: int, j: int, state: np.ndarray, scan: np.ndarray, localized: bool,
+              check: str | None = None, estimate_pose: np.ndarray | None = None) -> None:
+        """Start a match of scan k from particle j (whose ``state`` it is) in the background.
+        ``check``: why this match is a whole-map second opinion (None: it is not);
+        ``estimate_pose``: the filter's estimate at scan k, which the match's verdict compares
+        with (None: the start pose)."""
         start_pose = pose_matrix(*state[:6])
         self._generation += 1
-        # before localization the particle's z, pitch and roll are as random as its position
-        level = not localized
-        cfg = self.job_config(state, localized)
-        mode = "global" if self.searches_whole_map(localized) else "local"
+        # Before localization the particle's z, pitch and roll are as random as its position. A
+        # check's best pose may lie anywhere: its height and attitude come from the map there.
+        level = not localized or check is not None
+        cfg = self.job_config(state, localized, check is not None)
+        mode = "check" if check is not None else ("global" if self.searches_whole_map(localized) else "local")
         self.job = S2MJob(k, j, self._generation, start_pose, self.submit(k, scan, start_pose, cfg, level),
-                          mode=mode, cfg=cfg, level=level)
+                          mode=mode, cfg=cfg, level=level,
+                          estimate_pose=start_pose if estimate_pose is None else np.asarray(estimate_pose, float))
         self._last_start = k
-        self._event(k, "s2m_started", f"particle {j}")
+        self._event(k, "s2m_started", f"particle {j}" + ("" if check is None else f", whole-map check ({check})"))
 
     def submit(self, k: int, scan, start_pose: np.ndarray, cfg, level: bool) -> Future:
         """The match of scan k from ``start_pose``: a recorded run's outcome of exactly this match if
@@ -217,10 +238,15 @@ class S2MScheduler:
             self._event(k, "s2m_cancelled", f"started {job.started_at} ({why})")
 
     # ------------------------------------------------------------------------ landing
-    def land(self, k: int, prepared: np.ndarray, pf, odometry: OdometryFeed) -> float | None:
+    def land(self, k: int, prepared: np.ndarray, pf, odometry: OdometryFeed,
+             fits_better: Callable[[np.ndarray, np.ndarray], tuple[bool, str]] | None = None) -> float | None:
         """Land the match in flight at scan k if it is due: an accepted one is carried forward
         to k with the ``odometry`` and written into its particle of ``pf``, which is then
-        re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed."""
+        re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed;
+        :attr:`verdict` says what it said about the estimate. ``fits_better(pose, prepared)``:
+        whether the scan fits the map clearly better in 3D at a far whole-map check's pose than at
+        the estimate, and why (a "relocalize" verdict needs it; None: the BEV score decides)."""
+        self.verdict = None
         job = self.job
         if job is None:
             return None
@@ -234,12 +260,22 @@ class S2MScheduler:
         elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
             return None   # real time: land at a scan after the match finished (see there)
         self.job = None
-        outcome = self._wait(job.future, "S2M", k)
+        outcome = self._wait(job.future, "S2M", k, f"the S2M match started at scan {job.started_at}")
         self.last_landing = (k, job, outcome)
         self.n_landed += 1
         accepted = bool(outcome.accepted)
         pose_k = outcome.pose
         reason = outcome.reason
+        # A search that nothing in its region beat: the start itself is the best place the
+        # matcher sees there (its word on the estimate, see core/integrity.py).
+        match = getattr(outcome, "match", None)
+        unbeaten = (not accepted and match is not None and not np.isfinite(getattr(match, "x", 0.0))
+                    and np.isfinite(outcome.start_score))
+        # Judged at scan k₀, against the estimate the filter had then: independent of the match
+        # (after the landing the particle it is written into would agree with itself), and no
+        # odometry is needed to judge a rejection.
+        verdict = judge(job.mode, accepted, unbeaten, outcome.pose, job.estimate_pose,
+                        float(outcome.score), float(outcome.start_score), self.cfg)
         if accepted:
             # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
             odometry.wait_registered(k)
@@ -252,6 +288,27 @@ class S2MScheduler:
                     pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
                 except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
                     accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
+            if not accepted and verdict.kind == "relocalize":    # nowhere to move the filter to
+                verdict = dataclasses.replace(verdict, kind="look_alike")
+            elif accepted:
+                verdict = dataclasses.replace(verdict, pose=pose_k)
+        fit_words = ""
+        if verdict.kind == "relocalize" and fits_better is not None:
+            better, fit_words = fits_better(pose_k, prepared)
+            if not better:
+                verdict = dataclasses.replace(verdict, kind="look_alike")
+        self.verdict = verdict
+        if job.mode == "check" and accepted and verdict.kind != "agrees":
+            # a second opinion far from the estimate is never written into a particle: either the
+            # filter re-localizes there (the localizer's call) or it is a look-alike
+            accepted = False
+            reason = ("whole-map check: a clearly better pose far from the estimate, " + verdict.describe()
+                      if verdict.kind == "relocalize" else
+                      "whole-map check: a pose far from the estimate, not clearly better (BEV score "
+                      f"≥ {self.cfg.s2m.relocalize_score_ratio:g}× and a clearly better 3D fit needed): "
+                      + verdict.describe())
+            if fit_words:
+                reason += f"; {fit_words}"
         if accepted:
             state = pf.states[job.particle].copy()
             state[:6] = pose_to_xyz_ypr(pose_k)
@@ -268,7 +325,8 @@ class S2MScheduler:
             reason = "the matcher gave no reason"
         self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
                     f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
-                    + (f" ({reason})" if reason and not accepted else ""))
+                    + (f" ({reason})" if reason and not accepted else "")
+                    + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}"))
         self.last = self._view(job, k, outcome, accepted, pose_k, reason)
         return float(outcome.ms)
 

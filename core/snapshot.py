@@ -25,9 +25,9 @@ from .geometry import pose_to_xyz_ypr
 @dataclass(frozen=True)
 class Event:
     scan: int          # scan index at which it happened
-    kind: str          # "localized", "false_positive", "loss", "reset", "kidnap", "tracking",
-                       # "confidence_low", "s2m_started", "s2m_accepted", "s2m_rejected",
-                       # "s2m_cancelled", "s2m_ready", "error"
+    kind: str          # "localized", "false_positive", "loss", "relocalized", "false_fire", "reset",
+                       # "kidnap", "tracking", "confidence_low", "s2m_started", "s2m_accepted",
+                       # "s2m_rejected", "s2m_cancelled", "s2m_ready", "error" (see EVENT_KINDS)
     detail: str = ""
 
 
@@ -93,6 +93,14 @@ class Snapshot:
     events: tuple = field(default_factory=tuple)
     paused: bool = False
     done: bool = False
+    # Whether the filter's word can be trusted (see :mod:`lidarloc.core.integrity`):
+    s2m_status: str = "ready"             # "ready", "building" (its tables, in the background),
+                                          # "held" (s2m.join_at_scan), "off" (switched off)
+    s2m_status_detail: str = ""           # e.g. "road removal 40 %", "held back until scan 100"
+    awaiting_confirmation: bool = False   # the PF alone meets the rule; no S2M match has agreed yet
+    confirmed_at: int | None = None       # scan at which an S2M match last agreed with the estimate
+    truth_alarm: str | None = None        # localized while the truth is farther than FALSE_FIRE_M:
+                                          # "the rule says localized; the truth is 102 m away"
 
     @property
     def n_eff_share(self) -> float:

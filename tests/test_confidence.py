@@ -66,9 +66,12 @@ def town():
 
 
 def make(seq, cache_root, **localize) -> Localizer:
+    """Without S2M, so the paper's rule alone (no confirmation) decides when the filter is
+    localized: these tests are about what the confidence says, not about S2M's word."""
     cfg = Config()
     cfg.pf.n_particles = 300
     cfg.s2m.enabled = False
+    cfg.localize.require_s2m_confirmation = False
     for key, value in localize.items():
         setattr(cfg.localize, key, value)
     return Localizer(seq, cfg, cache_root)

@@ -121,7 +121,7 @@ def test_a_cancelled_match_is_reported(town, cache_root):
 
 
 def test_loss_triggers_reinit(town, cache_root):
-    with make(town, cache_root, s2m__enabled=False) as loc:
+    with make(town, cache_root, s2m__enabled=False, localize__require_s2m_confirmation=False) as loc:
         scripted_std(loc, [3.0] * 20 + [60.0])
         loc.run(21)
         kinds = [e.kind for e in loc.events]
@@ -334,9 +334,9 @@ def test_realtime_clock_counts_odometry_once(town, cache_root):
         steps = []
         real = loc.rules.update
 
-        def update(k, std_xyz, step_distance, yaw_odom):
+        def update(k, std_xyz, step_distance, yaw_odom, confirmed=None):
             steps.append(step_distance)
-            return real(k, std_xyz, step_distance, yaw_odom)
+            return real(k, std_xyz, step_distance, yaw_odom, confirmed)
         loc.rules.update = update
         loc.run(25)                      # as fast as possible: the odometry may fall behind …
         for k in range(25):
@@ -355,9 +355,11 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
     match is an instant rejection (it lands at the next scan), and each scan's odometry is
     awaited before the next step, so the rules see the motion they would at 10 Hz. Before, a real
     whole-map match from a cold S2M process landed 17–33 scans late when the steps ran as fast as
-    possible, and a slow CI machine left room for one start after localization."""
+    possible, and a slow CI machine left room for one start after localization. (The instant
+    rejections would ask for the whole-map second opinion, which goes out at once; it is off here.)"""
     with make(town, cache_root, localize__clock="realtime", localize__s2m_process=False,
-              s2m__realtime_interval_localized=6) as loc:
+              s2m__realtime_interval_localized=6, localize__require_s2m_confirmation=False,
+              s2m__global_check_interval=0) as loc:
         instant_matcher(loc)
         scripted_std(loc, [3.0] * 40)
         for _ in range(40):

@@ -301,6 +301,10 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
     agg["within_5m_to_end_ratio"] = sum(known) / len(known) if known else None
     # a run that never localizes has no "after": it counts as a failure in the ratio above
     agg["rmse_after_localized_m_median"] = median(s["rmse_after_localized_m"] for s in summaries)
+    # never green while wrong (lidarloc.core.integrity): sums over runs; None where a run had no truth
+    for key in ("relocalizations", "spurious_relocalizations", "localized_wrong_scans"):
+        values = [s.get(key) for s in summaries]
+        agg[key] = None if not values or any(v is None for v in values) else int(sum(values))
     agg["localized_at_scan_median"] = median(s["localized_at_scan"] for s in summaries)
     pf_ms = np.concatenate([np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "pf_ms.npy") for s in summaries])
     s2m_parts = [np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "s2m_ms.npy") for s in summaries]
@@ -317,7 +321,8 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
         w = csv.writer(f)
         metric_cols = [*METRIC_KEYS, "rmse_pos_after_D_m", "rmse_yaw_after_D_deg"]
         w.writerow(["seed", *metric_cols, "pf_ms_median", "false_positives", "losses", "localized_at_scan",
-                    "rmse_after_localized_m", "within_5m_to_end", "consistency_2sigma", "false_fire"])
+                    "rmse_after_localized_m", "within_5m_to_end", "consistency_2sigma", "false_fire",
+                    "relocalizations", "spurious_relocalizations", "localized_wrong_scans"])
         for s, ok in zip(summaries, within):
             m = s["metrics"]
             w.writerow([s["seed"], *["" if m.get(k) is None else m[k] for k in metric_cols],
@@ -326,7 +331,9 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
                         "" if s["rmse_after_localized_m"] is None else f"{s['rmse_after_localized_m']:.3f}",
                         "" if ok is None else int(ok),
                         "" if s.get("consistency_2sigma") is None else f"{s['consistency_2sigma']:.3f}",
-                        "" if s.get("false_fire") is None else int(s["false_fire"])])
+                        "" if s.get("false_fire") is None else int(s["false_fire"]),
+                        *["" if s.get(k) is None else s[k]
+                          for k in ("relocalizations", "spurious_relocalizations", "localized_wrong_scans")]])
     write_json(out_dir / "summary.json", agg)
     if plots:
         _plots(out_dir, per_run, pf_ms, s2m_ms, agg)
@@ -367,6 +374,10 @@ def _world_text(world: dict) -> str:
     return ", ".join(f"{k} {v}" for k, v in world.items())
 
 
+def _count(value) -> str:
+    return "–" if value is None else str(value)
+
+
 def _report(out_dir: Path, agg: dict, plots: bool = True) -> None:
     def fmt(v):
         return "fail" if v is None else (f"{v:.0f}" if float(v).is_integer() else f"{v:.2f}")
@@ -396,7 +407,10 @@ def _report(out_dir: Path, agg: dict, plots: bool = True) -> None:
               f"per scan on 8 cores); {s2m}",
               f"Truth inside the filter's 2σ ellipse, median over runs of the share of localized scans: "
               f"{'–' if cons is None else f'{100 * cons:.0f}%'} (an honest covariance: ~86%); runs whose rule "
-              f"fired more than 5 m from the truth: {'–' if ff is None else f'{100 * ff:.0f}%'}.", ""]
+              f"fired more than 5 m from the truth: {'–' if ff is None else f'{100 * ff:.0f}%'}.",
+              f"Scans called localized more than 5 m from the truth, all runs: {_count(agg['localized_wrong_scans'])}; "
+              f"relocalizations by the whole-map check: {_count(agg['relocalizations'])}, of a correct estimate "
+              f"(spurious): {_count(agg['spurious_relocalizations'])}.", ""]
     if plots:
         lines += ["![metrics](metrics_boxplot.png)", "", "![latency](latency_hist.png)", ""]
     (out_dir / "report.md").write_text("\n".join(lines))

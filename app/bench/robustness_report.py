@@ -15,7 +15,8 @@ from lidarloc.core.sequences.factory import SourceSpec
 # One row per cell. The world columns are empty for the real drive (its world is what it is).
 COLUMNS = ("cell", "source", "changes", "traffic", "sensor", "skew", "config", "runs", "scans",
            *[f"{k}_{s}" for k in METRIC_KEYS for s in ("median", "success")],
-           "success", "rmse_after_localized_m", "consistency_2sigma", "false_fire_rate", "pf_ms_median")
+           "success", "rmse_after_localized_m", "consistency_2sigma", "false_fire_rate", "pf_ms_median",
+           "localized_wrong_scans", "relocalizations", "spurious_relocalizations")
 REAL_LABEL = "real KITTI drive"
 
 
@@ -33,7 +34,8 @@ def cell_row(cell, agg: dict) -> dict:
         row[f"{k}_success"] = agg[k]["success"]
     row.update(success=agg["within_5m_to_end_ratio"], rmse_after_localized_m=agg["rmse_after_localized_m_median"],
                consistency_2sigma=agg["consistency_2sigma"], false_fire_rate=agg["false_fire_rate"],
-               pf_ms_median=agg["pf_ms_median"])
+               pf_ms_median=agg["pf_ms_median"], localized_wrong_scans=agg.get("localized_wrong_scans"),
+               relocalizations=agg.get("relocalizations"), spurious_relocalizations=agg.get("spurious_relocalizations"))
     return row
 
 
@@ -86,6 +88,10 @@ def _seeds(runs: int) -> str:
     return "0" if runs == 1 else f"0–{runs - 1}"
 
 
+def _opt(value) -> str:
+    return "–" if value is None else str(value)
+
+
 def _markdown(summary: dict, rows: list[dict]) -> str:
     real = f" and {summary['real_source']}" if summary["real"] else ""
     lines = [f"# Robustness: {summary['source']}{real}", "",
@@ -93,15 +99,17 @@ def _markdown(summary: dict, rows: list[dict]) -> str:
              f"{summary['scans']} scans, replay clock, against the prior map of the town as mapped"
              + (" (the real drive: the map of its own scans)." if summary["real"] else "."), "",
              "| changes | traffic | sensor | skew | config | success | RMSE after | A | B | C | D | E "
-             "| 2σ consistency | false fires | PF ms |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| 2σ consistency | false fires | wrong & localized | relocalized (spurious) | PF ms |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         world = ("real drive", "–", "–", "–") if r["source"] == "real" else \
             (f"{r['changes']:g}", r["traffic"], r["sensor"], r["skew"])
         rmse = "–" if r["rmse_after_localized_m"] is None else f"{r['rmse_after_localized_m']:.2f} m"
         lines.append(f"| {' | '.join(world)} | {r['config']} | {_pct(r['success'])} | {rmse} | "
                      + " | ".join(_metric(r, k) for k in METRIC_KEYS)
-                     + f" | {_pct(r['consistency_2sigma'])} | {_pct(r['false_fire_rate'])} | {_num(r['pf_ms_median'], 1)} |")
+                     + f" | {_pct(r['consistency_2sigma'])} | {_pct(r['false_fire_rate'])} | "
+                     f"{_opt(r['localized_wrong_scans'])} | {_opt(r['relocalizations'])} "
+                     f"({_opt(r['spurious_relocalizations'])}) | {_num(r['pf_ms_median'], 1)} |")
     lines += ["",
               "- success: share of runs localized and within 5 m of the truth from then to the end of the drive.",
               "- RMSE after: position RMSE from the rule's first firing on, median over runs.",
@@ -110,6 +118,9 @@ def _markdown(summary: dict, rows: list[dict]) -> str:
               "- 2σ consistency: share of localized scans with the truth inside the filter's 2σ ellipse, "
               "median over runs (an honest covariance: ~86%).",
               "- false fires: share of runs whose localization rule fired more than 5 m from the truth.",
+              "- wrong & localized: scans, over all runs, that the rule called localized more than 5 m from the truth.",
+              "- relocalized (spurious): times, over all runs, the whole-map check moved the filter (of those, "
+              "from an estimate within 5 m of the truth).",
               "- PF ms: the particle filter's step, median over every scan of every run.",
               "- Each cell's runs and report: cells/NAME/.", "",
               "![success and RMSE per cell](heatmap.png)", ""]

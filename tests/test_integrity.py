@@ -1,0 +1,197 @@
+"""Never green while wrong: the rule needs S2M's word, a whole-map second opinion once localized,
+loss detection from the scan's fit (core/integrity.py), and how a run reports them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from helpers import short_town
+
+from lidarloc.core.config import Config, load_config
+from lidarloc.core.geometry import pose_matrix
+from lidarloc.core.integrity import (DISAGREEMENTS_FOR_CHECK, FIT_MIN_SAMPLES, Integrity, fits_clearly_better, judge,
+                                     truth_alarm)
+from lidarloc.core.localizer import Localizer
+from lidarloc.core.rules import LocalizationRules
+
+
+# ------------------------------------------------------------------------------ the rule's word
+def _feed(rules, n, confirmed=None, start=0):
+    """Scans start…start+n−1 with a small std, 2 m driven per scan."""
+    out = []
+    for k in range(start, start + n):
+        out.append(rules.update(k, np.array([1.0, 1.0, 0.1]), 2.0, 0.0, confirmed))
+    return out
+
+
+def test_the_rule_waits_for_s2m_to_agree_within_its_window():
+    cfg = Config().localize
+    rules = LocalizationRules(cfg)
+    agreed_at = {"k": None}
+
+    def confirmed(k0):
+        return agreed_at["k"] is not None and agreed_at["k"] >= k0
+    outcomes = _feed(rules, 15, confirmed)
+    # the paper's conditions hold from the 10th scan on, but nothing agreed: no fire, and it says why
+    assert not any(o.localized for o in outcomes) and rules.awaiting_confirmation
+    assert not any(o.event for o in outcomes)
+    agreed_at["k"] = 15
+    o = _feed(rules, 1, confirmed, start=15)[0]
+    assert o.localized and o.event == "localized" and rules.localized_since == 15
+    assert not rules.awaiting_confirmation
+
+
+def test_an_agreement_before_the_streak_does_not_count():
+    rules = LocalizationRules(Config().localize)
+    # a match agreed at scan 2, then the std rose (a false positive) and a new streak began
+    rules.update(0, np.array([1.0, 1.0, 0.1]), 2.0, 0.0, lambda k0: 2 >= k0)
+    rules.update(1, np.array([30.0, 30.0, 1.0]), 2.0, 0.0, lambda k0: 2 >= k0)
+    outcomes = _feed(rules, 12, lambda k0: 2 >= k0, start=3)
+    assert not any(o.localized for o in outcomes)
+
+
+def test_without_confirmation_the_paper_rule_fires_on_the_filter_alone():
+    rules = LocalizationRules(Config().localize)
+    outcomes = _feed(rules, 10, None)
+    assert outcomes[-1].event == "localized" and outcomes[-1].localized
+
+
+def test_the_paper_preset_keeps_the_papers_rule():
+    cfg = load_config(preset="paper")
+    assert not cfg.localize.require_s2m_confirmation
+    assert cfg.s2m.global_check_interval == 0 and cfg.localize.lost_after_scans == 0
+    assert Config().localize.require_s2m_confirmation
+
+
+# ------------------------------------------------------------------------------ verdicts
+def _pose(x, y, yaw_deg=0.0):
+    return pose_matrix(x, y, 0.0, math.radians(yaw_deg), 0.0, 0.0)
+
+
+@pytest.mark.parametrize("mode, accepted, unbeaten, match, score, start, kind", [
+    ("global", True, False, (2.0, 1.0, 5.0), 300, 100, "agrees"),
+    ("global", False, True, (0.0, 0.0, 0.0), 300, 300, "agrees"),       # nothing in the map beat the start
+    ("global", True, False, (80.0, 0.0, 0.0), 900, 100, "disagrees"),   # written as the paper does
+    ("local", True, False, (0.0, 0.0, 40.0), 300, 100, "disagrees"),    # turned too far
+    ("check", True, False, (80.0, 0.0, 0.0), 200, 100, "relocalize"),   # 2× the estimate's score
+    ("check", True, False, (80.0, 0.0, 0.0), 110, 100, "look_alike"),   # far, but not clearly better
+    ("check", False, False, (80.0, 0.0, 0.0), 900, 100, "no_opinion"),  # refused by GICP
+])
+def test_a_match_is_judged_against_the_estimate(mode, accepted, unbeaten, match, score, start, kind):
+    v = judge(mode, accepted, unbeaten, _pose(*match), _pose(0.0, 0.0), score, start, Config())
+    assert v.kind == kind
+    if kind != "no_opinion":
+        assert v.distance_m == pytest.approx(math.hypot(match[0], match[1]))
+
+
+def test_local_disagreements_in_a_row_ask_for_the_second_opinion():
+    cfg = Config()
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    far = judge("local", True, False, _pose(20.0, 0.0), _pose(0.0, 0.0), 200, 100, cfg)
+    near = judge("local", True, False, _pose(0.5, 0.0), _pose(0.0, 0.0), 200, 100, cfg)
+    for i in range(DISAGREEMENTS_FOR_CHECK - 1):
+        integ.note_verdict(20 + i, far)
+    assert integ.check_due(22, localized=True) is None
+    integ.note_verdict(22, near)                              # an agreement resets the count
+    for i in range(DISAGREEMENTS_FOR_CHECK):
+        integ.note_verdict(23 + i, far)
+    assert "did not agree" in integ.check_due(26, localized=True)
+    integ.check_started(26)
+    assert integ.check_due(27, localized=True) is None
+    # and periodically
+    assert integ.check_due(26 + cfg.s2m.global_check_interval, localized=True) == \
+        f"every {cfg.s2m.global_check_interval} scans"
+    assert integ.check_due(200, localized=False) is None      # before localization every match is global
+
+
+def test_a_poor_fit_is_judged_against_the_recent_baseline_and_a_long_one_is_a_loss():
+    cfg = Config()
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    # a VLP-16's correct estimate: ~0.9 m mean residual is its normal
+    for k in range(FIT_MIN_SAMPLES + 5):
+        assert integ.note_fit(k, True, 0.8, 0.9) is None
+    assert integ.poor_fit(0.8, 1.0) is None
+    assert "mean residual" in integ.poor_fit(0.8, 2.5)
+    assert "inlier share" in integ.poor_fit(0.2, 0.9)
+    k0 = 100
+    lost = [integ.note_fit(k0 + i, True, 0.8, 2.5) for i in range(cfg.localize.lost_after_scans)]
+    assert all(v is None for v in lost[:-1]) and "poorly" in lost[-1]
+    assert integ.check_reason is not None               # the poor fit asked for the second opinion
+    # a whole-map match agreeing with the estimate says the poor fit is the world's change
+    integ.note_fit(200, True, 0.8, 2.5)
+    integ.note_verdict(201, judge("check", False, True, _pose(0, 0), _pose(0, 0), 5, 5, cfg))
+    assert integ.poor_fit_scans == 0
+
+
+def test_far_poses_must_fit_clearly_better_in_3d():
+    assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))          # 80 m off: 1.1 m vs 0.15 m
+    assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))       # a VLP-16 look-alike
+    assert not fits_clearly_better((0.70, 0.2), (0.90, 0.9))       # fewer of the points fit there
+    assert not fits_clearly_better((0.0, math.nan), (0.9, 0.9))
+
+
+def test_the_truth_alarm_is_the_false_fire_test():
+    assert truth_alarm(True, 102.4) == "the rule says localized; the truth is 102 m away"
+    assert truth_alarm(True, 4.9) is None and truth_alarm(False, 102.0) is None and truth_alarm(True, None) is None
+
+
+def test_the_integrity_state_survives_a_checkpoint():
+    cfg = Config()
+    a = Integrity(cfg)
+    a.on_localized(10)
+    a.note_fit(11, True, 0.9, 0.2)
+    a.want_check(30, "why not")
+    b = Integrity(cfg)
+    b.load(a.state())
+    assert b.state() == a.state()
+
+
+# ------------------------------------------------------------------------------ a real run
+@pytest.mark.slow
+def test_a_late_s2m_holds_the_rule_back_and_the_filter_recovers_once_it_joins(cache_root):
+    """S2M held back until scan 40 (``s2m.join_at_scan``): the particle filter alone may converge,
+    but nothing says localized before S2M's word; within 30 scans of joining the filter is localized
+    within 5 m of the truth, and no scan was ever green and wrong."""
+    seq = short_town(80)
+    cfg = load_config(overrides=["s2m.join_at_scan=40", "localize.recorded_odometry=true"])
+    with Localizer(seq, cfg, cache_root) as loc:
+        snaps = [loc.step() for _ in range(80)]
+        events = list(loc.events)
+        records = list(loc.records)
+    held = [s for s in snaps if s.scan_index < 40]
+    assert all(s.s2m_status == "held" and "until scan 40" in s.s2m_status_detail for s in held)
+    assert not any(s.localized for s in held)
+    assert not any(e.kind.startswith("s2m_") and e.kind != "s2m_ready" for e in events if e.scan < 40)
+    assert [(e.scan, e.kind) for e in events if e.kind == "s2m_ready"] == [(40, "s2m_ready")]
+    onset = next(r.scan for r in records if r.localized)
+    assert 40 <= onset <= 70 and records[onset].error_m < 5.0
+    assert not any(r.localized and r.error_m > 5.0 for r in records)
+    assert not any(e.kind == "false_fire" for e in events)
+    assert snaps[onset].confirmed_at is not None and snaps[onset].confirmed_at >= 40
+
+
+@pytest.mark.slow
+def test_an_estimate_moved_unannounced_is_noticed_and_relocalized(cache_root):
+    """Once localized, every particle moved 60 m without telling the filter: it is green and wrong
+    for a few scans (a false_fire event and the truth alarm say so), then the poor fit asks for the
+    whole-map check, which moves the filter back (a relocalized event with both scores)."""
+    seq = short_town(70)
+    cfg = load_config(overrides=["localize.recorded_odometry=true"])
+    with Localizer(seq, cfg, cache_root) as loc:
+        while loc.k < 40:
+            loc.step()
+        assert loc.rules.localized
+        loc.move_estimate(0.0, 60.0)
+        snaps = [loc.step() for _ in range(30)]
+        events = list(loc.events)
+    assert snaps[0].truth_alarm is not None and snaps[0].error_m > 50
+    assert any(e.kind == "false_fire" and e.scan == 40 for e in events)
+    moved = [e for e in events if e.kind == "relocalized"]
+    assert len(moved) == 1 and moved[0].scan <= 48 and "score" in moved[0].detail
+    after = [s for s in snaps if s.scan_index > moved[0].scan]
+    assert all(s.error_m < 5.0 for s in after)
+    assert all(s.truth_alarm is None for s in after)

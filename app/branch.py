@@ -1,7 +1,7 @@
 """``lidarloc run --branch DIR:K [--set …] --out NEW``: continue a recorded run from its step K,
 with other parameters if wished, into a folder of its own.
 
-The branch is the recorded run's exact state after step K (:func:`lidarloc.core.branch.open_branch`),
+The branch is the recorded run's exact state after step K (:func:`lidarloc.core.runs.branch.open_branch`),
 stepped to the end of the sequence by the same loop as ``lidarloc run``; ``NEW`` gets the same
 files (trajectories and per-scan CSV from scan 0: the recorded run's up to K, the branch's after)
 and a recording of the branch's own steps (numbered from K + 1; its index names the run and step
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from lidarloc.core.errors import LidarlocError
+from ..core.errors import LidarlocError
 
 from .console import progress_bar
 from .headless import check_recording_target, localize
@@ -38,9 +38,9 @@ def run_branch(run_dir: Path, step: int, overrides: list[str] | dict | None, out
     strings or live parameters) and run it to the end into ``out``; returns (summary, interrupted).
     ``stop_after``: stop once this many steps are done in all (the recorded ones up to ``step``
     included)."""
-    from lidarloc.core.branch import continue_recording, open_branch, open_recording
-    from lidarloc.core.recording import RecordingWriter
-    from lidarloc.core.results import make_out_dir
+    from ..core.runs.branch import continue_recording, open_branch, open_recording
+    from ..core.runs.recording import RecordingWriter
+    from ..core.runs.results import make_out_dir
 
     console = console or Console(stderr=True)
     rec = open_recording(run_dir)

@@ -29,8 +29,8 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.metrics import METRIC_KEYS, ScanLog, compute_metrics, confidence_metrics
+from ..core.errors import LidarlocError
+from ..core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics, confidence_metrics
 
 from .console import emit_json
 
@@ -154,7 +154,7 @@ def _figures(summary: dict, curves: RunCurves) -> dict:
 
 def load_run(path) -> RunFigures:
     """A results folder's figures and curves (one-line LidarlocError for anything else)."""
-    from lidarloc.core import recording
+    from ..core.runs import recording
 
     path = Path(path).expanduser()
     if not path.is_dir():
@@ -289,7 +289,7 @@ def plot(runs: list[RunFigures], out_png: Path) -> None:
 
 
 def as_dict(runs: list[RunFigures], out_png: Path | None) -> dict:
-    from lidarloc.core.results import json_safe
+    from ..core.runs.results import json_safe
 
     return json_safe({"runs": [{"run": str(r.path), "label": r.label, "recorded": r.recorded, **r.figures}
                                for r in runs],

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from lidarloc.core.errors import LidarlocError
+from ..core.errors import LidarlocError
 
 from .export_scene import EXPORT_MAP_POINTS, ExportScene
 
@@ -128,8 +128,8 @@ def export_run(run_dir, out, console: Console | None = None, cache_root: Path | 
     paths, sizes in bytes, steps, map points, seconds."""
     import viser
 
-    from lidarloc.core import recording
-    from lidarloc.core.mapping import load_or_build_map
+    from ..core.runs import recording
+    from ..core.maps.mapping import load_or_build_map
 
     from .console import progress_bar
 

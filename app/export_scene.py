@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from lidarloc.core.snapshot import Snapshot
+from ..core.snapshot import Snapshot
 
 from .viewer.shapes import downsample_for_display, log_weight_rank, quat_wxyz_from_matrix, vehicle_outline
 from .viewer.style import (BEST_COLOR, ELLIPSE_COLOR, EST_COLOR, GT_COLOR, PARTICLE_ARROW_MAX, PARTICLE_ARROW_MIN,

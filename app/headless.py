@@ -1,7 +1,7 @@
 """``lidarloc run``: localize over a sequence without a viewer and write the results to disk.
 
 Every run records its steps into ``--out``'s ``recording/`` folder unless told not to
-(:mod:`lidarloc.core.recording`); a branch of a recorded run (:mod:`lidarloc.app.branch`) goes
+(:mod:`lidarloc.core.runs.recording`); a branch of a recorded run (:mod:`lidarloc.app.branch`) goes
 through the same loop. Ctrl-C stops after the scan in progress and still writes everything
 computed so far. The source's notes (a bag's dropped scans, a folder without times) are printed
 before the run, and a map and scans found to be in different frames are warned about as soon as
@@ -18,11 +18,11 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from lidarloc.core.config import Config
-from lidarloc.core.localizer import Interrupted, Localizer
-from lidarloc.core.recording import RecordingWriter
-from lidarloc.core.results import make_out_dir, summarize_run, write_run
-from lidarloc.core.sequences.factory import SourceSpec
+from ..core.config import Config
+from ..core.localizer import Interrupted, Localizer
+from ..core.runs.recording import RecordingWriter
+from ..core.runs.results import make_out_dir, summarize_run, write_run
+from ..core.sequences.factory import SourceSpec
 
 from .console import progress_bar
 from .options import open_source
@@ -37,7 +37,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
                  preset: str | None = None, record: bool = True) -> tuple[dict, bool]:
     """Run the localizer over the whole sequence; returns (summary, interrupted). ``preset``: the
     named configuration ``cfg`` started from (``--preset``), recorded in the summary. ``record``:
-    write every step's state into ``out/recording/`` as it happens (:mod:`lidarloc.core.recording`;
+    write every step's state into ``out/recording/`` as it happens (:mod:`lidarloc.core.runs.recording`;
     what was finished stays after Ctrl-C or a crash)."""
     console = console or Console(stderr=True)
     seq = open_source(spec, cfg, console)
@@ -58,7 +58,7 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
 
 def check_recording_target(out: Path) -> None:
     """Refuse, before the long part, an ``out`` that already holds a recording."""
-    from lidarloc.core.recording import FOLDER, STEPS, RecordingError
+    from ..core.runs.recording import FOLDER, STEPS, RecordingError
 
     if (Path(out) / FOLDER / STEPS).exists():
         raise RecordingError(f"{Path(out) / FOLDER}: a recording is already there; choose another --out")

@@ -5,7 +5,7 @@ The run is ``lidarloc run``'s (same source, configuration and seed), in the repl
 scan's state is reproducible. At scan K it writes, into ``--out``:
 
 - ``surface_estimate.png`` / ``.npy``: the scan's log-likelihood on the x–y grid around the
-  estimate (:meth:`~lidarloc.core.surface.LikelihoodModel.surface`, the filter's kernel and
+  estimate (:meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`, the filter's kernel and
   options at that scan), with a colour bar and the truth, the estimate and the maximum marked;
 - ``surface_truth.png`` / ``.npy``: the same around the truth (where the source has it);
 - ``residuals.png``: the scan at the estimate seen from above, each point coloured by its
@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from lidarloc.core.config import Config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import pose_to_xyz_ypr
-from lidarloc.core.localizer import Localizer
-from lidarloc.core.residuals import scan_residuals
-from lidarloc.core.results import make_out_dir
-from lidarloc.core.sequences.factory import SourceSpec
-from lidarloc.core.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
+from ..core.config import Config
+from ..core.errors import LidarlocError
+from ..core.geometry import pose_to_xyz_ypr
+from ..core.localizer import Localizer
+from ..core.filter.residuals import scan_residuals
+from ..core.runs.results import make_out_dir
+from ..core.sequences.factory import SourceSpec
+from ..core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 
 from .console import progress_bar
 from .options import open_source

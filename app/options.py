@@ -14,8 +14,8 @@ from typing import Annotated, Any, NamedTuple, Optional
 
 import typer
 
-from lidarloc.core.config import PRESETS, WORLDS, Config, load_config
-from lidarloc.core.sequences.factory import SourceSpec
+from ..core.config import PRESETS, WORLDS, Config, load_config
+from ..core.sequences.factory import SourceSpec
 
 _SRC = "Source (default: the built-in town)"
 _CFG = "Configuration"
@@ -155,7 +155,7 @@ def source_spec(**values) -> SourceSpec:
 def open_source(spec: SourceSpec, cfg: Config, console=None):
     """``open_sequence`` with a progress bar while a bag's topic is indexed, and the source's
     notes printed on ``console`` (stderr), one line each."""
-    from lidarloc.core.sequences.factory import open_sequence, sequence_notes
+    from ..core.sequences.factory import open_sequence, sequence_notes
 
     from .console import err, progress_bar
 

@@ -93,7 +93,7 @@ class Snapshot:
     events: tuple = field(default_factory=tuple)
     paused: bool = False
     done: bool = False
-    # Whether the filter's word can be trusted (see :mod:`lidarloc.core.integrity`):
+    # Whether the filter's word can be trusted (see :mod:`lidarloc.core.rules.integrity`):
     s2m_status: str = "ready"             # "ready", "building" (its tables, in the background),
                                           # "held" (s2m.join_at_scan), "off" (switched off)
     s2m_status_detail: str = ""           # e.g. "road removal 40 %", "held back until scan 100"

@@ -47,8 +47,8 @@ def kitti_raw_map(kitti_raw_seq):
     so the map is fused with the same voxel accumulator as mapping.build_prior_map but without its
     road-removed BEV copy (normal estimation: half of the build time)."""
     from lidarloc.core.config import MapConfig
-    from lidarloc.core.lookup import LookupTable
-    from lidarloc.core.mapping import PriorMap, VoxelAccumulator, range_filter
+    from lidarloc.core.maps.lookup import LookupTable
+    from lidarloc.core.maps.mapping import PriorMap, VoxelAccumulator, range_filter
 
     cfg = MapConfig()
     acc = VoxelAccumulator(cfg.voxel_size)
@@ -72,7 +72,7 @@ def toy_world():
     """The particle filter's toy world (helpers.toy_map) and its 0.25 m / 5 m lookup table."""
     from helpers import toy_map
 
-    from lidarloc.core.lookup import LookupTable
+    from lidarloc.core.maps.lookup import LookupTable
 
     pts = toy_map()
     return pts, LookupTable.build(pts, 0.25, 5.0)

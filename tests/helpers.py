@@ -11,7 +11,7 @@ import numpy as np
 
 from lidarloc.core.config import Config, PFConfig, load_config
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
-from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.filter.scanprep import voxel_downsample_random
 from lidarloc.core.sequences.base import Sequence
 
 
@@ -130,7 +130,7 @@ def scripted_std(loc, stds):
 def instant_matcher(loc, accepted=False, before=None):
     """Replace the in-process matcher (localize.s2m_process=False) with one that answers at once,
     accepting or rejecting the start pose; ``before()`` runs first (e.g. to hold the match)."""
-    from lidarloc.core.s2m import S2MOutcome
+    from lidarloc.core.matching.s2m import S2MOutcome
 
     def match(scan, pose, level=False):
         if before is not None:

@@ -1,13 +1,13 @@
-"""The BEV pyramid (core/bev.py): stride-2 max pools down to a few cells, the cell values, and
+"""The BEV pyramid (core/maps/bev.py): stride-2 max pools down to a few cells, the cell values, and
 its cache (save/load, atomic writes, a corrupt entry rebuilt)."""
 
 import numpy as np
 import pytest
 
-from lidarloc.core.bev import BEVPyramid, load_or_build_pyramid, max_pool2, pyramid_cache_name
+from lidarloc.core.maps.bev import BEVPyramid, load_or_build_pyramid, max_pool2, pyramid_cache_name
 from lidarloc.core.config import S2MConfig
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.mapping import PriorMap
+from lidarloc.core.maps.mapping import PriorMap
 
 
 def test_pyramid_levels_are_stride2_max_pools_down_to_a_few_cells():

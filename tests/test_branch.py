@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from lidarloc.core import recording
-from lidarloc.core.branch import open_branch
+from lidarloc.core.runs import recording
+from lidarloc.core.runs.branch import open_branch
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.recording import RecordingError
-from lidarloc.core.resume import CHECKPOINT_EVERY
+from lidarloc.core.runs.recording import RecordingError
+from lidarloc.core.runs.resume import CHECKPOINT_EVERY
 from lidarloc.core.sequences.factory import SourceSpec
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
@@ -80,8 +80,8 @@ def test_a_run_records_by_default_and_not_with_no_record(original, tmp_path, cac
 def branch_to_the_end(rec, seq, k: int, out, cache_root, check=None) -> None:
     """Branch ``rec`` at step k with no change, record it into ``out`` to the end, and check it
     repeats the original bit for bit (``check(branch)`` first, on the fresh branch)."""
-    from lidarloc.core.branch import continue_recording, open_branch
-    from lidarloc.core.recording import RecordingWriter
+    from lidarloc.core.runs.branch import continue_recording, open_branch
+    from lidarloc.core.runs.recording import RecordingWriter
 
     branch = open_branch(rec, k, seq=seq, cache_root=cache_root)
     try:
@@ -168,7 +168,7 @@ def test_a_branch_across_a_kidnap_in_the_original(tmp_path, cache_root):
     from helpers import short_town
 
     from lidarloc.core.localizer import Localizer
-    from lidarloc.core.recording import RecordingWriter
+    from lidarloc.core.runs.recording import RecordingWriter
 
     seq = short_town(24)
     run = tmp_path / "kidnapped"
@@ -205,9 +205,9 @@ def test_s2m_joining_late_joins_the_replay_at_the_same_scan(tmp_path, cache_root
     from helpers import short_town
 
     from lidarloc.core.localizer import S2M_READY_DETAIL, Localizer
-    from lidarloc.core.recording import RecordingWriter
-    from lidarloc.core.resume import checkpoint_state
-    from lidarloc.core.s2m_pending import S2MNotReady
+    from lidarloc.core.runs.recording import RecordingWriter
+    from lidarloc.core.runs.resume import checkpoint_state
+    from lidarloc.core.matching.pending import S2MNotReady
 
     seq = short_town(20)
     run = tmp_path / "late"
@@ -342,7 +342,7 @@ def test_catching_up_after_a_checkpoint_registers_only_the_scans_after_its_newes
 
     from lidarloc.core.config import Config
     from lidarloc.core.geometry import pose_matrix
-    from lidarloc.core.odometry import OdometryFeed
+    from lidarloc.core.odometry.feed import OdometryFeed
 
     recorded = np.stack([pose_matrix(1.0 * k, 0, 0, 0, 0, 0) for k in range(20)])
     with ThreadPoolExecutor(1) as pool:

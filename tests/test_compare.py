@@ -16,7 +16,7 @@ from helpers import record_run
 
 from lidarloc.app.compare import ROWS, _fmt, compare_runs, load_run, success
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.metrics import METRIC_KEYS
+from lidarloc.core.runs.metrics import METRIC_KEYS
 
 SCANS = 16
 

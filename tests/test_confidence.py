@@ -1,4 +1,4 @@
-"""The per-scan confidence (core/localizer.py, core/snapshot.py, core/metrics.py, core/results.py):
+"""The per-scan confidence (core/localizer.py, core/snapshot.py, core/runs/metrics.py, core/runs/results.py):
 what each scan reports about its own estimate, the ``confidence_low`` event, and the run's and
 the benchmark's calibration figures (consistency_2sigma, false_fire)."""
 
@@ -12,8 +12,9 @@ from helpers import scripted_std, short_town
 from lidarloc.core.config import Config
 from lidarloc.core.geometry import pose_to_xyz_ypr
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.metrics import aggregate_confidence, confidence_metrics, inside_2sigma, mahalanobis_xy
-from lidarloc.core.results import summarize_run, write_records_csv
+from lidarloc.core.rules.truth import inside_2sigma, mahalanobis_xy
+from lidarloc.core.runs.metrics import aggregate_confidence, confidence_metrics
+from lidarloc.core.runs.results import summarize_run, write_records_csv
 
 CONFIDENCE = ("n_particles", "n_eff_share", "converged", "inlier_share", "mean_residual_m", "cov_xx", "cov_xy",
               "cov_yy", "inside_2sigma")

@@ -12,7 +12,7 @@ from helpers import short_town, wait_for
 
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.mapping import BEV_FILE, load_or_build_map
+from lidarloc.core.maps.mapping import BEV_FILE, load_or_build_map
 
 
 @pytest.fixture

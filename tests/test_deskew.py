@@ -1,4 +1,4 @@
-"""Motion skew and de-skew (core/deskew.py, the town's ``skew`` option): the sweep convention,
+"""Motion skew and de-skew (core/odometry/deskew.py, the town's ``skew`` option): the sweep convention,
 the constant-velocity de-skew, and that de-skewing the town's skewed scans with the true motion
 gives back scans as exact as unskewed ones."""
 
@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lidarloc.core.config import TownConfig
-from lidarloc.core.deskew import deskew, sweep_offsets, twist_from_relative_pose
+from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose
 from lidarloc.core.sequences.lidar_sim import LidarModel, Sweep, raycasting_scene

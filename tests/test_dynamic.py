@@ -1,4 +1,4 @@
-"""Dynamic-point rejection (core/dynamic.py and the filter's use of it): points that stay far
+"""Dynamic-point rejection (core/filter/dynamic.py and the filter's use of it): points that stay far
 from the map over consecutive scans are left out, points that fit the map never are, a cluster
 seen once is kept, a moving object is followed, a wrong pose rejects nothing, and with the
 option off (or nothing to reject) the filter is unchanged."""
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from helpers import paper_pf, toy_scan
 
-from lidarloc.core.dynamic import DynamicPointFilter
+from lidarloc.core.filter.dynamic import DynamicPointFilter
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
-from lidarloc.core.likelihood import log_likelihood, scrambled_order
-from lidarloc.core.motion import propagate
-from lidarloc.core.pf import ParticleFilter
+from lidarloc.core.filter.likelihood import log_likelihood, scrambled_order
+from lidarloc.core.filter.motion import propagate
+from lidarloc.core.filter.pf import ParticleFilter
 
 POSE = np.array([12.0, 10.0, 1.7, 0.3, 0.0, 0.0])
 

@@ -16,7 +16,7 @@ from rich.console import Console
 
 from lidarloc.app.export import DATA_SCRIPT, PAGE, STEP_SECONDS, export_run
 from lidarloc.app.export_scene import step_text
-from lidarloc.core import recording
+from lidarloc.core.runs import recording
 from lidarloc.core.errors import LidarlocError
 
 from helpers import record_run

@@ -5,9 +5,9 @@ import pytest
 from bagfixtures import kitti_drive, write_tum  # noqa: F401  (fixture)
 
 from lidarloc.core.errors import DataError
-from lidarloc.core.extrinsic import from_tf_static, read_extrinsic
+from lidarloc.core.sequences.extrinsic import from_tf_static, read_extrinsic
 from lidarloc.core.geometry import euler_zyx, pose_matrix
-from lidarloc.core.groundtruth import Truth, load_truth, match, read_kitti, truth_for_scans
+from lidarloc.core.sequences.groundtruth import Truth, load_truth, match, read_kitti, truth_for_scans
 
 T0 = 1317042651.175862   # Unix seconds, as a recorder's clock gives them
 

@@ -1,5 +1,5 @@
 """Never green while wrong: the rule needs S2M's word, a whole-map second opinion once localized,
-loss detection from the scan's fit (core/integrity.py), and how a run reports them."""
+loss detection from the scan's fit (core/rules/integrity.py), and how a run reports them."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from helpers import short_town
 
 from lidarloc.core.config import Config, load_config
 from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.integrity import (DISAGREEMENTS_FOR_CHECK, FIT_MIN_SAMPLES, Integrity, fits_clearly_better, judge,
-                                     truth_alarm)
+from lidarloc.core.rules.integrity import DISAGREEMENTS_FOR_CHECK, FIT_MIN_SAMPLES, Integrity, fits_clearly_better, judge
+from lidarloc.core.rules.truth import truth_alarm
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.rules import LocalizationRules
+from lidarloc.core.rules.paper import LocalizationRules
 
 
 # ------------------------------------------------------------------------------ the rule's word

@@ -1,4 +1,4 @@
-"""KLD-sampling (core/kld.py and the filter's adaptive particle count): Fox's bound against the
+"""KLD-sampling (core/filter/kld.py and the filter's adaptive particle count): Fox's bound against the
 χ² quantile it approximates, the stopping rule, the count shrinking once the cloud converges and
 growing back when it spreads or is re-initialised, the protected particle, determinism."""
 
@@ -10,9 +10,9 @@ from helpers import paper_pf, toy_scan
 from scipy.stats import chi2
 
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.kld import bin_keys, kld_bound, kld_count
-from lidarloc.core.motion import propagate
-from lidarloc.core.pf import ParticleFilter
+from lidarloc.core.filter.kld import bin_keys, kld_bound, kld_count
+from lidarloc.core.filter.motion import propagate
+from lidarloc.core.filter.pf import ParticleFilter
 
 DEG = math.pi / 180
 

@@ -1,4 +1,4 @@
-"""The particle weights (core/likelihood.py): the paper's truncated sum of squared lookup
+"""The particle weights (core/filter/likelihood.py): the paper's truncated sum of squared lookup
 distances, misses for poses off the grid, the floored variant's identical weights, and on the
 real drive the true pose scoring higher than perturbed ones."""
 
@@ -9,8 +9,8 @@ import numpy as np
 from helpers import assert_floor_keeps_the_weights
 
 from lidarloc.core.geometry import pose_matrix, pose_to_xyz_ypr, transform_points
-from lidarloc.core.likelihood import log_likelihood, log_likelihood_floored
-from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.filter.likelihood import log_likelihood, log_likelihood_floored
+from lidarloc.core.filter.scanprep import voxel_downsample_random
 
 DEG = math.pi / 180
 

@@ -1,4 +1,4 @@
-"""The likelihood's shape options (core/likelihood.py): tempering, the unexplained-point share,
+"""The likelihood's shape options (core/filter/likelihood.py): tempering, the unexplained-point share,
 the per-point mean; the floored variant's weights under both; the paper's likelihood bit for bit
 at the defaults; and residual_stats against exact nearest distances."""
 
@@ -12,7 +12,7 @@ from helpers import assert_floor_keeps_the_weights, paper_pf
 
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
-from lidarloc.core.likelihood import (
+from lidarloc.core.filter.likelihood import (
     PER_POINT,
     cost_table,
     log_likelihood,
@@ -20,7 +20,7 @@ from lidarloc.core.likelihood import (
     residual_stats,
     squared_cost_table,
 )
-from lidarloc.core.lookup import MISS_CODE
+from lidarloc.core.maps.lookup import MISS_CODE
 
 
 def _problem(pts, n=40, m=3000, seed=0, spread=1.5):
@@ -177,7 +177,7 @@ def test_residual_stats_edge_cases(toy_world):
 def test_filter_reweight_agrees_with_its_update(toy_world, temperature, share):
     """The S2M landing re-weighs one particle with reweight(): for an unchanged particle it must
     give back the update's own log-likelihood (same T, same z, same points), whatever the shape."""
-    from lidarloc.core.pf import ParticleFilter
+    from lidarloc.core.filter.pf import ParticleFilter
 
     pts, table = toy_world
     scan, _ = _problem(pts, m=2500)
@@ -195,7 +195,7 @@ def test_filter_reweight_agrees_with_its_update(toy_world, temperature, share):
 
 # ------------------------------------------------------------------------------ point budget
 def test_subset_for_spreads_the_budget_over_the_whole_scan():
-    from lidarloc.core.likelihood import subset_for
+    from lidarloc.core.filter.likelihood import subset_for
 
     assert subset_for(5000, 0) is None and subset_for(5000, 5000) is None and subset_for(5000, 9000) is None
     pick = subset_for(15000, 2000)
@@ -221,7 +221,7 @@ def test_filter_with_a_point_budget_estimates_the_whole_scans_likelihood(toy_wor
     particles' log-likelihoods are those of the whole scan up to the subset's sampling error
     (here a few %), their ranking is kept, reweight() agrees with the update, and a budget
     of 0 or ≥ the scan's points is the filter without a budget, bit for bit."""
-    from lidarloc.core.pf import ParticleFilter
+    from lidarloc.core.filter.pf import ParticleFilter
 
     pts, table = toy_world
     scan, _ = _problem(pts, m=6000, seed=3)

@@ -1,4 +1,4 @@
-"""The localizer (core/localizer.py, core/s2m_schedule.py, core/odometry.py): blocks in threads and
+"""The localizer (core/localizer.py, core/matching/schedule.py, core/odometry/feed.py): blocks in threads and
 child processes, replay determinism, S2M sample update, rules → re-init, kidnap, failing blocks,
 interrupting a step, the real-time clock's scheduling."""
 
@@ -194,7 +194,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         job.future.result(timeout=120)
         # An accepted match waits (at most REALTIME_LAND_MAX_DEFERRALS scans) for the odometry
         # of the scan it lands at; a rejected one lands at once.
-        from lidarloc.core.s2m_schedule import REALTIME_LAND_MAX_DEFERRALS
+        from lidarloc.core.matching.schedule import REALTIME_LAND_MAX_DEFERRALS
 
         for _ in range(REALTIME_LAND_MAX_DEFERRALS + 1):
             loc.run(1)
@@ -381,7 +381,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
     REALTIME_LAND_MAX_DEFERRALS tries it waits for the odometry (a landing is never lost)."""
     import threading
 
-    from lidarloc.core import s2m_schedule as schedule_module
+    from lidarloc.core.matching import schedule as schedule_module
 
     gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
@@ -440,7 +440,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
 def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
     """wait_ready() blocks until the child processes are set up, and a set-up failure is a clear
     one-line error there, before the real-time clock starts."""
-    from lidarloc.core.s2m_worker import S2MProcess
+    from lidarloc.core.matching.worker import S2MProcess
 
     with make(town, cache_root) as loc:
         loc.wait_ready()               # the normal case: returns once everything is up

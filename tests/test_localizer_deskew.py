@@ -1,5 +1,5 @@
-"""De-skewing in the localizer (``localize.deskew``, core/localizer.py with core/deskew.py and
-core/odometry.py): each scan is moved into its mid-sweep frame with the newest odometry step's
+"""De-skewing in the localizer (``localize.deskew``, core/localizer.py with core/odometry/deskew.py and
+core/odometry/feed.py): each scan is moved into its mid-sweep frame with the newest odometry step's
 constant velocity before the PF, the RPE and S2M use it."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from helpers import StreetSequence
 
 from lidarloc.core.config import Config
-from lidarloc.core.deskew import deskew, sweep_offsets, twist_from_relative_pose
+from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.localizer import Localizer
 
@@ -16,7 +16,7 @@ SPEED = 20.0     # m/s: 1 m of travel per sweep, so the skew is plain to see
 
 class SkewedStreet(StreetSequence):
     """The test street driven straight at SPEED, each scan swept over 0.1 s while moving (the
-    sweep convention of core/deskew.py: a point seen at τ from mid-sweep was measured from where
+    sweep convention of core/odometry/deskew.py: a point seen at τ from mid-sweep was measured from where
     the sensor was then)."""
 
     name = "test-street-skewed"

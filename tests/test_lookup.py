@@ -1,4 +1,4 @@
-"""The nearest-distance lookup table L (core/lookup.py): accuracy against a k-d tree (on a
+"""The nearest-distance lookup table L (core/maps/lookup.py): accuracy against a k-d tree (on a
 synthetic street and on the real drive's map), the d_max clamp, its cache (save/load, keyed
 directory, reuse for a smaller d_max, corrupt entries)."""
 
@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from lidarloc.core.errors import DataError, LidarlocError
-from lidarloc.core.lookup import LookupTable, load_or_build_lookup
-from lidarloc.core.mapping import PriorMap
+from lidarloc.core.maps.lookup import LookupTable, load_or_build_lookup
+from lidarloc.core.maps.mapping import PriorMap
 
 RES = 0.25
 D_MAX = 3.0

@@ -1,4 +1,4 @@
-"""M3RSM branch and bound (core/m3rsm.py): admissible bounds, exactness against brute force,
+"""M3RSM branch and bound (core/matching/m3rsm.py): admissible bounds, exactness against brute force,
 min-score pruning, the angle and translation lattices, the candidates and per-level node counts
 kept for inspection (and that keeping them changes no result), recovery of synthetic 2D scans in
 local and global mode."""
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from helpers import random_segments
 
-from lidarloc.core import m3rsm
-from lidarloc.core.bev import BEVPyramid
+from lidarloc.core.matching import m3rsm
+from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.errors import LidarlocError
 
 DEG = math.pi / 180

@@ -7,7 +7,7 @@ from helpers import StreetSequence
 
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.mapping import load_or_build_map
+from lidarloc.core.maps.mapping import load_or_build_map
 from lidarloc.core.sequences.base import Limited
 
 

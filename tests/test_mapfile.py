@@ -16,9 +16,9 @@ from scipy.spatial import cKDTree
 
 from lidarloc.core.config import MapConfig
 from lidarloc.core.errors import DataError
-from lidarloc.core.map_source import MapFileSource
-from lidarloc.core.mapfile import read_map, write_map, write_map_chunks
-from lidarloc.core.mapping import load_or_build_map
+from lidarloc.core.maps.map_source import MapFileSource
+from lidarloc.core.maps.mapfile import read_map, write_map, write_map_chunks
+from lidarloc.core.maps.mapping import load_or_build_map
 
 UTM_SHIFT = np.array([500_000.0, 4_000_000.0, 100.0])
 
@@ -232,7 +232,7 @@ def test_a_map_file_builds_a_cached_prior_map_with_its_origin(tmp_path):
 
 
 def test_road_removal_added_later_keeps_the_origin(tmp_path):
-    from lidarloc.core.mapping import load_or_build_road_removed
+    from lidarloc.core.maps.mapping import load_or_build_road_removed
 
     path = tmp_path / "utm.ply"
     write_map(path, cloud(5000, scale=40.0), origin=UTM_SHIFT)

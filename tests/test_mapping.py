@@ -1,11 +1,11 @@
-"""The prior map (core/mapping.py): voxel centroids, road removal on a real scan, and a real map
+"""The prior map (core/maps/mapping.py): voxel centroids, road removal on a real scan, and a real map
 built once and then read from its cache."""
 
 import numpy as np
 
 from lidarloc.core.config import MapConfig
 from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.mapping import VoxelAccumulator, flat_surface_mask, load_or_build_map, range_filter
+from lidarloc.core.maps.mapping import VoxelAccumulator, flat_surface_mask, load_or_build_map, range_filter
 from lidarloc.core.sequences.base import Limited
 
 

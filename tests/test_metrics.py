@@ -1,9 +1,9 @@
-"""Metrics A–E (core/metrics.py) on hand-made per-scan logs with known answers, and their
+"""Metrics A–E (core/runs/metrics.py) on hand-made per-scan logs with known answers, and their
 aggregate over runs."""
 
 import numpy as np
 
-from lidarloc.core.metrics import ScanLog, aggregate, compute_metrics
+from lidarloc.core.runs.metrics import ScanLog, aggregate, compute_metrics
 
 
 def log(localized, error):

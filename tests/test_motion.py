@@ -1,4 +1,4 @@
-"""The 11-state motion model (core/motion.py): closed forms for a straight line and a constant
+"""The 11-state motion model (core/filter/motion.py): closed forms for a straight line and a constant
 turn, process-noise statistics and angle wrapping."""
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from lidarloc.core.geometry import rotation_zyx, wrap_angle
-from lidarloc.core.motion import propagate
+from lidarloc.core.filter.motion import propagate
 
 ZERO_Q = np.zeros(11)
 

@@ -33,8 +33,8 @@ def small_cfg(seed: int = 0) -> Config:
 @pytest.fixture(scope="session")
 def drive_maps(kitti_raw_seq, tmp_path_factory):
     """The drive's whole map as a .pcd in the drive's frame, and the same map shifted by UTM_SHIFT."""
-    from lidarloc.core.mapfile import write_map
-    from lidarloc.core.mapping import build_prior_map
+    from lidarloc.core.maps.mapfile import write_map
+    from lidarloc.core.maps.mapping import build_prior_map
 
     root = tmp_path_factory.mktemp("maps")
     points = build_prior_map(kitti_raw_seq, Config().map, road_removal=False).points
@@ -219,7 +219,7 @@ def test_bad_combinations_are_one_line_each(kitti_recordings, drive_maps, cache_
 # ------------------------------------------------------------------------------ map build
 def test_map_build_writes_a_map_file_and_its_road_removed_layer(kitti_recordings, cache_root, capsys, monkeypatch,
                                                                 tmp_path):
-    from lidarloc.core.mapfile import read_map
+    from lidarloc.core.maps.mapfile import read_map
 
     out = tmp_path / "built.pcd"
     code, err = lidarloc(capsys, monkeypatch, "map", "build", "--bag", kitti_recordings["ros1"],

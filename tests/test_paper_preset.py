@@ -1,4 +1,4 @@
-"""The paper's S2M acceptance, as the ``paper`` preset sets it (core/s2m_schedule.py, core/s2m.py):
+"""The paper's S2M acceptance, as the ``paper`` preset sets it (core/matching/schedule.py, core/matching/s2m.py):
 a landed match that lowers its particle's weight is rejected and the particle keeps its state
 (``s2m.reject_if_weight_drops``), and a start that branch and bound did not beat is rejected
 without a GICP refinement (``s2m.refine_unbeaten_start = false``). The defaults keep accepting
@@ -12,12 +12,12 @@ import pytest
 
 from helpers import short_town
 
-from lidarloc.core.bev import BEVPyramid
+from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.config import Config, apply_preset
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.localizer import Localizer
-from lidarloc.core.mapping import PriorMap
-from lidarloc.core.s2m import S2MOutcome, ScanToMapMatcher
+from lidarloc.core.maps.mapping import PriorMap
+from lidarloc.core.matching.s2m import S2MOutcome, ScanToMapMatcher
 
 SHIFT_M = 15.0          # how far the stub's "match" is from the pose it started at
 

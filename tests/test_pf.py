@@ -1,4 +1,4 @@
-"""The particle filter (core/pf.py) on a toy world: systematic resampling, the paper's and the
+"""The particle filter (core/filter/pf.py) on a toy world: systematic resampling, the paper's and the
 map-support initialisation, convergence from a uniform start, determinism per seed, the estimate,
 log-space weights, live parameters; and tracking on real scans of the KITTI drive."""
 
@@ -10,10 +10,10 @@ from helpers import paper_pf, toy_scan
 
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_matrix, wrap_angle
-from lidarloc.core.likelihood import log_likelihood
-from lidarloc.core.motion import propagate
-from lidarloc.core.pf import ParticleFilter, SupportGrid, systematic_resample
-from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.filter.likelihood import log_likelihood
+from lidarloc.core.filter.motion import propagate
+from lidarloc.core.filter.pf import ParticleFilter, SupportGrid, systematic_resample
+from lidarloc.core.filter.scanprep import voxel_downsample_random
 
 DEG = math.pi / 180
 ZERO_Q = np.zeros(11)

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidarloc.core import recording
+from lidarloc.core.runs import recording
 from lidarloc.core.config import Config
-from lidarloc.core.recording import RecordingError, RecordingWriter, ResumePayload
+from lidarloc.core.runs.recording import RecordingError, RecordingWriter, ResumePayload
 from lidarloc.core.sequences.factory import SourceSpec
 
 

@@ -1,4 +1,4 @@
-"""What a run leaves behind (core/results.py, written by app/headless.py's run loop): parseable
+"""What a run leaves behind (core/runs/results.py, written by app/headless.py's run loop): parseable
 trajectory, ground-truth, per-scan and event files, and the summary with its CPU and real-time
 figures."""
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lidarloc.core.config import Config
-from lidarloc.core.results import lag_summary
+from lidarloc.core.runs.results import lag_summary
 from lidarloc.core.sequences.factory import SourceSpec
 
 

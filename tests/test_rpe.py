@@ -1,6 +1,6 @@
-"""Relative pose estimation (core/rpe.py, KISS-ICP) on real KITTI scans: relative motion, speed
+"""Relative pose estimation (core/odometry/rpe.py, KISS-ICP) on real KITTI scans: relative motion, speed
 and rates against the GPS/INS ground truth; bounded buffer; one writer with concurrent readers;
-the localizer's KISS-ICP setting (core/kiss.py)."""
+the localizer's KISS-ICP setting (core/odometry/kiss.py)."""
 
 import math
 import threading
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lidarloc.core.geometry import euler_zyx, inv_pose
-from lidarloc.core.rpe import RelativePoseEstimator
+from lidarloc.core.odometry.rpe import RelativePoseEstimator
 
 N = 12
 
@@ -115,7 +115,7 @@ def test_kiss_convergence_setting_keeps_the_accuracy(kitti_raw_seq):
     ~2× faster, BENCHMARKS.md "RPE"): on real scans its scan-to-scan error stays within a
     centimetre of the default's, and well inside what the carry-forward of S2M needs."""
     from lidarloc.app.bench.rpe import measure
-    from lidarloc.core.kiss import KISS_CONVERGENCE, kiss_config
+    from lidarloc.core.odometry.kiss import KISS_CONVERGENCE, kiss_config
 
     assert kiss_config(100.0, 2.5, None).registration.convergence_criterion == KISS_CONVERGENCE > 1e-4
     scans = [np.asarray(kitti_raw_seq.scan(k)[:, :3], np.float64) for k in range(15)]

@@ -1,10 +1,10 @@
-"""The localization rules (core/rules.py): localized after ten consecutive scans below the std
+"""The localization rules (core/rules/paper.py): localized after ten consecutive scans below the std
 threshold with enough motion or turning, false positives and losses."""
 
 import numpy as np
 
 from lidarloc.core.config import DEG, LocalizeConfig
-from lidarloc.core.rules import LocalizationRules
+from lidarloc.core.rules.paper import LocalizationRules
 
 
 def feed(rules, stds, step=1.5, yaw_rate=0.0):

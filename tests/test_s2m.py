@@ -1,4 +1,4 @@
-"""The scan-to-map matcher (core/s2m.py). On a synthetic 3D street scene (walls on a flat
+"""The scan-to-map matcher (core/matching/s2m.py). On a synthetic 3D street scene (walls on a flat
 ground): acceptance rule, GICP refinement of the 2D match, global mode's z guess, carry-forward
 composition, what an outcome keeps for the inspection. On the town, through the localizer: what
 each landed match's view says, also when the match is refused at its landing. On real KITTI
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from helpers import make_localizer, short_town
 
-from lidarloc.core.bev import BEVPyramid
+from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.config import MapConfig, S2MConfig
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
-from lidarloc.core.mapping import PriorMap, build_prior_map
-from lidarloc.core.s2m import ScanToMapMatcher, carry_forward, carry_forward_poses
+from lidarloc.core.maps.mapping import PriorMap, build_prior_map
+from lidarloc.core.matching.s2m import ScanToMapMatcher, carry_forward, carry_forward_poses
 
 DEG = math.pi / 180
 SENSOR_HEIGHT = 1.7
@@ -99,7 +99,7 @@ def test_level_ignores_a_random_attitude_and_height_of_the_start(scene, matcher,
 def test_a_start_tilted_beyond_a_vehicles_attitude_is_levelled(scene, matcher):
     """A particle that tumbled (pitch −70°, roll 120°) is not trusted even without ``level``: the
     search levels it and the match is accepted and right, as from a level start."""
-    from lidarloc.core.s2m import MAX_TRUSTED_TILT
+    from lidarloc.core.matching.s2m import MAX_TRUSTED_TILT
 
     truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
     scan = cut_scan(scene, truth)
@@ -230,7 +230,7 @@ def test_a_match_refused_at_its_landing_says_why_in_its_view(cache_root):
     from lidarloc.app.viewer.s2m_detail import carried_pose, s2m_detail_markdown
     from lidarloc.core.config import Config, apply_preset
     from lidarloc.core.localizer import Localizer
-    from lidarloc.core.s2m import S2MOutcome
+    from lidarloc.core.matching.s2m import S2MOutcome
 
     town = short_town(6)
     cfg = apply_preset(Config(), "paper")

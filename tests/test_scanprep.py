@@ -1,11 +1,11 @@
-"""Scan preparation (core/scanprep.py): the random voxel down-sampling keeps one real point per
+"""Scan preparation (core/filter/scanprep.py): the random voxel down-sampling keeps one real point per
 occupied voxel, picked uniformly, deterministically per seed, with the compiled kernel."""
 
 import time
 
 import numpy as np
 
-from lidarloc.core.scanprep import voxel_downsample_random
+from lidarloc.core.filter.scanprep import voxel_downsample_random
 
 
 def test_voxel_downsample_keeps_one_random_real_point_per_voxel():
@@ -53,7 +53,7 @@ def test_points_above_the_elevation_cap_are_left_out():
     import math
 
     from lidarloc.core.config import PFConfig
-    from lidarloc.core.scanprep import prepare_scan
+    from lidarloc.core.filter.scanprep import prepare_scan
 
     rng = np.random.default_rng(1)
     r = rng.uniform(3, 60, 20_000)

@@ -148,7 +148,7 @@ def test_odometry_reads_the_first_steps_of_the_town_drive(town):
     when the simulated body followed the smooth ground exactly and the ground rings repeated)."""
     from kiss_icp.kiss_icp import KissICP
 
-    from lidarloc.core.kiss import kiss_config
+    from lidarloc.core.odometry.kiss import kiss_config
 
     icp = KissICP(kiss_config(100.0, 2.5, None))
     odom = []

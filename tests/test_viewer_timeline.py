@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from helpers import MAPPING_SCANS, wait_for
 
-from lidarloc.core import recording
+from lidarloc.core.runs import recording
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence

@@ -1,4 +1,4 @@
-"""The "why" views' computations (core/surface.py, core/residuals.py) and their viewer side
+"""The "why" views' computations (core/filter/surface.py, core/filter/residuals.py) and their viewer side
 (app/viewer/why*.py) without a browser: the likelihood surface is the filter's likelihood cell by
 cell and peaks at the truth for a localized scan (town and real drive), the residuals agree with a
 k-d tree's nearest-map distance, a particle's inspection, the worker thread's "newest only" rule,
@@ -15,9 +15,9 @@ from helpers import browser_localizer, make_localizer, short_town, toy_scan, wai
 
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_matrix, pose_to_xyz_ypr, transform_points
-from lidarloc.core.likelihood import PER_POINT, log_likelihood
-from lidarloc.core.residuals import move_scan, scan_residuals
-from lidarloc.core.surface import LikelihoodModel
+from lidarloc.core.filter.likelihood import PER_POINT, log_likelihood
+from lidarloc.core.filter.residuals import move_scan, scan_residuals
+from lidarloc.core.filter.surface import LikelihoodModel
 
 TRUTH_RADIUS_M = 1.0     # the issue's bound: the surface's maximum within 1 m of the truth
 
@@ -137,7 +137,7 @@ def test_bench_surface_reports_time_and_accuracy(cache_root):
 
 # ---------------------------------------------------------------------------------- residuals
 def _tolerance(lut) -> float:
-    """How far a table read may be from the true nearest distance (core/lookup.py)."""
+    """How far a table read may be from the true nearest distance (core/maps/lookup.py)."""
     return lut.resolution * math.sqrt(3.0) / 2.0 + lut.step / 2.0 + 1e-4
 
 

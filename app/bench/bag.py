@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.config import Config
+from ...core.errors import LidarlocError
+from ...core.sequences.factory import SourceSpec
 
 from .common import load_avg, open_source
 
@@ -78,7 +78,7 @@ def _size_bytes(path: Path) -> int:
 
 def run(spec: SourceSpec, cfg: Config, total: int = 300, storage: str = "mcap", repeats: int = 3,
         random_reads: int = 30, workdir: Path | None = None) -> dict:
-    from lidarloc.core.sequences.rosbag import BagSequence
+    from ...core.sequences.rosbag import BagSequence
 
     if storage not in STORAGES:
         raise LidarlocError(f"--storage must be one of {', '.join(STORAGES)}; got {storage!r}")

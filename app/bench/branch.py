@@ -3,8 +3,8 @@ the recording.
 
 A recorded run (``--run DIR``, or one recorded here over the source: default the town's first
 1000 scans at 1000 particles, the way ``lidarloc run`` records) is branched at each of its last
-:data:`~lidarloc.core.resume.CHECKPOINT_EVERY` steps, so every replay length from 0 to 9 steps
-counts once per repeat. Branch start is the time :func:`~lidarloc.core.branch.open_branch` takes
+:data:`~lidarloc.core.runs.resume.CHECKPOINT_EVERY` steps, so every replay length from 0 to 9 steps
+counts once per repeat. Branch start is the time :func:`~lidarloc.core.runs.branch.open_branch` takes
 with the run's sequence already open (as in the viewer, which has it): building the localizer
 on the cached map and tables, restoring the checkpoint, replaying to the step. Target ≤ 1 s
 (median; the worst replay length is given too). Once, the same from nothing (the sequence opened
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core import recording
-from lidarloc.core.branch import open_branch
-from lidarloc.core.resume import CHECKPOINT_EVERY
+from ...core.runs import recording
+from ...core.runs.branch import open_branch
+from ...core.runs.resume import CHECKPOINT_EVERY
 
 from .common import load_avg, machine, record_run
 
@@ -93,7 +93,7 @@ def run(spec, seq, cfg, cache_root: Path | None = None, run_dir: Path | None = N
         record_s = time.perf_counter() - t0
         rec = recording.open(run_dir)
         if rec.n < 1:
-            from lidarloc.core.errors import LidarlocError
+            from ...core.errors import LidarlocError
 
             raise LidarlocError(f"{run_dir}: the recording has no step to branch from")
         if seq is None or len(seq) != rec.meta.get("n_source_scans"):

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import inv_pose
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from ...core.config import Config
+from ...core.errors import LidarlocError
+from ...core.geometry import inv_pose
+from ...core.sequences.factory import SourceSpec, open_sequence
 
 # The real KITTI data is not shipped (licence): $LIDARLOC_DATA, else ../shared/data from where
 # the command runs (the repository root).
@@ -133,8 +133,8 @@ def pose_error(T: np.ndarray, G: np.ndarray) -> tuple[float, float]:
 def record_run(spec, seq, cfg, out: Path, cache_root: Path | None = None, progress=None) -> Path:
     """Run ``seq`` to its end with a recording into ``out`` (what ``lidarloc run --out`` records);
     ``progress(i, n)`` after each scan."""
-    from lidarloc.core import recording
-    from lidarloc.core.localizer import Localizer
+    from ...core.runs import recording
+    from ...core.localizer import Localizer
 
     loc = Localizer(seq, cfg, cache_root)
     try:

@@ -28,10 +28,10 @@ import dataclasses
 
 import numpy as np
 
-from lidarloc.core.config import PRESETS, Config, PFConfig, apply_overrides
-from lidarloc.core.geometry import pose_to_xyz_ypr
-from lidarloc.core.localizer import Localizer
-from lidarloc.core.metrics import inside_2sigma
+from ...core.config import PRESETS, Config, PFConfig, apply_overrides
+from ...core.geometry import pose_to_xyz_ypr
+from ...core.localizer import Localizer
+from ...core.rules.truth import inside_2sigma
 
 from .common import load_avg, machine
 
@@ -91,12 +91,12 @@ def run(spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None =
     chosen = {n: OPTIONS[n] if n in OPTIONS else _tempered(n) for n in names}
     unknown = [n for n, sets in chosen.items() if sets is None]
     if unknown:
-        from lidarloc.core.errors import LidarlocError
+        from ...core.errors import LidarlocError
 
         raise LidarlocError(f"unknown filter option {unknown[0]!r}: choose from {', '.join(OPTIONS)} or T=<number ≥ 1>")
     seq = open_seq(spec)
     if not seq.has_poses:
-        from lidarloc.core.errors import LidarlocError
+        from ...core.errors import LidarlocError
 
         raise LidarlocError("bench filter needs a source with ground truth (the start is placed around it)")
     seq = open_seq(_tracking_spec(spec, seq))

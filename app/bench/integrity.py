@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from lidarloc.core.config import Config, load_config, update_from_dict
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.metrics import FALSE_FIRE_M
-from lidarloc.core.results import make_out_dir, summarize_run, write_json, write_run
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.config import Config, load_config, update_from_dict
+from ...core.errors import LidarlocError
+from ...core.rules.truth import FALSE_FIRE_M
+from ...core.runs.results import make_out_dir, summarize_run, write_json, write_run
+from ...core.sequences.factory import SourceSpec
 
 from ..console import progress_bar
 from .common import real_drive, require_town
@@ -86,7 +86,7 @@ def run_case(spec_d: dict, cfg_d: dict, case: str, seed: int, cache_root: str | 
     """One seeded run of one case (in a worker process); returns its figures (also written to
     ``run_dir/integrity.json`` beside the run's usual files)."""
     _numba_threads(numba_threads)
-    from lidarloc.core.localizer import Localizer
+    from ...core.localizer import Localizer
 
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
@@ -144,11 +144,11 @@ def case_figures(records: list, events: list, at: int) -> dict:
 def lookalike_init(spec: SourceSpec, cfg: Config, cache_root: Path | None) -> tuple[str, dict]:
     """``--init`` text around a look-alike of the drive's first scan (module docstring), and what
     it is: its distance to the truth and its BEV score against the truth's."""
-    from lidarloc.core import m3rsm
-    from lidarloc.core.bev import load_or_build_pyramid
-    from lidarloc.core.geometry import pose_to_xyz_ypr
-    from lidarloc.core.mapping import load_or_build_map
-    from lidarloc.core.s2m import ScanToMapMatcher
+    from ...core.matching import m3rsm
+    from ...core.maps.bev import load_or_build_pyramid
+    from ...core.geometry import pose_to_xyz_ypr
+    from ...core.maps.mapping import load_or_build_map
+    from ...core.matching.s2m import ScanToMapMatcher
 
     seq = _bench_sequence(spec, cfg, cache_root)
     prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)

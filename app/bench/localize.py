@@ -10,7 +10,7 @@ number (tested) and saves each run ~45–60 ms of CPU per scan (KISS-ICP, ``lida
 
 Beside A–E the summary gives whether the filter's own uncertainty can be trusted: the median over
 runs of ``consistency_2sigma`` and ``false_fire_rate``, the share of runs whose rule fired more
-than 5 m from the truth (:mod:`lidarloc.core.metrics`).
+than 5 m from the truth (:mod:`lidarloc.core.runs.metrics`).
 
 Its pieces — :class:`Plan` (one directory's seeds, resume), :func:`prepare_cache` and
 :func:`prepare_one` (the cache, in the parent and in a worker), :func:`run_tasks` (the worker
@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from lidarloc.core.config import Config, update_from_dict
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.metrics import METRIC_KEYS, aggregate, aggregate_confidence
-from lidarloc.core.results import make_out_dir, summarize_run, write_json, write_run
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from ...core.config import Config, update_from_dict
+from ...core.errors import LidarlocError
+from ...core.runs.metrics import METRIC_KEYS, aggregate, aggregate_confidence
+from ...core.runs.results import make_out_dir, summarize_run, write_json, write_run
+from ...core.sequences.factory import SourceSpec, open_sequence
 
 from ..console import progress_bar
 from .common import is_town, median
@@ -81,8 +81,8 @@ def _spec_from(d: dict) -> SourceSpec:
 def _bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
     """The source; a generated town's scans are simulated once and then loaded from the cache
     (the same arrays, ~1 ms to load instead of ~20 ms to simulate; ~2 MB per scan on disk)."""
-    from lidarloc.core.mapping import map_cache_dir
-    from lidarloc.core.sequences.base import DiskCachedScans
+    from ...core.maps.mapping import map_cache_dir
+    from ...core.sequences.base import DiskCachedScans
 
     seq = open_sequence(spec, cfg)
     if is_town(spec):
@@ -95,9 +95,9 @@ def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_di
             preset: str | None = None, record: bool = False) -> dict:
     """One seeded run (executed in a worker process or a Ray task). ``preset``: the named
     configuration ``cfg_d`` came from, recorded in the run's summary. ``record``: the run's
-    recording goes into its folder (``recording/``, see :mod:`lidarloc.core.recording`)."""
+    recording goes into its folder (``recording/``, see :mod:`lidarloc.core.runs.recording`)."""
     _numba_threads(numba_threads)
-    from lidarloc.core.localizer import Localizer
+    from ...core.localizer import Localizer
 
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
@@ -107,7 +107,7 @@ def run_one(spec_d: dict, cfg_d: dict, seed: int, cache_root: str | None, run_di
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
         t0 = time.perf_counter()
         if record:
-            from lidarloc.core.recording import RecordingWriter
+            from ...core.runs.recording import RecordingWriter
 
             if (out / "recording").exists():       # a run cut short before: its recording is redone
                 shutil.rmtree(out / "recording")
@@ -133,7 +133,7 @@ def prepare_one(spec_d: dict, cfg_d: dict, cache_root: str | None, numba_threads
     in the cache already (:func:`prepare_cache` in the parent): two workers building the same
     entry would replace each other's directory."""
     _numba_threads(numba_threads)
-    from lidarloc.core.localizer import Localizer
+    from ...core.localizer import Localizer
 
     cfg = update_from_dict(Config(), cfg_d)
     root = Path(cache_root) if cache_root else None
@@ -150,7 +150,7 @@ def _numba_threads(n: int) -> None:
 def prepare_cache(spec: SourceSpec, cfg: Config, cache_root: Path | None, label: str = "") -> None:
     """Build map, lookup and pyramid (and the recorded odometry) once, here, so workers only
     load them."""
-    from lidarloc.core.localizer import Localizer
+    from ...core.localizer import Localizer
 
     seq = _bench_sequence(spec, cfg, cache_root)
     prefix = f"{label}: " if label else ""
@@ -293,7 +293,7 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
     ``plots`` the metrics' box plot and the latency histogram); returns the summary."""
     per_run = [dict(s["metrics"], seed=s["seed"]) for s in summaries]
     agg = aggregate(per_run)
-    # whether the filter's own uncertainty can be trusted (lidarloc.core.metrics): the median run's
+    # whether the filter's own uncertainty can be trusted (lidarloc.core.runs.metrics): the median run's
     # share of localized scans inside the 2σ ellipse, and the share of runs that fired > 5 m off
     agg.update(aggregate_confidence(summaries))
     within = [_within_5m_to_end(out_dir / "runs" / f"seed_{s['seed']:03d}") for s in summaries]
@@ -301,7 +301,7 @@ def write_report(out_dir: Path, summaries: list[dict], cfg: Config, spec: Source
     agg["within_5m_to_end_ratio"] = sum(known) / len(known) if known else None
     # a run that never localizes has no "after": it counts as a failure in the ratio above
     agg["rmse_after_localized_m_median"] = median(s["rmse_after_localized_m"] for s in summaries)
-    # never green while wrong (lidarloc.core.integrity): sums over runs; None where a run had no truth
+    # never green while wrong (lidarloc.core.rules.integrity): sums over runs; None where a run had no truth
     for key in ("relocalizations", "spurious_relocalizations", "localized_wrong_scans"):
         values = [s.get(key) for s in summaries]
         agg[key] = None if not values or any(v is None for v in values) else int(sum(values))
@@ -385,7 +385,7 @@ def _report(out_dir: Path, agg: dict, plots: bool = True) -> None:
     lines = [f"# Localization benchmark: {agg['source']}", "",
              f"{agg['runs']} runs × {agg['scans_per_run']} scans, {agg['particles']} particles, "
              f"{'preset ' + agg['preset'] + ', ' if agg['preset'] else ''}"
-             f"S2M {'on' if agg['s2m'] else 'off'}, replay clock. Metrics in scans (lidarloc.core.metrics).",
+             f"S2M {'on' if agg['s2m'] else 'off'}, replay clock. Metrics in scans (lidarloc.core.runs.metrics).",
              *([f"World of the drive: {_world_text(agg['world'])}."] if agg.get("world") else []), "",
              "| metric | median | 75th pct | max | success | paper 75th | paper max |", "|---|---|---|---|---|---|---|"]
     for k in METRIC_KEYS:

@@ -10,8 +10,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.errors import LidarlocError
+from ...core.sequences.factory import SourceSpec
 
 from .common import real_drive, source_args
 

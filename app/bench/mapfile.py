@@ -5,7 +5,7 @@ of ``--points`` float32 points is generated at benchmark time into a temporary b
 chunk by chunk (never the whole cloud in memory). A fresh child process then does what the
 localizer does before it can start on that map (the viewer's start: road removal follows in the
 background): read the file and voxelize it (``load_or_build_map`` of a
-:class:`~lidarloc.core.map_source.MapFileSource`, into an empty cache), then build the lookup
+:class:`~lidarloc.core.maps.map_source.MapFileSource`, into an empty cache), then build the lookup
 table (``load_or_build_lookup`` at the default δ and d_max). Road removal is timed after it,
 apart from the target. Peak memory is the child's own (``ru_maxrss``), and a sampling thread
 gives the peak while reading, against the points' float32 size.
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.mapfile import CHUNK_POINTS, write_map_chunks
+from ...core.config import Config
+from ...core.maps.mapfile import CHUNK_POINTS, write_map_chunks
 
 from ..console import peak_rss_mb
 from .common import load_avg, machine, rss_mb
@@ -122,9 +122,9 @@ def _child(path: str, cache: str, queue) -> None:
 
 
 def _measure(path: str, cache: str) -> dict:
-    from lidarloc.core.lookup import LookupTable, load_or_build_lookup
-    from lidarloc.core.map_source import MapFileSource
-    from lidarloc.core.mapping import VoxelAccumulator, load_or_build_map, remove_road
+    from ...core.maps.lookup import LookupTable, load_or_build_lookup
+    from ...core.maps.map_source import MapFileSource
+    from ...core.maps.mapping import VoxelAccumulator, load_or_build_map, remove_road
 
     cfg = Config()
     # compile the numba kernels first (cached on disk after a first run): the figures are the work's
@@ -178,7 +178,7 @@ def run(n_points: int = DEFAULT_POINTS) -> dict:
         try:
             res = _get(queue, proc)
             if "error" in res:
-                from lidarloc.core.errors import LidarlocError
+                from ...core.errors import LidarlocError
 
                 raise LidarlocError(f"bench mapfile: {res['error']}")
         finally:
@@ -205,7 +205,7 @@ def _get(queue, proc) -> dict:
     """The child's result, or its failure as one line (a child that died puts nothing)."""
     import queue as queue_mod
 
-    from lidarloc.core.errors import LidarlocError
+    from ...core.errors import LidarlocError
 
     while True:
         try:

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.config import Config
+from ...core.sequences.factory import SourceSpec
 
 from ..console import peak_rss_mb
 from .common import load_avg, median_ms, open_source, rss_mb
@@ -81,7 +81,7 @@ def synthetic_kitti05_map(size_x: float = 480.0, size_y: float = 430.0, spacing:
 
 
 def _child_build(points_path: str, out_dir: str, resolution: float, d_max: float, queue) -> None:
-    from lidarloc.core.lookup import LookupTable
+    from ...core.maps.lookup import LookupTable
 
     LookupTable.build(np.random.default_rng(0).random((2000, 3)).astype(np.float32) * 10, resolution, d_max)  # JIT
     points = np.load(points_path)
@@ -97,7 +97,7 @@ def _child_build(points_path: str, out_dir: str, resolution: float, d_max: float
 
 
 def _child_load(out_dir: str, queue) -> None:
-    from lidarloc.core.lookup import LookupTable
+    from ...core.maps.lookup import LookupTable
 
     t0 = time.perf_counter()
     table = LookupTable.load(Path(out_dir))
@@ -127,12 +127,12 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     """Step times with ``cfg.pf`` on ``n_scans_timed`` scans spread over the sequence of ``spec``
     (against its prior map from the cache), then the lookup-table builds; ``cfg.seed`` seeds the
     filters and the synthetic map."""
-    from lidarloc.core.geometry import pose_to_xyz_ypr
-    from lidarloc.core.likelihood import log_likelihood, log_likelihood_floored
-    from lidarloc.core.lookup import load_or_build_lookup
-    from lidarloc.core.mapping import load_or_build_map
-    from lidarloc.core.pf import ParticleFilter
-    from lidarloc.core.scanprep import prepare_scan
+    from ...core.geometry import pose_to_xyz_ypr
+    from ...core.filter.likelihood import log_likelihood, log_likelihood_floored
+    from ...core.maps.lookup import load_or_build_lookup
+    from ...core.maps.mapping import load_or_build_map
+    from ...core.filter.pf import ParticleFilter
+    from ...core.filter.scanprep import prepare_scan
 
     n_particles, seed, scans = cfg.pf.n_particles, cfg.seed, n_scans_timed
     out: dict = {"particles": n_particles, "scans": scans, "seed": seed, "cpus": os.cpu_count(),
@@ -230,7 +230,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
                    lookup_rss_before_build_mb=res["rss_before_build_mb"],
                    lookup_dense_uint8_mb=res["dense_uint8_mb"], lookup_source="synthetic KITTI-05-sized map")
     if town:
-        from lidarloc.core.sequences.town import TownSequence
+        from ...core.sequences.town import TownSequence
 
         town_map = load_or_build_map(TownSequence.from_config(cfg.town).map_source, cfg.map).value   # the default town
         res = measure_lookup(town_map.points)

@@ -1,7 +1,7 @@
 """``lidarloc bench record``: what recording a run costs and how fast it opens again.
 
 A localizer runs over the source's scans (default: the town's first 1000, 1000 particles) with a
-:class:`~lidarloc.core.recording.RecordingWriter` attached, the way ``lidarloc run`` records.
+:class:`~lidarloc.core.runs.recording.RecordingWriter` attached, the way ``lidarloc run`` records.
 Measured:
 
 - the time ``on_scan`` takes per step on the stepping thread (gathering copies of the display
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core import recording
-from lidarloc.core.localizer import Localizer
+from ...core.runs import recording
+from ...core.localizer import Localizer
 
 from .common import load_avg, machine
 
@@ -76,7 +76,7 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
         scan_points = sum(f.stat().st_size for f in (folder / "s2m").glob("*.f16"))
         resume = sum(f.stat().st_size for f in (folder / "resume").glob("*") if f.is_file())
         resume += sum((folder / f"{name}.bin").stat().st_size for name in rec.field_names
-                      if name not in recording._FIELDS and name not in ("particles", "log_weights"))
+                      if name not in recording.format.FIELDS and name not in ("particles", "log_weights"))
         open_s = [_open_all(folder) for _ in range(open_repeats)]
     pf_median = float(np.median(pf_ms))
     rec_median = float(np.median(record_ms))

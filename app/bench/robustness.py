@@ -30,9 +30,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from lidarloc.core.config import TOWN_SENSORS, Config, load_config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.config import TOWN_SENSORS, Config, load_config
+from ...core.errors import LidarlocError
+from ...core.sequences.factory import SourceSpec
 
 from ..console import progress_bar
 from .common import DATA_ENV, REAL_DRIVE, REAL_DRIVE_DATE, data_dir, real_drive, require_town

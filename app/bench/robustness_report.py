@@ -8,9 +8,9 @@ import csv
 import math
 from pathlib import Path
 
-from lidarloc.core.metrics import METRIC_KEYS
-from lidarloc.core.results import write_json
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.runs.metrics import METRIC_KEYS
+from ...core.runs.results import write_json
+from ...core.sequences.factory import SourceSpec
 
 # One row per cell. The world columns are empty for the real drive (its world is what it is).
 COLUMNS = ("cell", "source", "changes", "traffic", "sensor", "skew", "config", "runs", "scans",

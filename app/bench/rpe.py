@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import inv_pose
-from lidarloc.core.kiss import KISS_CONVERGENCE, kiss_config
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.config import Config
+from ...core.errors import LidarlocError
+from ...core.geometry import inv_pose
+from ...core.odometry.kiss import KISS_CONVERGENCE, kiss_config
+from ...core.sequences.factory import SourceSpec
 
 from .common import open_source, pose_error
 

@@ -26,16 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core import m3rsm
-from lidarloc.core.bev import BEVPyramid, load_or_build_pyramid
-from lidarloc.core.config import Config, MapConfig, S2MConfig
-from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr
-from lidarloc.core.gicp import GICPRefiner
-from lidarloc.core.mapping import load_or_build_map, range_filter
-from lidarloc.core.results import world_of
-from lidarloc.core.rpe import RelativePoseEstimator
-from lidarloc.core.s2m import ScanToMapMatcher
-from lidarloc.core.sequences.factory import SourceSpec
+from ...core.matching import m3rsm
+from ...core.maps.bev import BEVPyramid, load_or_build_pyramid
+from ...core.config import Config, MapConfig, S2MConfig
+from ...core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr
+from ...core.matching.gicp import GICPRefiner
+from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.runs.results import world_of
+from ...core.odometry.rpe import RelativePoseEstimator
+from ...core.matching.s2m import ScanToMapMatcher
+from ...core.sequences.factory import SourceSpec
 
 from .common import median, open_source, pose_error
 

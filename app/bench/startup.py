@@ -25,7 +25,7 @@ import urllib.request
 
 import numpy as np
 
-from lidarloc.core.errors import LidarlocError
+from ...core.errors import LidarlocError
 
 from .common import load_avg, machine
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.errors import LidarlocError
+from ...core.errors import LidarlocError
 
 from .common import load_avg, machine
 

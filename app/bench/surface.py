@@ -3,7 +3,7 @@ at one yaw ≤ 150 ms on the real drive's scan) and where its maximum lands.
 
 For ``scans`` scans spread over the sequence (by default the real KITTI raw drive), each prepared
 as the localizer prepares it (one random point per ``pf.scan_voxel`` voxel, the run's seed), the
-surface (:meth:`~lidarloc.core.surface.LikelihoodModel.surface`, the filter's kernel with the
+surface (:meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`, the filter's kernel with the
 configuration's d_max, σ, temperature and unexplained share) is computed ``repeats`` times around
 the true pose moved by a random offset of up to ±5 m and ±3° (a filter a few metres off), at one
 yaw and best over the yaw window. What is measured (the keys of the dict :func:`run` returns):
@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.geometry import pose_to_xyz_ypr
-from lidarloc.core.lookup import load_or_build_lookup
-from lidarloc.core.mapping import load_or_build_map
-from lidarloc.core.scanprep import prepare_scan
-from lidarloc.core.sequences.factory import SourceSpec
-from lidarloc.core.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
+from ...core.config import Config
+from ...core.geometry import pose_to_xyz_ypr
+from ...core.maps.lookup import load_or_build_lookup
+from ...core.maps.mapping import load_or_build_map
+from ...core.filter.scanprep import prepare_scan
+from ...core.sequences.factory import SourceSpec
+from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
 
 from .common import load_avg, machine, open_source
 
@@ -47,7 +47,7 @@ def run(spec: SourceSpec, cfg: Config, scans: int = 10, repeats: int = 3, cache_
     load_before = load_avg()
     prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
     lookup = load_or_build_lookup(prior, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max).value
-    model = LikelihoodModel(lookup, min(cfg.pf.d_max, lookup.d_max_built), cfg.pf.sigma, cfg.pf.temperature,
+    model = LikelihoodModel(lookup, lookup.capped(cfg.pf.d_max), cfg.pf.sigma, cfg.pf.temperature,
                             cfg.pf.unexplained_share)
     picks = np.unique(np.linspace(0, len(seq) - 1, max(1, min(scans, len(seq)))).round().astype(int))
     rng = np.random.default_rng(cfg.seed)

@@ -13,9 +13,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from lidarloc.core.config import Config
-from lidarloc.core.sequences.base import Limited
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from ...core.config import Config
+from ...core.sequences.base import Limited
+from ...core.sequences.factory import SourceSpec, open_sequence
 
 from .common import load_avg, require_town
 
@@ -23,8 +23,8 @@ from .common import load_avg, require_town
 def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 30) -> dict:
     """Build the town of ``spec`` (``cfg.town``) and time ``n_scans_timed`` scans spread over its
     drive (over its first ``spec.scans`` scans if given); medians over the scans."""
-    from lidarloc.core.o3d import open3d
-    from lidarloc.core.sequences.town import TownSequence  # noqa: F401  (imported off the clock)
+    from ...core.o3d import open3d
+    from ...core.sequences.town import TownSequence  # noqa: F401  (imported off the clock)
 
     require_town(spec, "town", "the built-in town's generation")
     open3d()  # the import itself is not town building

@@ -25,9 +25,9 @@ import time
 
 import numpy as np
 
-from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.mapping import PriorMap
-from lidarloc.core.snapshot import Event, S2MView, Snapshot
+from ...core.geometry import pose_matrix
+from ...core.maps.mapping import PriorMap
+from ...core.snapshot import Event, S2MView, Snapshot
 
 from .common import machine
 

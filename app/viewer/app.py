@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import viser
 
-from lidarloc.core.config import check_live_changes
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.snapshot import Snapshot
+from ...core.config import check_live_changes
+from ...core.errors import LidarlocError
+from ...core.snapshot import Snapshot
 
 from .camera import TabCameras
 from .ground import clicked_point, dragged_region, pose_on_ground
@@ -39,7 +39,7 @@ from .travel import TimeTravel
 from .why import WhyViews
 
 if TYPE_CHECKING:
-    from lidarloc.core.localizer import Localizer
+    from ...core.localizer import Localizer
 
 #: How long stopping waits for the player's step and the display's update in flight to finish
 #: (a GUI update after the server stopped is lost and warned about).

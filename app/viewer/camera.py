@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 import viser
 
-from lidarloc.core.snapshot import Snapshot
+from ...core.snapshot import Snapshot
 
 from .panel import CameraControls, add_camera_folder
 from .scene import SceneView

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lidarloc.core.metrics import METRIC_KEYS, ScanLog, compute_metrics
+from ...core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics
 
 from .style import css
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import viser
 
-from lidarloc.core.errors import LidarlocError
+from ...core.errors import LidarlocError
 
 
 class GroundHeight:

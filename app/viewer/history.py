@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 
-from lidarloc.core.snapshot import Event, Snapshot
+from ...core.snapshot import Event, Snapshot
 
 from .style import EVENTS_SHOWN
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import math
 
-from lidarloc.core.config import ANGULAR_STATE, DEG, LIVE_PARAMS, STATE_NAMES
-from lidarloc.core.errors import LidarlocError
+from ...core.config import ANGULAR_STATE, DEG, LIVE_PARAMS, STATE_NAMES
+from ...core.errors import LidarlocError
 
 # Three live parameters have controls of their own: the 11 process-noise entries (a folder of
 # numbers), the S2M switch (a checkbox, applied at once) and the clock (a choice, in Playback).

@@ -21,8 +21,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.snapshot import Snapshot
+from ...core.errors import LidarlocError
+from ...core.snapshot import Snapshot
 
 from .style import RATE_WINDOW_S
 

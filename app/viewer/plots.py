@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import viser.uplot as uplot
 
-from lidarloc.core.config import DEG
+from ...core.config import DEG
 
 from .history import MARKED_EVENTS
 from .style import CURSOR_COLOR, PLOT_MAX_POINTS

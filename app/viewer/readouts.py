@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from lidarloc.core.snapshot import Snapshot
+from ...core.snapshot import Snapshot
 
 from .history import History
 from .legend import legend_markdown

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core import recording
-from lidarloc.core.snapshot import Snapshot
+from ...core.runs import recording
+from ...core.snapshot import Snapshot
 
 from .history import MARKED_EVENTS, SERIES, cloud_spread, error_components
 

@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from lidarloc.core.cache import default_cache_root
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.recording import RecordingWriter
+from ...core.cache import default_cache_root
+from ...core.errors import LidarlocError
+from ...core.runs.recording import RecordingWriter
 
 from .recorded import RecordedRun
 
@@ -42,7 +42,7 @@ def _unique(path: Path) -> Path:
 
 
 class Recorder:
-    """One :class:`~lidarloc.core.recording.RecordingWriter` per run the viewer starts.
+    """One :class:`~lidarloc.core.runs.recording.RecordingWriter` per run the viewer starts.
 
     ``spec``: the source options the localizer's sequence was opened with (the recording names
     them, so that the run can be reopened); ``on_failure(message)``: writing stopped."""
@@ -82,7 +82,7 @@ class Recorder:
             self.writer = RecordingWriter(path, self.spec, loc.cfg, loc.seq, preset=self.preset,
                                           branch_of=branch_of, first_step=first_step)
             if branch_of is not None:
-                from lidarloc.core.branch import continue_recording
+                from ...core.runs.branch import continue_recording
 
                 # the events and last match the branch starts with are the original's, recorded there
                 continue_recording(self.writer, loc)
@@ -142,7 +142,7 @@ class Recorder:
         loc = self._loc
         if loc is None or not getattr(loc, "records", None):
             return None
-        from lidarloc.core.results import summarize_run
+        from ...core.runs.results import summarize_run
 
         try:
             return summarize_run(loc, time.perf_counter() - self._t0, preset=self.preset)

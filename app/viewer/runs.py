@@ -22,9 +22,9 @@ from pathlib import Path
 import viser
 from rich.console import Console
 
-from lidarloc.core import recording
-from lidarloc.core.config import LIVE_PARAMS
-from lidarloc.core.errors import LidarlocError
+from ...core.runs import recording
+from ...core.config import LIVE_PARAMS
+from ...core.errors import LidarlocError
 
 from .recorded import RecordedRun
 from .recorder import Recorder, default_record_root
@@ -37,8 +37,8 @@ REPLAY_ONLY = "a recorded run: play or move the timeline, or Branch from here to
 def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> tuple[RecordedRun, RunContext]:
     """A recorded run and what the viewer needs to show it: its sequence, map and lookup table.
     One-line :class:`LidarlocError` for a missing, foreign or corrupt folder, or a moved source."""
-    from lidarloc.core.lookup import load_or_build_lookup
-    from lidarloc.core.mapping import load_or_build_map
+    from ...core.maps.lookup import load_or_build_lookup
+    from ...core.maps.mapping import load_or_build_map
 
     rec = recording.open(path)
     if rec.n == 0:

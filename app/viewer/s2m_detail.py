@@ -16,9 +16,9 @@ import threading
 
 import numpy as np
 
-from lidarloc.core.geometry import pose_to_xyz_ypr
-from lidarloc.core.m3rsm import N_CANDIDATES
-from lidarloc.core.snapshot import S2MView
+from ...core.geometry import pose_to_xyz_ypr
+from ...core.matching.m3rsm import N_CANDIDATES
+from ...core.snapshot import S2MView
 
 ROOT = "/s2m_detail"
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarloc.core.snapshot import Snapshot
+from ...core.snapshot import Snapshot
 
 from .ground import GroundHeight
 from .history import History

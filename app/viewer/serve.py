@@ -17,12 +17,12 @@ from typing import Callable
 import viser
 from rich.console import Console
 
-from lidarloc.app.console import progress_bar
-from lidarloc.app.options import open_source
-from lidarloc.core.config import Config
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.localizer import Localizer
-from lidarloc.core.sequences.factory import SourceSpec
+from ..console import progress_bar
+from ..options import open_source
+from ...core.config import Config
+from ...core.errors import LidarlocError
+from ...core.localizer import Localizer
+from ...core.sequences.factory import SourceSpec
 
 from .app import Viewer
 from .recorder import Recorder, default_record_root

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import viser
 
-from lidarloc.core.mapping import VoxelAccumulator
-from lidarloc.core.snapshot import Snapshot
+from ...core.maps.mapping import VoxelAccumulator
+from ...core.snapshot import Snapshot
 
 from .style import DISPLAY_MAX_POINTS, DISPLAY_VOXEL, TRAJ_CHUNK, VEHICLE_LENGTH, VEHICLE_WIDTH
 

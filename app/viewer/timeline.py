@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from lidarloc.core.errors import LidarlocError
+from ...core.errors import LidarlocError
 
 from .recorded import RecordedRun
 

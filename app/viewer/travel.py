@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.snapshot import Snapshot
+from ...core.errors import LidarlocError
+from ...core.snapshot import Snapshot
 
 from .compare import figures_of, summary_table
 from .recorded import RecordedRun
@@ -45,7 +45,7 @@ class RunContext:
 
     @property
     def effective_d_max(self) -> float:
-        return min(self.cfg.pf.d_max, self.lookup.d_max_built)
+        return self.lookup.capped(self.cfg.pf.d_max)
 
 
 class TimeTravel:
@@ -370,10 +370,10 @@ def _reopened(run: RecordedRun) -> RecordedRun:
 
 def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
     """A localizer in ``run``'s exact state after ``step``, ``overrides`` (live parameters, SI)
-    applied (:func:`lidarloc.core.branch.open_branch`)."""
+    applied (:func:`lidarloc.core.runs.branch.open_branch`)."""
     try:
-        from lidarloc.core.branch import open_branch
+        from ...core.runs.branch import open_branch
     except ImportError:
-        raise LidarlocError("branching is not available in this installation (lidarloc.core.branch missing)") from None
+        raise LidarlocError("branching is not available in this installation (lidarloc.core.runs.branch missing)") from None
     rec, j = run._locate(step)
     return open_branch(rec, j, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

@@ -21,8 +21,8 @@ import threading
 import traceback
 from typing import TYPE_CHECKING, Callable
 
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.surface import LikelihoodModel
+from ...core.errors import LidarlocError
+from ...core.filter.surface import LikelihoodModel
 
 from .s2m_detail import S2MDetailView, s2m_detail_markdown
 from .why_particle import ParticleInspector, particle_report, pick_particle
@@ -33,8 +33,8 @@ from .why_worker import LatestOnly
 if TYPE_CHECKING:
     import viser
 
-    from lidarloc.core.localizer import Localizer
-    from lidarloc.core.snapshot import Snapshot
+    from ...core.localizer import Localizer
+    from ...core.snapshot import Snapshot
 
     from .scene import SceneView
 

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarloc.core.config import ANGULAR_STATE, STATE_NAMES
-from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import pose_matrix, wrap_angle
-from lidarloc.core.snapshot import Snapshot
-from lidarloc.core.surface import LikelihoodModel
+from ...core.config import ANGULAR_STATE, STATE_NAMES
+from ...core.errors import LidarlocError
+from ...core.geometry import pose_matrix, wrap_angle
+from ...core.snapshot import Snapshot
+from ...core.filter.surface import LikelihoodModel
 
 from .params import q_units
 from .why_style import SELECTED_COLOR

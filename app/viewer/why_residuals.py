@@ -11,9 +11,9 @@ import threading
 
 import numpy as np
 
-from lidarloc.core.residuals import Residuals, move_scan, scan_residuals
-from lidarloc.core.snapshot import Snapshot
-from lidarloc.core.surface import LikelihoodModel
+from ...core.filter.residuals import Residuals, move_scan, scan_residuals
+from ...core.snapshot import Snapshot
+from ...core.filter.surface import LikelihoodModel
 
 from .why_style import RESIDUAL_LUT, colour_bar_html, residual_colors
 

@@ -1,5 +1,5 @@
 """The likelihood-surface view: on a button press (or for every scan), the scan's log-likelihood on
-an x–y grid around the estimate (:meth:`~lidarloc.core.surface.LikelihoodModel.surface`, the
+an x–y grid around the estimate (:meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`, the
 filter's kernel and current options), drawn as an image on the ground with the estimate, the
 truth and the surface's maximum marked, and its colour scale in the panel.
 
@@ -13,9 +13,9 @@ import threading
 
 import numpy as np
 
-from lidarloc.core.geometry import inv_pose, pose_to_xyz_ypr, transform_points
-from lidarloc.core.snapshot import Snapshot
-from lidarloc.core.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
+from ...core.geometry import inv_pose, pose_to_xyz_ypr, transform_points
+from ...core.snapshot import Snapshot
+from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 
 from .style import EST_COLOR, GT_COLOR
 from .why_style import SURFACE_BEST_COLOR, SURFACE_LUT, colour_bar_html, surface_rgba, surface_scale

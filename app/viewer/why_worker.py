@@ -13,7 +13,7 @@ import threading
 import traceback
 from typing import Callable
 
-from lidarloc.core.errors import LidarlocError
+from ...core.errors import LidarlocError
 
 
 class LatestOnly:

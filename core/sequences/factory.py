@@ -132,7 +132,7 @@ def open_sequence(spec: SourceSpec, cfg: Config | None = None,
     init = parse_init(spec.init) if spec.init is not None else None
     map_file = None
     if spec.map is not None:      # a missing or unreadable map fails before a long bag is indexed
-        from ..map_source import MapFileSource
+        from ..maps.map_source import MapFileSource
 
         map_file = MapFileSource(_path(spec.map))
     if spec.kitti_odometry is not None:

@@ -1,7 +1,7 @@
 """A sequence localized in a map file's frame (``--map FILE``).
 
 The prior map then comes from the file, not from the drive's scans and truth, and lives in the
-file's local frame (file frame − ``PriorMap.origin``, see :mod:`lidarloc.core.mapfile`). Ground
+file's local frame (file frame − ``PriorMap.origin``, see :mod:`lidarloc.core.maps.mapfile`). Ground
 truth given with a map file is taken to be in the map's frame:
 
 - a bag or scan folder re-bases its truth to the first LiDAR pose and keeps that pose in the
@@ -23,7 +23,7 @@ from .base import Limited, Sequence
 
 
 class MapFramed(Limited):
-    """``inner``'s scans, with ``map_file`` (a :class:`~lidarloc.core.map_source.MapFileSource`)
+    """``inner``'s scans, with ``map_file`` (a :class:`~lidarloc.core.maps.map_source.MapFileSource`)
     as its map source and its truth in that map's local frame."""
 
     def __init__(self, inner: Sequence, map_file):

@@ -11,7 +11,7 @@ The sensor model is deliberately simple but keeps what a scan matcher notices:
 - intensity = material reflectivity × |cos(incidence)|, the Lambertian falloff a real return has;
 - by default one scan is an instantaneous snapshot from one pose (no motion skew), so the
   ground-truth pose describes every point exactly; with a :class:`Sweep` each firing column is
-  cast from the sensor's pose at its own firing time (see :mod:`lidarloc.core.deskew`);
+  cast from the sensor's pose at its own firing time (see :mod:`lidarloc.core.odometry.deskew`);
 - things that move (traffic) come as extra mesh parts per scan: a second, tiny scene is cast
   and the nearer hit of the two is kept per ray.
 
@@ -31,7 +31,7 @@ from typing import Callable
 import numba as nb
 import numpy as np
 
-from ..deskew import sweep_fraction
+from ..odometry.deskew import sweep_fraction
 from ..o3d import open3d
 
 DEG = np.pi / 180.0
@@ -267,7 +267,7 @@ class MeshPart:
 @dataclass(frozen=True)
 class Sweep:
     """Motion during one sweep: ``period`` s, and ``poses(offsets)``, the sensor's world poses
-    (m, 4, 4) at time offsets (m,) s from mid-sweep (see :mod:`lidarloc.core.deskew`)."""
+    (m, 4, 4) at time offsets (m,) s from mid-sweep (see :mod:`lidarloc.core.odometry.deskew`)."""
 
     period: float
     poses: Callable[[np.ndarray], np.ndarray]

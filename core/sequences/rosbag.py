@@ -16,8 +16,8 @@ never sets them) falls back to the recorder's times, with a note.
 
 **Frames.** Scans are returned as the sensor gave them, in the cloud's ``frame_id`` (the LiDAR
 frame): the localizer works in that frame with world ← LiDAR poses. Ground truth (``gt``, TUM or
-KITTI, see :mod:`lidarloc.core.groundtruth`) is usually of the vehicle's base or IMU, so it is
-moved to the LiDAR with base ← LiDAR (:mod:`lidarloc.core.extrinsic`: ``extrinsic`` if given,
+KITTI, see :mod:`lidarloc.core.sequences.groundtruth`) is usually of the vehicle's base or IMU, so it is
+moved to the LiDAR with base ← LiDAR (:mod:`lidarloc.core.sequences.extrinsic`: ``extrinsic`` if given,
 else the bag's ``/tf_static`` chain from the root of the cloud frame's tree, else the identity).
 Scans outside the truth's time span are left out (see :attr:`notes`). :attr:`poses` are re-based
 so that the world is the first LiDAR pose, like every Sequence's; :attr:`truth_origin` is that
@@ -50,8 +50,8 @@ import numpy as np
 
 from ..cache import array_digest, file_identity
 from ..errors import DataError
-from ..extrinsic import from_tf_static, resolve_extrinsic, transform_from_ros
-from ..groundtruth import MATCH_TOL_S, truth_of_recording
+from .extrinsic import from_tf_static, resolve_extrinsic, transform_from_ros
+from .groundtruth import MATCH_TOL_S, truth_of_recording
 from .base import Sequence
 from .pointcloud2 import check_xyz, to_xyzi
 
@@ -129,7 +129,7 @@ def _stamp_ns(msg) -> int:
 
 class BagSequence(Sequence):
     """See the module docstring. ``gt``: a TUM or KITTI poses file (or a loaded
-    :class:`~lidarloc.core.groundtruth.Truth`), ``gt_times`` the times file of a KITTI one;
+    :class:`~lidarloc.core.sequences.groundtruth.Truth`), ``gt_times`` the times file of a KITTI one;
     ``extrinsic``: base ← LiDAR as a 4×4 array, a text file or "identity"; ``progress(i, n)`` is
     called while the topic is indexed (a long bag takes seconds: worth a progress bar)."""
 

@@ -25,8 +25,8 @@ import numpy as np
 
 from ..cache import array_digest
 from ..errors import DataError
-from ..extrinsic import resolve_extrinsic
-from ..groundtruth import MATCH_TOL_S, read_times_precise, truth_of_recording
+from .extrinsic import resolve_extrinsic
+from .groundtruth import MATCH_TOL_S, read_times_precise, truth_of_recording
 from .kitti_io import FileBackedSequence, read_velodyne_bin
 
 SCAN_SUFFIXES = (".pcd", ".ply", ".bin", ".npy")

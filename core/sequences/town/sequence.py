@@ -34,7 +34,7 @@ class TownSequence(Sequence):
     ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
     ``traffic`` (:mod:`.traffic`), ``sensor`` (:data:`~..lidar_sim.SENSORS`), ``mount_height``
     (m above the road), ``skew`` (each scan swept over 1/rate_hz while moving, not de-skewed;
-    :mod:`lidarloc.core.deskew`) and ``route`` (1, or 2: :mod:`.routes`). At their defaults the
+    :mod:`lidarloc.core.odometry.deskew`) and ``route`` (1, or 2: :mod:`.routes`). At their defaults the
     sequence *is* the mapping drive. Otherwise :attr:`map_source` is the mapping drive — route 1,
     the town as mapped, HDL-64E (or ``lidar``) at SENSOR_HEIGHT, no skew, no traffic — sharing
     this sequence's streets, ground and objects (the town is laid out once). Every drive of one

@@ -1,0 +1,23 @@
+"""The ``lidarloc`` command line (typer): one module per command group. Every command that takes
+a sequence accepts the same source options; errors the user can fix print one line on stderr and
+exit with status 2."""
+
+from __future__ import annotations
+
+import typer
+
+from ...core.errors import LidarlocError
+from ..console import fail
+from . import bench_costs, bench_runs, maps, runs  # noqa: F401  (they register their commands)
+from .groups import app
+
+
+def main() -> None:
+    """Entry point: click's usage errors behave as usual; LidarlocError becomes one line + exit 2."""
+    command = typer.main.get_command(app)
+    try:
+        command.main(prog_name="lidarloc", standalone_mode=True)
+    except LidarlocError as exc:
+        fail(str(exc))
+    except MemoryError:
+        fail("out of memory")

@@ -1,0 +1,5 @@
+"""``python -m lidarloc.app.cli``: the same as the ``lidarloc`` command."""
+
+from . import main
+
+main()

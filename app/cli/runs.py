@@ -1,0 +1,156 @@
+"""``lidarloc run``, ``inspect``, ``compare``, ``export``, ``demo`` and ``view``: a run, its why, its results, the viewer."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ...core.errors import LidarlocError
+from ..console import emit_json, err
+from ..options import (SOURCE_OPTIONS, CacheOpt, ConfigOpt, InitOpt, JsonOpt, PresetOpt, ScansOpt, SetOpt, config_from, given, source_spec, with_source)
+from .groups import app
+
+@app.command()
+@with_source()
+def run(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events, summary and the recording.")],
+    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    clock: Annotated[Optional[str], typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")] = None,
+    no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
+    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record the run's steps into OUT/recording/ (view --run, --branch, compare and export read it).")] = False,
+    branch: Annotated[Optional[str], typer.Option("--branch", metavar="RUN_DIR:STEP", help="Continue the recorded run in RUN_DIR from the filter's exact state after its step STEP (0-based), with --set changes, into --out; source and configuration come from the recording.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Localize headless over a sequence and write results to --out (recorded: scrub it with view --run)."""
+    overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
+    if branch is not None:
+        if given(ctx, SOURCE_OPTIONS) or config or preset or init:
+            raise LidarlocError("--branch takes its source and configuration from the recording; give changes with --set")
+        from ..branch import parse_branch, run_branch
+
+        run_dir, step = parse_branch(branch)
+        overrides += [f"seed={seed}"] if seed is not None else []
+        summary, interrupted = run_branch(run_dir, step, overrides, out, cache_root=cache, console=err,
+                                          record=not no_record)
+    else:
+        from ..headless import run_headless
+
+        cfg = config_from(config, overrides, seed=seed, preset=preset)
+        summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err,
+                                            preset=preset, record=not no_record)
+    if as_json:
+        emit_json(summary)
+    if interrupted:
+        raise typer.Exit(130)
+
+
+@app.command()
+@with_source()
+def inspect(
+    scan: Annotated[int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")],
+    out: Annotated[Path, typer.Option("--out", help="Directory for the likelihood surfaces (PNG + .npy), residuals.png and inspect.json.")],
+    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    best_over_yaw: Annotated[bool, typer.Option("--best-over-yaw", help="Each surface cell: the best of the yaws within ±10° in 2° steps, not the pose's yaw alone.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print inspect.json on stdout too.")] = False,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """Replay a run to one scan and write why the filter is where it is: the likelihood surface
+    around the estimate and around the truth, the scan's residuals to the map, and a JSON summary."""
+    from ..inspect import run_inspect
+
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    result = run_inspect(replace(spec, init=init), cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw)
+    if as_json:
+        emit_json(result)
+
+
+# ------------------------------------------------------------------------------ runs: compare, share
+@app.command("compare")
+def compare(
+    runs: Annotated[list[Path], typer.Argument(help="Two or more run folders (lidarloc run, the viewer, a branch, a benchmark run).")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Write the overlay plot (trajectories; error, std and N_eff against the step) to this PNG.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the figures as JSON on stdout instead of the table.")] = False,
+):
+    """The summary figures of two or more runs side by side (A–E, success, RMSE, consistency, false fires, PF latency, scans) and an overlay plot for papers."""
+    from ..compare import compare_runs
+
+    compare_runs(runs, out, as_json=as_json, console=err)
+
+
+@app.command("export")
+def export(
+    run: Annotated[Path, typer.Argument(help="A recorded run folder (with recording/).")],
+    out: Annotated[Path, typer.Option("--out", help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).")],
+    no_scans: Annotated[bool, typer.Option("--no-scans", help="Leave each step's scan out (a smaller file).")] = False,
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """Share a recorded run: a .viser recording of its scene and a static web folder that plays it in any browser from disk (no Python, no server)."""
+    from ..export import export_run
+
+    result = export_run(run, out, console=err, cache_root=cache, scans=not no_scans)
+    if as_json:
+        emit_json(result)
+
+
+# -------------------------------------------------------------------------------------- viewer
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True):
+    from ..viewer.serve import serve_until_interrupted
+
+    serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
+                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record)
+
+
+HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
+PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
+AutoplayOpt = Annotated[bool, typer.Option(
+    "--autoplay", help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).")]
+RecordDirOpt = Annotated[Optional[Path], typer.Option(
+    "--record-dir", help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
+                         "(default: a new runs/<date-time> folder under the cache directory).")]
+NoRecordViewOpt = Annotated[bool, typer.Option(
+    "--no-record", help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).")]
+RunOpt = Annotated[Optional[list[Path]], typer.Option(
+    "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
+                  "source side by side); the map and scans come from the source the run names.")]
+
+
+@app.command()
+def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+         scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+         open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
+         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False):
+    """The live demo on the built-in town: browse to the printed URL."""
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
+           record_dir=record_dir, preset=preset, record=not no_record)
+
+
+@app.command()
+@with_source()
+def view(
+    host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
+    autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
+    run: RunOpt = None,
+):
+    """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
+    if run:
+        from ..viewer.runs import serve_runs
+
+        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
+        return
+    cfg = config_from(config, set_, seed=seed, preset=preset)
+    _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
+           preset=preset, record=not no_record)
+
+
+# -------------------------------------------------------------------------------------- benches
+# Every benchmark takes the source options and --config/--set; --json prints its result as JSON
+# on stdout, else the result is listed on stderr.

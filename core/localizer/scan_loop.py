@@ -1,0 +1,486 @@
+"""The localizer: the paper's blocks (PF, RPE, RS, S2M+SU) wired together, in threads.
+
+Data flow for scan k (paper, Fig. "block diagram"):
+
+- RPE (KISS-ICP relative poses, in a child process because it holds the GIL) gets scan k as soon
+  as it is read; the PF runs on the caller's thread meanwhile.
+- PF: predict (11-state model), weight (lookup-table likelihood), estimate.
+- SU: when an S2M job started at scan k₀ is due, its match (for scan k₀) is carried forward to
+  scan k with the RPE relative pose, written into the particle it started from, and that
+  particle is re-weighted. A failed or rejected match changes nothing.
+- PF resamples when N_eff < 50 %, protecting the S2M particle while a job is in flight.
+- S2M: if no job is in flight, the highest-weight particle's pose at k and scan k start a new
+  match: over the whole map until the localization rule is met (``s2m.global_until_localized``),
+  then in the paper's ±(L_x, L_y) region (±``tracking_region`` in tracking mode). RS (road removal) and S2M (M3RSM + GICP) run one after the other in a child process
+  (:mod:`lidarloc.core.matching.worker`; small_gicp and the normal estimation hold the GIL, which
+  stalled the PF by ~4× on threads), driven from the S2M thread. Only the scans S2M matches are
+  road-segmented: nothing else uses them. ``localize.s2m_process = False`` runs both on the S2M
+  thread instead (same results, for debugging).
+
+Two clocks: ``replay`` lands every S2M result exactly ``n_s2m`` scans after it started (the
+step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime`` lands a
+result at the first scan after it finished whose odometry is ready (an accepted match is carried
+forward with it; see :mod:`lidarloc.core.matching.schedule`), and the rules read the newest finished
+odometry instead of waiting for scan k's, so KISS-ICP and the PF overlap across scans.
+
+The blocks around the scan loop: :class:`~lidarloc.core.odometry.feed.OdometryFeed` feeds the RPE,
+:class:`~lidarloc.core.matching.schedule.S2MScheduler` starts, lands and cancels the S2M matches.
+
+The prior map is built from the sequence's ``map_source`` (the whole mapping drive: ``--scans N``
+plays N scans inside it, and the generated town's drive with changes, traffic or another sensor
+is localized in the town as it was mapped), never from the scans being localized alone. A map
+file (``--map``) is the map source of a :class:`~lidarloc.core.sequences.framed.MapFramed`
+sequence, which learns the map's origin from the localizer to put its truth in the map's frame.
+
+Start, frames and confidence: :mod:`lidarloc.core.rules.checks` (``--init``'s start around a guess,
+``frame_mismatch`` when map, truth and scans look to be in different frames, ``confidence_low``).
+
+Confidence: after each scan the localizer measures how well the scan fits the map at the
+estimate (the share of prepared scan points within d_max of the map and their mean distance,
+:func:`~lidarloc.core.filter.likelihood.residual_stats`, one pose: well under a millisecond) and, with
+the particles' spread and N_eff, reports it in the snapshot and the per-scan record (see
+:mod:`lidarloc.core.snapshot`). A ``confidence_low`` event marks the scan at which, while
+localized, the inlier share drops below ``localize.min_inlier_share``; it fires once and is
+re-armed when the share recovers or localization ends.
+
+De-skew (``localize.deskew``): a spinning LiDAR measures its points over a whole sweep while the
+car moves. Each scan is moved into its mid-sweep frame (:mod:`lidarloc.core.odometry.deskew`) before the
+PF, the RPE and S2M see it, assuming the motion of the newest known odometry step (constant
+velocity over one sweep; the scan's own odometry is not known yet when it arrives). The first two
+scans after a (re)start of the odometry have no such step and are used as they come. Recorded
+odometry (``localize.recorded_odometry``) is KISS-ICP's over the scans as they come, so with
+de-skewing it differs slightly from the live odometry, which registers the de-skewed scans.
+
+Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
+usual but protect the S2M particle (the PF's ``protect`` argument), which keeps the particle
+intact without starving the filter of resampling while S2M runs back to back. With KLD-sampling
+(``pf.kld``) a resampling may change the particle count and move the protected particle to
+another slot: the match in flight follows it (``pf.protected_index``) instead of being cancelled.
+
+Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
+KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
+detect the failed registration the same way); the filter itself learns nothing.
+
+Resuming (:mod:`lidarloc.core.runs.resume`, :mod:`lidarloc.core.runs.branch`): after each step a recording
+asks :meth:`Localizer.resume_payload` for what resuming from that step needs (checkpoints of the
+exact state, the odometry, the raw S2M outcomes); ``known_odometry`` makes the odometry use a
+recorded run's poses instead of registering those scans again, and ``lazy_s2m`` starts the S2M
+matcher only when a match needs it (a resumed run replays recorded matches first).
+
+Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
+``s2m_cancelled`` (the match could no longer land: re-initialised or resized particles, a kidnap,
+S2M switched off, a clock change, a rebuilt pyramid, or ``close()``). Stopping: ``interrupt()``
+(Ctrl-C, closing the viewer) makes a step that waits for a block give up without recording its
+scan, and ``close()`` kills child processes that are busy or still setting up.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..rules.checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map
+from ..rules.integrity import Integrity
+from ..config import Config
+from ..errors import LidarlocError
+from ..maps.world import open_world
+from ..odometry.feed import OdometryFeed
+from ..odometry.rpe import load_or_build_odometry
+from ..rules.paper import LocalizationRules
+from ..matching.pending import S2MNotReady, in_daemon_thread
+from ..filter.scanprep import prepare_scan, voxel_downsample_random
+from ..snapshot import Event, ScanRecord, Snapshot
+from ..worker_process import WorkerProxy
+from .blocks import BlockError, BlocksMixin, Interrupted
+from .controls import ControlsMixin
+from .outputs import OutputsMixin
+from .state import StateMixin
+from .tables import TablesMixin
+
+
+class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixin):
+    def __init__(self, seq, cfg: Config, cache_root: Path | None = None,
+                 progress: Callable[[str, float], None] | None = None,
+                 on_map: Callable[[object], None] | None = None, defer_s2m: bool = False,
+                 known_odometry: dict | None = None, lazy_s2m: bool = False):
+        from ..filter.pf import ParticleFilter
+
+        self.seq, self.cfg = seq, cfg
+        self.n_scans = len(seq)
+        self._progress = progress or (lambda stage, frac: None)
+        # A viewer's start: KISS-ICP's child process sets up (~3 s of imports) while the map and
+        # tables are built, instead of in front of the first scan. Closed by __del__ if the
+        # construction fails.
+        early_rpe = None
+        if defer_s2m and cfg.localize.rpe_process and not cfg.localize.recorded_odometry:
+            from ..odometry.worker import KissICPProcess
+
+            early_rpe = KissICPProcess()
+        # The prior map comes from the sequence's mapping drive, not from the scans being
+        # localized (``--scans N`` plays N scans inside the whole drive's map; the town's drive
+        # with changes, traffic or another sensor inside the town as it was mapped).
+        # ``defer_s2m``: what only S2M needs (road removal, BEV pyramid, its process) is built in
+        # the background after construction, and S2M joins at the first scan after it is ready —
+        # a scan that depends on timing, so only for a viewer's first start on an empty cache.
+        self.world = open_world(seq.map_source, cfg, cache_root, road_removal=not defer_s2m,
+                                progress=self._progress, on_map=lambda prior: self._map_ready(prior, on_map))
+        self.prior_map, self.map_dir = self.world.prior_map, self.world.map_dir
+        self.lookup, self.pyramid = self.world.lookup, self.world.pyramid
+        recorded_odometry = None
+        if cfg.localize.recorded_odometry:
+            self._progress("odometry", 0.0)
+            recorded_odometry = load_or_build_odometry(
+                seq, self.odometry_cache_dir, progress=lambda f: self._progress("odometry", f)).value
+        self._PF = ParticleFilter
+        # one LiDAR sweep lasts one scan interval (a spinning sensor reports a scan per turn)
+        gaps = np.diff(np.asarray(seq.timestamps, dtype=np.float64))
+        gaps = gaps[gaps > 0]
+        self._sweep_period = float(np.median(gaps)) if gaps.size else float(cfg.pf.dt)
+        bmin, bmax = self.prior_map.bounds
+        self._bounds = (np.asarray(bmin, float), np.asarray(bmax, float))
+        self._lock = threading.RLock()
+        self._rpe_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RPE")
+        self._s2m_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-S2M")
+        self._rebuild_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-rebuild")
+        self.rebuild_progress: float | None = None
+        self._pending_lookup: Future | None = None
+        self._pending_pyramid: Future | None = None
+        self._closed = False
+        self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
+        self._waiting: tuple[str, float] | None = None   # what a step waits for, since when
+        self._failed: str | None = None      # a block's failure: steps refuse until restart()
+        self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
+        self.odometry.process = early_rpe
+        self.odometry.known = known_odometry
+        self.odometry.scan_source = self._odometry_scan
+        # controls that change the state between or inside steps (a recording checkpoints after
+        # each: see core/runs/resume.py); events before this index belong to an earlier recording
+        self.controls = 0
+        self.recorded_events_base = 0
+        self._controls_checkpointed: int | None = None   # controls count at the last checkpoint
+        self.branch_of: dict | None = None     # {"run", "step"} of a branch (core/runs/branch.py)
+        self._lazy_s2m = lazy_s2m             # the S2M matcher starts when first needed
+        self._pending_s2m: Future | None = None
+        self._road_removal = None            # its child process while it runs (defer_s2m)
+        if self.pyramid is not None:
+            self.s2m = self._s2m_scheduler()
+        else:
+            self.s2m = S2MNotReady()
+            # road removal runs in a niced child process: the first scans play at full speed
+            self._pending_s2m = in_daemon_thread(self._build_s2m_tables, "lidarloc-road-removal")
+        self._progress("ready", 1.0)
+        self.restart(cfg.seed)
+
+    def _map_ready(self, prior_map, on_map) -> None:
+        """The map is there, its tables not yet: a map file's sequence learns the map's origin
+        (its truth goes to the map's local frame), ``--init`` is checked against the map (a bad
+        one fails before the tables are built), and a viewer shows the map meanwhile."""
+        use_origin = getattr(self.seq, "use_map_origin", None)
+        if use_origin is not None:
+            use_origin(prior_map.origin)
+        self._init_pose = initial_pose_on_map(getattr(self.seq, "initial_guess", None), prior_map,
+                                              self.cfg.pf.sensor_height)
+        if on_map is not None:
+            on_map(prior_map)
+
+    # ------------------------------------------------------------------------ lifecycle
+    def restart(self, seed: int | None = None) -> None:
+        """Back to scan 0 with a fresh filter (same map, lookup table and pyramid)."""
+        with self._lock:
+            if seed is not None:
+                self.cfg.seed = int(seed)
+            self.s2m.restart()
+            self._interrupt.clear()
+            self.controls += 1
+            self.recorded_events_base = 0
+            # a branch replayed a recorded run's real-time choices; a run from scan 0 makes its own
+            self.odometry.used_plan = None
+            if getattr(self.s2m, "recorded", None) is not None:
+                self.s2m.recorded.timing_until = -1
+            self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
+                               map_points=self.prior_map.points)
+            if self._init_pose is None:
+                self.pf.initialize()
+            else:
+                self.pf.initialize(pose=self._init_pose[0], pose_std=self._init_pose[1])
+            self.odometry.restart(origin=0)
+            self.rules = LocalizationRules(self.cfg.localize)
+            self.integrity = Integrity(self.cfg)
+            self._alarm_on = False          # the truth alarm is raised (see _truth_check)
+            self._failed = None
+            self.k = 0                      # index of the next scan to process
+            self.steps = 0                  # scans processed since the start (kidnap skips don't count)
+            self.events: list[Event] = []
+            self.records: list[ScanRecord] = []
+            self.est_trajectory: list[np.ndarray] = []
+            self._prev_t: float | None = None
+            self._confidence = ConfidenceWatch()
+            self._frame_check = ScanFrameCheck()
+            if self._init_pose is not None:
+                g = self.seq.initial_guess
+                self._event(-1, "initial_guess", f"particles around x {g.x:.2f} m, y {g.y:.2f} m, yaw "
+                            f"{np.degrees(g.yaw):.1f}° (σ {g.sigma_xy:g} m, {np.degrees(g.sigma_yaw):g}°)")
+            self._check_truth_frame()
+            self._snapshot: Snapshot | None = None
+            self._snapshot = self._make_snapshot(-1, None, 0.0, None)
+
+    def interrupt(self) -> None:
+        """Stop stepping without waiting for the blocks (Ctrl-C, closing the viewer).
+
+        A step waiting for the odometry or for a match due now gives up within
+        ``INTERRUPT_POLL_S`` and raises :class:`Interrupted`; its scan is not recorded, nor are
+        its events. From then on ``step()`` raises :class:`Interrupted` until ``restart()`` (the
+        PF may already have weighted the dropped scan). Everything recorded before stays.
+        Without this, Ctrl-C in the first scans waited for the first whole-map match behind the
+        S2M process's set-up: 2.4 s (``lidarloc bench stop``). Safe from any thread (a signal
+        handler too); it does not take the step's lock."""
+        self._interrupt.set()
+
+    def close(self) -> None:
+        self._interrupt.set()            # a step in progress gives up instead of holding the lock
+        self._closed = True
+        if self._road_removal is not None:
+            self._road_removal.kill()
+        with self._lock:
+            self.s2m.cancel(self.k - 1, "localizer closed")
+        pools = (self._rpe_pool, self._s2m_pool, self._rebuild_pool)
+        for pool in pools:               # queued work is dropped …
+            pool.shutdown(wait=False, cancel_futures=True)
+        # … and the children close before the threads are joined: a match or registration in
+        # flight is only thrown away, so a busy child is killed rather than waited for (a
+        # whole-map match kept Ctrl-C waiting 1.2 s).
+        self.odometry.close_process()
+        self.s2m.close_processes()
+        for pool in pools:
+            pool.shutdown(wait=True)
+
+    def wait_ready(self) -> None:
+        """Block until every block is ready to work at full speed: the child processes (S2M's map,
+        pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up, and the PF's
+        kernels (scan down-sampling, likelihood) are loaded in this process.
+
+        The real-time clock calls this before its first scan is due: a sensor's scans start
+        arriving once the system is up, and set-up still running would take the CPU from the first
+        scans (measured on the real drive in real time: without this the first whole-map match,
+        started at scan 0, landed at scan 11–12; with it, at scan 3)."""
+        from ..filter.likelihood import log_likelihood_floored
+
+        # this process's own one-off costs too: numba loads a kernel from its cache at the first
+        # call (~0.3 s for the scan down-sampling, measured), here instead of in scan 0's step
+        few = np.asarray(self.prior_map.points[:64], dtype=np.float32)
+        voxel_downsample_random(few, self.cfg.pf.scan_voxel, 0)
+        some = self.pf.states[:2]
+        log_likelihood_floored(some, few, self.lookup, self.effective_d_max, self.cfg.pf.sigma, np.zeros(len(some)))
+        for worker in (self.s2m.matcher, self.odometry.process):
+            if isinstance(worker, WorkerProxy):
+                try:
+                    worker.wait_ready()
+                except RuntimeError as exc:
+                    raise BlockError(str(exc)) from None
+
+    def cpu_seconds(self) -> dict:
+        """CPU time used so far by the blocks' processes, in seconds: ``main`` (this process: the
+        PF, and the threads that feed the child processes), ``rpe`` (the KISS-ICP child) and
+        ``s2m`` (the RS + S2M child). None where a block runs inside this process (then its time
+        is in ``main``) or the platform cannot tell. Differences of two readings give what a run
+        cost per block (``lidarloc run`` puts them in summary.json)."""
+        try:
+            import resource
+
+            usage = resource.getrusage(resource.RUSAGE_SELF)
+            main = usage.ru_utime + usage.ru_stime
+        except ImportError:          # not a Unix
+            main = None
+
+        def child(worker):
+            return worker.cpu_seconds() if isinstance(worker, WorkerProxy) else None
+        return {"main": main, "rpe": child(self.odometry.process), "s2m": child(self.s2m.matcher)}
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    @property
+    def done(self) -> bool:
+        return self.k >= self.n_scans
+
+    @property
+    def closed(self) -> bool:
+        """Whether ``close()`` was called: the localizer steps no more."""
+        return self._closed
+
+
+
+
+
+    # ------------------------------------------------------------------------ controls
+
+
+
+
+
+    @property
+    def odometry_cache_dir(self) -> Path:
+        """Where the localized drive's recorded odometry is cached: a sibling of the map's
+        directory named after the drive (several drives share one map; a map rebuild, which
+        replaces its own directory, leaves it alone)."""
+        return self.map_dir.with_name(f"{self.map_dir.name}-drive-{self.seq.cache_key()}")
+
+    @property
+    def effective_d_max(self) -> float:
+        """The likelihood's distance cap: the configured d_max, clamped to the one the lookup
+        table was built for (a larger one is being rebuilt in the background meanwhile)."""
+        return self.lookup.capped(self.cfg.pf.d_max)
+
+
+
+
+    # ------------------------------------------------------------------------ one scan
+    def step(self) -> Snapshot:
+        """Process the next scan and return the new snapshot."""
+        with self._lock:
+            if self._closed:
+                raise LidarlocError("localizer is closed")
+            if self._failed is not None:
+                raise LidarlocError(f"{self._failed} (restart to continue)")
+            if self._interrupt.is_set():
+                raise Interrupted("interrupted (restart to continue)")
+            if self.done:
+                return self._snapshot
+            events_before, job_before = len(self.events), self.s2m.job
+            try:
+                return self._process_next_scan()
+            except Interrupted:
+                # The scan is not recorded, so neither are its events; a match that landed in
+                # it counts as still in flight (close() or restart() reports it cancelled).
+                del self.events[events_before:]
+                self.s2m.job = job_before
+                raise
+
+    def _process_next_scan(self) -> Snapshot:
+        """The body of step(), with the lock held."""
+        self._swap_rebuilt_tables()
+        k = self.k
+        scan = self.seq.scan(k)
+        t = self.seq.timestamp(k)
+        dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
+        self._prev_t = t
+        if self.cfg.localize.deskew:
+            scan = self._deskew(k, scan)
+        # RPE starts now and overlaps with the PF work below.
+        self.odometry.submit(k, scan, t)
+
+        # PF time excludes waiting for S2M (in replay the step blocks until the match is due).
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([self.cfg.seed, k, 1])
+        prepared = prepare_scan(scan, self.cfg.pf, rng)
+        self.pf.predict(dt)
+        self.pf.update(prepared)
+        pf_s = time.perf_counter() - t0
+        s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there)
+        verdict = self.s2m.verdict
+        relocalized = verdict is not None and verdict.kind == "relocalize"
+        if verdict is not None:
+            self.integrity.note_verdict(k, verdict)
+        if relocalized:
+            self._relocalize(k, verdict)
+        t1 = time.perf_counter()
+        # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
+        est = self.pf.estimate()
+        n_weighed = self.pf.n
+        pf_s += time.perf_counter() - t1
+        self._check_scan_frame(k, est, prepared)    # before resampling: best_index names a particle
+
+        if self.s2m_status(k)[0] == "ready" and k == self.cfg.s2m.join_at_scan > 0:
+            self._event(k, "s2m_ready", f"held back until scan {k} (s2m.join_at_scan)")
+        step_dist, yaw_odom = self.odometry.motion(k)
+        confirmed = self.integrity.confirmed_since if self.integrity.required else None
+        outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom, confirmed)
+        reinit = relocalized
+        if outcome.event is not None:
+            detail = f"max std {float(np.max(est.std_xyz)):.1f} m"
+            if outcome.event == "localized" and self.integrity.required:
+                detail += f", confirmed by the S2M match landed at scan {self.integrity.confirmed_at}"
+            self._event(k, outcome.event, detail)
+        if outcome.event == "localized":
+            self.integrity.on_localized(k)
+        # how well the scan fits the map at the estimate: a poor fit asks for the second opinion
+        # at the match starting below, and a long one is a loss
+        fit = self._scan_fit(k, est, prepared)
+        lost = None if outcome.reinit else self.integrity.note_fit(k, self.rules.localized, *fit)
+        if lost is not None:
+            self._event(k, "loss", lost)
+            self.rules.reset()
+        if outcome.reinit or lost is not None:
+            self.integrity.reset()
+            why = "a loss" if lost is not None else f"a {outcome.event.replace('_', ' ')}"
+            self._reinitialize(k=k, why=f"re-initialised after {why}")
+            reinit = True
+            est = self.pf.estimate()
+            n_weighed = self.pf.n
+        else:
+            entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
+            if entering_tracking:    # resamples down: est.best_index no longer names a particle
+                self._enter_tracking(k)
+            # S2M starts from the highest-weight particle of this posterior; that slot is
+            # then protected through every resampling until the match lands.
+            check = self.integrity.check_due(k, self.rules.localized)
+            if not entering_tracking and self.s2m.due(k, self.rules.localized, check is not None):
+                j = est.best_index
+                self.s2m.start(k, j, self.pf.states[j], scan, self.rules.localized, check, est.pose)
+                if check is not None:
+                    self.integrity.check_started(k)
+            t2 = time.perf_counter()
+            self.pf.resample_if_needed(protect=self.s2m.protected_particle)
+            # KLD-sampling may shrink the count below the protected slot: the filter moves that
+            # particle, and the match lands where it went
+            self.s2m.follow_particle(self.pf.protected_index)
+            pf_s += time.perf_counter() - t2
+        pf_ms = pf_s * 1000.0
+        self._truth_check(k, est)
+
+        self.k += 1
+        self.steps += 1
+        snap = self._make_snapshot(k, prepared, pf_ms, est, n_weighed, fit)
+        self.est_trajectory.append(est.pose)
+        self.records.append(ScanRecord.from_snapshot(snap, s2m_ms, reinit))
+        self._snapshot = snap
+        return snap
+
+    def run(self, n: int | None = None, should_stop: Callable[[], bool] | None = None) -> Snapshot:
+        """Process up to ``n`` scans (all remaining if None)."""
+        remaining = self.n_scans - self.k if n is None else n
+        for _ in range(remaining):
+            if self.done or (should_stop is not None and should_stop()):
+                break
+            self.step()
+        return self._snapshot
+
+    # ------------------------------------------------------------------------ blocks
+
+
+
+
+
+
+
+    # ------------------------------------------------------------------------ background rebuilds
+
+
+
+
+
+
+    # ------------------------------------------------------------------------ outputs
+
+
+
+
+

@@ -1,0 +1,70 @@
+"""The world a localizer works in, opened in one place: the prior map (with its road-removed copy),
+the nearest-distance lookup table the particle filter reads, and the BEV pyramid the scan-to-map
+matcher searches — each loaded from the map's cache directory, or built and cached there once.
+
+The prior map always comes from the sequence's ``map_source`` (the whole mapping drive, or a map
+file), never from the scans being localized alone. The localizer, the viewer's recorded runs and
+the benchmarks all open their world here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..config import Config
+from .bev import BEVPyramid, load_or_build_pyramid
+from .lookup import LookupTable, load_or_build_lookup
+from .mapping import PriorMap, load_or_build_map
+
+
+@dataclass
+class World:
+    """The prior map and what is precomputed from it, all in ``map_dir``. ``lookup`` and
+    ``pyramid`` are None where they were not asked for; ``pyramid`` also while the road-removed
+    copy is still to be built (``open_world(road_removal=False)``)."""
+
+    prior_map: PriorMap
+    map_dir: Path
+    lookup: LookupTable | None = None
+    pyramid: BEVPyramid | None = None
+
+    @property
+    def origin(self) -> np.ndarray:
+        """The map's frame in the frame of the file it came from (float64, metres)."""
+        return self.prior_map.origin
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the map's points (float64, metres, the map's local frame)."""
+        lo, hi = self.prior_map.bounds
+        return np.asarray(lo, float), np.asarray(hi, float)
+
+
+def open_world(map_source, cfg: Config, cache_root: Path | None = None, *, lookup: bool = True,
+               pyramid: bool = True, road_removal: bool = True,
+               progress: Callable[[str, float], None] | None = None,
+               on_map: Callable[[PriorMap], None] | None = None) -> World:
+    """The world of ``map_source`` with ``cfg``'s map, lookup and S2M settings.
+
+    ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
+    viewer's first start plays on the particle filter while it is built in the background.
+    ``progress(stage, fraction)`` reports "map", "lookup" and "pyramid"; ``on_map(prior_map)`` is
+    called as soon as the map is there, before its tables (a viewer shows it meanwhile)."""
+    report = progress or (lambda stage, fraction: None)
+    prior_map, map_dir, _ = load_or_build_map(map_source, cfg.map, cache_root,
+                                              progress=lambda i, n: report("map", i / n), road_removal=road_removal)
+    if on_map is not None:
+        on_map(prior_map)
+    world = World(prior_map, map_dir)
+    if lookup:
+        report("lookup", 0.0)
+        world.lookup = load_or_build_lookup(prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max,
+                                            progress=lambda f: report("lookup", f)).value
+    if pyramid and prior_map.points_bev is not None:
+        report("pyramid", 0.0)
+        world.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg.s2m).value
+    return world

@@ -1,0 +1,464 @@
+"""The localizer's S2M scheduling: when a scan-to-map match starts, over which region, when its
+result lands in the particle filter, and when it is cancelled.
+
+One match is in flight at a time. It starts at scan k₀ from a particle's pose, runs on the S2M
+thread (RS and S2M, in the S2M child process by default, see :mod:`lidarloc.core.matching.worker`),
+and lands at a later scan k: an accepted match for scan k₀ is carried forward to scan k with the
+RPE relative pose and written into the particle it started from, which is then re-weighted
+(with ``s2m.reject_if_weight_drops``, the paper's rule, it is taken back if that lowered the
+particle's log-likelihood: see :meth:`S2MScheduler._write_unless_weight_drops`).
+``replay`` lands it exactly ``n_s2m`` scans after it started (the step waits for it);
+``realtime`` lands it at the first scan after it finished whose odometry is ready (see
+:meth:`S2MScheduler._odometry_ready_to_land`).
+
+Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
+``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
+
+Resuming a recorded run (:mod:`lidarloc.core.runs.branch`): ``recorded(started_at, start_pose, s2m_cfg,
+level)`` may return the outcome a recorded run's matcher gave for exactly that match; it then
+stands in for running the matcher. The matcher is a deterministic function of the scan (fixed by
+``started_at`` and the source), the start pose, the S2M settings and ``level``, so this changes no
+number; anything that differs runs the matcher for real. In real time such a match lands at the
+scan the recorded run landed it at (there its timing chose it). ``last_landing`` is the raw
+outcome of the last match that landed, with the job it belonged to, for the recording.
+
+The last match that landed is kept as an :class:`~lidarloc.core.snapshot.S2MView` for the viewer's
+inspection: the verdict and, for a rejection, why (the search, GICP, the odometry or the particle's
+weight); whether it searched the whole map; the start pose; the best poses the branch and bound
+scored and the nodes it expanded per level; the 2D match, what GICP made of it and how far it
+moved it; and the pose carried forward to the landing scan.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+import dataclasses
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..config import Config, S2MConfig
+from ..geometry import pose_matrix, pose_to_xyz_ypr
+from ..odometry.feed import OdometryFeed
+from ..rules.integrity import VERDICT_TEXT, Verdict, judge
+from .worker import S2MProcess
+from ..snapshot import S2MView
+
+# Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
+# the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
+REALTIME_LAND_WAIT_S = 0.03
+# … and after how many such tries it waits for the odometry however long it takes: a transient
+# backlog (one slow registration, ~0.65 s on the town) clears well within it, while under a
+# sustained one the landing still happens and the RPE queue stays bounded.
+REALTIME_LAND_MAX_DEFERRALS = 20
+
+
+@dataclass
+class S2MJob:
+    """The match in flight."""
+
+    started_at: int
+    particle: int
+    generation: int
+    start_pose: np.ndarray
+    future: Future
+    deferrals: int = 0        # real time: scans at which the finished match could not land yet
+    mode: str = "local"       # "global": the search region covers the whole map (not localized);
+                              # "check": the whole-map second opinion once localized
+    cfg: Any = None           # the S2M settings it runs with (S2MConfig)
+    level: bool = False       # whether the start's z, pitch and roll are ignored (see s2m.match_local)
+    estimate_pose: np.ndarray | None = None   # the filter's estimate at k₀, 4×4: what the match is
+                                              # judged against (core/rules/integrity.py)
+
+
+class S2MScheduler:
+    """Starts, lands and cancels the localizer's S2M matches.
+
+    ``cfg`` is the localizer's live configuration (read at every decision). Matches run on
+    ``pool`` (one thread). ``wait(future, block, k)`` is the localizer's wait for a block: it
+    gives up on ``interrupt()`` and turns a block's failure into a clear error. ``event(k, kind,
+    detail)`` records an event."""
+
+    def __init__(self, cfg: Config, prior_map, pyramid, map_dir: Path, bounds: tuple, pool: ThreadPoolExecutor,
+                 wait: Callable[[Future, str, int], Any], event: Callable[[int, str, str], None],
+                 start_matcher: bool = True):
+        """``start_matcher`` False: the matcher starts at the first match that needs it, or at
+        :meth:`start_matcher` (a resumed run replays recorded matches first: its set-up would
+        only take the CPU from the replay)."""
+        self.cfg = cfg
+        self._prior_map = prior_map
+        self._pyramid = pyramid
+        self._map_dir = map_dir
+        self._bounds = bounds
+        self._pool = pool
+        self._wait = wait
+        self._event = event
+        self.matcher = None
+        if start_matcher:
+            self.start_matcher()
+        self._retired_matchers: list = []    # S2M processes replaced by a clock change
+        self.job: S2MJob | None = None
+        # resuming a recorded run: its matcher's outcomes (module docstring)
+        self.recorded: Callable[[int, np.ndarray, Any, bool], Any] | None = None
+        self.last_landing: tuple[int, S2MJob, Any] | None = None   # (scan, job, raw outcome)
+        self.verdict: Verdict | None = None   # what the match that landed at the last step said
+        self.restart()
+
+    def restart(self) -> None:
+        """A fresh run: the match in flight is dropped without an event, the counts start over."""
+        if self.job is not None:
+            self.job.future.cancel()  # if already running it finishes, and its result is ignored
+        self.job = None
+        self._generation = 0
+        self._last_start: int | None = None
+        self.n_landed = 0
+        self.n_accepted = 0
+        self.last: S2MView | None = None     # the last match that landed
+        self.last_landing = None
+        self.verdict = None
+
+    def start_matcher(self) -> None:
+        """Start the matcher unless it runs already (the S2M child process loads the cached map and
+        pyramid and builds its GICP target while the caller goes on)."""
+        if self.matcher is not None:
+            return
+        if self.cfg.localize.s2m_process:
+            self.matcher = S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, self._nice())
+        else:
+            from .s2m import ScanToMapMatcher
+
+            self.matcher = ScanToMapMatcher(self._prior_map, self._pyramid, self.cfg.s2m, self.cfg.map)
+
+    @property
+    def acceptance(self) -> float:
+        """Accepted / landed so far (0 before the first landing)."""
+        return self.n_accepted / max(self.n_landed, 1)
+
+    @property
+    def protected_particle(self) -> int | None:
+        """The particle slot the match in flight started from: resampling must keep it."""
+        return self.job.particle if self.job is not None else None
+
+    def follow_particle(self, index: int | None) -> None:
+        """The match in flight lands on the particle at ``index`` from now on: a resampling that
+        changes the particle count (KLD-sampling) may move the protected particle to another
+        slot (the filter's ``protected_index``). The match itself is not affected."""
+        if self.job is not None and index is not None:
+            self.job.particle = int(index)
+
+    # ------------------------------------------------------------------------ starting
+    def searches_whole_map(self, localized: bool) -> bool:
+        """Whether a match started now searches the whole map (not localized yet, and so configured)."""
+        return not localized and self.cfg.s2m.global_until_localized
+
+    def job_config(self, state: np.ndarray, localized: bool, check: bool = False):
+        """The S2M settings for a job from a particle's ``state``: the whole map until localized
+        (if so configured) and for a second-opinion ``check``, the tracking region while
+        tracking, else the configured local region."""
+        cfg = replace(self.cfg.s2m)
+        if check or self.searches_whole_map(localized):
+            x, y = state[:2]
+            (x0, y0, _), (x1, y1, _) = self._bounds
+            cfg.region_x = max(cfg.region_x, x - x0, x1 - x)
+            cfg.region_y = max(cfg.region_y, y - y0, y1 - y)
+        elif localized and self.cfg.localize.tracking:
+            cfg.region_x = min(cfg.region_x, self.cfg.localize.tracking_region)
+            cfg.region_y = min(cfg.region_y, self.cfg.localize.tracking_region)
+        return cfg
+
+    def held_back(self, k: int) -> bool:
+        """Whether S2M is held back at scan k (``s2m.join_at_scan``)."""
+        return k < self.cfg.s2m.join_at_scan
+
+    def due(self, k: int, localized: bool, check: bool = False) -> bool:
+        """Whether a match should start at scan k: S2M is on, not held back, and none is in
+        flight. Back to back, except in real time once localized: then every
+        ``s2m.realtime_interval_localized`` scans at most (CPU for the PF and the RPE first) —
+        but a second-opinion ``check`` goes out at once."""
+        if not self.cfg.s2m.enabled or self.job is not None or self.held_back(k):
+            return False
+        if check:
+            return True
+        every = self.cfg.s2m.realtime_interval_localized
+        if self.cfg.localize.clock != "realtime" or not localized or every <= 0:
+            return True
+        return self._last_start is None or k - self._last_start >= every
+
+    def start(self, k: int, j: int, state: np.ndarray, scan: np.ndarray, localized: bool,
+              check: str | None = None, estimate_pose: np.ndarray | None = None) -> None:
+        """Start a match of scan k from particle j (whose ``state`` it is) in the background.
+        ``check``: why this match is a whole-map second opinion (None: it is not);
+        ``estimate_pose``: the filter's estimate at scan k, which the match's verdict compares
+        with (None: the start pose)."""
+        start_pose = pose_matrix(*state[:6])
+        self._generation += 1
+        # Before localization the particle's z, pitch and roll are as random as its position. A
+        # check's best pose may lie anywhere: its height and attitude come from the map there.
+        level = not localized or check is not None
+        cfg = self.job_config(state, localized, check is not None)
+        mode = "check" if check is not None else ("global" if self.searches_whole_map(localized) else "local")
+        self.job = S2MJob(k, j, self._generation, start_pose, self.submit(k, scan, start_pose, cfg, level),
+                          mode=mode, cfg=cfg, level=level,
+                          estimate_pose=start_pose if estimate_pose is None else np.asarray(estimate_pose, float))
+        self._last_start = k
+        self._event(k, "s2m_started", f"particle {j}" + ("" if check is None else f", whole-map check ({check})"))
+
+    def submit(self, k: int, scan, start_pose: np.ndarray, cfg, level: bool) -> Future:
+        """The match of scan k from ``start_pose``: a recorded run's outcome of exactly this match if
+        there is one (``recorded``), else the matcher's, in the background. ``scan``: the scan, or
+        a function returning it (called only if the matcher runs)."""
+        outcome = self.recorded(k, start_pose, cfg, level) if self.recorded is not None else None
+        if outcome is not None:
+            done: Future = Future()
+            done.set_result(outcome)
+            # real time: the recorded run landed it at a scan its timing chose; so does the replay
+            done.landing = getattr(self.recorded, "landing_scan", lambda k0: None)(k)
+            return done
+        if callable(scan):
+            scan = scan()
+        self.start_matcher()
+        return self._pool.submit(self._run, self.matcher, scan, start_pose, cfg, level)
+
+    @staticmethod
+    def _run(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):
+        if isinstance(matcher, S2MProcess):     # the child process: it takes the live settings along
+            return matcher.match_local(scan, start_pose, s2m_cfg, level=level)
+        matcher.cfg = s2m_cfg
+        return matcher.match_local(scan, start_pose, level=level)
+
+    # ------------------------------------------------------------------------ resuming
+    def checkpoint(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """What a checkpoint keeps of the scheduling: JSON-ready counts and the match in flight,
+        and the arrays of the latter (its start pose and the estimate it is judged against)."""
+        job = self.job
+        state = {"pending": False, "generation": self._generation, "last_start": self._last_start,
+                 "n_landed": self.n_landed, "n_accepted": self.n_accepted,
+                 "job": None if job is None else {
+                     "started_at": job.started_at, "particle": job.particle, "generation": job.generation,
+                     "deferrals": job.deferrals, "mode": job.mode, "level": bool(job.level),
+                     "cfg": None if job.cfg is None else dataclasses.asdict(job.cfg)}}
+        arrays = {} if job is None else {"s2m_job_start_pose": np.asarray(job.start_pose, np.float64),
+                                         "s2m_job_estimate_pose": np.asarray(job.estimate_pose, np.float64)}
+        return state, arrays
+
+    def restore(self, state: dict, arrays, scan_of: Callable[[int], np.ndarray]) -> None:
+        """Back to a :meth:`checkpoint`; the match in flight is submitted again (a recorded
+        outcome of exactly it stands in, see :attr:`recorded`). ``scan_of(k)``: scan k as S2M
+        is given it."""
+        self.restart()
+        self._generation, self._last_start = int(state["generation"]), state["last_start"]
+        self.n_landed, self.n_accepted = int(state["n_landed"]), int(state["n_accepted"])
+        job = state["job"]
+        if job is None:
+            return
+        cfg = S2MConfig(**job["cfg"]) if job["cfg"] is not None else self.cfg.s2m
+        start_pose = np.array(arrays["s2m_job_start_pose"], np.float64)
+        k0 = int(job["started_at"])
+        future = self.submit(k0, lambda: scan_of(k0), start_pose, cfg, bool(job["level"]))
+        estimate = arrays["s2m_job_estimate_pose"] if "s2m_job_estimate_pose" in arrays else start_pose
+        self.job = S2MJob(k0, int(job["particle"]), int(job["generation"]), start_pose, future,
+                          deferrals=int(job["deferrals"]), mode=str(job["mode"]), cfg=cfg, level=bool(job["level"]),
+                          estimate_pose=np.array(estimate, np.float64))
+
+    # ------------------------------------------------------------------------ cancelling
+    def cancel(self, k: int, why: str) -> None:
+        """Drop the match in flight (running, or finished and waiting to land); an
+        ``s2m_cancelled`` event at scan k says why."""
+        job, self.job = self.job, None
+        if job is not None:
+            job.future.cancel()  # if already running it finishes, and its result is ignored
+            self._event(k, "s2m_cancelled", f"started {job.started_at} ({why})")
+
+    # ------------------------------------------------------------------------ landing
+    def land(self, k: int, prepared: np.ndarray, pf, odometry: OdometryFeed,
+             fits_better: Callable[[np.ndarray, np.ndarray], tuple[bool, str]] | None = None) -> float | None:
+        """Land the match in flight at scan k if it is due: an accepted one is carried forward
+        to k with the ``odometry`` and written into its particle of ``pf``, which is then
+        re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed;
+        :attr:`verdict` says what it said about the estimate. ``fits_better(pose, prepared)``:
+        whether the scan fits the map clearly better in 3D at a far whole-map check's pose than at
+        the estimate, and why (a "relocalize" verdict needs it; None: the BEV score decides)."""
+        self.verdict = None
+        job = self.job
+        if job is None:
+            return None
+        planned = getattr(job.future, "landing", None)
+        if self.cfg.localize.clock == "replay":
+            if k < job.started_at + self.cfg.s2m.n_s2m:
+                return None
+        elif planned is not None:
+            if k < planned:
+                return None
+        elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
+            return None   # real time: land at a scan after the match finished (see there)
+        self.job = None
+        outcome = self._wait(job.future, "S2M", k, f"the S2M match started at scan {job.started_at}")
+        self.last_landing = (k, job, outcome)
+        self.n_landed += 1
+        accepted = bool(outcome.accepted)
+        pose_k = outcome.pose
+        reason = outcome.reason
+        # A search that nothing in its region beat: the start itself is the best place the
+        # matcher sees there (its word on the estimate, see core/rules/integrity.py).
+        match = getattr(outcome, "match", None)
+        unbeaten = (not accepted and match is not None and not np.isfinite(getattr(match, "x", 0.0))
+                    and np.isfinite(outcome.start_score))
+        # Judged at scan k₀, against the estimate the filter had then: independent of the match
+        # (after the landing the particle it is written into would agree with itself), and no
+        # odometry is needed to judge a rejection.
+        verdict = judge(job.mode, accepted, unbeaten, outcome.pose, job.estimate_pose,
+                        float(outcome.score), float(outcome.start_score), self.cfg)
+        if accepted:
+            # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
+            odometry.wait_registered(k)
+            if job.started_at < odometry.origin:
+                accepted, reason = False, "odometry restarted since the match started"
+            else:
+                from .s2m import carry_forward
+
+                try:
+                    pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
+                except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
+                    accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
+            if not accepted and verdict.kind == "relocalize":    # nowhere to move the filter to
+                verdict = dataclasses.replace(verdict, kind="look_alike")
+            elif accepted:
+                verdict = dataclasses.replace(verdict, pose=pose_k)
+        fit_words = ""
+        if verdict.kind == "relocalize" and fits_better is not None:
+            better, fit_words = fits_better(pose_k, prepared)
+            if not better:
+                verdict = dataclasses.replace(verdict, kind="look_alike")
+        self.verdict = verdict
+        if job.mode == "check" and accepted and verdict.kind != "agrees":
+            # a second opinion far from the estimate is never written into a particle: either the
+            # filter re-localizes there (the localizer's call) or it is a look-alike
+            accepted = False
+            reason = ("whole-map check: a clearly better pose far from the estimate, " + verdict.describe()
+                      if verdict.kind == "relocalize" else
+                      "whole-map check: a pose far from the estimate, not clearly better (BEV score "
+                      f"≥ {self.cfg.s2m.relocalize_score_ratio:g}× and a clearly better 3D fit needed): "
+                      + verdict.describe())
+            if fit_words:
+                reason += f"; {fit_words}"
+        if accepted:
+            state = pf.states[job.particle].copy()
+            state[:6] = pose_to_xyz_ypr(pose_k)
+            state[6] = odometry.rpe.speed(k)
+            state[7:10] = odometry.rpe.rates(k)
+            if self.cfg.s2m.reject_if_weight_drops:
+                accepted, reason = self._write_unless_weight_drops(pf, job.particle, state, prepared)
+            else:
+                pf.set_particle(job.particle, state)
+                pf.reweight(job.particle, prepared)
+        if accepted:
+            self.n_accepted += 1
+        elif not reason:
+            reason = "the matcher gave no reason"
+        self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
+                    f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
+                    + (f" ({reason})" if reason and not accepted else "")
+                    + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}"))
+        self.last = self._view(job, k, outcome, accepted, pose_k, reason)
+        return float(outcome.ms)
+
+    @staticmethod
+    def _view(job: S2MJob, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason: str) -> S2MView:
+        """What the viewer shows of a landed match: the verdict and why, and what the search and
+        GICP did on the way (any of them may be missing: a match refused before the search, or an
+        outcome made by a stand-in matcher)."""
+        scan_world = outcome.scan_world if outcome.scan_world is not None else np.zeros((0, 3), np.float32)
+        result = getattr(outcome, "match", None)
+        gicp = getattr(outcome, "gicp", None)
+        match_pose = getattr(outcome, "match_pose", None)
+        candidates = np.zeros((0, 4))
+        if result is not None and getattr(result, "candidates", None) is not None:
+            candidates = np.asarray(result.candidates, np.float64).reshape(-1, 4)
+        return S2MView(
+            started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
+            start_score=float(outcome.start_score), pose=np.asarray(pose_k),
+            scan_world=scan_world,
+            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "",
+            mode=job.mode, start_pose=np.asarray(job.start_pose, np.float64).copy(),
+            candidates=candidates,
+            nodes_per_level=tuple(getattr(result, "nodes_per_level", ()) or ()) if result is not None else (),
+            match_pose=None if match_pose is None else np.asarray(match_pose, np.float64),
+            gicp_pose=None if gicp is None else np.asarray(gicp.pose, np.float64),
+            gicp_fitness=None if gicp is None else float(gicp.inlier_ratio),
+            gicp_correction=() if gicp is None else (float(gicp.correction_m), float(gicp.correction_rad)),
+            stage=str(getattr(outcome, "stage", "") or ""))
+
+    @staticmethod
+    def _write_unless_weight_drops(pf, j: int, state: np.ndarray, prepared: np.ndarray) -> tuple[bool, str]:
+        """The paper's acceptance of a landed match (``s2m.reject_if_weight_drops``): write
+        ``state`` into particle j and re-weight it; if its log-likelihood for the current scan is
+        lower than that of its own state, the particle, and every weight, is put back as it was.
+        Returns (accepted, reason).
+
+        The paper only says a failed match "will significantly lower the weight of the particle"
+        and is not accepted; "lower" is taken literally (any drop rejects: no margin), and the
+        comparison is between exact log-likelihoods of the same scan, the particle's own one
+        recomputed first (the weight update may have floored it, see likelihood.py)."""
+        saved = (pf.states[j].copy(), pf.log_weights.copy(), pf.log_likelihoods.copy())
+        before = pf.reweight(j, prepared)
+        pf.set_particle(j, state)
+        after = pf.reweight(j)
+        if after >= before:
+            return True, ""
+        pf.states[j], pf.log_weights, pf.log_likelihoods = saved
+        return False, f"lowers the particle's weight: log-likelihood {after:.1f} < {before:.1f}"
+
+    def _odometry_ready_to_land(self, job: S2MJob, k: int, odometry: OdometryFeed) -> bool:
+        """Real time: an accepted match is carried forward with scan k's odometry, so it lands
+        only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
+        while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
+        at the next scan, its particle still protected, and after ``REALTIME_LAND_MAX_DEFERRALS``
+        tries it waits for the odometry. Always blocking until the odometry was done stalled the
+        PF behind KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench
+        rpe``), and the landing that waited for it made 16 scans late. A failed or rejected match
+        needs no odometry and lands at once."""
+        if job.future.exception() is not None or not job.future.result().accepted:
+            return True       # a failure (the landing reports it) or a rejection: no odometry needed
+        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
+            return True       # the landing waits for the odometry
+        if not odometry.registered_within(k, REALTIME_LAND_WAIT_S):
+            job.deferrals += 1
+            return False
+        return True           # registered (or failed: the landing reports it)
+
+    # ------------------------------------------------------------------------ the matcher
+    def _nice(self) -> int:
+        """The S2M process's priority offset for the current clock (see s2m.replay_process_nice)."""
+        return self.cfg.s2m.replay_process_nice if self.cfg.localize.clock == "replay" else 0
+
+    def follow_clock(self, k: int) -> None:
+        """After a clock change: a process niced for replay cannot be raised back (that needs
+        privileges), so real time gets a fresh one at nice 0 (the match in flight is cancelled
+        at scan k). The old one finishes its match on the S2M thread, which then closes it; the
+        caller does not wait."""
+        nice = self._nice()
+        # same nice, or back to replay (a higher priority there changes no result): keep it
+        if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
+            return
+        self.cancel(k, "clock changed: new S2M process")
+        old, self.matcher = self.matcher, S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, nice)
+        self._retired_matchers.append(old)     # close() kills it if its match is still running
+        self._pool.submit(old.close)
+
+    def use_pyramid(self, k: int, pyramid) -> None:
+        """A rebuilt BEV pyramid (new d_m) from now on; the match in flight is cancelled at scan k."""
+        self.cancel(k, "map pyramid rebuilt")
+        self._pyramid = pyramid
+        if self.matcher is not None and not isinstance(self.matcher, S2MProcess):
+            # (the S2M process reloads it from the cache itself)
+            from .s2m import ScanToMapMatcher
+
+            self.matcher = ScanToMapMatcher(self._prior_map, pyramid, self.cfg.s2m, self.cfg.map)
+
+    def close_processes(self) -> None:
+        """Close the S2M child processes (a busy one is killed: its match would be thrown away)."""
+        for matcher in [self.matcher, *self._retired_matchers]:
+            if isinstance(matcher, S2MProcess):
+                matcher.close()

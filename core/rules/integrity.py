@@ -1,0 +1,246 @@
+"""Whether the filter's word can be trusted: S2M's confirmation of the estimate, the whole-map
+second opinion once localized, and loss detection beyond the paper's std rule.
+
+The paper's localization rule reads only the particle filter's spread: a filter that converged on
+a look-alike street meets it as well as one that converged on the truth. With S2M late (its
+tables still being built, a busy machine, a child process restarting) the rule fired on the
+particle filter alone, and once "localized" the S2M matches searched only ±(L_x, L_y) around the
+wrong place. Three checks close that gap:
+
+- **Confirmation** (``localize.require_s2m_confirmation``): the rule fires only once an S2M match
+  has *agreed* with the estimate during the rule's window: its pose, carried forward to the
+  landing scan, lies within ``localize.confirm_distance`` and ``localize.confirm_yaw`` of the
+  particle filter's estimate taken just before the match is written into its particle (after,
+  the match would agree with itself). A whole-map match that finds nothing in the whole map
+  scoring higher than the particle it started from agrees too: the best particle is the best
+  place the matcher can see. Without S2M (not ready, held back, switched off) the filter may
+  converge, but it says "PF only, unconfirmed" and never "localized". Chosen over firing as
+  "unconfirmed": a debugging tool's green must mean that two independent blocks agree, and every
+  figure (metrics A–E, the false-fire rate) keeps counting only such localizations.
+- **Second opinion** (``s2m.global_check_interval``): once localized, every that many scans, and
+  at once when the confidence falls (the scan fits the map poorly at the estimate, see below, or
+  ``DISAGREEMENTS_FOR_CHECK`` local matches in a row did not agree with it), the next match
+  searches the whole map. It is never written into a particle unless it agrees with the
+  estimate. A pose far from the estimate moves the filter there (``relocalized`` event with both
+  scores) only if both blocks prefer it clearly: its BEV score is at least
+  ``s2m.relocalize_score_ratio`` times the estimate's own, and in 3D the scan fits the map there
+  clearly better than at the estimate (mean lookup-table residual below
+  ``RELOCALIZE_RESIDUAL_RATIO`` times the estimate's, inlier share no lower). A far pose that
+  fails either is a look-alike and changes nothing. (Measured: a VLP-16's sparse bird's-eye view
+  let a far pose beat a correct estimate's BEV score by 1.25× once in a 400-scan lived-in drive;
+  its 3D fit was worse.)
+- **Poor fit**: the scan's mean residual at the estimate rises above ``FIT_RATIO`` times (and
+  ``FIT_MARGIN_M`` above) its median over the last ``FIT_BASELINE_SCANS`` scans that fitted well
+  while localized, or its inlier share falls below ``localize.min_inlier_share``. Relative, not
+  absolute: a correct estimate's mean residual is 0.12 m on the real drive and ~0.9 m for a
+  VLP-16 or OS1-128 in the lived-in town (their beams above the map's sensor find nothing
+  near), while an estimate 80 m off on the town scored 1.1 m against its 0.15 m.
+- **Loss** (``localize.lost_after_scans``): while localized, that many scans in a row that fit
+  poorly, with no whole-map match agreeing with the estimate meanwhile, are a loss (re-initialise
+  over the whole map), as the paper's std > 50 m.
+
+Truth never feeds any of this; it only grades it (``false_fire`` events, :func:`truth_alarm`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+from ..geometry import pose_to_xyz_ypr, wrap_angle
+
+#: Local matches in a row that did not agree with the estimate, after which the second opinion
+#: is asked for at once.
+DISAGREEMENTS_FOR_CHECK = 3
+#: Poor fit (module docstring): residual ratio and margin (m) over the baseline, and the baseline's
+#: window (scans); the baseline needs FIT_MIN_SAMPLES scans before it judges.
+FIT_RATIO = 2.0
+FIT_MARGIN_M = 0.3
+FIT_BASELINE_SCANS = 50
+FIT_MIN_SAMPLES = 10
+#: A far whole-map match moves the filter only if the scan's mean residual there is below this
+#: share of the estimate's (module docstring).
+RELOCALIZE_RESIDUAL_RATIO = 0.6
+#: After a check asked for by low confidence, the next one waits at least this many scans (a
+#: scan that fits poorly for many scans must not keep S2M on whole-map searches back to back).
+CHECK_COOLDOWN_SCANS = 10
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What a landed S2M match says about the particle filter's estimate."""
+
+    kind: str              # "agrees", "disagrees" (a far pose, written as the paper does before
+                           # localization), "relocalize" (a far pose clearly better: the filter
+                           # moves there), "look_alike" (a far pose not clearly better: ignored),
+                           # "no_opinion" (rejected: no pose to compare)
+    mode: str              # the match's mode: "global", "local" or "check"
+    distance_m: float      # x-y distance of the match pose to the estimate (nan: no opinion)
+    yaw_rad: float         # |yaw difference| (nan: no opinion)
+    pose: np.ndarray | None    # the match pose at the landing scan (4×4, world ← LiDAR)
+    score: float           # the match's BEV score
+    estimate_score: float  # the BEV score of the pose it started from (the best particle)
+
+    def describe(self) -> str:
+        if self.pose is None:
+            return "no pose"
+        x, y = self.pose[0, 3], self.pose[1, 3]
+        return (f"({x:.1f}, {y:.1f}), {self.distance_m:.1f} m and {math.degrees(self.yaw_rad):.0f}° from the "
+                f"estimate; score {self.score:.0f} against the estimate's {self.estimate_score:.0f}")
+
+
+#: How a landing event names each verdict.
+VERDICT_TEXT = {"agrees": "agrees with the estimate", "disagrees": "far from the estimate",
+                "relocalize": "clearly better far from the estimate", "look_alike": "a look-alike far from the estimate",
+                "no_opinion": "no opinion on the estimate"}
+
+
+def judge(mode: str, accepted: bool, unbeaten: bool, pose_k0: np.ndarray | None, estimate_pose: np.ndarray,
+          score: float, start_score: float, cfg: Config) -> Verdict:
+    """The verdict of one landed match (see the module docstring), judged at the scan k₀ it
+    matched. ``pose_k0``: the accepted match, or for a search that nothing beat the start pose;
+    ``estimate_pose``: the filter's estimate at k₀. The verdict's ``pose`` is ``pose_k0`` until
+    the caller carries it forward to the landing scan."""
+    pose_k = pose_k0
+    if pose_k is None or not (accepted or unbeaten):
+        return Verdict("no_opinion", mode, math.nan, math.nan, None, score, start_score)
+    mx, my, _, myaw, _, _ = pose_to_xyz_ypr(pose_k)
+    ex, ey, _, eyaw, _, _ = pose_to_xyz_ypr(estimate_pose)
+    dist = float(math.hypot(mx - ex, my - ey))
+    dyaw = float(abs(wrap_angle(myaw - eyaw)))
+    lc = cfg.localize
+    if dist <= lc.confirm_distance and dyaw <= lc.confirm_yaw:
+        kind = "agrees"
+    elif mode != "check":
+        kind = "disagrees"
+    elif accepted and np.isfinite(start_score) and score >= cfg.s2m.relocalize_score_ratio * max(start_score, 1e-9):
+        kind = "relocalize"
+    else:
+        kind = "look_alike"
+    return Verdict(kind, mode, dist, dyaw, np.asarray(pose_k, np.float64), float(score), float(start_score))
+
+
+class Integrity:
+    """The localizer's record of S2M's word on its estimate: when a match last agreed, when the
+    next whole-map check is due, and how long the scan has fitted poorly."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self.reset()
+
+    def reset(self) -> None:
+        """A new start (restart, re-initialisation, kidnap): nothing confirmed yet."""
+        self.confirmed_at: int | None = None
+        self.rejections_in_row = 0
+        self.poor_fit_scans = 0
+        self.check_reason: str | None = None   # why the next match should search the whole map
+        self.last_check_at: int | None = None
+        self.localized_at: int | None = None
+        self.fit_baseline: list[float] = []    # mean residuals of scans that fitted well while localized
+
+    _STATE = ("confirmed_at", "rejections_in_row", "poor_fit_scans", "check_reason", "last_check_at", "localized_at",
+              "fit_baseline")
+
+    def state(self) -> dict:
+        """What a checkpoint keeps (JSON-ready)."""
+        return {name: getattr(self, name) for name in self._STATE}
+
+    def load(self, state: dict) -> None:
+        """Back to a :meth:`state` (missing entries keep their fresh values)."""
+        for name in self._STATE:
+            if name in state:
+                setattr(self, name, state[name])
+
+    # ------------------------------------------------------------------ confirmation
+    def confirmed_since(self, k0: int | None) -> bool:
+        """Whether a match agreed with the estimate at or after scan ``k0``."""
+        return self.confirmed_at is not None and k0 is not None and self.confirmed_at >= k0
+
+    @property
+    def required(self) -> bool:
+        return bool(self.cfg.localize.require_s2m_confirmation)
+
+    def note_verdict(self, k: int, verdict: Verdict) -> None:
+        if verdict.kind == "agrees":
+            self.confirmed_at = k
+            if verdict.mode in ("global", "check"):
+                self.poor_fit_scans = 0      # the whole map agrees: a poor fit is the world's change
+        if verdict.mode == "local":
+            self.rejections_in_row = 0 if verdict.kind == "agrees" else self.rejections_in_row + 1
+            if self.rejections_in_row >= DISAGREEMENTS_FOR_CHECK:
+                self.want_check(k, f"{self.rejections_in_row} local matches in a row did not agree with the estimate")
+        if verdict.mode == "check":
+            self.rejections_in_row = 0
+
+    # ------------------------------------------------------------------ the second opinion
+    def on_localized(self, k: int) -> None:
+        self.localized_at = k
+        self.last_check_at = k
+
+    def want_check(self, k: int, why: str) -> None:
+        """Ask for a whole-map check at the next match start (unless one ran just now)."""
+        if self.check_reason is None and (self.last_check_at is None
+                                          or k - self.last_check_at >= CHECK_COOLDOWN_SCANS):
+            self.check_reason = why
+
+    def check_due(self, k: int, localized: bool) -> str | None:
+        """Why the match starting at scan k should be a whole-map check (None: it should not)."""
+        interval = self.cfg.s2m.global_check_interval
+        if not localized or interval <= 0:
+            return None
+        if self.check_reason is None and self.last_check_at is not None and k - self.last_check_at >= interval:
+            self.check_reason = f"every {interval} scans"
+        return self.check_reason
+
+    def check_started(self, k: int) -> None:
+        self.check_reason = None
+        self.last_check_at = k
+
+    # ------------------------------------------------------------------ loss
+    def poor_fit(self, inlier_share: float, residual: float | None) -> str | None:
+        """Why the scan fits the map poorly at the estimate (module docstring), or None."""
+        lc = self.cfg.localize
+        if inlier_share < lc.min_inlier_share:
+            return f"inlier share {inlier_share:.2f} < {lc.min_inlier_share:g}"
+        if residual is None or len(self.fit_baseline) < FIT_MIN_SAMPLES:
+            return None
+        base = float(np.median(self.fit_baseline))
+        if residual > max(FIT_RATIO * base, base + FIT_MARGIN_M):
+            return f"mean residual {residual:.2f} m against {base:.2f} m lately"
+        return None
+
+    def note_fit(self, k: int, localized: bool, inlier_share: float, residual: float | None) -> str | None:
+        """Take scan k's fit at the estimate; the loss's detail when a poor fit has lasted too long."""
+        lc = self.cfg.localize
+        if not localized:
+            self.poor_fit_scans = 0
+            self.fit_baseline = []
+            return None
+        why = self.poor_fit(inlier_share, residual)
+        if why is None:
+            self.poor_fit_scans = 0
+            if residual is not None:
+                self.fit_baseline = (self.fit_baseline + [float(residual)])[-FIT_BASELINE_SCANS:]
+            return None
+        self.poor_fit_scans += 1
+        if self.cfg.s2m.global_check_interval > 0:
+            self.want_check(k, why)
+        if lc.lost_after_scans > 0 and self.poor_fit_scans >= lc.lost_after_scans:
+            self.poor_fit_scans = 0
+            return (f"the scan fitted the map poorly ({why}) for {lc.lost_after_scans} scans and no "
+                    "whole-map match agreed with the estimate")
+        return None
+
+
+def fits_clearly_better(candidate: tuple[float, float], estimate: tuple[float, float]) -> bool:
+    """Whether the scan fits the map clearly better at a candidate pose than at the estimate:
+    each is (inlier share, mean residual m) from :func:`~lidarloc.core.filter.likelihood.residual_stats`."""
+    (c_share, c_res), (e_share, e_res) = candidate, estimate
+    if not math.isfinite(c_res):
+        return False
+    if not math.isfinite(e_res):
+        return True
+    return c_res < RELOCALIZE_RESIDUAL_RATIO * e_res and c_share >= e_share

@@ -1,0 +1,13 @@
+"""A run's every step, recorded as it happens and read back (:mod:`.format` describes the files):
+:class:`~.writer.RecordingWriter` appends, :func:`open` reads::
+
+    from lidarloc.core.runs import recording
+    rec = recording.open("out/run0")
+"""
+
+from . import format
+from .format import FOLDER, INDEX, STEPS, VERSION, RecordingError, ResumePayload
+from .reader import Recording, open
+from .writer import RecordingWriter
+
+__all__ = ["FOLDER", "INDEX", "STEPS", "VERSION", "format", "Recording", "RecordingError", "RecordingWriter", "ResumePayload", "open"]

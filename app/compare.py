@@ -186,12 +186,25 @@ def load_run(path) -> RunFigures:
                       curves=curves, origin=origin)
 
 
+def distinct_labels(paths: list[Path]) -> list[str]:
+    """Each path's label: its folder's name, or, where names repeat (the viewer names every first
+    run ``run``), the shortest ending of its path that no other path shares (``a/run``,
+    ``b/run``); the same folder given twice is numbered."""
+    parts = [Path(p).resolve().parts for p in paths]
+    labels = []
+    for i, mine in enumerate(parts):
+        others = [p for j, p in enumerate(parts) if j != i and p != mine]
+        k = 1
+        while k < len(mine) and any(p[-k:] == mine[-k:] for p in others):
+            k += 1
+        labels.append("/".join(mine[-k:]) if k < len(mine) else str(Path(*mine)))
+    return [f"{label} #{labels[:i].count(label) + 1}" if labels.count(label) > 1 else label
+            for i, label in enumerate(labels)]
+
+
 def _labels(runs: list[RunFigures]) -> None:
-    """Each run's label: its folder's name, or more of its path where two names are the same."""
-    names = [r.path.name for r in runs]
-    for r in runs:
-        if names.count(r.path.name) > 1:
-            r.label = str(r.path)
+    for r, label in zip(runs, distinct_labels([r.path for r in runs])):
+        r.label = label
 
 
 # ------------------------------------------------------------------------------------ output

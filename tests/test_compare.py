@@ -127,3 +127,20 @@ def test_bad_input_is_one_line(runs, tmp_path, make):
         compare_runs(args[0], args[1], console=Console(file=io.StringIO()))
     msg = str(exc.value)
     assert args[2] in msg and "\n" not in msg
+
+
+def test_two_folders_of_the_same_name_get_labels_that_tell_them_apart(runs, tmp_path):
+    """The viewer names every first run ``run``: two of them are told apart by the shortest
+    ending of their paths that differs, not by a path cut off in the table."""
+    from lidarloc.app.compare import distinct_labels
+
+    a, b = tmp_path / "2026-11-01T10-00-00" / "run", tmp_path / "2026-11-02T09-30-00" / "run"
+    for src, dst in zip((d for d, _ in runs), (a, b)):
+        shutil.copytree(src, dst)
+    buf = io.StringIO()
+    data = compare_runs([a, b], console=Console(file=buf, width=200))
+    assert [r["label"] for r in data["runs"]] == ["2026-11-01T10-00-00/run", "2026-11-02T09-30-00/run"]
+    text = buf.getvalue()
+    assert "2026-11-01T10-00-00/run" in text and "2026-11-02T09-30-00/run" in text
+    assert distinct_labels([a, a]) == ["run #1", "run #2"]
+    assert distinct_labels([a, tmp_path / "other"]) == ["run", "other"]

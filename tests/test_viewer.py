@@ -363,7 +363,7 @@ def test_status_shows_the_scans_confidence_and_warns_while_it_is_low(viewer):
     assert snap.inlier_share is not None and snap.n_particles == 300
     assert f"| inlier share | {100 * snap.inlier_share:.0f}% · mean residual {snap.mean_residual_m:.2f} m |" in text
     assert f"| N_eff share | {100 * snap.n_eff_share:.1f}% ({snap.n_eff:.0f} of 300)" in text
-    assert f"| converged | {'yes' if snap.converged else 'no'} |" in text
+    assert "| PF converged (std below threshold) | " + ("yes" if snap.converged else "no") in text
     # the warning line: while localized with fewer inliers than localize.min_inlier_share
     floor = loc.cfg.localize.min_inlier_share
     low = replace(snap, localized=True, inlier_share=floor - 0.2)

@@ -97,7 +97,7 @@ def test_particles_truth_and_status_read_as_the_legend_says(viewer):
     heaviest = int(np.argmax(snap.weights))
     assert length[heaviest] == pytest.approx(PARTICLE_ARROW_MAX, rel=1e-4)
     assert length.min() >= PARTICLE_ARROW_MIN - 1e-4
-    # the true vehicle, in white, at the truth; the estimate's in orange at the estimate
+    # the true vehicle, in its own colour, at the truth; the estimate's in orange at the estimate
     truth = v.scene.node("gt_vehicle").points
     assert v.scene.node("gt_vehicle").visible
     assert np.allclose(truth.reshape(-1, 3).mean(axis=0)[:2], snap.gt_pose[:2, 3], atol=1.5)

@@ -107,7 +107,7 @@ def test_scrubbing_shows_the_recorded_step(recorded):
     assert tl.step is None and tl.slider.value == 11
 
 
-def test_dragging_pauses_live_playback(recorded):
+def test_dragging_pauses_live_playback_and_live_plays_on(recorded):
     handle, _ = recorded
     v, loc = handle.viewer, handle.localizer
     tl = v.travel.timeline
@@ -119,36 +119,87 @@ def test_dragging_pauses_live_playback(recorded):
         wait_for(lambda: v.player.idle, what="the scan in progress")
         v.update_display()
         assert v.drawn.scan_index == 2
+        # back to live: the newest scan, and playing again as before the drag
+        tl.buttons.value = "Live"
+        assert tl.step is None and v.player.playing
+        k = loc.k
+        wait_for(lambda: loc.k > k, what="playback going on")
     finally:
+        v.pause()
         tl.live()
+    wait_for(lambda: v.player.idle, what="the scan in progress")
+    assert not v.player.playing                         # Live after a pause by hand stays paused
     wait_for(lambda: v.travel.recorder.n == loc.steps, what="the last step recorded")
     v.update_display()
     assert tl.slider.value == loc.steps - 1
 
 
 def test_event_buttons_land_on_event_steps(recorded):
+    from lidarloc.app.viewer.timeline import DEFAULT_FILTER, EVENT_FILTERS
+
     handle, _ = recorded
     v = handle.viewer
     tl = v.travel.timeline
     rec = recording.open(v.travel.recorder.run_dir)
-    marked = ("localized", "false_positive", "loss", "s2m_accepted", "s2m_rejected", "kidnap", "reset")
-    steps = sorted({max(s, 0) for s, e in rec.events if e.kind in marked})
-    assert len(steps) >= 2, f"the run should have had events by now: {rec.events}"
-    try:
+
+    def walk() -> list:
         tl.go(0)
         landed = []
         while True:
             try:
                 landed.append(tl.next_event())
             except LidarlocError:
-                break
+                return landed
+    try:
+        # "all": every event kind the filter offers, S2M verdicts included
+        tl.kinds.value = "all"
+        steps = sorted({max(s, 0) for s, e in rec.events if e.kind in EVENT_FILTERS["all"]})
+        assert len(steps) >= 2, f"the run should have had events by now: {rec.events}"
+        landed = walk()
         assert landed == [s for s in steps if s > 0 and s < tl.n]
         back = tl.prev_event()
         assert back == landed[-2]
         tl.buttons.value = "◀"            # the button group, as clicked
         assert tl.step == back - 1
+        # the default passes over the S2M verdicts (every few scans) to what changed the run
+        tl.kinds.value = DEFAULT_FILTER
+        run_steps = sorted({max(s, 0) for s, e in rec.events if e.kind in EVENT_FILTERS[DEFAULT_FILTER]})
+        assert walk() == [s for s in run_steps if 0 < s < tl.n]
+        s2m = sorted({max(s, 0) for s, e in rec.events if e.kind.startswith("s2m_") and e.kind != "s2m_started"})
+        assert s2m and not set(s2m) <= set(run_steps)
+        # one kind: only its steps, and the list under the filter names them
+        tl.kinds.value = "S2M"
+        assert walk() == [s for s in s2m if 0 < s < tl.n]
+        assert "s2m accepted" in tl.event_list.content or "s2m rejected" in tl.event_list.content
     finally:
+        tl.kinds.value = DEFAULT_FILTER
         tl.live()
+
+
+def test_scrubbing_clears_or_redraws_another_scans_surface(recorded):
+    handle, _ = recorded
+    v = handle.viewer
+    tl, why = v.travel.timeline, v.why
+    try:
+        tl.go(4)
+        show(v)
+        why.request_surface()
+        wait_for(lambda: why.surface.last is not None, what="the surface of step 4")
+        assert why.surface.last_snapshot.scan_index == tl.run.scan_of(4)
+        tl.go(6)
+        show(v)
+        assert why.surface.last is None and why.surface._image is None      # not scan 4's under scan 6
+        # with "Surface on every scan" the shown scan gets its own
+        why.surface.every_scan.value = True
+        tl.go(7)
+        show(v)
+        wait_for(lambda: why.surface.last is not None and why.surface.last_snapshot.scan_index == tl.run.scan_of(7),
+                 what="the surface of step 7")
+    finally:
+        why.surface.every_scan.value = False
+        why.clear()
+        tl.live()
+        v.pause()
 
 
 def test_view_run_opens_a_finished_run_and_a_moved_source_is_one_line(recorded, cache_root, tmp_path):
@@ -241,9 +292,11 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
         ref = w.travel._ref_nodes["particles"]
         np.testing.assert_allclose(ref.points, b.particles(6)[:, :3], atol=1e-5)
         assert tuple(ref.colors.reshape(-1, 3)[0]) != tuple(w.scene.node("particle_dots").colors.reshape(-1, 3)[0])
-        # both trajectories: the second in its own colour
+        # both trajectories, the second in its own colour, end at the step on screen
         ref_pts = np.concatenate([h.points.reshape(-1, 3) for h in w.travel.ref_line.handles])
-        assert np.allclose(ref_pts[-1], b.mean_pose[b.n - 1][:3, 3], atol=1e-4)
+        assert np.allclose(ref_pts[-1], b.mean_pose[6][:3, 3], atol=1e-4)
+        own = np.concatenate([h.points.reshape(-1, 3) for h in w.scene.est_line.handles])
+        assert np.allclose(own[-1], a.mean_pose[6][:3, 3], atol=1e-4)
         # a step past the second run's end shows its last step
         tl.go(a.n - 1)
         w.update_display()
@@ -258,7 +311,8 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
         np.testing.assert_allclose(y_ref[: b.n], share, rtol=1e-9)
         # the table: both runs' figures side by side
         table = w.travel.compare_text.content
-        assert first.name in table and second.name in table and "RMSE after localized" in table
+        assert first.name in table and second.name in table and "RMSE while localized" in table
+        assert "steps from 0" in table
         assert table.count("|") > 20
     finally:
         h2.stop()
@@ -305,6 +359,26 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     v.update_display()
     np.testing.assert_allclose(v.scene.node("particle_dots").points, orig.particles(2)[:, :3], atol=1e-5)
     assert "B: scans until the rule" in v.travel.compare_text.content
+    # the Compare table follows the branch as it plays: its figures are of the steps after the
+    # branch point only (before it, both runs are the same run)
+    tl.live()
+
+    def compared(n_branch: int) -> bool:
+        v.update_display()
+        return f"branch after scan {scan} 9…{n_branch - 1}" in v.travel.compare_text.content
+    wait_for(lambda: compared(12), what="the Compare table over the branch's 3 steps")
+    v.step_once()
+    wait_for(lambda: v.player.idle and v.travel.recorder.n == 13, what="one more branch step")
+    wait_for(lambda: compared(13), what="the Compare table following the branch")
+    table = v.travel.compare_text.content
+    rec = recording.open(branch_dir)
+    err, loc = rec.error_m[:4], rec.localized[:4].astype(bool)
+    row = next(line for line in table.splitlines() if line.startswith("| steps compared |"))
+    assert row.split("|")[2].strip() == "4"                     # the branch's own steps only
+    if loc.any():
+        rmse = float(np.sqrt(np.mean(err[loc] ** 2)))
+        row = next(line for line in table.splitlines() if line.startswith("| RMSE while localized"))
+        assert row.split("|")[2].strip() == (f"{rmse:.2f}" if rmse < 100 else f"{rmse:.0f}")
 
 
 @pytest.mark.parametrize("command", ["demo", "view"])

@@ -2,15 +2,16 @@
 thread that draws the newest snapshot, and the localizer's arrival (or failure to start).
 
 The panel's controls are built in :mod:`~lidarloc.app.viewer.panel`; every folder with controls
-has a section below, whose ``_wire_*`` method connects each control to the handler that follows
-it (each tab's own camera folder is wired in :mod:`~lidarloc.app.viewer.camera`). Handlers run on
+has a section below (the Particles and Parameters folders in :mod:`~lidarloc.app.viewer.controls`),
+whose ``_wire_*`` method connects each control to the handler that follows it (each tab's own
+camera folder is wired in :mod:`~lidarloc.app.viewer.camera`, the keyboard shortcuts in
+:mod:`~lidarloc.app.viewer.keys`). Handlers run on
 viser's worker threads through :meth:`Viewer._guard`: a refused value or a failure becomes a
 message in the panel, never a dead callback or server.
 """
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -18,23 +19,23 @@ import traceback
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Callable
 
-import numpy as np
 import viser
 
-from ...core.config import check_live_changes
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
 
-from .camera import TabCameras
-from .ground import clicked_point, dragged_region, pose_on_ground
+from .camera import TabCameras, start_pose
+from .controls import ParameterControls, ParticleControls, whole_number
 from .history import History
+from .keys import add_shortcuts
 from .layers import LayerFolder
 from .panel import build_panel
 from .params import ParamForm
 from .player import Player
-from .readouts import Readouts, status_markdown
+from .readouts import Readouts
 from .scene import SceneView
-from .style import MIN_DRAW_INTERVAL, SHIFT, error_markdown
+from .status import AlarmNotice, play_state, viewer_status
+from .style import MIN_DRAW_INTERVAL, error_markdown
 from .travel import TimeTravel
 from .why import WhyViews
 
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 STOP_WAIT_S = 5.0
 
 
-class Viewer:
+class Viewer(ParticleControls, ParameterControls):
     """GUI, scene and threads around one Localizer. Use
     :func:`~lidarloc.app.viewer.serve.serve` to start one."""
 
@@ -89,6 +90,9 @@ class Viewer:
         self._last_draw = 0.0
         self._last_update = 0.0
         self.first_scan_shown = threading.Event()    # set once a processed scan has been drawn
+        self.step_failed: str | None = None          # the newest failed step's message
+        self.alarm = AlarmNotice(lambda text: self.show_message(text, error=True, everyone=True,
+                                                                title="lidarloc: false fire"))
         self._syncing = False           # set while the viewer itself writes GUI values
         self._wire_playback()
         self._wire_particles()
@@ -137,10 +141,12 @@ class Viewer:
         finally:
             self._syncing = False
 
-    def show_message(self, text: str, error: bool = False, client=None, everyone: bool = False) -> None:
+    def show_message(self, text: str, error: bool = False, client=None, everyone: bool = False,
+                     title: str | None = None) -> None:
         """A message in the panel (the last one stays there) and as a notification where the
         user looks: to ``client``, else to the tab whose action is being handled, or to every
-        open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start)."""
+        open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start).
+        ``title``: the notification's (default: from the kind of message)."""
         self._message = text
         self.controls.message.content = error_markdown(text) if error else text
         self.controls.message.visible = bool(text)
@@ -148,10 +154,12 @@ class Viewer:
             return
         client = client if client is not None else getattr(self._acting, "client", None)
         tabs = [client] if client is not None else (list(self.server.get_clients().values()) if everyone else [])
+        if title is None:
+            title = ("lidarloc" if not error else "lidarloc: refused" if text.startswith("refused")
+                     else "lidarloc: error")
         for tab in tabs:
             try:
-                tab.add_notification("lidarloc" if not error else "lidarloc: refused" if text.startswith("refused")
-                                     else "lidarloc: error", text, color="red" if error else "blue",
+                tab.add_notification(title, text, color="red" if error else "blue",
                                      auto_close_seconds=6.0 if not error else 10.0)
             except Exception:  # the tab may have closed meanwhile; the panel message stays
                 pass
@@ -207,6 +215,9 @@ class Viewer:
         when the first tab opens, or not at all: see ``autoplay``)."""
         self.localizer = localizer
         self.show_map(localizer.prior_map)
+        start = start_pose(localizer)
+        if start is not None:
+            self.cameras.near(start)
         self._adopt(localizer)
         with self._start_lock:
             self._ready.set()
@@ -301,6 +312,7 @@ class Viewer:
         self._wake.set()
 
     def _on_player_error(self, message: str) -> None:
+        self.step_failed = message
         self.show_message(message, error=True, everyone=True)
         self._wake.set()
 
@@ -330,12 +342,14 @@ class Viewer:
         ms = 0.0
         if snap is not None and snap is not self._drawn:
             t0 = time.perf_counter()
+            step = self.travel.timeline.step
             with self.server.atomic():
-                self.scene.draw(snap, self.history)
+                self.scene.draw(snap, self.history, cut=None if shown is None or step is None else step + 1)
             self._drawn = snap
             if snap.scan_index >= 0:
                 self.first_scan_shown.set()
-            self.why.on_draw(snap)
+            self.why.on_draw(snap, recorded=shown is not None)
+            self.alarm.check(snap, live=shown is None)
             self.readouts.update_status(self.status_markdown(snap))
             self.cameras.follow(snap)
             ms = (time.perf_counter() - t0) * 1000.0
@@ -349,32 +363,10 @@ class Viewer:
         return ms
 
     def _play_state(self) -> str:
-        p = self.player
-        if p is None:
-            return "starting"
-        if self.localizer is not None and self.localizer.done and p.idle:
-            return "finished"
-        if p.playing:
-            return "playing"
-        return "paused" if p.idle else "stepping"
+        return play_state(self.player, self.localizer)
 
     def status_markdown(self, snap: Snapshot) -> str:
-        p, loc = self.player, self.localizer
-        clock = p.clock if p else "replay"
-        floor = None if loc is None else loc.cfg.localize.min_inlier_share
-        recorded = self.travel.scrubbing
-        if recorded:
-            # the scan on the timeline, as it was recorded: its own events, no live rates
-            state = "recorded" if loc is None else f"recorded (live run {self._play_state()})"
-            events = [e for e in snap.events][-6:]
-        else:
-            state, events = self._play_state(), self.history.recent_events()
-        return status_markdown(snap, state, clock, self.controls.speed.value,
-                               events, min_inlier_share=floor,
-                               s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
-                               rate=None if p is None or recorded else p.achieved_rate(),
-                               lag_s=None if p is None or recorded else p.lag_s,
-                               next_scan=None if loc is None or recorded else loc.k)
+        return viewer_status(self, snap)
 
     def _sync_play_button(self) -> None:
         p, play = self.player, self.controls.play
@@ -403,6 +395,7 @@ class Viewer:
         c.speed.on_update(self._guarded(self._apply_speed, needs_localizer=False))
         c.clock.on_update(self._guarded(self._apply_clock))
         c.restart.on_click(self._guarded(self._restart))
+        self.shortcuts = add_shortcuts(self.server.gui)
 
     def play(self) -> None:
         self.travel.to_live()
@@ -410,6 +403,7 @@ class Viewer:
         self._wake.set()
 
     def pause(self) -> None:
+        self.travel.keep_paused()
         self.player.pause()
         self._wake.set()
 
@@ -460,7 +454,7 @@ class Viewer:
         self.show_message(f"clock: {clock}")
 
     def _restart(self) -> None:
-        seed = _whole_number(self.controls.seed, "seed", 0)
+        seed = whole_number(self.controls.seed, "seed", 0)
         with self.travel.lock:
             self.travel.close()
             self.localizer.restart(seed=seed)
@@ -468,101 +462,10 @@ class Viewer:
         self.history.clear()
         self.scene.clear()
         self.why.clear()
+        self.alarm.clear()
         self.player.rebase()
         self.publish(self.localizer.snapshot())
         self.show_message(f"restarted from scan 0 with seed {seed}")
-
-    # ============================================================== Particles folder and scene picks
-    def _wire_particles(self) -> None:
-        c = self.controls
-        c.reset.on_click(self._guarded(self.reset))
-        c.kidnap.on_click(self._guarded(self._kidnap))
-        self.server.scene.on_click(modifier=SHIFT)(self.on_shift_click)
-        self.server.scene.on_rect_select(modifier=SHIFT)(self.on_shift_rect)
-
-    def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
-        with self.travel.lock:      # between two recorded steps, never inside one
-            self.localizer.reset(pose=pose, region=region)
-        if pose is not None or region is not None:
-            last = self._latest.scan_index if self._latest is not None else -1
-            self.scene.show_reset_area(last, center=None if pose is None else pose[:3, 3], region=region)
-        self.publish(self.localizer.snapshot())
-        where = ("globally" if pose is None and region is None else
-                 f"around ({pose[0, 3]:.1f}, {pose[1, 3]:.1f})" if pose is not None else
-                 "in x {:.0f}…{:.0f}, y {:.0f}…{:.0f} m".format(region[0], region[2], region[1], region[3]))
-        self.show_message(f"particles reset {where}")
-
-    def on_shift_click(self, event) -> None:
-        """Shift+click on the ground: reset the particles around that point."""
-        def act():
-            hit = clicked_point(self.scene.ground, event.ray_origin, event.ray_direction)
-            self.reset(pose=pose_on_ground(self.scene.ground, hit[0], hit[1], self.localizer.cfg.pf.sensor_height))
-        self._guard(event, act)
-
-    def on_shift_rect(self, event) -> None:
-        """Shift+drag a rectangle on the ground: reset the particles inside it."""
-        self._guard(event, lambda: self.reset(
-            region=dragged_region(self.scene.ground, event.client.camera, event.screen_min, event.screen_max)))
-
-    def _kidnap(self) -> None:
-        skip = _whole_number(self.controls.kidnap_skip, "kidnap skip", 1)
-        before = self.localizer.k
-        with self.travel.lock:
-            target = self.localizer.kidnap(skip)
-        self.player.rebase()
-        if target is None:
-            target = self.localizer.k
-        self._publish_after_control()
-        self.show_message(f"kidnapped: the vehicle jumped from scan {before} to {target}; the filter was not told")
-
-    def _publish_after_control(self) -> None:
-        """Show what a control just changed at once, also while paused: the localizer brings its
-        snapshot up to date after a kidnap or S2M switched off."""
-        self.publish(self.localizer.snapshot())
-
-    # ============================================================== Parameters folder
-    def _wire_parameters(self) -> None:
-        c = self.controls
-        # no localizer needed: on a recorded run the numbers are what "Branch from here" takes
-        for h in list(c.params.values()) + c.q:
-            h.on_update(self._guarded(self._mark_pending, needs_localizer=False))
-        c.s2m_enabled.on_update(self._guarded(self._apply_s2m_enabled))
-        c.apply.on_click(self._guarded(self.apply_params))
-
-    def _mark_pending(self) -> None:
-        """The Apply button says how many numbers differ from what the localizer has."""
-        n = len(self.params.changed()) if self.params.applied else 0    # nothing shown yet: nothing changed
-        apply = self.controls.apply
-        label = f"Apply {n} change{'s' if n != 1 else ''}" if n else "Apply"
-        # one message to the clients: with three, "Apply 1 change" could show while the button
-        # was still disabled, and a quick click on it was lost (seen once in the browser test)
-        with self.server.atomic():
-            if apply.label != label:
-                apply.label = label
-            apply.disabled = n == 0
-            apply.color = "orange" if n else None
-
-    def _apply_s2m_enabled(self) -> None:
-        on = bool(self.controls.s2m_enabled.value)
-        self.localizer.set_params(s2m_enabled=on)
-        self._publish_after_control()
-        self.show_message(f"scan-to-map matching {'on' if on else 'off'} from the next scan")
-
-    def apply_params(self) -> dict:
-        """Send the changed numbers to the localizer (effective from the next scan). All or nothing:
-        an invalid value refuses the whole change with a message. Returns what was sent (SI)."""
-        changed = self.params.changed()
-        if not changed:
-            return {}
-        si = self.params.to_si(changed)
-        check_live_changes(self.localizer.cfg, si)
-        with self.travel.lock:
-            self.localizer.set_params(**si)
-        self.params.accept(changed)
-        self._mark_pending()
-        self.show_message(f"applied from the next scan: {self.params.names(changed)}")
-        self._wake.set()
-        return si
 
     # ============================================================== shutdown
     def stop(self) -> None:
@@ -579,11 +482,3 @@ class Viewer:
             traceback.print_exc(file=sys.stderr)
         if self._display.is_alive():
             self._display.join(timeout=STOP_WAIT_S)
-
-
-def _whole_number(handle, what: str, minimum: int) -> int:
-    """The value of a number field, checked to be a whole number ≥ ``minimum``."""
-    v = handle.value
-    if not (isinstance(v, (int, float)) and math.isfinite(v) and float(v).is_integer() and v >= minimum):
-        raise LidarlocError(f"{what} must be a whole number ≥ {minimum}, got {v}")
-    return int(v)

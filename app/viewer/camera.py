@@ -106,6 +106,24 @@ class TabCameras:
                 client.camera.position = position
                 client.camera.look_at = look_at
 
+    def near(self, pose: np.ndarray, back: float = 45.0, up: float = 35.0) -> None:
+        """New tabs, and those open now, look at the vehicle at ``pose`` (4×4) from behind and
+        above: the run plays there, and a whole-map view of a town left the vehicle a few pixels
+        wide."""
+        T = np.asarray(pose, float)
+        target = T[:3, 3]
+        if not np.isfinite(T).all():
+            return
+        yaw = math.atan2(T[1, 0], T[0, 0])
+        position = target + np.array([-back * math.cos(yaw), -back * math.sin(yaw), up])
+        self.server.initial_camera.look_at = tuple(target)
+        self.server.initial_camera.position = tuple(position)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = position
+                client.camera.look_at = target
+
     def follow(self, snap: Snapshot) -> None:
         """Move the cameras of the tabs that follow the vehicle onto the estimate of ``snap``."""
         p = _position(snap)
@@ -127,3 +145,13 @@ class TabCameras:
                     cam.position = np.asarray(cam.position) + shift   # moves look_at along
             except (AssertionError, ValueError):  # camera state not reported yet
                 continue
+
+
+def start_pose(localizer) -> np.ndarray | None:
+    """Where the vehicle starts, as far as the viewer knows before the first scan: the truth of
+    the next scan (None without truth: the camera keeps the whole map in view)."""
+    seq = localizer.seq
+    try:
+        return np.asarray(seq.pose(localizer.k), float) if seq.has_poses else None
+    except Exception:  # a source that cannot say: the whole map stays in view
+        return None

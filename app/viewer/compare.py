@@ -1,39 +1,53 @@
-"""The Compare folder's table: two runs' summary figures side by side — the paper's metrics A–E,
-the position RMSE after localization, the PF latency — from each run's ``summary.json`` where it
-has one, else computed from its recorded steps (a viewer run, or a process that was killed)."""
+"""The Compare folder's table: two runs' figures side by side, over the same steps, following the
+runs as they grow.
+
+A branch and its original share every step before the branch point: figures over whole runs
+mix those in and differ only by what came after. So the table compares the steps from the
+branch point (step 0 for two separate runs) to each run's newest step: the position
+RMSE while localized, the share of those steps localized, the largest error while localized,
+the false fires (onsets of localization more than 5 m from the truth: the summaries'
+``false_fire`` test) and the PF latency. The paper's metrics A–E count scans from a run's start,
+so they are computed from step 0 to the same end. Everything is read from the recorded steps
+(a few per-step fields of each recording), so the table follows a branch while it plays."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ...core.rules.truth import FALSE_FIRE_M
 from ...core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics
 
 from .style import css
 
 ROWS = (("A", "A: scans until localized (sum)"), ("B", "B: scans until the rule"),
         ("C", "C: … within 5 m for 10"), ("D", "D: … within 5 m for 50"), ("E", "E: … within 2.5 m for 50"),
-        ("rmse_after_localized_m", "RMSE after localized (m)"), ("pf_ms_median", "PF latency, median (ms)"),
-        ("s2m_ms_median", "S2M latency, median (ms)"), ("scans", "scans"))
+        ("rmse_after_localized_m", "RMSE while localized (m)"), ("localized_share", "steps localized"),
+        ("max_error_localized_m", "max error while localized (m)"), ("false_fires", "false fires (> 5 m)"),
+        ("pf_ms_median", "PF latency, median (ms)"), ("scans", "steps compared"))
 
 
-def figures_of(summary: dict | None, series: dict | None = None) -> dict:
-    """The table's figures of one run: its summary, else computed from its recorded ``series``
-    (:meth:`RecordedRun.series`, with ``localized``)."""
-    if summary:
-        out = {k: summary.get(k) for k, _ in ROWS}
-        out.update({k: (summary.get("metrics") or {}).get(k) for k in METRIC_KEYS})
-        return out
-    if series is None or not len(series.get("scan", ())):
+def window_figures(cols: dict, start: int) -> dict:
+    """The table's figures of one run from its per-step ``cols`` (``error``, ``localized``,
+    ``pf_ms`` of steps 0 … end − 1, :meth:`RecordedRun.columns`): A–E over all of them, the rest
+    over the steps from ``start`` on."""
+    err = np.asarray(cols["error"], float)
+    loc = np.asarray(cols["localized"], bool)
+    if not len(err):
         return {}
-    err = np.asarray(series["error"], float)
-    loc = np.asarray(series.get("localized", np.zeros(len(err), bool)), bool)
     metrics = compute_metrics(ScanLog(loc, err))
-    after = err[loc & np.isfinite(err)]
-    pf = np.asarray(series["pf_ms"], float)
+    e, lo = err[start:], loc[start:]
+    known = lo & np.isfinite(e)
+    onset = lo & ~np.r_[loc[start - 1] if start > 0 else False, lo[:-1]]
+    pf = np.asarray(cols["pf_ms"], float)[start:]
+    pf = pf[np.isfinite(pf)]
+    has_truth = bool(np.isfinite(e).any())
     return {**{k: metrics.get(k) for k in METRIC_KEYS},
-            "rmse_after_localized_m": float(np.sqrt(np.mean(after ** 2))) if after.size else None,
-            "pf_ms_median": float(np.median(pf)) if pf.size else None, "s2m_ms_median": None,
-            "scans": int(len(err))}
+            "rmse_after_localized_m": float(np.sqrt(np.mean(e[known] ** 2))) if known.any() else None,
+            "localized_share": f"{100 * lo.mean():.0f}%" if len(lo) else None,
+            "max_error_localized_m": float(e[known].max()) if known.any() else None,
+            "false_fires": int(np.sum(onset & np.isfinite(e) & (e > FALSE_FIRE_M))) if has_truth else None,
+            "pf_ms_median": float(np.median(pf)) if pf.size else None,
+            "scans": int(len(e))}
 
 
 def _cell(v) -> str:
@@ -44,13 +58,28 @@ def _cell(v) -> str:
     return str(v)
 
 
-def summary_table(runs: list[tuple[str, dict]], colours=()) -> str:
-    """Markdown: one column per (label, figures of :func:`figures_of`)."""
+def summary_table(runs: list[tuple[str, dict]], colours=(), caption: str = "") -> str:
+    """Markdown: one column per (label, figures of :func:`window_figures`), ``caption`` above."""
     head = []
     for i, (label, _) in enumerate(runs):
         c = colours[i] if i < len(colours) else None
         head.append(f"<span style='color:{css(c)}'>{label}</span>" if c is not None else label)
-    lines = ["| | " + " | ".join(head) + " |", "|---" * (len(runs) + 1) + "|"]
+    lines = [caption, ""] if caption else []
+    lines += ["| | " + " | ".join(head) + " |", "|---" * (len(runs) + 1) + "|"]
     for key, label in ROWS:
         lines.append(f"| {label} | " + " | ".join(_cell((fig or {}).get(key)) for _, fig in runs) + " |")
     return "\n".join(lines)
+
+
+def compare_markdown(primary, reference, labels: tuple[str, str], colours=(None, None)) -> str:
+    """The Compare folder's content for two :class:`~lidarloc.app.viewer.recorded.RecordedRun`:
+    each run's steps from where ``primary`` branched (0 for two separate runs) to its newest."""
+    start = int(primary.first_step) if primary.parent is not None else 0
+    a, b = primary.columns(), reference.columns()
+    spans = ", ".join(f"{label} {start}…{n - 1}" if n > start else f"{label} none yet"
+                      for label, n in ((labels[0], len(a["error"])), (labels[1], len(b["error"]))))
+    where = f"after the branch point, steps from {start}" if start else "steps from 0"
+    caption = f"<small>{where} ({spans}); A–E count from step 0</small>"
+    return summary_table([(labels[0], window_figures(a, min(start, len(a["error"])))),
+                          (labels[1], window_figures(b, min(start, len(b["error"]))))],
+                         colours=colours, caption=caption)

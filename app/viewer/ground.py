@@ -34,6 +34,18 @@ class GroundHeight:
             return float(self.grid[i, j])
         return self.z_default
 
+    def level(self, x: float, y: float, radius: float = 5.0) -> float:
+        """The road's height around (x, y): the median of the lowest heights of the cells within
+        ``radius`` (one cell's lowest point is its lowest road point, below the road's mean by
+        the noise; a cell inside a building has its roof as lowest point, outvoted here). The
+        default height outside the map."""
+        r = int(math.ceil(radius / self.cell))
+        i = int((x - self.origin[0]) // self.cell)
+        j = int((y - self.origin[1]) // self.cell)
+        cells = self.grid[max(i - r, 0):max(i + r + 1, 0), max(j - r, 0):max(j + r + 1, 0)]
+        low = cells[np.isfinite(cells)]
+        return float(np.median(low)) if low.size else self.z_default
+
     def hit(self, origin, direction) -> np.ndarray | None:
         """Where a ray meets the ground (two passes: a flat ground, then the local height there)."""
         o, d = np.asarray(origin, float), np.asarray(direction, float)

@@ -16,7 +16,8 @@ from .style import EVENTS_SHOWN
 SERIES = ("std", "spread", "error", "along", "cross", "vertical", "heading", "n_eff_share",
           "pf_ms", "rpe_ms", "s2m_ms")
 #: the events the plots mark on the scan axis
-MARKED_EVENTS = ("localized", "false_positive", "loss", "reset", "kidnap", "s2m_accepted", "s2m_rejected")
+MARKED_EVENTS = ("localized", "false_fire", "false_positive", "loss", "relocalized", "reset", "kidnap",
+                 "s2m_accepted", "s2m_rejected")
 
 
 def cloud_spread(particles: np.ndarray) -> float:

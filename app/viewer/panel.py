@@ -11,12 +11,12 @@ from .legend import legend_markdown
 from .params import CLOCK, NUMBER_FIELDS, Q_STD, S2M_ENABLED, q_labels
 from .plots import Plots
 from .scene import Layers
-from .style import SPEEDS
+from .style import GT_NAME, SPEEDS
 
 LAYER_LABELS = (("map", "Map"), ("map_bev", "Map, road removed"), ("particles", "Particles"),
                 ("scan", "Current scan (green)"), ("s2m", "Last S2M match"),
-                ("trajectories", "Trajectories (white: truth, orange: estimate)"),
-                ("vehicles", "Vehicles (white: truth, orange: estimate)"),
+                ("trajectories", f"Trajectories ({GT_NAME}: truth, orange: estimate)"),
+                ("vehicles", f"Vehicles ({GT_NAME}: truth, orange: estimate)"),
                 ("ellipse", "2σ ellipse"), ("bev_level", "BEV pyramid level"))
 
 

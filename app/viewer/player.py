@@ -73,6 +73,7 @@ class Player:
         self.steps_done = 0                      # steps completed since start (any reason)
         self._finished_at: deque[float] = deque(maxlen=256)   # start times of steps finished while playing
         self._lag: float | None = None           # realtime: how late the newest step started after its scan arrived
+        self._playing_since: float | None = None  # wall time play() was last pressed
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
 
     # ------------------------------------------------------------------ controls (any thread)
@@ -83,6 +84,7 @@ class Player:
         with self._cond:
             if not self._playing:
                 self._playing = True
+                self._playing_since = time.perf_counter()
                 self._anchor = None
                 self._last_start = None
                 self._finished_at.clear()
@@ -127,15 +129,24 @@ class Player:
 
     def achieved_rate(self, window: float = RATE_WINDOW_S) -> float | None:
         """Scans per second actually processed while playing, over the last ``window`` seconds
-        (None while paused or before two scans finished in that window)."""
+        (None while paused, and until two scans finished or a whole window went by).
+
+        A step that is still running counts as it runs: one that waits seconds for a block pulls
+        the rate down while it waits (down to 0 once a whole window passed without a step),
+        instead of the rate of the scans before it staying on screen."""
         now = time.perf_counter()
         with self._cond:
             if not self._playing:
                 return None
             t = [x for x in self._finished_at if x >= now - window]
-        if len(t) < 2 or t[-1] <= t[0]:
-            return None
-        return (len(t) - 1) / (t[-1] - t[0])
+            busy, since = self._busy, self._playing_since
+        if len(t) >= 2 and t[-1] > t[0]:
+            rate = (len(t) - 1) / (t[-1] - t[0])
+            # the running step's interval ends no earlier than now
+            return min(rate, len(t) / (now - t[0])) if busy else rate
+        if since is not None and now - since >= window:
+            return len(t) / window
+        return None
 
     @property
     def lag_s(self) -> float | None:

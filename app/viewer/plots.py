@@ -25,7 +25,8 @@ from .style import CURSOR_COLOR, PLOT_MAX_POINTS
 # events marked on the curves: (label, colour, the event kinds)
 RUN_MARKS = (("localized", "#5be35b", ("localized",)),
              ("lost / false positive", "#ff5a5a", ("loss", "false_positive")),
-             ("reset / kidnap", "#ffffff", ("reset", "kidnap")))
+             ("false fire (truth > 5 m)", "#ff2a2a", ("false_fire",)),
+             ("reset / kidnap / relocalized", "#ffffff", ("reset", "kidnap", "relocalized")))
 S2M_MARKS = (("S2M accepted", "#ff3cff", ("s2m_accepted",)),
              ("S2M rejected", "#969696", ("s2m_rejected",)))
 assert {k for _, _, kinds in RUN_MARKS + S2M_MARKS for k in kinds} == set(MARKED_EVENTS)

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from ...core.rules.truth import truth_alarm as core_truth_alarm
 from ...core.snapshot import Snapshot
 
 from .history import History
@@ -20,19 +21,122 @@ BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior
                 "ready": "Ready"}
 
 
+AMBER_CSS = "#ffb347"
+GREEN_CSS = "#5be35b"
+
+
+def _coloured(text: str, colour: str) -> str:
+    return f"<span style='color:{colour}'>**{text}**</span>"
+
+
+def s2m_readiness(snap: Snapshot, live: tuple[str, str] | None = None, s2m_enabled: bool = True) -> tuple[str, str]:
+    """(status, detail) of S2M: ``live`` (the localizer's ``s2m_status()``, which moves on while
+    the player is paused) where given, else the snapshot's; a snapshot from a localizer that only
+    says ``s2m_pending`` counts as building."""
+    status, detail = live if live is not None else (snap.s2m_status, snap.s2m_status_detail)
+    if not s2m_enabled:
+        return "off", ""
+    if status == "ready" and snap.s2m_pending:
+        return "building", "road-removed map and BEV pyramid"
+    return status, detail
+
+
+def s2m_not_ready_text(status: str, detail: str) -> str:
+    """The status line while the filter runs without S2M (empty when S2M is ready)."""
+    if status == "ready":
+        return ""
+    if status == "off":
+        return "PF only — S2M off"
+    if status == "building":
+        return f"PF only — S2M not ready (building{': ' + detail if detail else ' its tables'})"
+    return f"PF only — S2M not ready ({detail or status})"
+
+
+def truth_alarm(snap: Snapshot) -> str | None:
+    """The snapshot's truth alarm: localized while the truth is farther than
+    :data:`~lidarloc.core.rules.truth.FALSE_FIRE_M` (a snapshot made without it, e.g. by a stand-in
+    localizer, gets the same test on its figures). None without truth."""
+    if snap.gt_pose is None and snap.error_m is None:
+        return None
+    return snap.truth_alarm or core_truth_alarm(bool(snap.localized), snap.error_m)
+
+
+def _next_scan_line(snap: Snapshot, next_scan: int | None, clock: str, events: list, finished: bool) -> str:
+    """Why the next scan is not the one after the shown one: a kidnap, or scans the real-time
+    clock dropped to keep up."""
+    if next_scan is None or finished or next_scan == snap.scan_index + 1:
+        return ""
+    if any(e.kind == "kidnap" and e.scan == snap.scan_index for e in events):
+        return f"next scan: {next_scan} (the vehicle was moved; the filter was not told)"
+    if clock == "realtime":
+        n = next_scan - snap.scan_index - 1
+        return f"next scan: {next_scan} ({n} scan{'s' if n != 1 else ''} dropped to keep up with the sensor)"
+    return f"next scan: {next_scan}"
+
+
+def _verdict_lines(snap: Snapshot, s2m: tuple[str, str]) -> list[str]:
+    """Localized (green) only when the localizer says so and the truth does not contradict it."""
+    alarm = truth_alarm(snap)
+    not_ready = s2m_not_ready_text(*s2m)
+    lines = []
+    if alarm:
+        lines.append(error_markdown(f"⚠ false fire: {alarm}"))
+    elif snap.localized:
+        since = "" if snap.localized_since is None else f" since scan {snap.localized_since}"
+        confirmed = "" if snap.confirmed_at is None else f" · S2M confirmed at scan {snap.confirmed_at}"
+        lines.append(_coloured(f"localized{since}", GREEN_CSS) + confirmed)
+    elif snap.awaiting_confirmation:
+        lines.append(_coloured("PF converged — waiting for S2M to confirm", AMBER_CSS))
+    else:
+        lines.append(_coloured("not localized", AMBER_CSS))
+    if not_ready:
+        lines.append(_coloured(not_ready, AMBER_CSS))
+    return lines
+
+
+def _converged_cell(snap: Snapshot, s2m_ready: bool) -> str:
+    """The PF's own convergence, worded so that it never reads as the localizer's verdict."""
+    if not snap.converged:
+        return "no"
+    if snap.localized:
+        return "yes"
+    return "yes — PF only, not confirmed by S2M" if snap.awaiting_confirmation or not s2m_ready else \
+        "yes — the localization rule is not met yet"
+
+
+def _s2m_cell(snap: Snapshot, s2m: tuple[str, str], finished: bool) -> str:
+    status, detail = s2m
+    if status == "off":
+        return "off"
+    if status == "building":
+        return f"building in the background: {detail or 'road-removed map and BEV pyramid'}"
+    if status == "held":
+        return detail or "held back"
+    s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
+    running = " · running" if snap.s2m_running and not finished else ""
+    return f"{s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running}"
+
+
 def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list,
                     min_inlier_share: float | None = None, *, s2m_enabled: bool = True,
-                    rate: float | None = None, lag_s: float | None = None, next_scan: int | None = None) -> str:
-    """The status table: scan counter, play state, localized or not, the filter's figures, the
-    scan's confidence and the recent events (newest first). ``speed`` is the replay speed set
+                    rate: float | None = None, lag_s: float | None = None, next_scan: int | None = None,
+                    playing: bool = False, s2m_status: tuple[str, str] | None = None) -> str:
+    """The status table: scan counter, play state, the localizer's verdict, the filter's figures,
+    the scan's confidence and the recent events (newest first). ``speed`` is the replay speed set
     (scans/s; None: not shown); a ``state`` "recorded…" (a scan the timeline shows) names no
     clock; ``rate`` the scans/s achieved lately and ``lag_s`` how far behind the sensor clock
-    the filter is (real-time clock), both while playing (None: not shown). ``next_scan``: the
-    scan the localizer processes next, named when it is not the one after ``snap`` (the vehicle
-    was kidnapped). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with
-    fewer of the scan's points fitting the map than this, a warning line says so (the
+    the filter is (real-time clock), both while playing (None: not shown; ``playing`` with no
+    rate yet says it is being measured). ``next_scan``: the scan the localizer processes next,
+    named when it is not the one after ``snap`` (a kidnap, or scans the real-time clock
+    dropped). ``min_inlier_share`` (``localize.min_inlier_share``): while localized with fewer
+    of the scan's points fitting the map than this, a warning line says so (the
     ``confidence_low`` condition). ``s2m_enabled``: with S2M off its row says so instead of the
-    last match's figures."""
+    last match's figures; ``s2m_status``: the localizer's live (status, detail) of S2M (default:
+    the snapshot's).
+
+    The verdict is green only when the localizer says localized and the truth (where known)
+    does not contradict it; a filter that converged without S2M's word, or runs without S2M,
+    reads amber."""
     speed = "" if clock == "realtime" or speed is None else f", set to {speed} scans/s"
     k = "–" if snap.scan_index < 0 else str(snap.scan_index)
     clocked = "" if state.startswith("recorded") else f" ({clock}{speed})"
@@ -44,14 +148,14 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
         lines.append(achieved)
         if lag_s is not None and lag_s > REALTIME_LATE_S:
             lines.append(error_markdown(f"⚠ falling behind the sensor: {lag_s:.2f} s late"))
+    elif playing:
+        lines.append("achieved – scans/s (measuring)")
     finished = state == "finished" or snap.done
-    if next_scan is not None and not finished and next_scan != snap.scan_index + 1:
-        lines.append(f"next scan: {next_scan} (the vehicle was moved; the filter was not told)")
-    if snap.localized:
-        since = "" if snap.localized_since is None else f" since scan {snap.localized_since}"
-        lines.append(f"<span style='color:#5be35b'>**localized**{since}</span>")
-    else:
-        lines.append("<span style='color:#ffb347'>**not localized**</span>")
+    moved = _next_scan_line(snap, next_scan, clock, events, finished)
+    if moved:
+        lines.append(moved)
+    s2m = s2m_readiness(snap, s2m_status, s2m_enabled)
+    lines += _verdict_lines(snap, s2m)
     share = snap.inlier_share
     if snap.localized and share is not None and min_inlier_share is not None and share < min_inlier_share:
         lines.append(error_markdown(f"⚠ low confidence: {100 * share:.0f}% of the scan fits the map "
@@ -66,14 +170,6 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
         n_eff += " · collapsed: see Legend"
     fit = "–" if share is None else f"{100 * share:.0f}%" + (
         "" if snap.mean_residual_m is None else f" · mean residual {snap.mean_residual_m:.2f} m")
-    if not s2m_enabled:
-        s2m = "off"
-    elif snap.s2m_pending:
-        s2m = "starting: the road-removed map and BEV pyramid are being built in the background"
-    else:
-        s2m_ms = "–" if snap.s2m is None else f"{snap.s2m.ms:.0f} ms"
-        running = " · running" if snap.s2m_running and not finished else ""
-        s2m = f"{s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running}"
     rpe = "–" if snap.rpe_ms is None else f"{snap.rpe_ms:.1f} ms/scan"
     lines += [
         "",
@@ -81,13 +177,13 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
         "|---|---|",
         f"| position std x/y/z (weighted) | {std[0]:.2f} / {std[1]:.2f} / {std[2]:.2f} m |",
         f"| particle cloud spread x/y | {spread[0]:.2f} / {spread[1]:.2f} m |",
-        f"| converged | {'yes' if snap.converged else 'no'} |",
+        f"| PF converged (std below threshold) | {_converged_cell(snap, s2m[0] == 'ready')} |",
         f"| error to truth | {err} |",
         f"| N_eff share | {n_eff} |",
         f"| inlier share | {fit} |",
         f"| PF | {snap.pf_ms:.1f} ms/scan |",
         f"| RPE | {rpe} |",
-        f"| S2M | {s2m} |",
+        f"| S2M | {_s2m_cell(snap, s2m, finished)} |",
     ]
     if events:
         lines += ["", "**Recent events**"]

@@ -114,6 +114,21 @@ class RecordedRun:
         return np.array(sorted(steps), np.int64)
 
     # ------------------------------------------------------------------ series
+    def columns(self, upto: int | None = None) -> dict:
+        """``error``, ``localized`` and ``pf_ms`` of steps 0 … ``upto`` − 1 (default: all; the
+        original's before a branch): what the Compare table reads, a few fields, no particles."""
+        with self._lock:
+            n = self.n if upto is None else min(int(upto), self.n)
+            own_n = max(n - self.first_step, 0)
+            rec = self._rec
+            own = {"error": rec.field("error_m", rec.n)[:own_n].astype(float),
+                   "localized": rec.field("localized", rec.n)[:own_n].astype(bool),
+                   "pf_ms": rec.field("pf_ms", rec.n)[:own_n].astype(float)}
+            if self.parent is None or self.first_step == 0:
+                return own
+            head = self.parent.columns(min(n, self.first_step))
+            return {k: np.concatenate([head[k], own[k]]) for k in own}
+
     def series(self, upto: int | None = None) -> dict:
         """The per-scan figures of steps 0 … ``upto`` − 1 (default: all), keyed as
         :meth:`History.arrays` (plus ``est``/``gt`` positions and ``step``), for the plots and

@@ -6,7 +6,7 @@ the timeline moves. A source that moved is a one-line error naming the path the 
 
 With two runs the first is drawn as usual and the second beside it in blue (trajectory, particle
 cloud and vehicle at the same step, dashed plot lines), stepped in lockstep by step; the Compare
-folder puts their summary figures side by side. Both runs must be of the same sequence (same
+folder puts their figures side by side. Both runs must be of the same sequence (same
 source and scan count): their steps are compared one for one.
 
 "Branch from here" works on a recorded run too: it continues from the step on the timeline in a
@@ -28,7 +28,7 @@ from ...core.errors import LidarlocError
 
 from .recorded import RecordedRun
 from .recorder import Recorder, default_record_root
-from .serve import ViewerHandle
+from .serve import ViewerHandle, release_at_exit
 from .travel import RunContext
 
 REPLAY_ONLY = "a recorded run: play or move the timeline, or Branch from here to continue it with a live filter"
@@ -147,5 +147,6 @@ def serve_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: 
         finally:
             console.print("stopping viewer")
             handle.stop()
+            release_at_exit()
     finally:
         signal.signal(signal.SIGINT, previous)

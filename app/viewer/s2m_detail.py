@@ -23,7 +23,7 @@ from ...core.snapshot import S2MView
 ROOT = "/s2m_detail"
 
 # Hues the rest of the scene does not use (style.py: green scan, magenta / grey S2M scan, cyan
-# best particle, red ellipse and particles, white truth, orange estimate, yellow BEV, blue map).
+# best particle, red ellipse and particles, lime truth, orange estimate, yellow BEV, blue map).
 CANDIDATE_COLOR = (150, 100, 255)    # violet: the poses the search scored
 WINNER_COLOR = (225, 210, 255)       # pale violet, drawn bigger: the best of them, the 2D match
 START_COLOR = (255, 105, 180)        # pink: the particle's pose the match started from

@@ -175,7 +175,8 @@ class SceneView:
             self.est_line.set_visible(visible)
 
     def _has_content(self, node) -> bool:
-        if node in (self._s2m_scan, self._s2m_box, self._s2m_label):
+        # by identity: a handle's == compares its props, numpy arrays among them, which raises
+        if any(node is n for n in (self._s2m_scan, self._s2m_box, self._s2m_label)):
             return self._s2m_shown is not None
         if node is self._gt_vehicle:
             return self._gt_shown
@@ -193,9 +194,11 @@ class SceneView:
                 self._gt_vehicle.visible = False
             self._gt_shown = False
 
-    def draw(self, snap: Snapshot, history: History) -> None:
+    def draw(self, snap: Snapshot, history: History, cut: int | None = None) -> None:
+        """Draw ``snap``; the trajectories end at the ``cut``-th recorded step (the scan the
+        timeline shows) or, with None, at the newest."""
         with self._lock:
-            self._draw(snap, history)
+            self._draw(snap, history, cut)
 
     def show_reset_area(self, scan_index: int, center=None, region=None, radius: float = 6.0) -> None:
         """Outline where particles were just re-drawn (a circle round a point, or a rectangle),
@@ -218,7 +221,7 @@ class SceneView:
                 self._reset_hint.visible = True
             self._reset_hint_scan = scan_index
 
-    def _draw(self, snap: Snapshot, history: History) -> None:
+    def _draw(self, snap: Snapshot, history: History, cut: int | None = None) -> None:
         if self._reset_hint_scan is not None and snap.scan_index > self._reset_hint_scan:
             self._reset_hint.visible = False
             self._reset_hint_scan = None
@@ -227,7 +230,7 @@ class SceneView:
         self._draw_scan(snap)
         self._draw_s2m(snap)
         self._draw_vehicles(snap)
-        self._draw_trajectories(history)
+        self._draw_trajectories(history, cut)
 
     def _node(self, attr: str, make, update, visible: bool):
         h = getattr(self, attr)
@@ -357,7 +360,7 @@ class SceneView:
             self._show(self._s2m_label, vis)
 
     def _draw_vehicles(self, snap: Snapshot) -> None:
-        """The estimate's vehicle (orange) and, where the source knows it, the true one (white)."""
+        """The estimate's vehicle (orange) and, where the source knows it, the true one (lime)."""
         vis = self.layers.vehicles
         T = np.asarray(snap.mean_pose, float)
         if snap.scan_index >= 0 and np.isfinite(T).all():
@@ -377,8 +380,10 @@ class SceneView:
         elif self._gt_vehicle is not None:
             self._gt_vehicle.visible = False
 
-    def _draw_trajectories(self, history: History) -> None:
+    def _draw_trajectories(self, history: History, cut: int | None = None) -> None:
         epoch, scans, est, gt = history.trajectories()
+        if cut is not None:
+            scans, est, gt = scans[:cut], est[:cut], gt[:cut]
         # Ground truth jumps where the vehicle was kidnapped (scan index skips): no line there.
         connected = np.ones(len(scans), bool)
         if len(scans):

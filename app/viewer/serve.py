@@ -5,6 +5,7 @@ and page), and serve until Ctrl-C."""
 
 from __future__ import annotations
 
+import gc
 import inspect
 import signal
 import sys
@@ -71,6 +72,14 @@ class ViewerHandle:
             closer.start()
             closer.join(timeout=0.3)
         self._stopped.set()
+
+
+def release_at_exit() -> None:
+    """Called once the viewer has stopped and the command is about to return (the process ends
+    with it): the objects made so far are frozen out of the garbage collector. The interpreter's
+    last collections otherwise walk all of them (the map, the tables, the server's state) on the
+    way out: 0.9 s of a 1.2 s Ctrl-C with both cores busy; the memory goes back with the process."""
+    gc.freeze()
 
 
 def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> Localizer:
@@ -202,11 +211,16 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
         if failure:
             exc = failure[0]
             raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
+        failed = None
         if not stop.is_set() and autoplay:
             # "playing" once the first scan is on the page, not merely once playback was told to start
             while not stop.is_set() and not handle.viewer.first_scan_shown.wait(0.2):
-                pass
-        if not stop.is_set():
+                failed = handle.viewer.step_failed
+                if failed:      # playback paused on it: say so instead of waiting for a scan that will not come
+                    console.print(f"the first scan failed: {failed}; the page says so (restart or step there)",
+                                  markup=False, highlight=False, soft_wrap=True)
+                    break
+        if not stop.is_set() and not failed:
             console.print("ready: playing; use the page's controls to pause, step and tune" if autoplay else
                           "ready: playback starts when a browser tab is open; use the page's controls to pause, "
                           "step and tune")
@@ -215,3 +229,4 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
         signal.signal(signal.SIGINT, previous)
         console.print("stopping viewer")
         handle.stop()
+        release_at_exit()

@@ -102,14 +102,19 @@ class ChunkedPolyline:
 
     def sync(self, epoch: int, pts: np.ndarray, connected: np.ndarray) -> None:
         """``pts`` (n, 3) so far; ``connected[i]`` says whether point i joins point i − 1.
-        Chunk c holds the segments between points c·C … (c+1)·C (consecutive chunks share a point)."""
+        Chunk c holds the segments between points c·C … (c+1)·C (consecutive chunks share a point).
+        Fewer points than last time (the timeline cut the line at its cursor): the chunks past
+        the end go and the last one is rewritten; the points before are the same as sent."""
         if epoch != self.epoch:
             self._clear()
             self.epoch = epoch
         n = len(pts)
         if n < 2:
+            self._clear()
             return
         last = (n - 2) // TRAJ_CHUNK                  # chunk of the newest segment
+        while len(self.handles) > last + 1:
+            self.handles.pop().remove()
         first = max(len(self.handles) - 1, 0)         # the open chunk: finished ones stay as sent
         for c in range(first, last + 1):
             lo, hi = c * TRAJ_CHUNK, min((c + 1) * TRAJ_CHUNK, n - 1)

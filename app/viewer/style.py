@@ -12,7 +12,10 @@ S2M_ACCEPTED_COLOR = (255, 60, 255)
 S2M_REJECTED_COLOR = (150, 150, 150)     # grey: discarded (and unlike the BEV yellow)
 BEST_COLOR = (0, 230, 255)
 ELLIPSE_COLOR = (255, 70, 70)
-GT_COLOR = (235, 235, 235)               # the truth: its trajectory and its vehicle
+# the truth, its trajectory and its vehicle: lime, far from every colour of the map's ramp (white
+# roofs hid a white truth) and from the scene's other colours
+GT_COLOR = (170, 255, 0)
+GT_NAME = "lime"
 EST_COLOR = (255, 150, 30)
 PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # lowest log-weight rank
 PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # highest log-weight rank

@@ -1,10 +1,12 @@
 """The timeline: a slider over the recorded steps of the run on screen, a step back and forward,
-the previous and next event (localized, false positive, loss, S2M accepted or rejected, kidnap,
-reset), "Live" back to the newest step, and "Branch from here".
+the previous and next event of the kinds the Events filter picks (localized, false fire, loss,
+relocalized, kidnap, reset, S2M verdicts; by default all but the S2M verdicts, which come every
+few scans) with a list of them, "Live" back to the newest step, and "Branch from here".
 
 It keeps which step is on screen (``step``; None: live, the newest snapshot) and tells the viewer
 when the user moves it (``on_move``); the viewer pauses playback and draws that step from the
-recording. While live, the slider follows the newest recorded step. The viewer's own writes to the
+recording (and plays on when the user goes back to live, if the move had paused it). While live,
+the slider follows the newest recorded step. The viewer's own writes to the
 slider (following the live run) do not count as moves: they are made with a thread-local flag up,
 and viser runs an assigned value's callbacks on the assigning thread.
 """
@@ -12,6 +14,7 @@ and viser runs an assigned value's callbacks on the assigning thread.
 from __future__ import annotations
 
 import threading
+import time
 from contextlib import contextmanager
 from typing import Callable
 
@@ -24,18 +27,34 @@ from .recorded import RecordedRun
 PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE = "◀ event", "◀", "▶", "event ▶", "Live"
 BUTTONS = (PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE)
 
+_RUN_EVENTS = ("localized", "false_fire", "false_positive", "loss", "relocalized", "kidnap", "reset")
+_S2M_EVENTS = ("s2m_accepted", "s2m_rejected")
+#: the event buttons' filter: its choices and the event kinds each stops at. S2M verdicts come
+#: every few scans, so the default leaves them out: "event ▶" then goes to what changed the run.
+EVENT_FILTERS = {"all but S2M": _RUN_EVENTS, "localized": ("localized",), "false fire": ("false_fire",),
+                 "loss": ("loss", "false_positive"), "relocalized": ("relocalized",), "kidnap": ("kidnap",),
+                 "reset": ("reset",), "S2M": _S2M_EVENTS, "all": _RUN_EVENTS + _S2M_EVENTS}
+DEFAULT_FILTER = "all but S2M"
+EVENTS_LISTED = 12
+LIST_INTERVAL_S = 1.0       # the list follows a growing recording at most this often (it reads its events)
+
 HELP = ("Drag to any processed scan: the scene, the status, the Why views and the plots' cursor show "
-        "that scan as it was recorded (playback pauses). ◀ ▶ step one scan; *event* jumps to the previous "
-        "or next localization, false positive, loss, S2M verdict, kidnap or reset; **Live** goes back to "
-        "the newest scan.")
+        "that scan as it was recorded (playback pauses). ◀ ▶ step one scan (▶ at the newest one processes "
+        "one more; keys ← →, and space plays and pauses); *event* jumps to the previous or next event of "
+        "the kind chosen under **Events** (localized, false fire, loss, relocalized, kidnap, reset, S2M "
+        "verdicts); **Live** goes back to the newest scan and plays on if it was playing.")
 
 
 class Timeline:
     """The Timeline folder and the step on screen. ``on_move(step)`` is called on the GUI thread
     after the user moved to ``step`` (None: back to live); it must stay cheap."""
 
-    def __init__(self, gui, *, guarded: Callable, on_move: Callable[[int | None], None], order: float | None = None):
+    def __init__(self, gui, *, guarded: Callable, on_move: Callable[[int | None], None], order: float | None = None,
+                 on_forward_live: Callable[[], None] | None = None):
+        """``on_forward_live``: ▶ pressed while live at the newest step (the viewer processes one
+        more scan)."""
         self._on_move = on_move
+        self._on_forward_live = on_forward_live
         self._guarded = guarded
         self._own = threading.local()
         self._lock = threading.Lock()
@@ -43,6 +62,7 @@ class Timeline:
         self.step: int | None = None     # the step on screen; None: live
         self.live_available = True       # False for a finished recording (view --run): no live run
         self._n = 0
+        self._listed_at = 0.0
         with gui.add_folder("Timeline", order=order):
             self.where = gui.add_markdown("No recording yet")
             # over the steps (the processed scans in order: a kidnap skips scans, not steps)
@@ -50,6 +70,9 @@ class Timeline:
                                          hint="Drag to a processed scan (pauses playback)")
             # actions: the button group's callback names the button pressed; tests call the methods
             self.buttons = gui.add_button_group("Go to", BUTTONS)
+            self.kinds = gui.add_dropdown("Events", tuple(EVENT_FILTERS), initial_value=DEFAULT_FILTER,
+                                          hint="Which events ◀ event and event ▶ stop at")
+            self.event_list = gui.add_markdown("")
             self.branch = gui.add_button("Branch from here", disabled=True,
                                          hint="Continue from this scan's exact filter state with the parameters "
                                               "in the Parameters folder (changed or not); recorded in its own folder")
@@ -57,6 +80,7 @@ class Timeline:
             gui.add_markdown(f"<small>{HELP}</small>")
         self.slider.on_update(self._slider_moved)
         self.buttons.on_click(guarded(self._button, needs_localizer=False))
+        self.kinds.on_update(guarded(self.list_events, needs_localizer=False))
 
     # ------------------------------------------------------------------ the run on the slider
     def set_run(self, run: RecordedRun | None, live_available: bool = True) -> None:
@@ -97,6 +121,8 @@ class Timeline:
             if self.branch.disabled != (n == 0):
                 self.branch.disabled = n == 0
         self._describe()
+        if grew and time.monotonic() - self._listed_at > LIST_INTERVAL_S:
+            self.list_events()
 
     def _describe(self) -> None:
         run, step, n = self.run, self.step, self._n
@@ -155,28 +181,58 @@ class Timeline:
         return self.go(self.current() - 1)
 
     def forward(self) -> int:
-        """One step later; past the newest recorded step, live again (if there is a live run)."""
+        """One step later; past the newest recorded step, live again (if there is a live run),
+        and already live there, one more scan (``on_forward_live``)."""
+        if self.step is None and self.live_available and self._on_forward_live is not None:
+            self._on_forward_live()
+            return self._n
         cur = self.current()
         if cur + 1 >= self._n and self.live_available:
             self.live()
             return cur
         return self.go(cur + 1)
 
+    @property
+    def event_kinds(self) -> tuple:
+        """The event kinds the event buttons stop at (the Events filter)."""
+        return EVENT_FILTERS.get(self.kinds.value, EVENT_FILTERS[DEFAULT_FILTER])
+
+    def _what(self) -> str:
+        return "event" if self.kinds.value in ("all", DEFAULT_FILTER) else f"{self.kinds.value} event"
+
     def next_event(self) -> int:
         run, cur = self._require(), self.current()
-        steps = run.event_steps()
+        steps = run.event_steps(self.event_kinds)
         later = steps[(steps > cur) & (steps < self._n)]
         if not later.size:
-            raise LidarlocError("no later event in the recording")
+            raise LidarlocError(f"no later {self._what()} in the recording")
         return self.go(int(later[0]))
 
     def prev_event(self) -> int:
         run, cur = self._require(), self.current()
-        steps = run.event_steps()
+        steps = run.event_steps(self.event_kinds)
         earlier = steps[steps < cur]
         if not earlier.size:
-            raise LidarlocError("no earlier event in the recording")
+            raise LidarlocError(f"no earlier {self._what()} in the recording")
         return self.go(int(earlier[-1]))
+
+    def list_events(self) -> None:
+        """Under the filter: the scans of the run's events of the chosen kinds (the newest ones)."""
+        run = self.run
+        self._listed_at = time.monotonic()
+        if run is None or self._n == 0:
+            text = ""
+        else:
+            kinds = self.event_kinds
+            found = [(s, e) for s, e in run.events() if e.kind in kinds and s < self._n]
+            if not found:
+                text = f"<small>no {self._what()} yet</small>"
+            else:
+                shown = ", ".join(f"{e.scan} {e.kind.replace('_', ' ')}" for _, e in found[-EVENTS_LISTED:])
+                more = f"{len(found) - EVENTS_LISTED} earlier, " if len(found) > EVENTS_LISTED else ""
+                text = f"<small>{len(found)} × ({more}scan and kind): {shown}</small>"
+        if self.event_list.content != text:
+            self.event_list.content = text
 
     def live(self) -> None:
         """Back to the newest step (a finished recording: its last step)."""

@@ -7,13 +7,15 @@ draw while scrubbing, else None), ``after_draw`` (display thread: the timeline, 
 particles, the plots' cursor), ``started`` (a new run to record) and ``close``.
 
 The second run ("reference") is drawn in its own colour: its trajectory, its particles and
-estimate at the step on screen (in lockstep by step), dashed lines in the plots, and its summary
-figures beside the first run's in the Compare folder.
+estimate at the step on screen (in lockstep by step; while scrubbing, both trajectories end at
+that step), dashed lines in the plots, and its figures beside the first run's in the Compare
+folder, over the steps after the branch point, following the run on screen as it grows.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,13 +24,15 @@ import numpy as np
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
 
-from .compare import figures_of, summary_table
+from .compare import compare_markdown
 from .recorded import RecordedRun
 from .recorder import Recorder
 from .shapes import ChunkedPolyline, vehicle_outline
 from .style import REF_COLOR, REF_PARTICLE_COLOR
 from .timeline import Timeline
 from .why_worker import LatestOnly
+
+COMPARE_INTERVAL_S = 0.5    # the Compare table follows a growing run at most this often
 
 
 @dataclass
@@ -73,8 +77,11 @@ class TimeTravel:
         self._replay: threading.Thread | None = None     # plays a recorded run's timeline
         self._replay_stop = threading.Event()
         self.branching = False
+        self._resume_on_live = False       # scrubbing paused live playback: Live plays on
+        self._compared = (-1, 0.0)         # (steps, when) the Compare table was last computed for
         gui = viewer.server.gui
-        self.timeline = Timeline(gui, guarded=viewer._guarded, on_move=self._moved, order=order)
+        self.timeline = Timeline(gui, guarded=viewer._guarded, on_move=self._moved, order=order,
+                                 on_forward_live=lambda: viewer.step_once())
         self.timeline.branch.on_click(viewer._guarded(self.branch_from_here, needs_localizer=False))
         with gui.add_folder("Compare", order=order + 0.01, expand_by_default=True, visible=False) as folder:
             self.compare_folder = folder
@@ -128,13 +135,24 @@ class TimeTravel:
         return self.timeline.step is not None
 
     def _moved(self, step: int | None) -> None:
-        """The user moved the timeline (GUI thread): dragging pauses live playback."""
+        """The user moved the timeline (GUI thread): dragging pauses live playback; back to live
+        ("Live", or ▶ past the newest step) it plays on if it was playing."""
         p = self.v.player
         if step is not None and p is not None and p.playing:
             p.pause()
+            self._resume_on_live = True
+        elif step is None and self._resume_on_live:
+            self._resume_on_live = False
+            loc = self.v.localizer
+            if p is not None and loc is not None and not loc.done:
+                p.play()
         if threading.current_thread() is not self._replay:
             self._replay_stop.set()          # a drag pauses a recorded run's playback too
         self.v.wake()
+
+    def keep_paused(self) -> None:
+        """Pause was pressed: back to live, playback stays paused."""
+        self._resume_on_live = False
 
     def to_live(self) -> None:
         """Play or Step was pressed: the scene shows the live run again."""
@@ -183,7 +201,10 @@ class TimeTravel:
             n = self.recorder.n
             if n != tl.n:
                 tl.sync(n)
-        self._draw_reference(tl.current() if tl.run is not None and tl.n else None)
+        self._draw_reference(tl.current() if tl.run is not None and tl.n else None, cut=tl.step is not None)
+        if self.reference is not None and tl.run is not None and tl.n != self._compared[0] \
+                and time.monotonic() - self._compared[1] >= COMPARE_INTERVAL_S:
+            self.update_compare_table()
         self.v.readouts.cursor = snap.scan_index if (snap is not None and tl.step is not None) else None
 
     # ================================================================== playing a recorded run
@@ -255,28 +276,36 @@ class TimeTravel:
         if name == "trajectories":
             self.ref_line.set_visible(visible)
 
-    def update_compare_table(self, primary_summary: dict | None = None) -> None:
-        ref = self.reference
-        if ref is None:
+    def update_compare_table(self) -> None:
+        """The Compare folder (:func:`~lidarloc.app.viewer.compare.compare_markdown`), recomputed as
+        the run on screen grows (display thread, at most every COMPARE_INTERVAL_S) and when a
+        second run is set."""
+        ref, prim = self.reference, self.timeline.run
+        if ref is None or prim is None:
             return
-        prim = self.timeline.run
-        a = primary_summary if primary_summary is not None else (None if prim is None else prim.rec.summary)
-        fig_a = figures_of(a, None if a or prim is None else prim.series())
-        fig_b = figures_of(ref.rec.summary, self._ref_series)
-        self.compare_text.content = summary_table(
-            [(self.primary_label or "this run", fig_a), (self.reference_label or "other run", fig_b)],
-            colours=(None, REF_COLOR))
+        self._compared = (prim.n, time.monotonic())
+        text = compare_markdown(prim, ref, (self.primary_label or "this run", self.reference_label or "other run"),
+                                colours=(None, REF_COLOR))
+        if self.compare_text.content != text:
+            self.compare_text.content = text
 
-    def _draw_reference(self, step: int | None) -> None:
-        """The second run's particles and estimate at the step on screen (or its last one)."""
+    def _draw_reference(self, step: int | None, cut: bool = False) -> None:
+        """The second run's particles and estimate at the step on screen (or its last one); with
+        ``cut`` (scrubbing) its trajectory ends there too."""
         ref = self.reference
         if ref is None or step is None or ref.n == 0:
             return
         i = min(step, ref.n - 1)
-        key = (self._ref_version, i)
+        key = (self._ref_version, i, cut)
         if key == self._ref_drawn:
             return
         self._ref_drawn = key
+        est = self._ref_series["est"]
+        upto = i + 1 if cut else len(est)
+        connected = np.ones(upto, bool)
+        if upto:
+            connected[0] = False
+        self.ref_line.sync(self._ref_version, est[:upto], connected)
         rec, j = ref._locate(i)
         P = rec.particles(j)
         xyz = np.ascontiguousarray(P[:, :3], np.float32)

@@ -55,6 +55,7 @@ class WhyViews:
         self._folder_order = folder_order
         self._lock = threading.Lock()
         self._s2m_shown = None
+        self._surface_scan: int | None = None     # the scan of the surface drawn or being computed
         self.worker = LatestOnly("lidarloc-why")
         gui = server.gui
         with gui.add_folder("Why", order=folder_order, expand_by_default=False):
@@ -78,9 +79,16 @@ class WhyViews:
         if not localizer.seq.has_poses:
             self.residuals.at.options = AT_CHOICES[:2]     # no truth to place the scan at
 
-    def on_draw(self, snap: Snapshot) -> None:
-        """The display thread has just drawn ``snap`` (keep this cheap: heavy work goes to a thread)."""
+    def on_draw(self, snap: Snapshot, recorded: bool = False) -> None:
+        """The display thread has just drawn ``snap`` (keep this cheap: heavy work goes to a thread);
+        ``recorded``: a step the timeline was moved to, whose surface replaces any other scan's."""
         model = self._model()
+        if recorded and self._surface_scan is not None and self._surface_scan != snap.scan_index:
+            # another scan's surface (drawn or on its way) must not stay under this one: it goes,
+            # and with "Surface on every scan" this scan's follows once its scan is recomputed
+            self.worker.cancel("surface")
+            self.surface.clear()
+            self._surface_scan = None
         # a snapshot of a run that was restarted meanwhile starts no work whose result would stay
         current = model is not None and self._current(snap)
         if self.particle.selected:
@@ -100,6 +108,7 @@ class WhyViews:
         self.residuals.at.value = AT_ESTIMATE      # the inspected particle is gone
         self.residuals.clear()
         self.surface.clear()
+        self._surface_scan = None
         with self._lock:
             self._s2m_shown = None
             self.s2m.clear()
@@ -185,10 +194,11 @@ class WhyViews:
     def _submit_surface(self, snap: Snapshot, model: LikelihoodModel) -> None:
         over_yaw = bool(self.surface.over_yaw.value)
         ground = self.scene.ground
+        self._surface_scan = snap.scan_index
         self.surface.busy(snap.scan_index)
         self.worker.submit("surface", lambda: compute_surface(snap, model, over_yaw),
-                           done=lambda surf: self.surface.draw(surf, snap, None if ground is None else ground.at),
-                           failed=self._surface_failed)
+                           done=lambda surf: self.surface.draw(surf, snap, ground),
+                           failed=self._surface_failed, superseded_ok=True)
 
     def _surface_failed(self, message: str) -> None:
         self.surface.failed(message)

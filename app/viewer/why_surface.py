@@ -3,8 +3,15 @@ an x–y grid around the estimate (:meth:`~lidarloc.core.filter.surface.Likeliho
 filter's kernel and current options), drawn as an image on the ground with the estimate, the
 truth and the surface's maximum marked, and its colour scale in the panel.
 
-The computation runs on the views' worker thread (~0.1–0.3 s); a new request supersedes one
-still running, and the display thread only asks."""
+The computation runs on the views' worker thread, on that thread alone (~0.1–0.3 s: the
+filter, its child processes and the browser share the two cores; see
+:meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`); a new request supersedes one still
+running, and the display thread only asks.
+
+Where it is drawn: the image floats :data:`LIFT` above the map's ground under it, above the
+map's ground points (their squares reach half a point size above their height), and the marks
+(estimate, truth, maximum) sit above the vehicles' outlines, which are drawn at the sensor's
+height: lower, the map hid the image and the outlines hid the marks."""
 
 from __future__ import annotations
 
@@ -17,13 +24,15 @@ from ...core.geometry import inv_pose, pose_to_xyz_ypr, transform_points
 from ...core.snapshot import Snapshot
 from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 
-from .style import EST_COLOR, GT_COLOR
+from .style import EST_COLOR, GT_COLOR, GT_NAME
 from .why_style import SURFACE_BEST_COLOR, SURFACE_LUT, colour_bar_html, surface_rgba, surface_scale
 
 HELP = ("Bright = likely. One bright spot: the scan pins the pose down. A long bright band along the "
         "road: the scan is ambiguous along it. Several spots: places that look alike.")
 SENSOR_ABOVE_GROUND = 1.73      # m, where the image goes when the map has no ground under the pose
-LIFT = 0.15                     # m above the ground, so the road's points do not hide it
+LIFT = 0.6                      # m above the road, clear of its points' squares and kerbs
+MARK_ABOVE = 0.4                # m above the higher of the estimate and the truth (the vehicles' outlines)
+MARK_SIZE = 1.5                 # m, the smallest half-size of a mark: visible around a 4.5 m vehicle
 
 
 def scan_in_sensor_frame(snap: Snapshot) -> np.ndarray:
@@ -33,9 +42,29 @@ def scan_in_sensor_frame(snap: Snapshot) -> np.ndarray:
 
 
 def compute_surface(snap: Snapshot, model: LikelihoodModel, best_over_yaw: bool) -> Surface:
-    """The surface around ``snap``'s estimate (the work the worker thread does)."""
+    """The surface around ``snap``'s estimate (the work the worker thread does, on that thread
+    alone)."""
     return model.surface(scan_in_sensor_frame(snap), pose_to_xyz_ypr(np.asarray(snap.mean_pose, float)),
-                         HALF_WIDTH, CELL, YAW_WINDOW if best_over_yaw else 0.0, YAW_STEP)
+                         HALF_WIDTH, CELL, YAW_WINDOW if best_over_yaw else 0.0, YAW_STEP, parallel=False)
+
+
+def image_height(surface: Surface, ground) -> float:
+    """Where the image goes: :data:`LIFT` above the road around the grid's centre (``ground``:
+    the scene's :class:`~lidarloc.app.viewer.ground.GroundHeight`, None without a map), so that
+    neither the road's points nor a kerb hides it."""
+    if ground is None:
+        return float(surface.center[2]) - SENSOR_ABOVE_GROUND + LIFT
+    return ground.level(float(surface.center[0]), float(surface.center[1])) + LIFT
+
+
+def marks_height(snap: Snapshot, image_z: float) -> float:
+    """Where the marks go: above the vehicles' outlines (drawn at the sensor's height), and above
+    the image."""
+    z = [float(np.asarray(snap.mean_pose, float)[2, 3])]
+    if snap.gt_pose is not None:
+        z.append(float(np.asarray(snap.gt_pose, float)[2, 3]))
+    z = [v for v in z if math.isfinite(v)]
+    return max(z + [image_z]) + MARK_ABOVE
 
 
 def surface_markdown(surface: Surface, snap: Snapshot) -> str:
@@ -87,14 +116,16 @@ class SurfaceView:
                                               f"within ±{math.degrees(YAW_WINDOW):.0f}° of the estimate's (slower)")
         self.bar = gui.add_html("", visible=False)
         self.readout = gui.add_markdown("")
-        gui.add_markdown(f"<small>{HELP} White ×: truth, orange ×: estimate, magenta ring: maximum.</small>")
+        gui.add_markdown(f"<small>{HELP} {GT_NAME.capitalize()} ×: truth, orange ×: estimate, magenta ring: "
+                         "maximum.</small>")
 
-    def draw(self, surface: Surface, snap: Snapshot, ground_z) -> None:
-        """Show a finished surface (any thread). ``ground_z(x, y)``: the map's ground height there."""
+    def draw(self, surface: Surface, snap: Snapshot, ground) -> None:
+        """Show a finished surface (any thread). ``ground``: the scene's
+        :class:`~lidarloc.app.viewer.ground.GroundHeight` (None without a map)."""
         with self._lock:
             x0, y0, x1, y1 = surface.extent
-            cx, cy = surface.center[:2]
-            z = (ground_z(cx, cy) if ground_z is not None else surface.center[2] - SENSOR_ABOVE_GROUND) + LIFT
+            z = image_height(surface, ground)
+            zm = marks_height(snap, z)
             rgba = surface_rgba(surface.ll)
             # a nearest-neighbour look: upsample so the image filter keeps the cells crisp
             rep = max(1, int(math.ceil(256 / max(rgba.shape[:2]))))
@@ -106,22 +137,22 @@ class SurfaceView:
             self._image = self.scene.add_image("/why/surface", rgba, w, h, format="png",
                                                position=((x0 + x1) / 2, (y0 + y1) / 2, z),
                                                cast_shadow=False, receive_shadow=False)
-            r = max(surface.cell, 0.6)
+            r = max(surface.cell, MARK_SIZE)
             segs, colors = [], []
             est = np.asarray(snap.mean_pose, float)[:2, 3]
-            marks = [(_cross(est[0], est[1], z + 0.05, r), EST_COLOR)]
+            marks = [(_cross(est[0], est[1], zm, r), EST_COLOR)]
             if snap.gt_pose is not None:
                 gt = np.asarray(snap.gt_pose, float)[:2, 3]
-                marks.append((_cross(gt[0], gt[1], z + 0.05, r), GT_COLOR))
+                marks.append((_cross(gt[0], gt[1], zm, r), GT_COLOR))
             best = surface.argmax_xy
-            marks.append((_ring(best[0], best[1], z + 0.05, 1.5 * r), SURFACE_BEST_COLOR))
+            marks.append((_ring(best[0], best[1], zm, 1.5 * r), SURFACE_BEST_COLOR))
             for s, c in marks:
                 segs.append(s)
                 colors.append(np.broadcast_to(np.asarray(c, np.uint8), s.shape).copy())
             segs, colors = np.concatenate(segs), np.concatenate(colors)
             if self._marks is not None:
                 self._marks.remove()
-            self._marks = self.scene.add_line_segments("/why/surface_marks", segs, colors, thickness=3.0,
+            self._marks = self.scene.add_line_segments("/why/surface_marks", segs, colors, thickness=4.0,
                                                        thickness_units="screen")
             lo, hi = surface_scale(surface.ll)
             self.bar.content = colour_bar_html(SURFACE_LUT, f"≤ max − {hi - lo:,.0f} nats", f"max {hi:,.0f}")

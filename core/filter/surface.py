@@ -22,7 +22,8 @@ point it is given).
 
 Why its own kernel: the cells of one yaw differ only by a translation, so the scan is rotated
 once and every point's table coordinates are offset per cell, and each point's 81 reads along a
-grid row stay within a few bricks of the table; rows run on separate threads (numba ``prange``,
+grid row stay within a few bricks of the table; rows run on separate threads (numba ``prange``;
+one thread with ``parallel=False``, as the viewer asks: a filter may be running beside it;
 ``nogil``: the viewer computes it on a worker thread). Measured on the real drive (~14.8k points
 per prepared scan, 2 cores, load ≈ 1): 98 ms for 81 × 81 cells (``lidarloc bench surface``),
 against 167 ms through the filter's kernel with the 6561 cells as particles (scan 50; 345 ms on
@@ -68,8 +69,7 @@ def _rotated_cells(pts, yaw, pitch, roll, inv_res):
     return out
 
 
-@nb.njit(parallel=True, nogil=True, fastmath={"nsz", "arcp"}, cache=True)
-def _surface_rows(rot, tx, ty, tz, nbx, nby, nbz, slot_of_brick, cells, costs, out):
+def _rows(rot, tx, ty, tz, nbx, nby, nbz, slot_of_brick, cells, costs, out):
     """out[i, k] = −Σ_j costs[code of the table cell of point j with the sensor at (tx[i], ty[k], tz)].
 
     rot: (3, M) float32 rotated points in table cells (:func:`_rotated_cells`); tx, ty, tz: the
@@ -108,6 +108,15 @@ def _surface_rows(rot, tx, ty, tz, nbx, nby, nbz, slot_of_brick, cells, costs, o
                 acc[k] += costs[cells[(np.int64(slot_of_brick[brick_at[k]]) << (3 * BRICK_SHIFT)) | cell_at[k]]]
         for k in range(ny):
             out[i, k] = -acc[k]
+
+
+# Rows on both threads for a surface computed alone (``lidarloc inspect``, the bench); one thread
+# where it shares the machine with a running filter (the viewer): a parallel region waits for the
+# slower of its threads, and with the filter's kernels, its child processes and a browser on two
+# cores one of them was nearly always descheduled (measured while playing: 0.17 s with two
+# threads, 0.10 s with one; the sums are the same either way).
+_surface_rows = nb.njit(parallel=True, nogil=True, fastmath={"nsz", "arcp"}, cache=True)(_rows)
+_surface_rows_serial = nb.njit(nogil=True, fastmath={"nsz", "arcp"}, cache=True)(_rows)
 
 
 @dataclass(frozen=True)
@@ -177,11 +186,13 @@ class LikelihoodModel:
                               temperature=self.temperature, unexplained_share=self.unexplained_share)
 
     def surface(self, points: np.ndarray, center, half_width: float = HALF_WIDTH, cell: float = CELL,
-                yaw_window: float = 0.0, yaw_step: float = YAW_STEP) -> Surface:
+                yaw_window: float = 0.0, yaw_step: float = YAW_STEP, parallel: bool = True) -> Surface:
         """The log-likelihood of ``points`` ((M, ≥3), sensor frame) on an x–y grid around
         ``center`` (x, y, z, yaw, pitch, roll): cells of ``cell`` metres out to ±``half_width``
         (rounded to whole cells, the centre on a cell centre), at the centre's yaw, or the best
-        over yaws every ``yaw_step`` within ±``yaw_window``."""
+        over yaws every ``yaw_step`` within ±``yaw_window``. ``parallel`` False computes it on
+        the calling thread alone (same values), for a caller that shares the cores with a
+        running filter."""
         c = np.asarray(center, dtype=np.float64).reshape(-1)
         if c.shape[0] < 6 or not np.all(np.isfinite(c[:6])):
             raise LidarlocError("the surface's centre must be 6 finite numbers (x, y, z, yaw, pitch, roll)")
@@ -212,13 +223,14 @@ class LikelihoodModel:
         tz = np.float32((c[2] - origin[2]) * inv_res)
         best = np.full((n, n), -np.inf)
         best_yaw = np.full((n, n), c[3])
+        rows = _surface_rows if parallel else _surface_rows_serial
         out = np.empty((n, n))
         for yaw in yaws:
             rot = _rotated_cells(pts, float(yaw), float(c[4]), float(c[5]), float(inv_res))
             # points in table order (z brick, x cell, y): consecutive points then read the same
             # cache lines (real drive: 97 instead of 112 ms; only the order of the sums changes)
             rot = np.ascontiguousarray(rot[:, np.lexsort((rot[1], np.floor(rot[0]), np.floor(rot[2] / 8.0)))])
-            _surface_rows(rot, tx, ty, tz, nbx, nby, nbz, slot_of_brick, cells, costs, out)
+            rows(rot, tx, ty, tz, nbx, nby, nbz, slot_of_brick, cells, costs, out)
             better = out > best
             best[better] = out[better]
             best_yaw[better] = yaw

@@ -1,7 +1,7 @@
 """A run's every step, recorded as it happens and read back (:mod:`.format` describes the files):
 :class:`~.writer.RecordingWriter` appends, :func:`open` reads::
 
-    from lidarloc.core.runs import recording
+    from .. import recording
     rec = recording.open("out/run0")
 """
 

@@ -2,7 +2,7 @@
 
 A run's results folder gets ``recording/``; ``open(folder)`` reads it back (in a notebook too)::
 
-    from lidarloc.core.runs import recording
+    from .. import recording
     rec = recording.open("out/run0")
     rec.n                       # complete steps recorded
     rec.mean_pose[i]            # 4×4 estimate after step i (the i-th processed scan)

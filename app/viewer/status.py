@@ -1,0 +1,97 @@
+"""The status of the run on screen as the viewer reads it off the live localizer: the play state
+(with what a step is waiting for), S2M's readiness as it is now, and the truth alarm's
+notification, once per onset. :func:`~lidarloc.app.viewer.readouts.status_markdown` words it."""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from typing import TYPE_CHECKING, Callable
+
+from ...core.snapshot import Snapshot
+
+from .readouts import status_markdown, truth_alarm
+from .style import EVENTS_SHOWN
+
+if TYPE_CHECKING:
+    from .app import Viewer
+
+
+def _ask(localizer, name: str):
+    """``localizer.name()`` where the localizer has it (None otherwise, or when it fails: a
+    status line must never take the display down)."""
+    method = getattr(localizer, name, None)
+    if not callable(method):
+        return None
+    try:
+        return method()
+    except Exception:  # the status goes on without it
+        traceback.print_exc(file=sys.stderr)
+        return None
+
+
+def play_state(player, localizer) -> str:
+    """"playing", "paused", "finished", … or, while a step is blocked on a block, what it waits
+    for and for how long (``Localizer.waiting()``): a silent "playing" there looked like a hang."""
+    if player is None:
+        return "starting"
+    if localizer is not None and localizer.done and player.idle:
+        return "finished"
+    waiting = _ask(localizer, "waiting") if localizer is not None else None
+    if waiting:
+        what, seconds = waiting
+        return f"waiting for {what} ({float(seconds):.1f} s)"
+    if player.playing:
+        return "playing"
+    return "paused" if player.idle else "stepping"
+
+
+def viewer_status(v: Viewer, snap: Snapshot) -> str:
+    """The status markdown of ``snap`` on viewer ``v`` (live, or a recorded step being scrubbed)."""
+    p, loc = v.player, v.localizer
+    clock = p.clock if p else "replay"
+    floor = None if loc is None else loc.cfg.localize.min_inlier_share
+    recorded = v.travel.scrubbing
+    live_s2m = None
+    if recorded:
+        # the scan on the timeline, as it was recorded: its own events, no live rates
+        state = "recorded" if loc is None else f"recorded (live run {play_state(p, loc)})"
+        events = list(snap.events)[-EVENTS_SHOWN:]
+    else:
+        state, events = play_state(p, loc), v.history.recent_events()
+        if loc is not None:
+            live_s2m = _ask(loc, "s2m_status")
+    # the next scan is named only when the shown snapshot is the localizer's newest: a display
+    # that is a scan behind the player is no skipped scan
+    newest = loc is not None and not recorded and snap is loc.snapshot()
+    return status_markdown(snap, state, clock, v.controls.speed.value, events, min_inlier_share=floor,
+                           s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
+                           rate=None if p is None or recorded else p.achieved_rate(),
+                           lag_s=None if p is None or recorded else p.lag_s,
+                           next_scan=loc.k if newest else None,
+                           playing=p is not None and not recorded and p.playing,
+                           s2m_status=tuple(live_s2m) if live_s2m else None)
+
+
+class AlarmNotice:
+    """A notification to every tab when the truth alarm goes up (once per onset: it stays up
+    scan after scan while the estimate is wrong; the status line keeps saying so)."""
+
+    def __init__(self, notify: Callable[[str], None]):
+        self._notify = notify
+        self._onset: int | None = None       # localized_since (or scan) of the alarm notified
+
+    def check(self, snap: Snapshot, live: bool) -> None:
+        if not live:
+            return
+        alarm = truth_alarm(snap)
+        if alarm is None:
+            self._onset = None
+            return
+        onset = snap.localized_since if snap.localized_since is not None else snap.scan_index
+        if onset != self._onset:
+            self._onset = onset
+            self._notify(f"false fire at scan {snap.scan_index}: {alarm}")
+
+    def clear(self) -> None:
+        self._onset = None

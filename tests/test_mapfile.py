@@ -17,7 +17,8 @@ from scipy.spatial import cKDTree
 from lidarloc.core.config import MapConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.maps.map_source import MapFileSource
-from lidarloc.core.maps.mapfile import read_map, write_map, write_map_chunks
+from lidarloc.core.maps.mapfile import read_map
+from lidarloc.core.maps.mapfile_write import write_map, write_map_chunks
 from lidarloc.core.maps.mapping import load_or_build_map
 
 UTM_SHIFT = np.array([500_000.0, 4_000_000.0, 100.0])

@@ -33,7 +33,7 @@ def small_cfg(seed: int = 0) -> Config:
 @pytest.fixture(scope="session")
 def drive_maps(kitti_raw_seq, tmp_path_factory):
     """The drive's whole map as a .pcd in the drive's frame, and the same map shifted by UTM_SHIFT."""
-    from lidarloc.core.maps.mapfile import write_map
+    from lidarloc.core.maps.mapfile_write import write_map
     from lidarloc.core.maps.mapping import build_prior_map
 
     root = tmp_path_factory.mktemp("maps")

@@ -12,7 +12,8 @@ from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import pose_matrix, wrap_angle
 from lidarloc.core.filter.likelihood import log_likelihood
 from lidarloc.core.filter.motion import propagate
-from lidarloc.core.filter.pf import ParticleFilter, SupportGrid, systematic_resample
+from lidarloc.core.filter.pf import ParticleFilter, systematic_resample
+from lidarloc.core.filter.support import SupportGrid
 from lidarloc.core.filter.scanprep import voxel_downsample_random
 
 DEG = math.pi / 180

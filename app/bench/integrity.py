@@ -145,14 +145,13 @@ def lookalike_init(spec: SourceSpec, cfg: Config, cache_root: Path | None) -> tu
     """``--init`` text around a look-alike of the drive's first scan (module docstring), and what
     it is: its distance to the truth and its BEV score against the truth's."""
     from ...core.matching import m3rsm
-    from ...core.maps.bev import load_or_build_pyramid
     from ...core.geometry import pose_to_xyz_ypr
-    from ...core.maps.mapping import load_or_build_map
     from ...core.matching.s2m import ScanToMapMatcher
+    from ...core.maps.world import open_world
 
     seq = _bench_sequence(spec, cfg, cache_root)
-    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
-    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
+    world = open_world(seq.map_source, cfg, cache_root, lookup=False)
+    prior, pyramid = world.prior_map, world.pyramid
     matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m, cfg.map)
     prep = matcher.prepare(seq.scan(0))
     bev = np.asarray(prep.road_removed)[:, :2]       # levelled: the truth's attitude is not given away

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ...core.config import Config
-from ...core.maps.mapfile import CHUNK_POINTS, write_map_chunks
+from ...core.maps.mapfile import CHUNK_POINTS
+from ...core.maps.mapfile_write import write_map_chunks
 
 from ..console import peak_rss_mb
 from .common import load_avg, machine, rss_mb

@@ -27,11 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from ...core.matching import m3rsm
-from ...core.maps.bev import BEVPyramid, load_or_build_pyramid
+from ...core.maps.bev import BEVPyramid
 from ...core.config import Config, MapConfig, S2MConfig
 from ...core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr
 from ...core.matching.gicp import GICPRefiner
-from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.maps.mapping import range_filter
+from ...core.maps.world import open_world
 from ...core.runs.results import world_of
 from ...core.odometry.rpe import RelativePoseEstimator
 from ...core.matching.s2m import ScanToMapMatcher
@@ -176,8 +177,8 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
     t_start = time.perf_counter()
     seed, cfg = config.seed, config.s2m
     seq = open_source(spec, config, "s2m", need_poses=True)
-    prior, map_dir, _ = load_or_build_map(seq.map_source, config.map, cache_root)
-    pyramid = load_or_build_pyramid(prior, map_dir, cfg).value
+    world = open_world(seq.map_source, config, cache_root, lookup=False)
+    prior, pyramid = world.prior_map, world.pyramid
     matcher = ScanToMapMatcher(prior, pyramid, cfg)
     rng = np.random.default_rng(seed)
     n = min(int(matches), len(seq))

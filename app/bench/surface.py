@@ -27,8 +27,7 @@ import numpy as np
 
 from ...core.config import Config
 from ...core.geometry import pose_to_xyz_ypr
-from ...core.maps.lookup import load_or_build_lookup
-from ...core.maps.mapping import load_or_build_map
+from ...core.maps.world import open_world
 from ...core.filter.scanprep import prepare_scan
 from ...core.sequences.factory import SourceSpec
 from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
@@ -45,8 +44,8 @@ def run(spec: SourceSpec, cfg: Config, scans: int = 10, repeats: int = 3, cache_
 
     seq = open_source(spec, cfg, "surface", need_poses=True)
     load_before = load_avg()
-    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
-    lookup = load_or_build_lookup(prior, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max).value
+    world = open_world(seq.map_source, cfg, cache_root, pyramid=False)
+    prior, lookup = world.prior_map, world.lookup
     model = LikelihoodModel(lookup, lookup.capped(cfg.pf.d_max), cfg.pf.sigma, cfg.pf.temperature,
                             cfg.pf.unexplained_share)
     picks = np.unique(np.linspace(0, len(seq) - 1, max(1, min(scans, len(seq)))).round().astype(int))

@@ -25,7 +25,8 @@ def map_build(
     """Build the prior map of a sequence from its scans and ground-truth poses (and cache it).
 
     Any source with ground truth: a KITTI drive, the town, or a recording (--bag/--scans-dir) with --gt."""
-    from ...core.maps.mapfile import WRITE_SUFFIXES, write_map
+    from ...core.maps.mapfile import WRITE_SUFFIXES
+    from ...core.maps.mapfile_write import write_map
     from ...core.maps.mapping import load_or_build_map
 
     to_file = out is not None and out.suffix.lower() in WRITE_SUFFIXES
@@ -71,7 +72,8 @@ def map_info(
     as_json: JsonOpt = False,
 ):
     """Points, extent and origin (in the file's frame) and density of a point-cloud map file."""
-    from ...core.maps.mapfile import describe_map, map_info_lines, read_map
+    from ...core.maps.map_info import describe_map, map_info_lines
+    from ...core.maps.mapfile import read_map
 
     with progress_bar() as bar:
         task = bar.add_task(f"reading {file.name}", total=1)
@@ -94,7 +96,8 @@ def map_export(
     """Write a source's prior map (built or from the cache) as a .pcd or .ply file.
 
     The map is written in the source's frame: a map read from a georeferenced file goes back to its own coordinates, as float64."""
-    from ...core.maps.mapfile import WRITE_SUFFIXES, write_map
+    from ...core.maps.mapfile import WRITE_SUFFIXES
+    from ...core.maps.mapfile_write import write_map
     from ...core.maps.mapping import load_or_build_map
 
     if out.suffix.lower() not in WRITE_SUFFIXES:     # before building a map that cannot be written

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 
-from ...core.config import check_live_changes
 from ...core.errors import LidarlocError
 
 from .ground import clicked_point, dragged_region, pose_on_ground
@@ -103,8 +102,7 @@ class ParameterControls:
         if not changed:
             return {}
         si = self.params.to_si(changed)
-        check_live_changes(self.localizer.cfg, si)
-        with self.travel.lock:
+        with self.travel.lock:           # set_params validates them all, once, before changing any
             self.localizer.set_params(**si)
         self.params.accept(changed)
         self._mark_pending()

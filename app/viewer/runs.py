@@ -37,8 +37,7 @@ REPLAY_ONLY = "a recorded run: play or move the timeline, or Branch from here to
 def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> tuple[RecordedRun, RunContext]:
     """A recorded run and what the viewer needs to show it: its sequence, map and lookup table.
     One-line :class:`LidarlocError` for a missing, foreign or corrupt folder, or a moved source."""
-    from ...core.maps.lookup import load_or_build_lookup
-    from ...core.maps.mapping import load_or_build_map
+    from ...core.maps.world import open_world
 
     rec = recording.open(path)
     if rec.n == 0:
@@ -46,13 +45,11 @@ def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> t
     cfg = rec.config()
     if seq is None:
         seq = rec.open_sequence()          # checks the source first: one line naming the moved path
-    prior_map, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root, road_removal=False,
-                                              progress=None if progress is None else
-                                              (lambda i, n: progress("map", i / n)))
+    world = open_world(seq.map_source, cfg, cache_root, pyramid=False, road_removal=False, progress=progress)
+    prior_map, lookup = world.prior_map, world.lookup
     use_origin = getattr(seq, "use_map_origin", None)
     if use_origin is not None:
         use_origin(prior_map.origin)
-    lookup = load_or_build_lookup(prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max).value
     return RecordedRun(rec.run_dir, seq), RunContext(cfg=cfg, seq=seq, prior_map=prior_map, lookup=lookup)
 
 

@@ -6,15 +6,12 @@ from __future__ import annotations
 
 import sys
 import traceback
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 from ...core.snapshot import Snapshot
 
 from .readouts import status_markdown, truth_alarm
 from .style import EVENTS_SHOWN
-
-if TYPE_CHECKING:
-    from .app import Viewer
 
 
 def _ask(localizer, name: str):
@@ -46,8 +43,9 @@ def play_state(player, localizer) -> str:
     return "paused" if player.idle else "stepping"
 
 
-def viewer_status(v: Viewer, snap: Snapshot) -> str:
-    """The status markdown of ``snap`` on viewer ``v`` (live, or a recorded step being scrubbed)."""
+def viewer_status(v, snap: Snapshot) -> str:
+    """The status markdown of ``snap`` on a :class:`~.app.Viewer` ``v`` (live, or a recorded step
+    being scrubbed)."""
     p, loc = v.player, v.localizer
     clock = p.clock if p else "replay"
     floor = None if loc is None else loc.cfg.localize.min_inlier_share

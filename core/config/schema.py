@@ -37,7 +37,7 @@ class MapConfig:
     voxel_size: float = 0.2            # m, voxel grid of the global 3D map
     road_normal_z: float = 0.75        # |n_z| above this = flat surface, removed for the BEV map
     normal_radius: float = 0.6         # m, neighbourhood radius for normal estimation
-    normal_max_nn: int = 30
+    normal_max_nn: int = 30            # at most this many neighbours for a normal
     scan_max_range: float = 80.0       # m, map points farther from the sensor are noisier; dropped
     scan_min_range: float = 2.5        # m, the car's own body
 
@@ -46,7 +46,7 @@ class MapConfig:
 class PFConfig:
     """Particle filter (paper: Particle filtering, Dynamic model, Sensor model, Simulation)."""
 
-    n_particles: int = 1000
+    n_particles: int = 1000            # particles (with KLD-sampling: the most it keeps)
     scan_voxel: float = 0.5            # m, random-point-per-voxel down-sampling of each scan
     d_max: float = 5.0                 # m, distance cap of the likelihood
     sigma: float = 0.5                 # m, likelihood scale
@@ -102,7 +102,7 @@ class PFConfig:
     # estimate, over dynamic_scans consecutive scans are left out of the likelihood.
     dynamic_rejection: bool = False
     dynamic_distance: float = 1.0      # m
-    dynamic_scans: int = 2
+    dynamic_scans: int = 2             # scans in a row a point must stay far to be left out
     # Adaptive particle count by KLD-sampling (Fox 2003): after each resampling, as many particles
     # as the KLD bound asks for the occupied (x, y, yaw) bins, within [kld_min, n_particles]: all
     # of them while spread, a few hundred once converged. kld_min 400 rather than 100: with the
@@ -112,14 +112,14 @@ class PFConfig:
     kld_z: float = 2.326               # upper (1 − δ) quantile of N(0, 1); 2.326 = δ 0.01
     kld_bin_xy: float = 1.0            # m, bin size in x and y
     kld_bin_yaw: float = 10.0 * DEG    # rad, bin size in yaw
-    kld_min: int = 400
+    kld_min: int = 400                 # fewest particles KLD-sampling keeps
 
 
 @dataclass
 class S2MConfig:
     """Scan-to-map matching (M3RSM on the bird's-eye view, then GICP in 3D)."""
 
-    enabled: bool = True
+    enabled: bool = True               # scan-to-map matching on or off
     match_resolution: float = 1.0      # m, d_m: cell size of pyramid level L0
     angle_step: float = 2.5 * DEG      # rad, d_θ
     region_x: float = 25.0             # m, L_x: local search half-width in x
@@ -183,8 +183,8 @@ class LocalizeConfig:
     recorded_odometry: bool = False
     # Tracking mode (optional): once localized, fewer particles and a smaller S2M region; a
     # false positive, a loss or a reset goes back to the full filter.
-    tracking: bool = False
-    tracking_particles: int = 300
+    tracking: bool = False             # tracking mode once localized (see below)
+    tracking_particles: int = 300      # particles in tracking mode
     tracking_region: float = 10.0      # m, S2M search half-width in x and y while tracking
     # Confidence ("is it lost?"): an event when, while localized, the share of scan points within
     # d_max of the map at the estimate falls below this.

@@ -54,7 +54,6 @@ paper's, bit for bit; the defaults in core/config.py turn the likelihood options
 from __future__ import annotations
 
 import math
-import weakref
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -68,6 +67,7 @@ from .likelihood import (check_shape, effective_temperature, log_likelihood, log
                          subset_for)
 from ..maps.lookup import LookupTable
 from .motion import N_STATE, propagate
+from .support import SupportGrid, support_for
 
 MAP_SUPPORT_PITCH_ROLL_STD = 2.0 * math.pi / 180.0
 DEFAULT_POSE_STD = (1.0, 1.0, 0.2, 5.0 * math.pi / 180.0, 1.0 * math.pi / 180.0, 1.0 * math.pi / 180.0)
@@ -86,71 +86,6 @@ class Estimate:
     n_eff: float               # 1 / Σ w²
     best_index: int            # particle with the highest weight
     resampled: bool = False    # set by step(): whether this step resampled afterwards
-
-
-@dataclass
-class SupportGrid:
-    """Where the map has points, on a 2-D grid, with a ground height per occupied cell."""
-
-    cell: float
-    origin: np.ndarray         # (2,) x, y of cell (0, 0)'s corner
-    cells: np.ndarray          # (K, 2) int64 occupied cell indices
-    ground_z: np.ndarray       # (K,) low percentile of the map's z in each cell
-
-    @classmethod
-    def from_points(cls, points: np.ndarray, cell: float = 2.0, ground_percentile: float = 5.0) -> "SupportGrid":
-        pts = np.asarray(points)[:, :3].astype(np.float64)
-        if len(pts) == 0:
-            raise LidarlocError("map_support init needs a non-empty map")
-        origin = pts[:, :2].min(axis=0)
-        ij = np.floor((pts[:, :2] - origin) / cell).astype(np.int64)
-        key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-        order = np.lexsort((pts[:, 2], key))              # by cell, then by z inside the cell
-        key_sorted = key[order]
-        starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
-        counts = np.diff(np.r_[starts, len(key_sorted)])
-        pick = starts + np.floor(ground_percentile / 100.0 * (counts - 1)).astype(np.int64)
-        return cls(cell=float(cell), origin=origin, cells=ij[order[starts]], ground_z=pts[order[pick], 2])
-
-    def sample(self, rng: np.random.Generator, n: int, region=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x, y uniform over occupied cells (optionally those meeting the rectangle
-        (x0, y0, x1, y1), then drawn inside cell ∩ rectangle); z = the cell's ground height.
-        Returns None if no occupied cell meets the region."""
-        lo = self.origin + self.cells * self.cell
-        hi = lo + self.cell
-        if region is not None:
-            x0, y0, x1, y1 = region
-            lo = np.maximum(lo, [x0, y0])
-            hi = np.minimum(hi, [x1, y1])
-            keep = np.all(hi > lo, axis=1)
-            if not keep.any():
-                return None
-            idx_pool = np.flatnonzero(keep)
-        else:
-            idx_pool = np.arange(len(self.cells))
-        pick = idx_pool[rng.integers(0, len(idx_pool), n)]
-        xy = lo[pick] + rng.random((n, 2)) * (hi[pick] - lo[pick])
-        return xy[:, 0], xy[:, 1], self.ground_z[pick]
-
-
-_SUPPORT_CACHE: dict[int, tuple] = {}
-
-
-def _support_for(points: np.ndarray) -> SupportGrid:
-    """SupportGrid.from_points, remembered per map array: the localizer makes a new filter on
-    every restart, and sorting a large map by cell takes seconds."""
-    key = id(points)
-    hit = _SUPPORT_CACHE.get(key)
-    if hit is not None and hit[0]() is points:
-        return hit[1]
-    grid = SupportGrid.from_points(points)
-    for k in [k for k, (ref, _) in _SUPPORT_CACHE.items() if ref() is None]:
-        del _SUPPORT_CACHE[k]
-    try:
-        _SUPPORT_CACHE[key] = (weakref.ref(points), grid)
-    except TypeError:      # not weak-referenceable (e.g. a list): just don't cache
-        pass
-    return grid
 
 
 def systematic_resample(weights: np.ndarray, n_out: int, rng: np.random.Generator) -> np.ndarray:
@@ -248,7 +183,7 @@ class ParticleFilter:
         if self._support is None:
             if self._map_points is None:
                 raise LidarlocError("init_mode map_support needs the map (pass support= or map_points=)")
-            self._support = _support_for(self._map_points)
+            self._support = support_for(self._map_points)
         return self._support
 
     def initialize(self, region=None, pose: np.ndarray | None = None, pose_std=None, speed: float | None = None) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import time
 from concurrent.futures import Future
 from concurrent.futures import wait as wait_futures
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,10 +23,6 @@ class Interrupted(LidarlocError):
 
 #: How often a step waiting for a block checks for ``interrupt()`` (seconds).
 INTERRUPT_POLL_S = 0.05
-
-
-if TYPE_CHECKING:
-    from .scan_loop import Localizer  # noqa: F401
 
 
 class BlocksMixin:

@@ -6,16 +6,11 @@ move the estimate unannounced, and change a live parameter — validated once by
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import LIVE_PARAMS, check_live_changes
 from ..errors import LidarlocError
-
-if TYPE_CHECKING:
-    from .scan_loop import Localizer  # noqa: F401
-
 
 class ControlsMixin:
     """The user's controls (see the module docstring). A part of :class:`~lidarloc.core.localizer.Localizer`."""

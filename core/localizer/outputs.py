@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,10 +12,6 @@ from ..geometry import transform_points
 from ..rules.checks import truth_outside_map
 from ..rules.truth import inside_2sigma, truth_alarm
 from ..snapshot import Event, Snapshot
-
-if TYPE_CHECKING:
-    from .scan_loop import Localizer  # noqa: F401
-
 
 class OutputsMixin:
     """Snapshots, events and the per-scan checks (see the module docstring). A part of :class:`~lidarloc.core.localizer.Localizer`."""

@@ -5,17 +5,12 @@ after a live d_max or d_m change (swapped in at the next scan; the old one serve
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 
 from ..matching.schedule import S2MScheduler
 
 #: The ``s2m_ready`` event's detail: S2M joins once its tables are built (``defer_s2m``).
 S2M_READY_DETAIL = "road-removed map and BEV pyramid built in the background"
-
-
-if TYPE_CHECKING:
-    from .scan_loop import Localizer  # noqa: F401
 
 
 class TablesMixin:

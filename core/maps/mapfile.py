@@ -32,11 +32,10 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
-from ..cache import atomic_write_file
 from ..errors import DataError
 
 #: Formats read by :func:`read_map` and written by :func:`write_map`.
@@ -402,136 +401,3 @@ def _numpy_chunks(path: Path, chunk_points: int) -> _Chunks:
             yield np.asarray(arr[i:i + chunk_points, :3], dtype=np.float64)
 
     return _Chunks(len(arr), iterate)
-
-
-# ------------------------------------------------------------------------------------ writing
-def write_map(path, points: np.ndarray, origin=None) -> None:
-    """Write ``points`` (N, 3) as a binary .pcd or .ply (x, y, z only), in the frame
-    ``points + origin``. With an origin the coordinates are written as float64 (UTM-sized
-    coordinates keep full precision); without, in the points' own precision (float32 stays
-    float32). The file appears whole or not at all (written aside, then renamed).
-
-    PCL, CloudCompare and lidarloc read float64 PCD fields; open3d (0.19–0.20) reads them as
-    zeros, so for open3d-based tools write a georeferenced map as .ply."""
-    path = Path(path)
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise DataError(f"{path}: expected (N, ≥3) points to write, got shape {points.shape}")
-    if origin is not None:
-        origin = np.asarray(origin, np.float64).reshape(3)
-    dtype = np.float32 if origin is None and points.dtype == np.float32 else np.float64
-
-    def chunks():
-        for i in range(0, len(points), CHUNK_POINTS):
-            c = np.asarray(points[i:i + CHUNK_POINTS, :3], dtype=np.float64 if origin is not None else dtype)
-            yield c + origin if origin is not None else c
-
-    write_map_chunks(path, len(points), chunks(), dtype)
-
-
-def write_map_chunks(path, n_points: int, chunks: Iterable[np.ndarray], dtype=np.float32) -> None:
-    """Write a map of ``n_points`` given as chunks of (m, 3) xyz, never holding more than one
-    chunk: binary .pcd or .ply with x, y, z of ``dtype`` (float32 or float64). Atomic like
-    :func:`write_map`; the chunks must add up to ``n_points``."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in WRITE_SUFFIXES:
-        raise _unsupported(path, "write", WRITE_SUFFIXES)
-    dtype = np.dtype(dtype)
-    if dtype not in (np.float32, np.float64):
-        raise ValueError(f"map coordinates are written as float32 or float64, not {dtype}")
-    header = _pcd_header(n_points, dtype) if suffix == ".pcd" else _ply_header(n_points, dtype)
-
-    def write(tmp: Path):
-        written = 0
-        with open(tmp, "wb") as f:
-            f.write(header.encode("ascii"))
-            for chunk in chunks:
-                chunk = np.ascontiguousarray(np.asarray(chunk)[:, :3], dtype=dtype.newbyteorder("<"))
-                f.write(chunk.tobytes())
-                written += len(chunk)
-        if written != n_points:
-            raise ValueError(f"{path}: {written} points written, {n_points} announced")
-
-    try:
-        atomic_write_file(path, write)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot write the map ({exc.strerror or exc})") from None
-
-
-def _pcd_header(n: int, dtype: np.dtype) -> str:
-    size = dtype.itemsize
-    return ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
-            f"SIZE {size} {size} {size}\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
-            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n")
-
-
-def _ply_header(n: int, dtype: np.dtype) -> str:
-    kind = "float" if dtype == np.float32 else "double"
-    return (f"ply\nformat binary_little_endian 1.0\ncomment lidarloc map\nelement vertex {n}\n"
-            f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n")
-
-
-def point_spacing(points: np.ndarray, rng: np.random.Generator | None = None, tiles: int = 8,
-                  half: float = 2.0) -> float | None:
-    """Median nearest-neighbour spacing (m) of a cloud, measured on a sample: every point within
-    ``half`` m (∞-norm) of ``tiles`` random points is gathered and the nearest neighbours of
-    those in the inner half of each tile are looked up among them (a k-d tree over a large
-    map's every point would cost more memory than the map). None when the sample has no pairs."""
-    from scipy.spatial import cKDTree
-
-    rng = rng or np.random.default_rng(0)
-    if len(points) < 2:
-        return None
-    centres = points[rng.integers(0, len(points), tiles)].astype(np.float64)
-    masks = []
-    for i in range(0, len(points), CHUNK_POINTS):
-        chunk = points[i:i + CHUNK_POINTS]
-        near = np.zeros(len(chunk), bool)
-        for c in centres:
-            near |= (np.abs(chunk - c) <= half).all(axis=1)
-        masks.append(np.flatnonzero(near) + i)
-    local = points[np.concatenate(masks)].astype(np.float64)
-    inner = np.zeros(len(local), bool)
-    for c in centres:
-        inner |= (np.abs(local - c) <= half / 2).all(axis=1)
-    if inner.sum() == 0 or len(local) < 2:
-        return None
-    d, _ = cKDTree(local).query(local[inner], k=2)
-    d = d[:, 1][np.isfinite(d[:, 1])]
-    return float(np.median(d)) if len(d) else None
-
-
-
-def describe_map(cloud: MapCloud, rng: np.random.Generator | None = None) -> dict:
-    """What ``lidarloc map info`` reports: points, extent and origin in the file's frame,
-    density over the x-y bounding box and the median nearest-neighbour spacing (on a sample, see
-    :func:`point_spacing`)."""
-    lo, hi = cloud.world_bounds()
-    area = float((hi[0] - lo[0]) * (hi[1] - lo[1]))
-    spacing = point_spacing(cloud.points, rng)
-    return {
-        "file": str(cloud.path),
-        "points": int(len(cloud.points)),
-        "points_in_file": int(cloud.n_read),
-        "dropped_nonfinite": int(cloud.n_dropped_nonfinite),
-        "extent_min_m": [float(v) for v in lo],
-        "extent_max_m": [float(v) for v in hi],
-        "size_m": [float(v) for v in hi - lo],
-        "origin_m": [float(v) for v in cloud.origin],
-        "points_per_m2": float(len(cloud.points) / area) if area > 0 else None,
-        "median_spacing_m": spacing,
-    }
-
-
-def map_info_lines(info: dict) -> list[str]:
-    """:func:`describe_map`'s result for reading, coordinates in full (UTM-sized ones too)."""
-    dropped = info["dropped_nonfinite"]
-    lines = [f"{info['file']}: {info['points']:,} points" + (f" ({dropped:,} not finite, dropped)" if dropped else "")]
-    for axis, lo, hi, size in zip("xyz", info["extent_min_m"], info["extent_max_m"], info["size_m"]):
-        lines.append(f"  {axis}: {lo:.3f} … {hi:.3f} m ({size:.3f} m)")
-    lines.append("  origin: " + ", ".join(f"{v:.3f}" for v in info["origin_m"]) + " m (the local frame's, in the file's)")
-    density = "—" if info["points_per_m2"] is None else f"{info['points_per_m2']:.1f} points/m² over the x-y box"
-    spacing = "—" if info["median_spacing_m"] is None else f"{info['median_spacing_m']:.3f} m"
-    lines.append(f"  density: {density}; median nearest-neighbour spacing {spacing}")
-    return lines

@@ -710,21 +710,28 @@ class Recording:
     def events_until(self, i: int) -> list[Event]:
         return [ev for step, ev in self.events if step <= i]
 
+    def prepared_scan(self, i: int, seq) -> np.ndarray:
+        """(M, 3) float32: step i's scan as the filter weighed it (one random point per voxel, the
+        run's seed and voxel), in the LiDAR's frame, recomputed from the run's sequence ``seq``."""
+        from .scanprep import voxel_downsample_random
+
+        i = self._check(i)
+        k = int(self.scan_index[i])
+        rng = np.random.default_rng([int(self.meta.get("seed", 0)), k, 1])
+        return voxel_downsample_random(seq.scan(k), float(self.scan_voxel[i]), rng, self._max_elevation)
+
     def snapshot(self, i: int, seq=None) -> Snapshot:
         """Step i as a :class:`~lidarloc.core.snapshot.Snapshot` (what the viewer draws). With the run's
         sequence ``seq``, ``scan_world`` is the prepared scan at the estimate, recomputed from the
         source; without, it is empty."""
         from .geometry import transform_points
-        from .scanprep import voxel_downsample_random
 
         i = self._check(i)
         k = int(self.scan_index[i])
         pose = self.mean_pose[i]
         scan_world = np.zeros((0, 3), np.float32)
         if seq is not None:
-            rng = np.random.default_rng([int(self.meta.get("seed", 0)), k, 1])
-            prepared = voxel_downsample_random(seq.scan(k), float(self.scan_voxel[i]), rng, self._max_elevation)
-            scan_world = transform_points(pose, prepared).astype(np.float32)
+            scan_world = transform_points(pose, self.prepared_scan(i, seq)).astype(np.float32)
         gt = self.gt_pose[i]
         since = int(self.localized_since[i])
         inside = int(self.inside_2sigma[i])

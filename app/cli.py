@@ -583,6 +583,41 @@ def bench_s2m(
                              cell_study=cell_study), as_json)
 
 
+@bench_app.command("peers")
+@with_source()
+def bench_peers(
+    global_scans: Annotated[int, typer.Option("--global-scans", min=1, help="Random scans each global method registers against the whole map, per source.")] = 20,
+    track_scans: Annotated[int, typer.Option("--track-scans", min=3, help="Scans tracked from the start before the kidnap.")] = 250,
+    after_kidnap: Annotated[int, typer.Option("--after-kidnap", min=1, help="Scans played after the kidnap (~50 m ahead along the drive).")] = 150,
+    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the global part on the real KITTI drive (default: where its data is present).")] = None,
+    paper: Annotated[Optional[bool], typer.Option("--paper/--no-paper", help="Also the paper's figures beside a run of the town laid along KITTI 05 (default: where its poses are present).")] = None,
+    paper_scans: Annotated[int, typer.Option("--paper-scans", min=10, help="Scans of the KITTI 05 town the paper's part plays.")] = 300,
+    seed: SeedOpt = None,
+    world: WorldOpt = "lived-in",
+    as_json: JsonOpt = False,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """lidarloc beside what a user would run instead, same scans, map and machine: global
+    localization against open3d's FPFH + RANSAC and FGR, tracking against scan-to-map GICP
+    (small_gicp) from the true start, recovery after a kidnap, and the paper's own figures.
+
+    The source (default: the built-in town) holds the global and tracking parts; on the town the
+    drive is lived-in unless --world kind says otherwise."""
+    from .bench.peers import run as run_bench
+
+    cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
+    with progress_bar() as bar:
+        tasks: dict = {}
+
+        def progress(what, i, n):
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=n)
+            bar.update(tasks[what], completed=i, total=n)
+        result = run_bench(spec, cfg, global_scans=global_scans, track_scans=track_scans, after_kidnap=after_kidnap,
+                           real=real, paper=paper, paper_scans=paper_scans, cache_root=cache, progress=progress)
+    _result("peers", result, as_json)
+
+
 @bench_app.command("rpe")
 @with_source()
 def bench_rpe(

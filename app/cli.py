@@ -176,6 +176,10 @@ def run(
         if no_record:
             raise LidarlocError("--write-bag writes the run's recording as a bag; drop --no-record")
         bag_target(write_bag)        # a bad name fails now, not after the run
+        if with_input and branch is None:
+            from .export_bag import check_input
+
+            check_input(spec.bag)
     overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
     if branch is not None:
         if given(ctx, SOURCE_OPTIONS) or config or preset or init:

@@ -25,7 +25,7 @@ topic                     type                                          what
 late subscriber of ``ros2 bag play`` still gets them. With ``with_input`` (a run on a bag) every
 topic of the input bag within the run's time span is copied in too, under its own name; the
 input's ``/tf``, ``/tf_static`` and ``/rosout`` become ``/input/tf``, … so that its frames do not
-clash with ``map → lidar``.
+clash with ``map → lidar``. The input must be a ROS 2 bag (a ROS 1 bag: convert it first).
 """
 
 from __future__ import annotations
@@ -243,18 +243,39 @@ class BagWriter:
 
 
 # -------------------------------------------------------------------------------- the input
+def check_input(bag) -> None:
+    """Before a run with ``--write-bag --with-input``: one line unless the source is a ROS 2 bag."""
+    if bag is None:
+        raise LidarlocError("--with-input copies the input bag of a run on a bag; give the source as --bag")
+    if Path(bag).suffix.lower() == ".bag":
+        raise LidarlocError(f"{bag}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag first "
+                            "(rosbags-convert --src drive.bag --dst drive2) and run on that")
+
+
 def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
-    """Copy the run's input bag into ``writer``: every topic, messages recorded within the run's
-    span (±1 s; /tf_static whole), under its own name or ``/input/NAME`` where lidarloc writes
-    NAME. Returns messages copied per (output) topic."""
-    from lidarloc.core.sequences.rosbag import _open_reader, bag_errors, resolve_bag_path
+    """Copy the run's input bag (ROS 2) into ``writer``: every topic, messages recorded within the
+    run's span (±1 s; /tf_static whole), under its own name or ``/input/NAME`` where lidarloc
+    writes NAME. Returns messages copied per (output) topic."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from lidarloc.core.sequences.rosbag import bag_errors, resolve_bag_path
 
     bag_path = getattr(steps.seq, "path", None) if hasattr(steps.seq, "stamps_ns") else None
     if bag_path is None:
         raise LidarlocError(f"{steps.rec.run_dir}: --with-input copies the input bag of a run on a bag (--bag); "
                             f"this run's source is {steps.name}")
     lo, hi = int(steps.stamps_ns.min()) - 1_000_000_000, int(steps.stamps_ns.max()) + 1_000_000_000
-    reader = _open_reader(resolve_bag_path(bag_path))
+    with bag_errors(Path(bag_path), "opening"):
+        # the Humble definitions for an old sqlite3 bag without its own, as the bag reader does
+        reader = AnyReader([resolve_bag_path(bag_path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    if not reader.is2:
+        reader.close()
+        # a ROS 1 message is not a ROS 2 message re-encoded (std_msgs/Header lost its seq):
+        # converting it is rosbags-convert's job, done once for the whole bag
+        raise LidarlocError(f"{bag_path}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag "
+                            "first (rosbags-convert --src drive.bag --dst drive2) and run on that")
     counts: dict[str, int] = {}
     try:
         with bag_errors(Path(bag_path), "copying the input"):
@@ -266,13 +287,11 @@ def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
                     qos = getattr(getattr(c, "ext", None), "offered_qos_profiles", ()) or ()
                     out_conn[key] = writer.add_connection(name, c.msgtype, typestore=reader.typestore,
                                                           offered_qos_profiles=qos if not isinstance(qos, str) else ())
-            is_ros1 = not getattr(reader, "is2", True)
             for c, t, raw in reader.messages():
                 if not (lo <= t <= hi) and c.topic.lstrip("/") != "tf_static":
                     continue
                 name = c.topic if c.topic not in taken else INPUT_PREFIX + c.topic
-                data = reader.typestore.ros1_to_cdr(raw, c.msgtype) if is_ros1 else raw
-                writer.write(out_conn[(name, c.msgtype)], t, data)
+                writer.write(out_conn[(name, c.msgtype)], t, raw)
                 counts[name] = counts.get(name, 0) + 1
     finally:
         reader.close()

@@ -168,6 +168,8 @@ def test_bad_names_and_missing_runs_are_one_line(recorded_town_run, tmp_path, ca
                               env_cache=cache_root), "--with-input")
     assert_one_line_error(cli("run", "--out", str(tmp_path / "r"), "--no-record", "--write-bag",
                               str(tmp_path / "r.mcap"), env_cache=cache_root), "--no-record")
+    assert_one_line_error(cli("run", "--out", str(tmp_path / "r"), "--write-bag", str(tmp_path / "r.mcap"),
+                              "--with-input", env_cache=cache_root), "--bag")
 
 
 @pytest.mark.slow

@@ -273,11 +273,13 @@ def export(
 
 
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True):
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True,
+           foxglove_port=None):
     from .viewer.serve import serve_until_interrupted
 
     serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
-                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record)
+                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record,
+                            foxglove_port=foxglove_port)
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
@@ -289,6 +291,9 @@ RecordDirOpt = Annotated[Optional[Path], typer.Option(
                          "(default: a new runs/<date-time> folder under the cache directory).")]
 NoRecordViewOpt = Annotated[bool, typer.Option(
     "--no-record", help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).")]
+FoxglovePortOpt = Annotated[Optional[int], typer.Option(
+    "--foxglove-port", min=0, help="Also stream the live run to Foxglove (Open connection → Foxglove WebSocket "
+                                   "ws://HOST:PORT), in the channels of export --foxglove.")]
 RunOpt = Annotated[Optional[list[Path]], typer.Option(
     "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
                   "source side by side); the map and scans come from the source the run names.")]
@@ -298,11 +303,12 @@ RunOpt = Annotated[Optional[list[Path]], typer.Option(
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False):
+         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
+         foxglove_port: FoxglovePortOpt = None):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
-           record_dir=record_dir, preset=preset, record=not no_record)
+           record_dir=record_dir, preset=preset, record=not no_record, foxglove_port=foxglove_port)
 
 
 @app.command()
@@ -312,17 +318,21 @@ def view(
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
     autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
-    run: RunOpt = None,
+    run: RunOpt = None, foxglove_port: FoxglovePortOpt = None,
 ):
     """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
     if run:
         from .viewer.runs import serve_runs
 
+        if foxglove_port is not None:
+            raise LidarlocError("--foxglove-port streams a live run; for a recorded run: lidarloc export RUN "
+                                "--foxglove OUT.mcap, and open that file in Foxglove")
+
         serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
         return
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
-           preset=preset, record=not no_record)
+           preset=preset, record=not no_record, foxglove_port=foxglove_port)
 
 
 # -------------------------------------------------------------------------------------- benches

@@ -85,6 +85,52 @@ def particle_covariance(particles: np.ndarray, weights: np.ndarray, cov_xyz: np.
     return cov
 
 
+def in_map(T: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """A local-frame pose in the ``map`` frame (the map file's origin added)."""
+    T = np.array(T, np.float64)
+    T[:3, 3] += origin
+    return T
+
+
+def make_step(index: int, scan: int, stamp_ns: int, origin: np.ndarray, mean_pose, gt_pose, particles, weights,
+              cov_xyz, std_xyz, ellipse_xy, n_eff: float, n_particles: int, localized: bool, latencies: dict,
+              events: list, s2m) -> Step:
+    """A :class:`Step` from one step's state in the localizer's local frame (a recording's row or
+    a live snapshot); ``latencies``: error_m, pf_ms, rpe_ms, s2m_ms, NaN or None where unknown."""
+    parts = np.asarray(particles, np.float64)[:, :6].copy()
+    parts[:, :3] += origin
+    weights = np.asarray(weights, np.float64)
+    gt = None if gt_pose is None else np.asarray(gt_pose, np.float64)
+    n = int(n_particles) or len(parts)
+    std = np.asarray(std_xyz, float)
+
+    def known(v):
+        return None if v is None or not math.isfinite(float(v)) else float(v)
+    figures = {"std_m": float(max(std[0], std[1])), "std_x_m": float(std[0]), "std_y_m": float(std[1]),
+               "std_z_m": float(std[2]), "n_eff": float(n_eff), "n_eff_share": float(n_eff) / max(n, 1),
+               "particles": n, "localized": bool(localized), **{k: known(v) for k, v in latencies.items()}}
+    return Step(index=index, scan=scan, stamp_ns=int(stamp_ns), pose=in_map(mean_pose, origin),
+                truth=in_map(gt, origin) if gt is not None and np.isfinite(gt).all() else None, particles=parts,
+                weights=weights, covariance=particle_covariance(parts, weights, cov_xyz),
+                ellipse_xy=tuple(float(v) for v in ellipse_xy), figures=figures, events=list(events), s2m=s2m)
+
+
+def display_map(points: np.ndarray, max_points: int = MAP_POINTS) -> tuple[np.ndarray, float]:
+    """The map thinned for display, in the localizer's local frame (float32), and the voxel used."""
+    from .viewer.shapes import downsample_for_display
+
+    return downsample_for_display(np.asarray(points, np.float32), 0.5, max_points)
+
+
+def stamps_of(seq, scans: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """Each scan's stamp (int64 ns): a bag's header stamps where the sequence has them, else its
+    times (see the module docstring)."""
+    stamps = getattr(seq, "stamps_ns", None)
+    if stamps is not None:
+        return np.asarray(stamps, np.int64)[np.asarray(scans, np.int64)]
+    return np.round(np.asarray(times_s, np.float64) * 1e9).astype(np.int64)
+
+
 class RunSteps:
     """A recorded run opened for export: its sequence, map and steps (one-line errors for a
     missing or empty recording, or a source that moved)."""
@@ -107,12 +153,7 @@ class RunSteps:
         self.origin = np.asarray(self.prior.origin, np.float64).reshape(3)
         self.local_frame = LOCAL_FRAME if self.origin.any() else MAP_FRAME
         self.n = rec.n
-        stamps = getattr(self.seq, "stamps_ns", None)
-        scans = rec.scan_index.astype(np.int64)
-        if stamps is not None:
-            self.stamps_ns = np.asarray(stamps, np.int64)[scans]
-        else:
-            self.stamps_ns = np.round(rec.timestamp.astype(np.float64) * 1e9).astype(np.int64)
+        self.stamps_ns = stamps_of(self.seq, rec.scan_index, rec.timestamp)
         self._events: dict[int, list] = {}
         for step, ev in rec.events:
             self._events.setdefault(max(step, 0), []).append(ev)
@@ -123,16 +164,10 @@ class RunSteps:
         return str(self.rec.meta.get("sequence", "run"))
 
     def in_map(self, T: np.ndarray) -> np.ndarray:
-        """A local-frame pose in the ``map`` frame (the map file's origin added)."""
-        T = np.array(T, np.float64)
-        T[:3, 3] += self.origin
-        return T
+        return in_map(T, self.origin)
 
     def map_points(self, max_points: int = MAP_POINTS) -> tuple[np.ndarray, float]:
-        """The map thinned for display, in ``local_frame`` (float32), and the voxel used."""
-        from .viewer.shapes import downsample_for_display
-
-        return downsample_for_display(np.asarray(self.prior.points, np.float32), 0.5, max_points)
+        return display_map(self.prior.points, max_points)
 
     def scan(self, i: int) -> np.ndarray:
         """(M, 3) float32: step i's scan as the filter weighed it, in the LiDAR's frame."""
@@ -140,26 +175,12 @@ class RunSteps:
 
     def step(self, i: int) -> Step:
         rec = self.rec
-        pose = self.in_map(rec.mean_pose[i])
-        gt = rec.gt_pose[i]
-        parts = rec.particles(i).astype(np.float64)[:, :6].copy()
-        parts[:, :3] += self.origin
-        weights = rec.weights(i)
-        n = int(rec.n_particles[i]) or len(parts)
-        std = rec.std_xyz[i]
-
-        def known(v):
-            v = float(v)
-            return v if math.isfinite(v) else None
-        figures = {"std_m": float(max(std[0], std[1])), "std_x_m": float(std[0]), "std_y_m": float(std[1]),
-                   "std_z_m": float(std[2]), "n_eff": float(rec.n_eff[i]), "n_eff_share": float(rec.n_eff[i]) / max(n, 1),
-                   "particles": n, "localized": bool(rec.localized[i]), "error_m": known(rec.error_m[i]),
-                   "pf_ms": known(rec.pf_ms[i]), "rpe_ms": known(rec.rpe_ms[i]), "s2m_ms": known(rec.s2m_ms[i])}
-        return Step(index=i, scan=int(rec.scan_index[i]), stamp_ns=int(self.stamps_ns[i]), pose=pose,
-                    truth=self.in_map(gt) if np.isfinite(gt).all() else None, particles=parts, weights=weights,
-                    covariance=particle_covariance(parts, weights, rec.cov_xyz[i]),
-                    ellipse_xy=tuple(float(v) for v in rec.ellipse_xy[i]), figures=figures,
-                    events=self._events.get(i, []), s2m=rec.s2m(i) if i in self._s2m_steps else None)
+        return make_step(i, int(rec.scan_index[i]), int(self.stamps_ns[i]), self.origin, rec.mean_pose[i],
+                         rec.gt_pose[i], rec.particles(i), rec.weights(i), rec.cov_xyz[i], rec.std_xyz[i],
+                         rec.ellipse_xy[i], float(rec.n_eff[i]), int(rec.n_particles[i]), bool(rec.localized[i]),
+                         {"error_m": rec.error_m[i], "pf_ms": rec.pf_ms[i], "rpe_ms": rec.rpe_ms[i],
+                          "s2m_ms": rec.s2m_ms[i]},
+                         self._events.get(i, []), rec.s2m(i) if i in self._s2m_steps else None)
 
     def __iter__(self):
         return (self.step(i) for i in range(self.n))

@@ -8,8 +8,8 @@ killed) gets the same figures computed from its recorded steps.
 
 Figures (one row each): the paper's metrics A–E, success (the rule met, and every estimate from
 then to the end within 5 m of the truth: the benchmarks' "within 5 m to the end"), the position
-RMSE over the localized scans, consistency_2sigma, false_fire, the PF step's median latency and
-the number of scans.
+RMSE over the localized scans, evo's APE and RPE RMSE over every scan (the summary's),
+consistency_2sigma, false_fire, the PF step's median latency and the number of scans.
 
 The plot (PNG): the trajectories in the map's frame (x–y; the truth dashed), the error, the
 position std and N_eff as a share of the particles against the scan (a branch's curves start at its scan),
@@ -44,6 +44,8 @@ ROWS = (
     *((k, f"{k} (scans)", "int") for k in METRIC_KEYS),
     ("success", "success (≤ 5 m to the end)", "bool"),
     ("rmse_after_localized_m", "RMSE after localized (m)", "m"),
+    ("ape_rmse_m", "APE RMSE, evo, every scan (m)", "m"),
+    ("rpe_rmse_m", "RPE RMSE, evo, 1 scan (m)", "m"),
     ("consistency_2sigma", "consistency 2σ", "share"),
     ("false_fire", "false fire", "bool"),
     ("pf_ms_median", "PF latency median (ms)", "ms"),
@@ -147,7 +149,7 @@ def _figures(summary: dict, curves: RunCurves) -> dict:
     metrics = summary.get("metrics") or {}
     out = {k: metrics.get(k) for k in METRIC_KEYS}
     out["success"] = success(curves)
-    for key in ("rmse_after_localized_m", "consistency_2sigma", "false_fire", "pf_ms_median", "scans"):
+    for key in ("rmse_after_localized_m", "ape_rmse_m", "rpe_rmse_m", "consistency_2sigma", "false_fire", "pf_ms_median", "scans"):
         out[key] = summary.get(key)
     return out
 

@@ -68,6 +68,16 @@ def cache_root(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def recorded_town_run(cache_root, tmp_path_factory):
+    """A recorded 14-scan run of the short town, made as ``lidarloc run`` makes it, shared by the
+    tests that read a run's files back (exports, evo): (folder, summary)."""
+    from helpers import record_run
+
+    d = tmp_path_factory.mktemp("recorded") / "run"
+    return d, record_run(d, cache_root, scans=14)
+
+
+@pytest.fixture(scope="session")
 def toy_world():
     """The particle filter's toy world (helpers.toy_map) and its 0.25 m / 5 m lookup table."""
     from helpers import toy_map

@@ -201,8 +201,9 @@ def sources(town: SourceSpec, sensors: list[str], world: str, real: bool | None)
 
 def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | None, cases: list[str],
                   sensors: list[str], world: str, runs: int, workers: int, out_dir: Path, real: bool | None = None,
-                  cache_root: Path | None = None, console: Console | None = None) -> dict:
-    """Every case in every world, ``runs`` seeds each, into ``out_dir``; returns the summary."""
+                  cache_root: Path | None = None, console: Console | None = None, preset: str | None = None) -> dict:
+    """Every case in every world, ``runs`` seeds each, into ``out_dir``; returns the summary.
+    ``preset``: the named configuration the cases start from (``--preset``; None = the defaults)."""
     console = console or Console(stderr=True)
     require_town(town, "integrity", "the filter's word when S2M is late, the start is wrong or the vehicle moves")
     unknown = [c for c in cases if c not in CASES]
@@ -222,7 +223,7 @@ def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | 
     t0 = time.perf_counter()
     for src in sources(town, sensors, world, real):
         base = load_config(config, ["localize.recorded_odometry=true", *(overrides or []), *src.overrides],
-                           world=world if src.spec.kind == "town" else None)
+                           preset=preset, world=world if src.spec.kind == "town" else None)
         prepare_cache(src.spec, base, cache_root, label=src.name)
         for case in cases:
             spec = src.spec
@@ -231,7 +232,8 @@ def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | 
                 lookalikes[src.name] = what
                 spec = replace(spec, init=init)
             cfg = load_config(config, ["localize.recorded_odometry=true", *(overrides or []), *src.overrides,
-                                       *Case(case).overrides()], world=world if src.spec.kind == "town" else None)
+                                       *Case(case).overrides()], preset=preset,
+                              world=world if src.spec.kind == "town" else None)
             cfg_d = cfg.to_dict()
             cfg_d.pop("seed", None)
             for seed in range(runs):

@@ -7,12 +7,12 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..console import emit_json, err
+from ..console import emit_json, err, progress_bar
 from ..options import (OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, WorldOpt,
                        PresetOpt, SetOpt, config_from, with_source)
 from .groups import bench_app
 
-from .bench_costs import RecordBenchOpt, show_bench_result
+from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 
 @bench_app.command("localize")
 @with_source()
@@ -89,7 +89,7 @@ def bench_integrity(
     real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive (default: where its data is present).")] = None,
     world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
-    spec=None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Never green while wrong: S2M late, a wrong-place start, a kidnap, an estimate moved unannounced.
 
@@ -98,7 +98,7 @@ def bench_integrity(
 
     summary = run_integrity(spec, config, set_, [c.strip() for c in cases.split(",") if c.strip()],
                             [s.strip() for s in sensors.split(",") if s.strip()], world, runs=runs, workers=workers,
-                            out_dir=out, real=real, cache_root=cache, console=err)
+                            out_dir=out, real=real, cache_root=cache, console=err, preset=preset)
     if as_json:
         emit_json(summary)
     else:
@@ -106,3 +106,36 @@ def bench_integrity(
         err.print(f"report and summary.json in {out}", highlight=False)
 
 
+@bench_app.command("peers")
+@with_source()
+def bench_peers(
+    global_scans: Annotated[int, typer.Option("--global-scans", min=1, help="Random scans each global method registers against the whole map, per source.")] = 20,
+    track_scans: Annotated[int, typer.Option("--track-scans", min=3, help="Scans tracked from the start before the kidnap.")] = 250,
+    after_kidnap: Annotated[int, typer.Option("--after-kidnap", min=1, help="Scans played after the kidnap (~50 m ahead along the drive).")] = 150,
+    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the global part on the real KITTI drive (default: where its data is present).")] = None,
+    paper: Annotated[Optional[bool], typer.Option("--paper/--no-paper", help="Also the paper's figures beside a run of the town laid along KITTI 05 (default: where its poses are present).")] = None,
+    paper_scans: Annotated[int, typer.Option("--paper-scans", min=10, help="Scans of the KITTI 05 town the paper's part plays.")] = 300,
+    seed: SeedOpt = None,
+    world: WorldOpt = "lived-in",
+    as_json: JsonOpt = False,
+    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+):
+    """lidarloc beside what a user would run instead, same scans, map and machine: global
+    localization against open3d's FPFH + RANSAC and FGR, tracking against scan-to-map GICP
+    (small_gicp) from the true start, recovery after a kidnap, and the paper's own figures.
+
+    The source (default: the built-in town) holds the global and tracking parts; on the town the
+    drive is lived-in unless --world kind says otherwise."""
+    from ..bench.peers import run as run_bench
+
+    cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
+    with progress_bar() as bar:
+        tasks: dict = {}
+
+        def progress(what, i, n):
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=n)
+            bar.update(tasks[what], completed=i, total=n)
+        result = run_bench(spec, cfg, global_scans=global_scans, track_scans=track_scans, after_kidnap=after_kidnap,
+                           real=real, paper=paper, paper_scans=paper_scans, cache_root=cache, progress=progress)
+    show_bench_result("peers", result, as_json)

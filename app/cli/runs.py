@@ -23,10 +23,24 @@ def run(
     no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
     no_record: Annotated[bool, typer.Option("--no-record", help="Do not record the run's steps into OUT/recording/ (view --run, --branch, compare and export read it).")] = False,
     branch: Annotated[Optional[str], typer.Option("--branch", metavar="RUN_DIR:STEP", help="Continue the recorded run in RUN_DIR from the filter's exact state after its step STEP (0-based), with --set changes, into --out; source and configuration come from the recording.")] = None,
+    write_bag: Annotated[Optional[Path], typer.Option("--write-bag", metavar="OUT.mcap", help="Also write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) for RViz2 and Foxglove: estimate, /tf, particles, truth, scan, map, events.")] = None,
+    with_input: Annotated[bool, typer.Option("--with-input", help="With --write-bag on a --bag source: copy the input bag's topics into it too.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
 ):
     """Localize headless over a sequence and write results to --out (recorded: scrub it with view --run)."""
+    if write_bag is not None or with_input:
+        from ..export_bag import bag_target
+
+        if write_bag is None:
+            raise LidarlocError("--with-input copies the input bag into the bag --write-bag writes; give --write-bag")
+        if no_record:
+            raise LidarlocError("--write-bag writes the run's recording as a bag; drop --no-record")
+        bag_target(write_bag)        # a bad name fails now, not after the run
+        if with_input and branch is None:
+            from ..export_bag import check_input
+
+            check_input(spec.bag)
     overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
     if branch is not None:
         if given(ctx, SOURCE_OPTIONS) or config or preset or init:
@@ -43,6 +57,10 @@ def run(
         cfg = config_from(config, overrides, seed=seed, preset=preset)
         summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err,
                                             preset=preset, record=not no_record)
+    if write_bag is not None:
+        from ..export_bag import export_bag
+
+        export_bag(out, write_bag, console=err, cache_root=cache, with_input=with_input)
     if as_json:
         emit_json(summary)
     if interrupted:
@@ -85,25 +103,44 @@ def compare(
 @app.command("export")
 def export(
     run: Annotated[Path, typer.Argument(help="A recorded run folder (with recording/).")],
-    out: Annotated[Path, typer.Option("--out", help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).")] = None,
+    bag: Annotated[Optional[Path], typer.Option("--bag", metavar="OUT.mcap", help="Write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) of standard messages, for RViz2 (ros2 bag play) and Foxglove.")] = None,
+    foxglove: Annotated[Optional[Path], typer.Option("--foxglove", metavar="OUT.mcap", help="Write the run in Foxglove's own schemas, and OUT.layout.json beside it (Foxglove: Layouts → Import from file).")] = None,
+    with_input: Annotated[bool, typer.Option("--with-input", help="With --bag, for a run on a bag: copy the input bag's topics into it too.")] = False,
     no_scans: Annotated[bool, typer.Option("--no-scans", help="Leave each step's scan out (a smaller file).")] = False,
     as_json: JsonOpt = False,
     cache: CacheOpt = None,
 ):
-    """Share a recorded run: a .viser recording of its scene and a static web folder that plays it in any browser from disk (no Python, no server)."""
-    from ..export import export_run
+    """Share a recorded run: a .viser recording of its scene and a static web folder that plays it in any browser from disk (no Python, no server); a ROS 2 bag (--bag); a Foxglove file and layout (--foxglove)."""
+    if out is None and bag is None and foxglove is None:
+        raise LidarlocError("export: say what to write: --out NAME (viewer files), --bag OUT.mcap or --foxglove OUT.mcap")
+    if with_input and bag is None:
+        raise LidarlocError("--with-input copies the input bag into the bag --bag writes; give --bag")
+    result = {}
+    if bag is not None:
+        from ..export_bag import export_bag
 
-    result = export_run(run, out, console=err, cache_root=cache, scans=not no_scans)
+        result["bag"] = export_bag(run, bag, console=err, cache_root=cache, with_input=with_input, scans=not no_scans)
+    if foxglove is not None:
+        from ..export_foxglove import export_foxglove
+
+        result["foxglove"] = export_foxglove(run, foxglove, console=err, cache_root=cache, scans=not no_scans)
+    if out is not None:
+        from ..export import export_run
+
+        result.update(export_run(run, out, console=err, cache_root=cache, scans=not no_scans))
     if as_json:
         emit_json(result)
 
 
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True):
+def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True,
+           foxglove_port=None):
     from ..viewer.serve import serve_until_interrupted
 
     serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
-                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record)
+                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record,
+                            foxglove_port=foxglove_port)
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
@@ -115,6 +152,9 @@ RecordDirOpt = Annotated[Optional[Path], typer.Option(
                          "(default: a new runs/<date-time> folder under the cache directory).")]
 NoRecordViewOpt = Annotated[bool, typer.Option(
     "--no-record", help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).")]
+FoxglovePortOpt = Annotated[Optional[int], typer.Option(
+    "--foxglove-port", min=0, help="Also stream the live run to Foxglove (Open connection → Foxglove WebSocket "
+                                   "ws://HOST:PORT), in the channels of export --foxglove.")]
 RunOpt = Annotated[Optional[list[Path]], typer.Option(
     "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
                   "source side by side); the map and scans come from the source the run names.")]
@@ -124,11 +164,12 @@ RunOpt = Annotated[Optional[list[Path]], typer.Option(
 def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
          scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
          open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False):
+         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
+         foxglove_port: FoxglovePortOpt = None):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
-           record_dir=record_dir, preset=preset, record=not no_record)
+           record_dir=record_dir, preset=preset, record=not no_record, foxglove_port=foxglove_port)
 
 
 @app.command()
@@ -138,19 +179,18 @@ def view(
     init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
     autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
-    run: RunOpt = None,
+    run: RunOpt = None, foxglove_port: FoxglovePortOpt = None,
 ):
     """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
     if run:
         from ..viewer.runs import serve_runs
 
+        if foxglove_port is not None:
+            raise LidarlocError("--foxglove-port streams a live run; for a recorded run: lidarloc export RUN "
+                                "--foxglove OUT.mcap, and open that file in Foxglove")
+
         serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
         return
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
-           preset=preset, record=not no_record)
-
-
-# -------------------------------------------------------------------------------------- benches
-# Every benchmark takes the source options and --config/--set; --json prints its result as JSON
-# on stdout, else the result is listed on stderr.
+           preset=preset, record=not no_record, foxglove_port=foxglove_port)

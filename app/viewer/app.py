@@ -75,6 +75,7 @@ class Viewer(ParticleControls, ParameterControls):
                             guarded=self._guarded, show_message=self.show_message,
                             folder_order=self.controls.particles_folder.order + 0.25)
         self.owns_localizer = False
+        self.sinks: list = []           # more consumers of each step played (the Foxglove stream)
         self._autoplay = autoplay
         self._start_lock = threading.Lock()
         self._tab_seen = False          # a browser tab has connected (autoplay=None starts then)
@@ -305,6 +306,8 @@ class Viewer(ParticleControls, ParameterControls):
         loc = self.localizer
         if snap is loc.snapshot():
             self.travel.on_step(loc, snap)
+            for sink in self.sinks:
+                sink.on_step(loc, snap)
             self.publish(snap)
 
     def wake(self) -> None:

@@ -39,6 +39,7 @@ class ViewerHandle:
         self.port = int(server.get_port())
         shown = "localhost" if host in ("0.0.0.0", "::") else host
         self.url = f"http://{shown}:{self.port}"
+        self.foxglove_url: str | None = None     # where the Foxglove stream is (serve's foxglove_port)
         self._stopped = threading.Event()
 
     @property
@@ -67,6 +68,8 @@ class ViewerHandle:
             loc.interrupt()
         self.viewer.stop()
         self.server.stop()
+        for sink in self.viewer.sinks:
+            sink.stop()
         if owned:
             closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
             closer.start()
@@ -101,7 +104,7 @@ def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> L
 def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str = "127.0.0.1", port: int = 8080,
           open_browser: bool = False, *, autoplay: bool | None = None, speed: str = "10",
           record_to: Path | None = None, spec: SourceSpec | None = None, preset: str | None = None,
-          cache_root: Path | None = None) -> ViewerHandle:
+          cache_root: Path | None = None, foxglove_port: int | None = None) -> ViewerHandle:
     """Start the viewer and return at once.
 
     ``localizer_or_factory``: a ready Localizer (the caller keeps ownership and closes it), or a
@@ -116,12 +119,15 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
     viewer plays is recorded under ``record_to`` (default: a new ``runs/<date-time>`` under the
     cache root), so that the timeline can scrub it and branches can start from it.
     ``cache_root``: where a branch finds the map's tables.
+    ``foxglove_port``: also stream every step played to Foxglove clients on this port (on
+    ``host``; 0: any free port), see :mod:`.foxglove_live`; the handle's ``foxglove_url`` says where.
     """
     if speed not in SPEEDS:
         raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {speed!r}")
     if not (isinstance(localizer_or_factory, Localizer) or callable(localizer_or_factory)):
         raise LidarlocError("serve() needs a Localizer or a callable that returns one")
     server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
+    viewer = None
     try:
         viewer = Viewer(server, autoplay=autoplay, speed=speed)
         viewer.cache_root = cache_root
@@ -129,7 +135,14 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
             root = record_to if record_to is not None else default_record_root(cache_root)
             viewer.travel.record_with(Recorder(root, spec, preset, on_failure=lambda message: viewer.show_message(
                 message, error=True, everyone=True)))
+        if foxglove_port is not None:
+            from .foxglove_live import FoxgloveLive
+
+            viewer.sinks.append(FoxgloveLive(host, foxglove_port, on_failure=lambda message: viewer.show_message(
+                message, error=True, everyone=True)))
     except BaseException:
+        for sink in viewer.sinks if viewer is not None else []:
+            sink.stop()
         server.stop()
         raise
     if isinstance(localizer_or_factory, Localizer):
@@ -157,6 +170,7 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
                 viewer.startup_failed(f"{type(exc).__name__}: {exc}")
         threading.Thread(target=build, name="lidarloc-build", daemon=True).start()
     handle = ViewerHandle(viewer, server, host)
+    handle.foxglove_url = next((sink.url for sink in viewer.sinks if hasattr(sink, "url")), None)
     if open_browser:
         threading.Thread(target=webbrowser.open, args=(handle.url,), daemon=True).start()
     return handle
@@ -164,7 +178,8 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
 
 def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
                             console: Console, open_browser: bool = False, autoplay: bool = False,
-                            record_dir: Path | None = None, preset: str | None = None, record: bool = True) -> None:
+                            record_dir: Path | None = None, preset: str | None = None, record: bool = True,
+                            foxglove_port: int | None = None) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
     ``runs/<date-time>`` folder under the cache root), which is printed; with ``record`` False
@@ -196,11 +211,15 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     try:
         root = None if not record else record_dir if record_dir is not None else default_record_root(cache_root)
         handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None,
-                       record_to=root, spec=spec if record else None, preset=preset, cache_root=cache_root)
+                       record_to=root, spec=spec if record else None, preset=preset, cache_root=cache_root,
+                       foxglove_port=foxglove_port)
     except BaseException:
         signal.signal(signal.SIGINT, previous)
         raise
     console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+    if handle.foxglove_url is not None:
+        console.print(f"Foxglove: open connection → Foxglove WebSocket {handle.foxglove_url}", markup=False,
+                      highlight=False)
     console.print(f"recording into {root} (open a run later with lidarloc view --run {root}/run)" if root is not None
                   else "not recording (--no-record): the timeline and Branch from here are off",
                   markup=False, highlight=False, soft_wrap=True)

@@ -7,7 +7,9 @@ pose; for a map file (``--map``), the file's own coordinates — the localizer's
 map's float64 origin, so a georeferenced (UTM) map gets UTM poses back at full precision (KITTI
 files then carry 13 significant digits, TUM files micrometres). The ground truth is written
 beside the estimate in the same frame and format (``groundtruth_*.txt``) so
-``evo_ape kitti groundtruth_kitti.txt trajectory_kitti.txt`` compares like with like.
+``evo_ape kitti groundtruth_kitti.txt trajectory_kitti.txt`` compares like with like; the
+summary's ``ape_rmse_m`` and ``rpe_rmse_m`` are evo's own figures on the TUM files once written
+(:mod:`lidarloc.core.trajectory_errors`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from ..errors import LidarlocError
 from ..geometry import wrap_angle
 from .metrics import ScanLog, compute_metrics, confidence_metrics
+from .trajectory_errors import trajectory_errors
 
 if TYPE_CHECKING:
     from ..localizer import Localizer
@@ -111,7 +114,8 @@ def make_out_dir(out: Path) -> None:
 
 def write_run(loc: Localizer, out: Path, summary: dict) -> None:
     """Every file of a run: trajectories (and the ground truth when the source has it), the
-    per-scan CSV, the events, and ``summary.json`` last."""
+    per-scan CSV, the events, and ``summary.json`` last, with evo's APE and RPE of the written
+    trajectories added to ``summary``."""
     out.mkdir(parents=True, exist_ok=True)
     recs = loc.records
     times = np.array([r.time for r in recs])
@@ -124,6 +128,7 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
         gt = in_map_frame([loc.seq.pose(r.scan) for r in recs], origin)
         write_kitti(out / "groundtruth_kitti.txt", gt, digits)
         write_tum(out / "groundtruth_tum.txt", times, gt)
+        summary.update(trajectory_errors(out / "trajectory_tum.txt", out / "groundtruth_tum.txt"))
     write_records_csv(out / "scans.csv", recs)
     write_events(out / "events.json", loc.events)
     write_json(out / "summary.json", summary)
@@ -167,6 +172,8 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         "localized_at_scan": first_loc,
         "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
         "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
+        # evo's APE / RPE of the written TUM files (write_run fills them in; None without truth)
+        "ape_rmse_m": None, "rpe_rmse_m": None,
         "final_error_m": float(err[-1]) if len(err) and np.isfinite(err[-1]) else None,
         "pf_ms_median": float(np.median(pf_ms)) if pf_ms.size else None,
         "s2m_ms_median": float(np.median(s2m_ms)) if s2m_ms.size else None,

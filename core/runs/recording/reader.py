@@ -224,7 +224,7 @@ class Recording:
     # ------------------------------------------------------------------ source and config
     def source_spec(self):
         """The source options the run was made with (a SourceSpec)."""
-        from ..sequences.factory import SourceSpec
+        from ...sequences.factory import SourceSpec
 
         names = {f.name: f for f in dataclasses.fields(SourceSpec)}
         kw = {}
@@ -249,14 +249,14 @@ class Recording:
 
     def open_sequence(self):
         """The run's sequence, rebuilt from its source (one-line error if the source moved)."""
-        from ..sequences.factory import open_sequence
+        from ...sequences.factory import open_sequence
 
         self.check_source()
         return open_sequence(self.source_spec(), self.config())
 
     def config(self):
         """The configuration the run started with (a Config)."""
-        from ..config import Config, update_from_dict
+        from ...config import Config, update_from_dict
 
         return update_from_dict(Config(), self.meta.get("config", {}))
 
@@ -277,21 +277,28 @@ class Recording:
     def events_until(self, i: int) -> list[Event]:
         return [ev for step, ev in self.events if step <= i]
 
+    def prepared_scan(self, i: int, seq) -> np.ndarray:
+        """(M, 3) float32: step i's scan as the filter weighed it (one random point per voxel, the
+        run's seed and voxel), in the LiDAR's frame, recomputed from the run's sequence ``seq``."""
+        from ...filter.scanprep import voxel_downsample_random
+
+        i = self._check(i)
+        k = int(self.scan_index[i])
+        rng = np.random.default_rng([int(self.meta.get("seed", 0)), k, 1])
+        return voxel_downsample_random(seq.scan(k), float(self.scan_voxel[i]), rng, self._max_elevation)
+
     def snapshot(self, i: int, seq=None) -> Snapshot:
         """Step i as a :class:`~lidarloc.core.snapshot.Snapshot` (what the viewer draws). With the run's
         sequence ``seq``, ``scan_world`` is the prepared scan at the estimate, recomputed from the
         source; without, it is empty."""
-        from ..geometry import transform_points
-        from ..filter.scanprep import voxel_downsample_random
+        from ...geometry import transform_points
 
         i = self._check(i)
         k = int(self.scan_index[i])
         pose = self.mean_pose[i]
         scan_world = np.zeros((0, 3), np.float32)
         if seq is not None:
-            rng = np.random.default_rng([int(self.meta.get("seed", 0)), k, 1])
-            prepared = voxel_downsample_random(seq.scan(k), float(self.scan_voxel[i]), rng, self._max_elevation)
-            scan_world = transform_points(pose, prepared).astype(np.float32)
+            scan_world = transform_points(pose, self.prepared_scan(i, seq)).astype(np.float32)
         gt = self.gt_pose[i]
         since = int(self.localized_since[i])
         inside = int(self.inside_2sigma[i])

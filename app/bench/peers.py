@@ -1,0 +1,321 @@
+"""``lidarloc bench peers``: lidarloc beside what a user would run instead, on the same scans, map
+and machine, in one run, with the ratios.
+
+**Global localization** (the built-in town and the real KITTI drive): a scan registered against
+the whole map with no initial guess. lidarloc's S2M (M3RSM on the bird's-eye view, then GICP)
+against open3d's FPFH features with RANSAC, and with Fast Global Registration (FGR) — the
+feature-based alternative hdl_global_localization offers beside its branch-and-bound search.
+Success: the returned pose within 2 m and 5° of the truth. Times are wall medians per scan, the
+scan's own preparation included (lidarloc: road removal; the peers: down-sampling, normals,
+FPFH); what is built once per map (lidarloc's pyramid, the map's FPFH) is not, and is reported
+beside. Both peers get the map and the scan at 1 m voxels, normals from 2 m, FPFH from 5 m (the
+settings of open3d's global registration tutorial, scaled to a street). Tried on three scans of
+the real drive and no better (no scan within 2 m / 5° either): 0.5 m voxels (40–60 s a scan), the
+mutual filter on and off, 10⁶ RANSAC iterations, the road-removed map and scan.
+
+**Tracking** (the town): lidarloc from a global start against scan-to-map GICP (small_gicp, scan
+0.5 m, map 0.25 m, 2 m correspondences: the matcher lidarloc's own S2M refines with) started at
+the true pose and predicted with constant velocity at 10 Hz — the scan-matching localizer
+hdl_localization is (with NDT). RMSE of the position against the truth (lidarloc: from the
+scan the rule first fired on), median latency and CPU per scan (lidarloc: every process, the
+KISS-ICP and S2M children included, over the scans after it localized; GICP: its thread's CPU).
+Then a kidnap: the vehicle is moved ~50 m ahead along the drive without telling either. Who
+recovers (error ≤ 2 m from some scan to the end of the window and stays so), and after how many
+scans.
+
+**The paper** (:mod:`.peers_paper`): its own figures beside lidarloc's on the town laid along
+KITTI 05.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ...core.maps.bev import load_or_build_pyramid
+from ...core.config import Config
+from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.sequences.factory import SourceSpec
+
+from .common import median, open_source, pose_error, real_drive
+
+SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
+FEATURE_VOXEL = 1.0          # m, the peers' map and scan voxel
+RECOVERED_M = 2.0            # a tracker has recovered from a kidnap once its error stays within this
+KIDNAP_M = 50.0              # how far ahead along the drive the vehicle is moved
+
+
+# ------------------------------------------------------------------------------ global localization
+class FeatureMap:
+    """The map's down-sampled points and FPFH features, computed once (open3d)."""
+
+    def __init__(self, points: np.ndarray, voxel: float = FEATURE_VOXEL):
+        from ...core.o3d import open3d
+
+        self.o3d = open3d()
+        self.voxel = voxel
+        t0 = time.perf_counter()
+        self.cloud, self.fpfh = self.features(points)
+        self.build_s = time.perf_counter() - t0
+
+    def features(self, points: np.ndarray):
+        o3d, v = self.o3d, self.voxel
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)[:, :3]))
+        pcd = pcd.voxel_down_sample(v)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100))
+        return pcd, fpfh
+
+    def ransac(self, scan: np.ndarray, seed: int) -> np.ndarray:
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        self.o3d.utility.random.seed(seed)
+        src, src_f = self.features(scan)
+        res = reg.registration_ransac_based_on_feature_matching(
+            src, self.cloud, src_f, self.fpfh, True, 1.5 * v, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
+            reg.RANSACConvergenceCriteria(100000, 0.999))
+        return np.asarray(res.transformation)
+
+    def fgr(self, scan: np.ndarray) -> np.ndarray:
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        src, src_f = self.features(scan)
+        res = reg.registration_fgr_based_on_feature_matching(
+            src, self.cloud, src_f, self.fpfh, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * v))
+        return np.asarray(res.transformation)
+
+
+def _judge(T: np.ndarray, truth: np.ndarray) -> tuple[bool, float, float]:
+    if not np.isfinite(T).all():
+        return False, math.inf, math.inf
+    m, deg = pose_error(T, truth)
+    return m <= SUCCESS_M and deg <= SUCCESS_DEG, m, deg
+
+
+def global_localization(spec: SourceSpec, cfg: Config, scans: int, cache_root: Path | None = None,
+                        progress=None, peers: bool = True) -> dict:
+    """M3RSM (+GICP) against FPFH + RANSAC and FGR (``peers``; else M3RSM alone) on ``scans``
+    random scans of the source."""
+    from ...core.matching import m3rsm
+    from ...core.matching.s2m import ScanToMapMatcher
+
+    seq = open_source(spec, cfg, "peers", need_poses=True)
+    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
+    t0 = time.perf_counter()
+    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
+    matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m)
+    lidarloc_build_s = time.perf_counter() - t0
+    features = FeatureMap(prior.points) if peers else None
+    names = ("m3rsm", "fpfh_ransac", "fgr") if peers else ("m3rsm",)
+    rng = np.random.default_rng(cfg.seed)
+    idx = [int(k) for k in rng.choice(len(seq), min(scans, len(seq)), replace=False)]
+    warm = matcher.prepare(seq.scan(idx[0]))          # numba's kernels and the bound grids, off the clock
+    m3rsm.match_global(pyramid, warm.road_removed[:, :2], cfg.s2m.angle_step)
+    rows = []
+    for j, k in enumerate(idx):
+        truth, scan = seq.pose(k), seq.scan(k)
+        row = {"scan": k}
+        out = matcher.match_global(scan)
+        row["m3rsm_ms"], row["m3rsm_accepted"] = out.ms, bool(out.accepted)
+        row["m3rsm_success"], row["m3rsm_err_m"], row["m3rsm_err_deg"] = _judge(out.pose, truth)
+        pts = range_filter(scan, cfg.map)[:, :3]
+        peer_calls = (("fpfh_ransac", lambda: features.ransac(pts, cfg.seed + j)), ("fgr", lambda: features.fgr(pts)))
+        for name, call in peer_calls if peers else ():
+            t = time.perf_counter()
+            T = call()
+            row[f"{name}_ms"] = (time.perf_counter() - t) * 1e3
+            row[f"{name}_success"], row[f"{name}_err_m"], row[f"{name}_err_deg"] = _judge(T, truth)
+        rows.append(row)
+        if progress is not None:
+            progress(j + 1, len(idx))
+    out = {"source": seq.name, "scans": len(rows), "map_points": int(len(prior.points)),
+           "lidarloc_map_build_s": lidarloc_build_s, "rows": rows}
+    for name in names:
+        out[f"{name}_success"] = float(np.mean([r[f"{name}_success"] for r in rows]))
+        out[f"{name}_ms_median"] = median(r[f"{name}_ms"] for r in rows)
+        out[f"{name}_err_m_median"] = median(r[f"{name}_err_m"] for r in rows)
+    out["m3rsm_accepted"] = float(np.mean([r["m3rsm_accepted"] for r in rows]))
+    if peers:
+        best = max(("fpfh_ransac", "fgr"), key=lambda n: (out[f"{n}_success"], -out[f"{n}_ms_median"]))
+        out.update(feature_map_points=int(len(features.cloud.points)), feature_map_build_s=features.build_s,
+                   best_peer=best,
+                   time_ratio_best_peer_over_m3rsm=out[f"{best}_ms_median"] / max(out["m3rsm_ms_median"], 1e-9))
+    return out
+
+
+# ------------------------------------------------------------------------------------- tracking
+def kidnap_target(seq, at: int, metres: float = KIDNAP_M) -> int:
+    """The first scan at least ``metres`` along the drive after scan ``at`` (the last scan if the
+    drive ends before)."""
+    G = np.asarray(seq.poses)[:, :3, 3]
+    steps = np.linalg.norm(np.diff(G[at:], axis=0), axis=1)
+    along = np.cumsum(steps)
+    hit = np.flatnonzero(along >= metres)
+    return at + 1 + int(hit[0]) if hit.size else len(G) - 1
+
+
+def recovery(errors: list[float], limit: float = RECOVERED_M) -> int | None:
+    """Scans from the first after a kidnap to the one from which every error to the end is within
+    ``limit`` (None: not recovered by the end of the window)."""
+    err = np.asarray(errors, float)
+    bad = np.flatnonzero(~(err <= limit))
+    if not bad.size:
+        return 0
+    return None if bad[-1] + 1 >= len(err) else int(bad[-1] + 1)
+
+
+def gicp_tracking(seq, prior, cfg: Config, before: int, kidnap_to: int, after: int) -> dict:
+    """small_gicp scan-to-map tracking from the true first pose, constant-velocity prediction;
+    the scans 0…before−1, then from ``kidnap_to`` on for ``after`` scans."""
+    from ...core.matching.gicp import GICPRefiner
+
+    ref = GICPRefiner(prior.points, voxel=cfg.s2m.gicp_voxel, max_corr=cfg.s2m.gicp_max_corr,
+                      target_voxel=max(float(prior.voxel_size), cfg.s2m.gicp_voxel / 2.0))
+    ks = list(range(before)) + list(range(kidnap_to, min(kidnap_to + after, len(seq))))
+    prev = prev2 = None
+    errors, ms, cpu_ms = [], [], []
+    for k in ks:
+        if prev is None:
+            guess = seq.pose(k)                      # the true initial pose
+        else:
+            guess = prev if prev2 is None else prev @ np.linalg.inv(prev2) @ prev
+        scan = range_filter(seq.scan(k), cfg.map)
+        c0, t0 = time.thread_time(), time.perf_counter()
+        res = ref.refine(scan, guess)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        cpu_ms.append((time.thread_time() - c0) * 1e3)
+        pose = res.pose if np.isfinite(res.pose).all() else guess
+        prev2, prev = prev, pose
+        errors.append(float(np.linalg.norm(pose[:3, 3] - seq.pose(k)[:3, 3])))
+    tracked = np.asarray(errors[:before])
+    rec = recovery(errors[before:])
+    return {"rmse_m": float(np.sqrt(np.mean(tracked ** 2))), "ms_median": median(ms[:before]),
+            "cpu_ms_per_scan": float(np.mean(cpu_ms[:before])), "recovered_after_kidnap": rec is not None,
+            "recovery_scans": rec, "error_after_kidnap_end_m": errors[-1] if len(errors) > before else None}
+
+
+def lidarloc_tracking(seq, cfg: Config, before: int, kidnap_to: int, after: int, cache_root: Path | None,
+                      progress=None) -> dict:
+    """lidarloc from a global start over scans 0…before−1, then kidnapped to ``kidnap_to``
+    (:meth:`Localizer.kidnap`: the viewer's Kidnap) for ``after`` scans."""
+    from ...core.localizer import Localizer
+
+    def cpu_total(reading: dict) -> float:
+        return sum(v for v in reading.values() if v is not None)
+
+    with Localizer(seq, cfg, cache_root) as loc:
+        loc.wait_ready()                               # the blocks' start-up is not per-scan cost
+        cpu_at_loc = None
+        first_loc = None
+        while loc.k < before and not loc.done:
+            snap = loc.step()
+            if first_loc is None and snap.localized:
+                first_loc, cpu_at_loc = len(loc.records), cpu_total(loc.cpu_seconds())
+            if progress is not None:
+                progress(len(loc.records), before + after)
+        cpu_end = cpu_total(loc.cpu_seconds())
+        n_before = len(loc.records)
+        loc.kidnap(kidnap_to - loc.k)
+        while len(loc.records) < n_before + after and not loc.done:
+            loc.step()
+            if progress is not None:
+                progress(len(loc.records), before + after)
+        recs = list(loc.records)
+    tracked = [r for r in recs[:n_before][first_loc - 1:] if r.error_m is not None] if first_loc else []
+    err = np.array([r.error_m for r in tracked], float)
+    rec = recovery([r.error_m if r.error_m is not None else math.inf for r in recs[n_before:]])
+    return {"localized_at_scan": None if first_loc is None else first_loc - 1,
+            "rmse_m": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
+            "pf_ms_median": median(r.pf_ms for r in recs[:n_before]),
+            "cpu_ms_per_scan": (1000.0 * (cpu_end - cpu_at_loc) / max(n_before - first_loc, 1)
+                                if first_loc is not None and n_before > first_loc else None),
+            "recovered_after_kidnap": rec is not None, "recovery_scans": rec,
+            "error_after_kidnap_end_m": recs[-1].error_m if len(recs) > n_before else None}
+
+
+def tracking(spec: SourceSpec, cfg: Config, before: int, after: int, cache_root: Path | None = None,
+             progress=None) -> dict:
+    seq = open_source(spec, cfg, "peers", need_poses=True)
+    before = min(before, len(seq) - 2)
+    to = kidnap_target(seq, before - 1)
+    prior = load_or_build_map(seq.map_source, cfg.map, cache_root).value
+    g = gicp_tracking(seq, prior, cfg, before, to, after)
+    lo = lidarloc_tracking(seq, cfg, before, to, after, cache_root, progress)
+    G = np.asarray(seq.poses)
+    return {"source": seq.name, "scans_tracked": before, "kidnap_from_scan": before - 1, "kidnap_to_scan": to,
+            "kidnap_m": float(np.linalg.norm(G[to, :3, 3] - G[before - 1, :3, 3])), "scans_after_kidnap": after,
+            "lidarloc": lo, "gicp": g,
+            "rmse_ratio_lidarloc_over_gicp": (lo["rmse_m"] / g["rmse_m"] if lo["rmse_m"] is not None and g["rmse_m"] > 0
+                                              else None),
+            "cpu_ratio_lidarloc_over_gicp": (lo["cpu_ms_per_scan"] / g["cpu_ms_per_scan"]
+                                             if lo["cpu_ms_per_scan"] is not None else None)}
+
+
+# ------------------------------------------------------------------------------------------ run
+def run(spec: SourceSpec, cfg: Config, global_scans: int = 20, track_scans: int = 250, after_kidnap: int = 150,
+        real: bool | None = None, paper: bool | None = None, paper_scans: int = 300, cache_root: Path | None = None,
+        progress=None) -> dict:
+    """Every part (see the module docstring); ``real``/``paper``: the real drive's global part and
+    the KITTI 05 town (default: where their data is present)."""
+    from . import peers_paper
+
+    load_start = os.getloadavg()
+    t_start = time.perf_counter()
+    say = progress or (lambda what, i, n: None)
+    result: dict = {"target_global": "success ≥ the best peer's at ≤ 1/5 of its median time",
+                    "target_tracking": "RMSE within 10 % of GICP tracking at ≤ its CPU per scan",
+                    "target_kidnap": "lidarloc recovers where GICP tracking cannot"}
+    town = global_localization(spec, cfg, global_scans, cache_root, lambda i, n: say("global: town", i, n))
+    result["global_town"] = town
+    real_spec = real_drive() if real is not False else None
+    if real and real_spec is None:
+        from ...core.errors import LidarlocError
+
+        raise LidarlocError("bench peers --real: the real KITTI drive is not in the data directory")
+    if real_spec is not None:
+        result["global_real"] = global_localization(real_spec, replace(cfg), global_scans, cache_root,
+                                                    lambda i, n: say("global: real drive", i, n))
+    result["tracking"] = tracking(spec, cfg, track_scans, after_kidnap, cache_root,
+                                  lambda i, n: say("tracking", i, n))
+    if paper is not False:
+        part = peers_paper.run(cfg, paper_scans, cache_root, lambda i, n: say("the paper's KITTI 05", i, n),
+                               required=bool(paper))
+        if part is not None:
+            result["paper"] = part
+    result.update(headline(result))
+    result["cpu_count"] = os.cpu_count()
+    result["loadavg_start"] = [round(v, 2) for v in load_start]
+    result["loadavg_end"] = [round(v, 2) for v in os.getloadavg()]
+    result["wall_s"] = time.perf_counter() - t_start
+    return result
+
+
+def headline(r: dict) -> dict:
+    """The flat figures ``--json`` promises, the global ones over the town and the real drive
+    together (each source's own are in ``global_town`` / ``global_real``), and the targets' verdicts."""
+    parts = [r[k] for k in ("global_town", "global_real") if k in r]
+    rows = [row for p in parts for row in p["rows"]]
+    out = {}
+    for name in ("m3rsm", "fpfh_ransac", "fgr"):
+        out[f"{name}_success"] = float(np.mean([row[f"{name}_success"] for row in rows]))
+        out[f"{name}_ms_median"] = median(row[f"{name}_ms"] for row in rows)
+    t = r["tracking"]
+    out.update(lidarloc_tracking_rmse_m=t["lidarloc"]["rmse_m"], gicp_tracking_rmse_m=t["gicp"]["rmse_m"],
+               lidarloc_cpu_ms_per_scan=t["lidarloc"]["cpu_ms_per_scan"], gicp_cpu_ms_per_scan=t["gicp"]["cpu_ms_per_scan"],
+               lidarloc_ms_median=t["lidarloc"]["pf_ms_median"], gicp_ms_median=t["gicp"]["ms_median"],
+               lidarloc_recovered_after_kidnap=t["lidarloc"]["recovered_after_kidnap"],
+               gicp_recovered_after_kidnap=t["gicp"]["recovered_after_kidnap"],
+               lidarloc_recovery_scans=t["lidarloc"]["recovery_scans"], gicp_recovery_scans=t["gicp"]["recovery_scans"])
+    best = max(("fpfh_ransac", "fgr"), key=lambda n: (out[f"{n}_success"], -out[f"{n}_ms_median"]))
+    out["global_target_met"] = bool(out["m3rsm_success"] >= out[f"{best}_success"]
+                                    and out["m3rsm_ms_median"] <= out[f"{best}_ms_median"] / 5)
+    lr, gr = out["lidarloc_tracking_rmse_m"], out["gicp_tracking_rmse_m"]
+    lc, gc = out["lidarloc_cpu_ms_per_scan"], out["gicp_cpu_ms_per_scan"]
+    out["tracking_target_met"] = bool(lr is not None and lc is not None and lr <= 1.1 * gr and lc <= gc)
+    out["kidnap_target_met"] = bool(out["lidarloc_recovered_after_kidnap"] and not out["gicp_recovered_after_kidnap"])
+    return out

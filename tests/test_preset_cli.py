@@ -16,7 +16,7 @@ SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
 # The commands with a configuration; bench robustness runs the presets as one of its axes instead.
 WITH_PRESET = {("demo",), ("view",), ("run",), ("synth",), ("inspect",), ("map", "build"), ("map", "export"), *[
     ("bench", b) for b in ("town", "map", "pf", "s2m", "rpe", "viewer", "startup", "stop", "localize", "surface",
-                           "bag", "record", "branch", "scrub", "filter", "peers")]}
+                           "bag", "record", "branch", "scrub", "filter", "peers", "integrity")]}
 
 
 def cli(*args, cache):

@@ -85,7 +85,8 @@ def test_viewer_plays_while_s2m_tables_are_built_then_shows_them(tmp_path, held_
         v.step_once()
         wait_for(lambda: v.latest is not None and v.latest.scan_index == 0, timeout=60, what="scan 0")
         v.update_display()
-        assert "being built in the background" in v.controls.status.content
+        status = v.controls.status.content
+        assert "building in the background" in status and "S2M not ready" in status and "**localized**" not in status
         assert not v.scene.has_map_bev and not v.controls.bev_level.visible
         held_tables.set()
         wait_for(lambda: loc._pending_s2m.done(), timeout=300, what="road removal and pyramid")

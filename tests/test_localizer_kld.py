@@ -26,8 +26,8 @@ def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root
         instant_matcher(loc, accepted=True)
         real_start, real_resample, real_set = loc.s2m.start, loc.pf.resample_if_needed, loc.pf.set_particle
         # the match starts from the last particle: the slot a shrinking count takes away first
-        loc.s2m.start = lambda k, j, state, scan, localized: real_start(k, loc.pf.n - 1, loc.pf.states[-1], scan,
-                                                                        localized)
+        loc.s2m.start = lambda k, j, state, scan, localized, *rest: real_start(k, loc.pf.n - 1, loc.pf.states[-1],
+                                                                               scan, localized, *rest)
         protected = {}
 
         def resample_if_needed(protect=None):

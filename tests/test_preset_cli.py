@@ -77,7 +77,8 @@ def test_bench_localize_defaults_to_the_lived_in_world_and_a_bad_world_is_one_li
 
     bench = typer.main.get_command(app).commands["bench"]
     with_world = {name for name, c in bench.commands.items() if any("--world" in p.opts for p in c.params)}
-    assert with_world == {"localize", "s2m"}           # the benchmarks of localization and matching quality
+    # the benchmarks of localization and matching quality, and of the filter's word and its peers
+    assert with_world == {"localize", "s2m", "integrity", "peers"}
     for name in with_world:
         assert next(p for p in bench.commands[name].params if "--world" in p.opts).default == "lived-in"
     out = tmp_path / "out"

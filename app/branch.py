@@ -15,7 +15,6 @@ from pathlib import Path
 from rich.console import Console
 
 from ..core.errors import LidarlocError
-
 from .console import progress_bar
 from .headless import check_recording_target, localize
 
@@ -31,9 +30,16 @@ def parse_branch(text: str) -> tuple[Path, int]:
         raise LidarlocError(f"--branch {text}: the step after ':' must be a whole number") from None
 
 
-def run_branch(run_dir: Path, step: int, overrides: list[str] | dict | None, out: Path,
-               cache_root: Path | None = None, console: Console | None = None,
-               stop_after: int | None = None, record: bool = True) -> tuple[dict, bool]:
+def run_branch(
+    run_dir: Path,
+    step: int,
+    overrides: list[str] | dict | None,
+    out: Path,
+    cache_root: Path | None = None,
+    console: Console | None = None,
+    stop_after: int | None = None,
+    record: bool = True,
+) -> tuple[dict, bool]:
     """Branch the recorded run in ``run_dir`` at its step ``step`` with ``overrides`` (``--set``
     strings or live parameters) and run it to the end into ``out``; returns (summary, interrupted).
     ``stop_after``: stop once this many steps are done in all (the recorded ones up to ``step``
@@ -52,20 +58,33 @@ def run_branch(run_dir: Path, step: int, overrides: list[str] | dict | None, out
         check_recording_target(out)
     with progress_bar() as bar:
         task = bar.add_task("preparing the branch", total=100)
-        loc = open_branch(rec, step, overrides, cache_root=cache_root, progress=lambda stage, f: bar.update(
-            task, description=f"preparing {stage}", completed=100 * f))
+        loc = open_branch(
+            rec,
+            step,
+            overrides,
+            cache_root=cache_root,
+            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
+        )
     writer = None
     try:
         if record:
-            writer = RecordingWriter(out, rec.source_spec(), loc.cfg, loc.seq, preset=rec.meta.get("preset"),
-                                     branch_of=dict(loc.branch_of), first_step=step + 1)
+            writer = RecordingWriter(
+                out,
+                rec.source_spec(),
+                loc.cfg,
+                loc.seq,
+                preset=rec.meta.get("preset"),
+                branch_of=dict(loc.branch_of),
+                first_step=step + 1,
+            )
             continue_recording(writer, loc)
     except BaseException:
         loc.close()
         if writer is not None:
             writer.close()
         raise
-    title = (f"branching {rec.run_dir} at step {step} (scan {loc.snapshot().scan_index}): "
-             f"{len(loc.seq) - loc.k} scans left of {loc.seq.name}")
-    return localize(loc, out, console, writer=writer, stop_after=stop_after, preset=rec.meta.get("preset"),
-                    title=title)
+    title = (
+        f"branching {rec.run_dir} at step {step} (scan {loc.snapshot().scan_index}): "
+        f"{len(loc.seq) - loc.k} scans left of {loc.seq.name}"
+    )
+    return localize(loc, out, console, writer=writer, stop_after=stop_after, preset=rec.meta.get("preset"), title=title)

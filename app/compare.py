@@ -31,7 +31,6 @@ from rich.table import Table
 
 from ..core.errors import LidarlocError
 from ..core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics, confidence_metrics
-
 from .console import emit_json
 
 #: a run has succeeded when every estimate from the rule's first firing to the end is this close (m)
@@ -63,11 +62,11 @@ class RunCurves:
     gt_x: np.ndarray
     gt_y: np.ndarray
     error_m: np.ndarray
-    std_m: np.ndarray              # max of the x and y std
+    std_m: np.ndarray  # max of the x and y std
     n_eff_share: np.ndarray
-    localized: np.ndarray          # bool
+    localized: np.ndarray  # bool
     pf_ms: np.ndarray
-    inside_2sigma: list            # bool | None per step
+    inside_2sigma: list  # bool | None per step
 
 
 @dataclass
@@ -96,13 +95,20 @@ def _curves_from_csv(path: Path) -> RunCurves:
     except OSError as exc:
         raise LidarlocError(f"{path}: cannot read ({exc.strerror})") from None
     try:
-        col = lambda name: np.array([_float(r[name]) for r in rows], float)   # noqa: E731
+        col = lambda name: np.array([_float(r[name]) for r in rows], float)  # noqa: E731
         return RunCurves(
-            scan=np.array([int(r["scan"]) for r in rows], np.int64), x=col("x"), y=col("y"),
-            gt_x=col("gt_x"), gt_y=col("gt_y"), error_m=col("error_m"),
-            std_m=np.fmax(col("std_x"), col("std_y")), n_eff_share=col("n_eff_share"),
+            scan=np.array([int(r["scan"]) for r in rows], np.int64),
+            x=col("x"),
+            y=col("y"),
+            gt_x=col("gt_x"),
+            gt_y=col("gt_y"),
+            error_m=col("error_m"),
+            std_m=np.fmax(col("std_x"), col("std_y")),
+            n_eff_share=col("n_eff_share"),
             localized=np.array([r["localized"] in ("1", "True", "true") for r in rows], bool),
-            pf_ms=col("pf_ms"), inside_2sigma=[_bool_or_none(r.get("inside_2sigma", "")) for r in rows])
+            pf_ms=col("pf_ms"),
+            inside_2sigma=[_bool_or_none(r.get("inside_2sigma", "")) for r in rows],
+        )
     except (KeyError, ValueError) as exc:
         raise LidarlocError(f"{path}: not a lidarloc per-scan log ({exc})") from None
 
@@ -114,10 +120,18 @@ def _curves_from_recording(rec) -> RunCurves:
     n = np.maximum(rec.n_particles.astype(float), 1.0)
     inside = rec.inside_2sigma
     return RunCurves(
-        scan=rec.scan_index.astype(np.int64), x=pose[:, 0, 3].copy(), y=pose[:, 1, 3].copy(),
-        gt_x=gt[:, 0, 3].copy(), gt_y=gt[:, 1, 3].copy(), error_m=rec.error_m.astype(float),
-        std_m=np.fmax(std[:, 0], std[:, 1]), n_eff_share=rec.n_eff / n, localized=rec.localized.astype(bool),
-        pf_ms=rec.pf_ms.astype(float), inside_2sigma=[None if v < 0 else bool(v) for v in inside])
+        scan=rec.scan_index.astype(np.int64),
+        x=pose[:, 0, 3].copy(),
+        y=pose[:, 1, 3].copy(),
+        gt_x=gt[:, 0, 3].copy(),
+        gt_y=gt[:, 1, 3].copy(),
+        error_m=rec.error_m.astype(float),
+        std_m=np.fmax(std[:, 0], std[:, 1]),
+        n_eff_share=rec.n_eff / n,
+        localized=rec.localized.astype(bool),
+        pf_ms=rec.pf_ms.astype(float),
+        inside_2sigma=[None if v < 0 else bool(v) for v in inside],
+    )
 
 
 def success(curves: RunCurves) -> bool | None:
@@ -129,7 +143,7 @@ def success(curves: RunCurves) -> bool | None:
     first = np.flatnonzero(curves.localized)
     if not first.size:
         return False
-    tail = err[first[0]:]
+    tail = err[first[0] :]
     return bool(np.all(np.isfinite(tail) & (tail <= SUCCESS_M)))
 
 
@@ -139,17 +153,28 @@ def figures_from_curves(c: RunCurves) -> dict:
     after = c.error_m[c.localized]
     after = after[np.isfinite(after)]
     pf = c.pf_ms[np.isfinite(c.pf_ms)]
-    return {"metrics": metrics, "scans": int(len(c.scan)),
-            "rmse_after_localized_m": float(np.sqrt(np.mean(after ** 2))) if after.size else None,
-            "pf_ms_median": float(np.median(pf)) if pf.size else None,
-            **confidence_metrics(c.localized, c.error_m, c.inside_2sigma)}
+    return {
+        "metrics": metrics,
+        "scans": int(len(c.scan)),
+        "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
+        "pf_ms_median": float(np.median(pf)) if pf.size else None,
+        **confidence_metrics(c.localized, c.error_m, c.inside_2sigma),
+    }
 
 
 def _figures(summary: dict, curves: RunCurves) -> dict:
     metrics = summary.get("metrics") or {}
     out = {k: metrics.get(k) for k in METRIC_KEYS}
     out["success"] = success(curves)
-    for key in ("rmse_after_localized_m", "ape_rmse_m", "rpe_rmse_m", "consistency_2sigma", "false_fire", "pf_ms_median", "scans"):
+    for key in (
+        "rmse_after_localized_m",
+        "ape_rmse_m",
+        "rpe_rmse_m",
+        "consistency_2sigma",
+        "false_fire",
+        "pf_ms_median",
+        "scans",
+    ):
         out[key] = summary.get(key)
     return out
 
@@ -184,8 +209,9 @@ def load_run(path) -> RunFigures:
     if summary is None:
         summary = figures_from_curves(curves)
     origin = np.asarray(summary.get("map_origin_m") or [0.0, 0.0, 0.0], float)
-    return RunFigures(path=path, label=path.name, recorded=recorded, figures=_figures(summary, curves),
-                      curves=curves, origin=origin)
+    return RunFigures(
+        path=path, label=path.name, recorded=recorded, figures=_figures(summary, curves), curves=curves, origin=origin
+    )
 
 
 def distinct_labels(paths: list[Path]) -> list[str]:
@@ -200,8 +226,10 @@ def distinct_labels(paths: list[Path]) -> list[str]:
         while k < len(mine) and any(p[-k:] == mine[-k:] for p in others):
             k += 1
         labels.append("/".join(mine[-k:]) if k < len(mine) else str(Path(*mine)))
-    return [f"{label} #{labels[:i].count(label) + 1}" if labels.count(label) > 1 else label
-            for i, label in enumerate(labels)]
+    return [
+        f"{label} #{labels[:i].count(label) + 1}" if labels.count(label) > 1 else label
+        for i, label in enumerate(labels)
+    ]
 
 
 def _labels(runs: list[RunFigures]) -> None:
@@ -245,7 +273,7 @@ def plot(runs: list[RunFigures], out_png: Path) -> None:
     """The overlay plot: trajectories (truth dashed) and error, std, N_eff share against the step."""
     import matplotlib
 
-    matplotlib.use("Agg")        # files only, no display
+    matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -263,12 +291,19 @@ def plot(runs: list[RunFigures], out_png: Path) -> None:
         step = np.asarray(c.scan, dtype=np.float64)
         marks = _marks(c)
         if np.isfinite(c.gt_x).any():
-            ax_xy.plot(c.gt_x + ox, c.gt_y + oy, "--", color=col, lw=1.0, alpha=0.8,
-                       label=None if truth_drawn else "truth (dashed)")
+            ax_xy.plot(
+                c.gt_x + ox,
+                c.gt_y + oy,
+                "--",
+                color=col,
+                lw=1.0,
+                alpha=0.8,
+                label=None if truth_drawn else "truth (dashed)",
+            )
             truth_drawn = True
         # before the rule first fires the estimate jumps between hypotheses: drawn faint
         k0 = int(marks[0]) if marks.size else len(c.x)
-        ax_xy.plot(c.x[:k0 + 1] + ox, c.y[:k0 + 1] + oy, "-", color=col, lw=0.8, alpha=0.35)
+        ax_xy.plot(c.x[: k0 + 1] + ox, c.y[: k0 + 1] + oy, "-", color=col, lw=0.8, alpha=0.35)
         ax_xy.plot(c.x[k0:] + ox, c.y[k0:] + oy, "-", color=col, lw=1.4, label=r.label)
         ax_xy.plot(c.x[marks] + ox, c.y[marks] + oy, "*", color=col, ms=11, mec="black", mew=0.6)
         # a collapsed cloud has a std of ~0: floored so that a log axis can show it
@@ -284,8 +319,9 @@ def plot(runs: list[RunFigures], out_png: Path) -> None:
     ax_xy.set_aspect("equal", adjustable="datalim")
     ax_xy.set_title("trajectories (★ localized)", fontsize=10)
     ax_xy.legend(fontsize=8, loc="best")
-    for ax, label in zip(axes, ("error (m)", f"position std (m, ≥ {STD_FLOOR_M * 1000:.0f} mm)",
-                                "N_eff (% of particles)")):
+    for ax, label in zip(
+        axes, ("error (m)", f"position std (m, ≥ {STD_FLOOR_M * 1000:.0f} mm)", "N_eff (% of particles)")
+    ):
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, which="both")
         ax.set_yscale("log")
@@ -306,13 +342,15 @@ def plot(runs: list[RunFigures], out_png: Path) -> None:
 def as_dict(runs: list[RunFigures], out_png: Path | None) -> dict:
     from ..core.runs.results import json_safe
 
-    return json_safe({"runs": [{"run": str(r.path), "label": r.label, "recorded": r.recorded, **r.figures}
-                               for r in runs],
-                      "plot": None if out_png is None else str(out_png)})
+    return json_safe(
+        {
+            "runs": [{"run": str(r.path), "label": r.label, "recorded": r.recorded, **r.figures} for r in runs],
+            "plot": None if out_png is None else str(out_png),
+        }
+    )
 
 
-def compare_runs(run_dirs, out_png: Path | None = None, as_json: bool = False,
-                 console: Console | None = None) -> dict:
+def compare_runs(run_dirs, out_png: Path | None = None, as_json: bool = False, console: Console | None = None) -> dict:
     """Compare runs: a table on ``console`` (or, ``as_json``, the same as JSON on stdout) and, with
     ``out_png``, the overlay plot. Returns the JSON's content."""
     if len(run_dirs) < 2:

@@ -39,7 +39,6 @@ import numpy as np
 from rich.console import Console
 
 from ..core.errors import LidarlocError
-
 from .export_scene import EXPORT_MAP_POINTS, ExportScene
 
 #: seconds of the recording per step of the run (the LiDAR's period)
@@ -60,16 +59,17 @@ def client_page() -> str:
     major = int(str(getattr(viser, "__version__", "0")).split(".")[0] or 0)
     # the build is compressed: the page's support for embedded recordings is told by the version
     if major < 1 or "</head>" not in html:
-        raise LidarlocError(f"viser {getattr(viser, '__version__', '?')}: its client build ({path}) cannot play "
-                            "an embedded recording; export needs viser ≥ 1.0")
+        raise LidarlocError(
+            f"viser {getattr(viser, '__version__', '?')}: its client build ({path}) cannot play "
+            "an embedded recording; export needs viser ≥ 1.0"
+        )
     return html
 
 
 def page_html(client: str, title: str) -> str:
     """The client page, told to load the recording from DATA_SCRIPT and to start dark (the
     viewer's colours are made for a dark background)."""
-    inject = (f'<script>window.__VISER_EMBED_CONFIG__={{darkMode:true}};</script>'
-              f'<script src="{DATA_SCRIPT}"></script>')
+    inject = f'<script>window.__VISER_EMBED_CONFIG__={{darkMode:true}};</script><script src="{DATA_SCRIPT}"></script>'
     head_end = client.index("</head>")
     page = client[:head_end] + inject + client[head_end:]
     return re.sub(r"<title>[^<]*</title>", lambda _: f"<title>{_escape(title)}</title>", page, count=1)
@@ -100,7 +100,7 @@ def _camera(server, rec) -> None:
         pts = rec.mean_pose[:, :3, 3]
         pts = pts[np.isfinite(pts).all(axis=1)]
     if not len(pts):
-        return              # nothing to look at: viser's default view
+        return  # nothing to look at: viser's default view
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     center = (lo + hi) / 2.0
     ext = float(max(hi[0] - lo[0], hi[1] - lo[1], 60.0))
@@ -121,16 +121,21 @@ def _out_paths(out: Path) -> tuple[Path, Path]:
     return out, out.with_name(out.name + ".viser")
 
 
-def export_run(run_dir, out, console: Console | None = None, cache_root: Path | None = None,
-               scans: bool = True, max_map_points: int = EXPORT_MAP_POINTS) -> dict:
+def export_run(
+    run_dir,
+    out,
+    console: Console | None = None,
+    cache_root: Path | None = None,
+    scans: bool = True,
+    max_map_points: int = EXPORT_MAP_POINTS,
+) -> dict:
     """Export the recorded run ``run_dir`` to the folder ``out`` (see the module docstring).
     ``scans``: draw each step's scan (recomputed from the source). Returns what was written:
     paths, sizes in bytes, steps, map points, seconds."""
     import viser
 
-    from ..core.runs import recording
     from ..core.maps.mapping import load_or_build_map
-
+    from ..core.runs import recording
     from .console import progress_bar
 
     console = console or Console(stderr=True)
@@ -142,10 +147,11 @@ def export_run(run_dir, out, console: Console | None = None, cache_root: Path | 
     client = client_page()
     seq = rec.open_sequence()
     cfg = rec.config()
-    with progress_bar() as bar:     # from the cache; built (minutes) only if the cache lost it
+    with progress_bar() as bar:  # from the cache; built (minutes) only if the cache lost it
         task = bar.add_task("preparing map", total=100)
-        prior = load_or_build_map(seq.map_source, cfg.map, cache_root,
-                                  progress=lambda i, n: bar.update(task, completed=100 * i / max(n, 1))).value
+        prior = load_or_build_map(
+            seq.map_source, cfg.map, cache_root, progress=lambda i, n: bar.update(task, completed=100 * i / max(n, 1))
+        ).value
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -177,16 +183,26 @@ def export_run(run_dir, out, console: Console | None = None, cache_root: Path | 
     try:
         viser_file.write_bytes(data)
         (folder / DATA_SCRIPT).write_text(
-            'window.__VISER_EMBED_DATA__="' + base64.b64encode(data).decode("ascii") + '";\n', encoding="ascii")
+            'window.__VISER_EMBED_DATA__="' + base64.b64encode(data).decode("ascii") + '";\n', encoding="ascii"
+        )
         (folder / PAGE).write_text(page_html(client, title), encoding="utf-8")
     except OSError as exc:
         raise LidarlocError(f"{folder}: cannot write the export ({exc.strerror})") from None
     folder_bytes = sum(p.stat().st_size for p in (folder / DATA_SCRIPT, folder / PAGE))
-    result = {"folder": str(folder), "page": str(folder / PAGE), "viser": str(viser_file),
-              "steps": rec.n, "map_points": view.map_points, "map_voxel_m": view.map_voxel,
-              "viser_bytes": viser_file.stat().st_size, "folder_bytes": folder_bytes,
-              "seconds": time.perf_counter() - t0}
-    console.print(f"exported {rec.n} steps of {rec.run_dir}: open {folder / PAGE} in a browser (no server "
-                  f"needed; the folder is {folder_bytes / 1e6:.1f} MB); the recording: {viser_file} "
-                  f"({result['viser_bytes'] / 1e6:.1f} MB)")
+    result = {
+        "folder": str(folder),
+        "page": str(folder / PAGE),
+        "viser": str(viser_file),
+        "steps": rec.n,
+        "map_points": view.map_points,
+        "map_voxel_m": view.map_voxel,
+        "viser_bytes": viser_file.stat().st_size,
+        "folder_bytes": folder_bytes,
+        "seconds": time.perf_counter() - t0,
+    }
+    console.print(
+        f"exported {rec.n} steps of {rec.run_dir}: open {folder / PAGE} in a browser (no server "
+        f"needed; the folder is {folder_bytes / 1e6:.1f} MB); the recording: {viser_file} "
+        f"({result['viser_bytes'] / 1e6:.1f} MB)"
+    )
     return result

@@ -40,7 +40,6 @@ from scipy.spatial.transform import Rotation
 
 from ..core.errors import LidarlocError
 from ..core.geometry import rotation_zyx
-
 from .run_steps import LIDAR_FRAME, LOCAL_FRAME, MAP_FRAME, TRUTH_FRAME, RunSteps, Step, event_level
 
 POSE = "/lidarloc/pose"
@@ -55,10 +54,15 @@ ROSOUT = "/rosout"
 DIAGNOSTICS = "/diagnostics"
 #: (topic, type) of everything lidarloc writes
 TOPICS = {
-    POSE: "geometry_msgs/msg/PoseWithCovarianceStamped", TF: "tf2_msgs/msg/TFMessage",
-    TF_STATIC: "tf2_msgs/msg/TFMessage", PARTICLES: "geometry_msgs/msg/PoseArray",
-    PARTICLE_CLOUD: "sensor_msgs/msg/PointCloud2", TRUTH: "geometry_msgs/msg/PoseStamped",
-    SCAN: "sensor_msgs/msg/PointCloud2", MAP: "sensor_msgs/msg/PointCloud2", ROSOUT: "rcl_interfaces/msg/Log",
+    POSE: "geometry_msgs/msg/PoseWithCovarianceStamped",
+    TF: "tf2_msgs/msg/TFMessage",
+    TF_STATIC: "tf2_msgs/msg/TFMessage",
+    PARTICLES: "geometry_msgs/msg/PoseArray",
+    PARTICLE_CLOUD: "sensor_msgs/msg/PointCloud2",
+    TRUTH: "geometry_msgs/msg/PoseStamped",
+    SCAN: "sensor_msgs/msg/PointCloud2",
+    MAP: "sensor_msgs/msg/PointCloud2",
+    ROSOUT: "rcl_interfaces/msg/Log",
     DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
 }
 LATCHED = (MAP, TF_STATIC)
@@ -66,7 +70,7 @@ LATCHED = (MAP, TF_STATIC)
 INPUT_PREFIX = "/input"
 #: rcl_interfaces/msg/Log levels
 LOG_LEVELS = {"info": 20, "warning": 30, "error": 40}
-FLOAT32 = 7                       # sensor_msgs/PointField datatype
+FLOAT32 = 7  # sensor_msgs/PointField datatype
 
 
 def bag_target(out) -> tuple[Path, Path | None]:
@@ -85,7 +89,7 @@ def bag_target(out) -> tuple[Path, Path | None]:
     if suffix == ".mcap":
         folder = out.with_name(f".{out.stem}.writing")
         if folder.exists():
-            shutil.rmtree(folder)           # a write cut short before
+            shutil.rmtree(folder)  # a write cut short before
         return folder, out
     return out, None
 
@@ -108,25 +112,30 @@ class _Messages:
         return t["std_msgs/msg/Header"](stamp=self.time(stamp_ns), frame_id=frame)
 
     def time(self, stamp_ns: int):
-        return self.t["builtin_interfaces/msg/Time"](sec=int(stamp_ns // 1_000_000_000),
-                                                     nanosec=int(stamp_ns % 1_000_000_000))
+        return self.t["builtin_interfaces/msg/Time"](
+            sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000)
+        )
 
     def pose(self, T: np.ndarray):
         t = self.t
         q = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_quat()
         x, y, z = (float(v) for v in np.asarray(T)[:3, 3])
-        return t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-                                           orientation=t["geometry_msgs/msg/Quaternion"](
-                                               x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        return t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+        )
 
     def transform(self, stamp_ns: int, parent: str, child: str, T: np.ndarray):
         t = self.t
         p = self.pose(T)
         return t["geometry_msgs/msg/TransformStamped"](
-            header=self.header(stamp_ns, parent), child_frame_id=child,
+            header=self.header(stamp_ns, parent),
+            child_frame_id=child,
             transform=t["geometry_msgs/msg/Transform"](
                 translation=t["geometry_msgs/msg/Vector3"](x=p.position.x, y=p.position.y, z=p.position.z),
-                rotation=p.orientation))
+                rotation=p.orientation,
+            ),
+        )
 
     def tf(self, transforms: list):
         return self.t["tf2_msgs/msg/TFMessage"](transforms=transforms)
@@ -139,12 +148,22 @@ class _Messages:
         data = np.empty((n, len(names)), np.float32)
         for j, name in enumerate(names):
             data[:, j] = columns[name]
-        fields = [t["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
-                  for j, name in enumerate(names)]
+        fields = [
+            t["sensor_msgs/msg/PointField"](name=name, offset=4 * j, datatype=FLOAT32, count=1)
+            for j, name in enumerate(names)
+        ]
         step = 4 * len(names)
         return t["sensor_msgs/msg/PointCloud2"](
-            header=self.header(stamp_ns, frame), height=1, width=n, fields=fields, is_bigendian=False,
-            point_step=step, row_step=step * n, data=np.frombuffer(data.tobytes(), np.uint8), is_dense=True)
+            header=self.header(stamp_ns, frame),
+            height=1,
+            width=n,
+            fields=fields,
+            is_bigendian=False,
+            point_step=step,
+            row_step=step * n,
+            data=np.frombuffer(data.tobytes(), np.uint8),
+            is_dense=True,
+        )
 
     def xyz_cloud(self, stamp_ns: int, frame: str, points: np.ndarray):
         pts = np.asarray(points, np.float32).reshape(-1, 3)
@@ -178,16 +197,26 @@ class BagWriter:
         self.w = writer
         self.steps = steps
         zero = QosTime(0, 0)
-        latched = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, zero, zero,
-                      QosLiveliness.AUTOMATIC, zero, False)
+        latched = Qos(
+            QosHistory.KEEP_LAST,
+            1,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL,
+            zero,
+            zero,
+            QosLiveliness.AUTOMATIC,
+            zero,
+            False,
+        )
         self.conn = {}
         for topic, msgtype in TOPICS.items():
             if topic == TF_STATIC and steps.local_frame == MAP_FRAME:
                 continue
             if topic == TRUTH and not steps.seq.has_poses:
                 continue
-            self.conn[topic] = writer.add_connection(topic, msgtype, typestore=self.m.ts,
-                                                     offered_qos_profiles=[latched] if topic in LATCHED else [])
+            self.conn[topic] = writer.add_connection(
+                topic, msgtype, typestore=self.m.ts, offered_qos_profiles=[latched] if topic in LATCHED else []
+            )
         self.counts = {topic: 0 for topic in self.conn}
 
     def _write(self, topic: str, stamp_ns: int, msg) -> None:
@@ -207,39 +236,74 @@ class BagWriter:
         m, t = self.m, self.m.t
         stamp = s.stamp_ns
         cov = np.asarray(s.covariance, np.float64).reshape(36)
-        self._write(POSE, stamp, t["geometry_msgs/msg/PoseWithCovarianceStamped"](
-            header=m.header(stamp, MAP_FRAME),
-            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=m.pose(s.pose), covariance=cov)))
+        self._write(
+            POSE,
+            stamp,
+            t["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=m.header(stamp, MAP_FRAME),
+                pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=m.pose(s.pose), covariance=cov),
+            ),
+        )
         transforms = [m.transform(stamp, MAP_FRAME, LIDAR_FRAME, s.pose)]
         if s.truth is not None:
             transforms.append(m.transform(stamp, MAP_FRAME, TRUTH_FRAME, s.truth))
             if TRUTH in self.conn:
-                self._write(TRUTH, stamp, t["geometry_msgs/msg/PoseStamped"](header=m.header(stamp, MAP_FRAME),
-                                                                           pose=m.pose(s.truth)))
+                self._write(
+                    TRUTH,
+                    stamp,
+                    t["geometry_msgs/msg/PoseStamped"](header=m.header(stamp, MAP_FRAME), pose=m.pose(s.truth)),
+                )
         self._write(TF, stamp, m.tf(transforms))
         pos, quat = particle_poses(s.particles)
         P, Q, Pose = t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"], t["geometry_msgs/msg/Pose"]
-        poses = [Pose(position=P(x=float(a), y=float(b), z=float(c)),
-                      orientation=Q(x=float(qx), y=float(qy), z=float(qz), w=float(qw)))
-                 for (a, b, c), (qx, qy, qz, qw) in zip(pos.tolist(), quat.tolist())]
+        poses = [
+            Pose(
+                position=P(x=float(a), y=float(b), z=float(c)),
+                orientation=Q(x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+            )
+            for (a, b, c), (qx, qy, qz, qw) in zip(pos.tolist(), quat.tolist())
+        ]
         self._write(PARTICLES, stamp, t["geometry_msgs/msg/PoseArray"](header=m.header(stamp, MAP_FRAME), poses=poses))
         local = pos - self.steps.origin
-        self._write(PARTICLE_CLOUD, stamp, m.cloud(stamp, self.steps.local_frame, {
-            "x": local[:, 0], "y": local[:, 1], "z": local[:, 2], "weight": s.weights}))
+        self._write(
+            PARTICLE_CLOUD,
+            stamp,
+            m.cloud(
+                stamp,
+                self.steps.local_frame,
+                {"x": local[:, 0], "y": local[:, 1], "z": local[:, 2], "weight": s.weights},
+            ),
+        )
         if scan is not None:
             self._write(SCAN, stamp, m.xyz_cloud(stamp, LIDAR_FRAME, scan))
         for ev in s.events:
-            self._write(ROSOUT, stamp, t["rcl_interfaces/msg/Log"](
-                stamp=m.time(stamp), level=LOG_LEVELS[event_level(ev.kind)], name="lidarloc",
-                msg=f"scan {ev.scan}: {ev.kind}" + (f": {ev.detail}" if ev.detail else ""),
-                file="", function=ev.kind, line=0))
+            self._write(
+                ROSOUT,
+                stamp,
+                t["rcl_interfaces/msg/Log"](
+                    stamp=m.time(stamp),
+                    level=LOG_LEVELS[event_level(ev.kind)],
+                    name="lidarloc",
+                    msg=f"scan {ev.scan}: {ev.kind}" + (f": {ev.detail}" if ev.detail else ""),
+                    file="",
+                    function=ev.kind,
+                    line=0,
+                ),
+            )
         KV, Status = t["diagnostic_msgs/msg/KeyValue"], t["diagnostic_msgs/msg/DiagnosticStatus"]
         localized = bool(s.figures.get("localized"))
-        status = Status(level=0 if localized else 1, name="lidarloc: localizer",
-                        message="localized" if localized else "not localized", hardware_id=self.steps.name,
-                        values=[KV(key=k, value=v) for k, v in figures_text(s.figures)])
-        self._write(DIAGNOSTICS, stamp, t["diagnostic_msgs/msg/DiagnosticArray"](
-            header=m.header(stamp, MAP_FRAME), status=[status]))
+        status = Status(
+            level=0 if localized else 1,
+            name="lidarloc: localizer",
+            message="localized" if localized else "not localized",
+            hardware_id=self.steps.name,
+            values=[KV(key=k, value=v) for k, v in figures_text(s.figures)],
+        )
+        self._write(
+            DIAGNOSTICS,
+            stamp,
+            t["diagnostic_msgs/msg/DiagnosticArray"](header=m.header(stamp, MAP_FRAME), status=[status]),
+        )
 
 
 # -------------------------------------------------------------------------------- the input
@@ -248,8 +312,10 @@ def check_input(bag) -> None:
     if bag is None:
         raise LidarlocError("--with-input copies the input bag of a run on a bag; give the source as --bag")
     if Path(bag).suffix.lower() == ".bag":
-        raise LidarlocError(f"{bag}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag first "
-                            "(rosbags-convert --src drive.bag --dst drive2) and run on that")
+        raise LidarlocError(
+            f"{bag}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag first "
+            "(rosbags-convert --src drive.bag --dst drive2) and run on that"
+        )
 
 
 def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
@@ -263,8 +329,10 @@ def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
 
     bag_path = getattr(steps.seq, "path", None) if hasattr(steps.seq, "stamps_ns") else None
     if bag_path is None:
-        raise LidarlocError(f"{steps.rec.run_dir}: --with-input copies the input bag of a run on a bag (--bag); "
-                            f"this run's source is {steps.name}")
+        raise LidarlocError(
+            f"{steps.rec.run_dir}: --with-input copies the input bag of a run on a bag (--bag); "
+            f"this run's source is {steps.name}"
+        )
     lo, hi = int(steps.stamps_ns.min()) - 1_000_000_000, int(steps.stamps_ns.max()) + 1_000_000_000
     with bag_errors(Path(bag_path), "opening"):
         # the Humble definitions for an old sqlite3 bag without its own, as the bag reader does
@@ -274,8 +342,10 @@ def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
         reader.close()
         # a ROS 1 message is not a ROS 2 message re-encoded (std_msgs/Header lost its seq):
         # converting it is rosbags-convert's job, done once for the whole bag
-        raise LidarlocError(f"{bag_path}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag "
-                            "first (rosbags-convert --src drive.bag --dst drive2) and run on that")
+        raise LidarlocError(
+            f"{bag_path}: --with-input copies the topics of a ROS 2 bag; convert this ROS 1 bag "
+            "first (rosbags-convert --src drive.bag --dst drive2) and run on that"
+        )
     counts: dict[str, int] = {}
     try:
         with bag_errors(Path(bag_path), "copying the input"):
@@ -285,8 +355,12 @@ def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
                 key = (name, c.msgtype)
                 if key not in out_conn:
                     qos = getattr(getattr(c, "ext", None), "offered_qos_profiles", ()) or ()
-                    out_conn[key] = writer.add_connection(name, c.msgtype, typestore=reader.typestore,
-                                                          offered_qos_profiles=qos if not isinstance(qos, str) else ())
+                    out_conn[key] = writer.add_connection(
+                        name,
+                        c.msgtype,
+                        typestore=reader.typestore,
+                        offered_qos_profiles=qos if not isinstance(qos, str) else (),
+                    )
             for c, t, raw in reader.messages():
                 if not (lo <= t <= hi) and c.topic.lstrip("/") != "tf_static":
                     continue
@@ -299,8 +373,15 @@ def copy_input(writer, steps: RunSteps, taken: set[str]) -> dict[str, int]:
 
 
 # -------------------------------------------------------------------------------- export
-def export_bag(run_dir, out, console: Console | None = None, cache_root: Path | None = None,
-               with_input: bool = False, scans: bool = True, max_map_points: int = 400_000) -> dict:
+def export_bag(
+    run_dir,
+    out,
+    console: Console | None = None,
+    cache_root: Path | None = None,
+    with_input: bool = False,
+    scans: bool = True,
+    max_map_points: int = 400_000,
+) -> dict:
     """Write the recorded run ``run_dir`` as a ROS 2 MCAP bag at ``out`` (see the module
     docstring); returns what was written: path, bytes, messages per topic, steps, seconds."""
     from rosbags.rosbag2 import Writer
@@ -310,7 +391,7 @@ def export_bag(run_dir, out, console: Console | None = None, cache_root: Path | 
 
     console = console or Console(stderr=True)
     t0 = time.perf_counter()
-    folder, single = bag_target(out)       # before the map is loaded: a bad name fails at once
+    folder, single = bag_target(out)  # before the map is loaded: a bad name fails at once
     steps = RunSteps(run_dir, cache_root, console)
     writer = Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP)
     # zstd per chunk: the particles and scans are most of the bytes and compress ~2×
@@ -343,8 +424,18 @@ def export_bag(run_dir, out, console: Console | None = None, cache_root: Path | 
         shutil.rmtree(folder, ignore_errors=True)
         path = single
     size = path.stat().st_size if path.is_file() else sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-    result = {"bag": str(path), "bytes": size, "steps": steps.n, "messages": counts, "map_points": map_points,
-              "seconds": time.perf_counter() - t0}
-    console.print(f"wrote {steps.n} steps of {steps.rec.run_dir} to {path} ({size / 1e6:.1f} MB, ROS 2 MCAP): "
-                  f"ros2 bag play {path}, or open it in Foxglove", highlight=False, soft_wrap=True)
+    result = {
+        "bag": str(path),
+        "bytes": size,
+        "steps": steps.n,
+        "messages": counts,
+        "map_points": map_points,
+        "seconds": time.perf_counter() - t0,
+    }
+    console.print(
+        f"wrote {steps.n} steps of {steps.rec.run_dir} to {path} ({size / 1e6:.1f} MB, ROS 2 MCAP): "
+        f"ros2 bag play {path}, or open it in Foxglove",
+        highlight=False,
+        soft_wrap=True,
+    )
     return result

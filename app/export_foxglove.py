@@ -31,7 +31,6 @@ from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from ..core.errors import LidarlocError
-
 from .run_steps import LIDAR_FRAME, LOCAL_FRAME, MAP_FRAME, TRUTH_FRAME, RunSteps, Step, event_level
 
 POSE = "/lidarloc/pose"
@@ -48,17 +47,22 @@ LAYOUT_SUFFIX = ".layout.json"
 
 #: the figures channel's JSON schema: numbers a plot reads (a figure unknown at a scan is left out)
 FIGURES_SCHEMA = {
-    "title": "lidarloc.Figures", "type": "object",
+    "title": "lidarloc.Figures",
+    "type": "object",
     "properties": {
         "scan": {"type": "integer", "description": "source scan index"},
         "std_m": {"type": "number", "description": "position std, the larger of x and y (m)"},
-        "std_x_m": {"type": "number"}, "std_y_m": {"type": "number"}, "std_z_m": {"type": "number"},
+        "std_x_m": {"type": "number"},
+        "std_y_m": {"type": "number"},
+        "std_z_m": {"type": "number"},
         "n_eff": {"type": "number", "description": "effective sample size"},
         "n_eff_share": {"type": "number", "description": "N_eff / particles"},
         "particles": {"type": "integer"},
         "localized": {"type": "boolean", "description": "the localization rule holds"},
         "error_m": {"type": "number", "description": "3D distance of the estimate to the truth (m)"},
-        "pf_ms": {"type": "number"}, "rpe_ms": {"type": "number"}, "s2m_ms": {"type": "number"},
+        "pf_ms": {"type": "number"},
+        "rpe_ms": {"type": "number"},
+        "s2m_ms": {"type": "number"},
     },
 }
 ORANGE = (1.0, 0.62, 0.1, 1.0)
@@ -94,10 +98,14 @@ class FoxgloveWriter:
         self.steps = steps
         c = {"context": context}
         self.ch = {
-            POSE: ch.PoseInFrameChannel(POSE, **c), TF: ch.FrameTransformsChannel(TF, **c),
-            PARTICLES: ch.PosesInFrameChannel(PARTICLES, **c), PARTICLE_CLOUD: ch.PointCloudChannel(PARTICLE_CLOUD, **c),
-            SCAN: ch.PointCloudChannel(SCAN, **c), MAP: ch.PointCloudChannel(MAP, **c),
-            SCENE: ch.SceneUpdateChannel(SCENE, **c), LOG: ch.LogChannel(LOG, **c),
+            POSE: ch.PoseInFrameChannel(POSE, **c),
+            TF: ch.FrameTransformsChannel(TF, **c),
+            PARTICLES: ch.PosesInFrameChannel(PARTICLES, **c),
+            PARTICLE_CLOUD: ch.PointCloudChannel(PARTICLE_CLOUD, **c),
+            SCAN: ch.PointCloudChannel(SCAN, **c),
+            MAP: ch.PointCloudChannel(MAP, **c),
+            SCENE: ch.SceneUpdateChannel(SCENE, **c),
+            LOG: ch.LogChannel(LOG, **c),
             FIGURES: foxglove.Channel(FIGURES, schema=FIGURES_SCHEMA, message_encoding="json", **c),
         }
         if steps.seq.has_poses:
@@ -125,8 +133,13 @@ class FoxgloveWriter:
 
     def transform(self, stamp_ns: int, parent: str, child: str, T: np.ndarray):
         translation, rotation = self._parts(T)
-        return self.M.FrameTransform(timestamp=self.ts(stamp_ns), parent_frame_id=parent, child_frame_id=child,
-                                     translation=translation, rotation=rotation)
+        return self.M.FrameTransform(
+            timestamp=self.ts(stamp_ns),
+            parent_frame_id=parent,
+            child_frame_id=child,
+            translation=translation,
+            rotation=rotation,
+        )
 
     def cloud(self, stamp_ns: int, frame: str, columns: dict[str, np.ndarray]):
         M = self.M
@@ -135,10 +148,18 @@ class FoxgloveWriter:
         data = np.empty((n, len(names)), np.float32)
         for j, name in enumerate(names):
             data[:, j] = columns[name]
-        fields = [M.PackedElementField(name=name, offset=4 * j, type=M.PackedElementFieldNumericType.Float32)
-                  for j, name in enumerate(names)]
-        return M.PointCloud(timestamp=self.ts(stamp_ns), frame_id=frame, pose=self.pose(np.eye(4)),
-                            point_stride=4 * len(names), fields=fields, data=data.tobytes())
+        fields = [
+            M.PackedElementField(name=name, offset=4 * j, type=M.PackedElementFieldNumericType.Float32)
+            for j, name in enumerate(names)
+        ]
+        return M.PointCloud(
+            timestamp=self.ts(stamp_ns),
+            frame_id=frame,
+            pose=self.pose(np.eye(4)),
+            point_stride=4 * len(names),
+            fields=fields,
+            data=data.tobytes(),
+        )
 
     def color(self, rgba):
         r, g, b, a = rgba
@@ -146,15 +167,22 @@ class FoxgloveWriter:
 
     def loop(self, points_xyz: np.ndarray, rgba, thickness: float = 0.15):
         M = self.M
-        return M.LinePrimitive(type=M.LinePrimitiveLineType.LineLoop, pose=self.pose(np.eye(4)), thickness=thickness,
-                               points=[M.Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in points_xyz],
-                               color=self.color(rgba))
+        return M.LinePrimitive(
+            type=M.LinePrimitiveLineType.LineLoop,
+            pose=self.pose(np.eye(4)),
+            thickness=thickness,
+            points=[M.Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in points_xyz],
+            color=self.color(rgba),
+        )
 
     # ---------------------------------------------------------------- what is logged
     def write_map(self, stamp_ns: int, max_points: int) -> int:
         points, _ = self.steps.map_points(max_points)
-        self._log(MAP, self.cloud(stamp_ns, self.steps.local_frame,
-                                  {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}), stamp_ns)
+        self._log(
+            MAP,
+            self.cloud(stamp_ns, self.steps.local_frame, {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}),
+            stamp_ns,
+        )
         return len(points)
 
     def write_step(self, s: Step, scan: np.ndarray | None) -> None:
@@ -164,8 +192,9 @@ class FoxgloveWriter:
         if s.truth is not None:
             transforms.append(self.transform(stamp, MAP_FRAME, TRUTH_FRAME, s.truth))
             if TRUTH in self.ch:
-                self._log(TRUTH, M.PoseInFrame(timestamp=self.ts(stamp), frame_id=MAP_FRAME,
-                                               pose=self.pose(s.truth)), stamp)
+                self._log(
+                    TRUTH, M.PoseInFrame(timestamp=self.ts(stamp), frame_id=MAP_FRAME, pose=self.pose(s.truth)), stamp
+                )
         if self.steps.local_frame != MAP_FRAME:
             T = np.eye(4)
             T[:3, 3] = self.steps.origin
@@ -174,20 +203,37 @@ class FoxgloveWriter:
         from .export_bag import particle_poses
 
         pos, quat = particle_poses(s.particles)
-        poses = [M.Pose(position=M.Vector3(x=a, y=b, z=c), orientation=M.Quaternion(x=qx, y=qy, z=qz, w=qw))
-                 for (a, b, c), (qx, qy, qz, qw) in zip(pos.tolist(), quat.tolist())]
+        poses = [
+            M.Pose(position=M.Vector3(x=a, y=b, z=c), orientation=M.Quaternion(x=qx, y=qy, z=qz, w=qw))
+            for (a, b, c), (qx, qy, qz, qw) in zip(pos.tolist(), quat.tolist())
+        ]
         self._log(PARTICLES, M.PosesInFrame(timestamp=self.ts(stamp), frame_id=MAP_FRAME, poses=poses), stamp)
         local = pos - self.steps.origin
-        self._log(PARTICLE_CLOUD, self.cloud(stamp, self.steps.local_frame, {
-            "x": local[:, 0], "y": local[:, 1], "z": local[:, 2], "weight": s.weights}), stamp)
+        self._log(
+            PARTICLE_CLOUD,
+            self.cloud(
+                stamp,
+                self.steps.local_frame,
+                {"x": local[:, 0], "y": local[:, 1], "z": local[:, 2], "weight": s.weights},
+            ),
+            stamp,
+        )
         if scan is not None:
             self._log(SCAN, self.cloud(stamp, LIDAR_FRAME, {"x": scan[:, 0], "y": scan[:, 1], "z": scan[:, 2]}), stamp)
         self._log(SCENE, M.SceneUpdate(entities=self.entities(s)), stamp)
         levels = {"info": M.LogLevel.Info, "warning": M.LogLevel.Warning, "error": M.LogLevel.Error}
         for ev in s.events:
-            self._log(LOG, M.Log(timestamp=self.ts(stamp), level=levels[event_level(ev.kind)], name="lidarloc",
-                                 message=f"scan {ev.scan}: {ev.kind}" + (f": {ev.detail}" if ev.detail else ""),
-                                 file=ev.kind), stamp)
+            self._log(
+                LOG,
+                M.Log(
+                    timestamp=self.ts(stamp),
+                    level=levels[event_level(ev.kind)],
+                    name="lidarloc",
+                    message=f"scan {ev.scan}: {ev.kind}" + (f": {ev.detail}" if ev.detail else ""),
+                    file=ev.kind,
+                ),
+                stamp,
+            )
         figures = {"scan": s.scan, **{k: v for k, v in s.figures.items() if v is not None}}
         self._log(FIGURES, figures, stamp)
 
@@ -202,8 +248,11 @@ class FoxgloveWriter:
             c, sn = math.cos(angle), math.sin(angle)
             ex, ey = a * np.cos(t), b * np.sin(t)
             pts = np.c_[s.pose[0, 3] + c * ex - sn * ey, s.pose[1, 3] + sn * ex + c * ey, np.full(len(t), s.pose[2, 3])]
-            out.append(M.SceneEntity(timestamp=self.ts(stamp), frame_id=MAP_FRAME, id="ellipse_2sigma",
-                                     lines=[self.loop(pts, ORANGE)]))
+            out.append(
+                M.SceneEntity(
+                    timestamp=self.ts(stamp), frame_id=MAP_FRAME, id="ellipse_2sigma", lines=[self.loop(pts, ORANGE)]
+                )
+            )
         v = s.s2m
         if v is not None:
             o = self.steps.origin
@@ -215,18 +264,45 @@ class FoxgloveWriter:
             verdict = "accepted" if v.accepted else f"rejected: {v.reason}"
             text_pose = matched.copy()
             text_pose[2, 3] += 4.0
-            out.append(M.SceneEntity(
-                timestamp=self.ts(stamp), frame_id=MAP_FRAME, id="s2m", lines=[self.loop(box, colour, 0.3)],
-                arrows=[M.ArrowPrimitive(pose=self.pose(matched), shaft_length=4.0, shaft_diameter=0.4,
-                                         head_length=1.5, head_diameter=1.0, color=self.color(colour))],
-                texts=[M.TextPrimitive(pose=self.pose(text_pose), billboard=True, font_size=14, scale_invariant=True,
-                                       color=self.color(colour),
-                                       text=f"S2M {v.mode or 'match'} of scan {v.started_at}: {verdict}")]))
+            out.append(
+                M.SceneEntity(
+                    timestamp=self.ts(stamp),
+                    frame_id=MAP_FRAME,
+                    id="s2m",
+                    lines=[self.loop(box, colour, 0.3)],
+                    arrows=[
+                        M.ArrowPrimitive(
+                            pose=self.pose(matched),
+                            shaft_length=4.0,
+                            shaft_diameter=0.4,
+                            head_length=1.5,
+                            head_diameter=1.0,
+                            color=self.color(colour),
+                        )
+                    ],
+                    texts=[
+                        M.TextPrimitive(
+                            pose=self.pose(text_pose),
+                            billboard=True,
+                            font_size=14,
+                            scale_invariant=True,
+                            color=self.color(colour),
+                            text=f"S2M {v.mode or 'match'} of scan {v.started_at}: {verdict}",
+                        )
+                    ],
+                )
+            )
         return out
 
 
-def export_foxglove(run_dir, out, console: Console | None = None, cache_root: Path | None = None,
-                    scans: bool = True, max_map_points: int = 400_000) -> dict:
+def export_foxglove(
+    run_dir,
+    out,
+    console: Console | None = None,
+    cache_root: Path | None = None,
+    scans: bool = True,
+    max_map_points: int = 400_000,
+) -> dict:
     """Write the recorded run ``run_dir`` as a Foxglove MCAP file and its layout (see the module
     docstring); returns what was written."""
     import foxglove
@@ -242,7 +318,7 @@ def export_foxglove(run_dir, out, console: Console | None = None, cache_root: Pa
     tmp = path.with_name(f".{path.name}.writing")
     try:
         mcap = foxglove.open_mcap(tmp, allow_overwrite=True, context=context)
-    except Exception as exc:   # noqa: BLE001 - the SDK reports I/O failures as its own error type
+    except Exception as exc:  # noqa: BLE001 - the SDK reports I/O failures as its own error type
         raise LidarlocError(f"{path}: cannot write ({exc})") from None
     try:
         fw = FoxgloveWriter(context, steps)
@@ -259,9 +335,19 @@ def export_foxglove(run_dir, out, console: Console | None = None, cache_root: Pa
         raise LidarlocError(f"{path}: cannot write ({exc.strerror or exc})") from None
     finally:
         tmp.unlink(missing_ok=True)
-    result = {"mcap": str(path), "layout": str(layout_path), "bytes": path.stat().st_size, "steps": steps.n,
-              "messages": dict(fw.counts), "map_points": map_points, "seconds": time.perf_counter() - t0}
-    console.print(f"wrote {steps.n} steps of {steps.rec.run_dir} to {path} ({result['bytes'] / 1e6:.1f} MB) and "
-                  f"its layout {layout_path}: open the file in Foxglove, then Layouts → Import from file",
-                  highlight=False, soft_wrap=True)
+    result = {
+        "mcap": str(path),
+        "layout": str(layout_path),
+        "bytes": path.stat().st_size,
+        "steps": steps.n,
+        "messages": dict(fw.counts),
+        "map_points": map_points,
+        "seconds": time.perf_counter() - t0,
+    }
+    console.print(
+        f"wrote {steps.n} steps of {steps.rec.run_dir} to {path} ({result['bytes'] / 1e6:.1f} MB) and "
+        f"its layout {layout_path}: open the file in Foxglove, then Layouts → Import from file",
+        highlight=False,
+        soft_wrap=True,
+    )
     return result

@@ -23,7 +23,6 @@ from ..core.localizer import Interrupted, Localizer
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
-
 from .console import progress_bar
 from .options import open_source
 
@@ -32,9 +31,16 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | None = None,
-                 console: Console | None = None, stop_after: int | None = None,
-                 preset: str | None = None, record: bool = True) -> tuple[dict, bool]:
+def run_headless(
+    spec: SourceSpec,
+    cfg: Config,
+    out: Path,
+    cache_root: Path | None = None,
+    console: Console | None = None,
+    stop_after: int | None = None,
+    preset: str | None = None,
+    record: bool = True,
+) -> tuple[dict, bool]:
     """Run the localizer over the whole sequence; returns (summary, interrupted). ``preset``: the
     named configuration ``cfg`` started from (``--preset``), recorded in the summary. ``record``:
     write every step's state into ``out/recording/`` as it happens (:mod:`lidarloc.core.runs.recording`;
@@ -46,8 +52,12 @@ def run_headless(spec: SourceSpec, cfg: Config, out: Path, cache_root: Path | No
         check_recording_target(out)
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
-        loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
-            task, description=f"preparing {stage}", completed=100 * f))
+        loc = Localizer(
+            seq,
+            cfg,
+            cache_root,
+            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
+        )
     try:
         writer = RecordingWriter(out, spec, cfg, seq, preset=preset) if record else None
     except BaseException:
@@ -64,8 +74,15 @@ def check_recording_target(out: Path) -> None:
         raise RecordingError(f"{Path(out) / FOLDER}: a recording is already there; choose another --out")
 
 
-def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_after: int | None = None,
-             preset: str | None = None, title: str | None = None) -> tuple[dict, bool]:
+def localize(
+    loc: Localizer,
+    out: Path,
+    console: Console,
+    writer=None,
+    stop_after: int | None = None,
+    preset: str | None = None,
+    title: str | None = None,
+) -> tuple[dict, bool]:
     """Step ``loc`` to the end of its sequence (or ``stop_after`` steps in all, or Ctrl-C), record
     each step with ``writer`` (a RecordingWriter, or None), and write the results into ``out``;
     returns (summary, interrupted). Closes ``loc``. A localizer that does not start at scan 0 (a
@@ -74,7 +91,7 @@ def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_afte
     realtime = cfg.localize.clock == "realtime"
     if realtime:
         try:
-            loc.wait_ready()     # the sensor's clock starts once every block is up
+            loc.wait_ready()  # the sensor's clock starts once every block is up
         except BaseException:
             loc.close()
             if writer is not None:
@@ -89,15 +106,17 @@ def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_afte
     def on_ctrl_c(*_):
         stop.set()
         loc.interrupt()
+
     previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
     warned = _warn_frames(console, loc.events, 0)
-    n_before = len(loc.records)       # a branch starts with the recorded run's
+    n_before = len(loc.records)  # a branch starts with the recorded run's
     clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
     t_start = time.perf_counter()
     try:
-        console.print(title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, "
-                      f"{cfg.localize.clock} clock)")
+        console.print(
+            title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)"
+        )
         with progress_bar(transient=False) as bar:
             task = bar.add_task(f"localizing {seq.name}", total=len(seq), completed=loc.k)
             while not loc.done and not stop.is_set() and (stop_after is None or loc.steps < stop_after):
@@ -119,15 +138,19 @@ def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_afte
                 if writer is not None:
                     writer.on_scan(loc, snap)
                 warned = _warn_frames(console, loc.events, warned)
-                bar.update(task, completed=snap.scan_index + 1,
-                           description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""))
+                bar.update(
+                    task,
+                    completed=snap.scan_index + 1,
+                    description=f"localizing {seq.name}" + (" [green]localized" if snap.localized else ""),
+                )
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
         wall = time.perf_counter() - t_start
-        cpu_end = loc.cpu_seconds()          # before close(): the child processes end there
-        cpu_used = {k: None if cpu_start[k] is None or cpu_end[k] is None else cpu_end[k] - cpu_start[k]
-                    for k in cpu_start}
+        cpu_end = loc.cpu_seconds()  # before close(): the child processes end there
+        cpu_used = {
+            k: None if cpu_start[k] is None or cpu_end[k] is None else cpu_end[k] - cpu_start[k] for k in cpu_start
+        }
         loc.close()
         interrupted = stop.is_set()
         if interrupted:
@@ -140,12 +163,13 @@ def localize(loc: Localizer, out: Path, console: Console, writer=None, stop_afte
         try:
             if writer is not None:
                 writer.close(summary)
-        finally:                             # a recording that failed never costs the results
+        finally:  # a recording that failed never costs the results
             write_run(loc, out, summary)
-    error = (f"RMSE after {summary['rmse_after_localized_m']}" if loc.seq.has_poses
-             else "no ground truth (no errors)")
-    console.print(f"results in {out}: localized at scan {summary['localized_at_scan']}, "
-                  f"{error}, PF {summary['pf_ms_median']} ms median")
+    error = f"RMSE after {summary['rmse_after_localized_m']}" if loc.seq.has_poses else "no ground truth (no errors)"
+    console.print(
+        f"results in {out}: localized at scan {summary['localized_at_scan']}, "
+        f"{error}, PF {summary['pf_ms_median']} ms median"
+    )
     return summary, interrupted
 
 

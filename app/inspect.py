@@ -28,38 +28,62 @@ from rich.console import Console
 
 from ..core.config import Config
 from ..core.errors import LidarlocError
+from ..core.filter.residuals import scan_residuals
+from ..core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 from ..core.geometry import pose_to_xyz_ypr
 from ..core.localizer import Localizer
-from ..core.filter.residuals import scan_residuals
 from ..core.runs.results import make_out_dir
 from ..core.sequences.factory import SourceSpec
-from ..core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
-
 from .console import progress_bar
 from .options import open_source
 from .viewer.why_style import RESIDUAL_LUT, residual_colors, surface_scale
 from .viewer.why_surface import scan_in_sensor_frame
 
-FILES = ("surface_estimate.png", "surface_estimate.npy", "surface_truth.png", "surface_truth.npy",
-         "residuals.png", "inspect.json")
-MAP_POINTS_SHOWN = 200_000      # grey map points under the residual image (random subset)
+FILES = (
+    "surface_estimate.png",
+    "surface_estimate.npy",
+    "surface_truth.png",
+    "surface_truth.npy",
+    "residuals.png",
+    "inspect.json",
+)
+MAP_POINTS_SHOWN = 200_000  # grey map points under the residual image (random subset)
 
 
 def _pose_json(T) -> dict | None:
     if T is None:
         return None
     x, y, z, yaw, pitch, roll = (float(v) for v in pose_to_xyz_ypr(np.asarray(T, float)))
-    return {"x": x, "y": y, "z": z, "yaw_deg": math.degrees(yaw), "pitch_deg": math.degrees(pitch),
-            "roll_deg": math.degrees(roll)}
+    return {
+        "x": x,
+        "y": y,
+        "z": z,
+        "yaw_deg": math.degrees(yaw),
+        "pitch_deg": math.degrees(pitch),
+        "roll_deg": math.degrees(roll),
+    }
 
 
 def _grid_json(s: Surface) -> dict:
-    return {"x0": float(s.xs[0]), "y0": float(s.ys[0]), "cell": s.cell, "shape": list(s.ll.shape),
-            "yaw_window_deg": math.degrees(s.yaw_window), "ms": round(s.ms, 1)}
+    return {
+        "x0": float(s.xs[0]),
+        "y0": float(s.ys[0]),
+        "cell": s.cell,
+        "shape": list(s.ll.shape),
+        "yaw_window_deg": math.degrees(s.yaw_window),
+        "ms": round(s.ms, 1),
+    }
 
 
-def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root: Path | None = None,
-                console: Console | None = None, best_over_yaw: bool = False) -> dict:
+def run_inspect(
+    spec: SourceSpec,
+    cfg: Config,
+    scan: int,
+    out: Path,
+    cache_root: Path | None = None,
+    console: Console | None = None,
+    best_over_yaw: bool = False,
+) -> dict:
     """Replay to ``scan``, write the files (module docstring) and return the JSON's content."""
     console = console or Console(stderr=True)
     seq = open_source(spec, cfg, console)
@@ -69,8 +93,12 @@ def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root:
     cfg = replace(cfg, localize=replace(cfg.localize, clock="replay"))
     with progress_bar() as bar:
         task = bar.add_task("preparing map", total=100)
-        loc = Localizer(seq, cfg, cache_root, progress=lambda stage, f: bar.update(
-            task, description=f"preparing {stage}", completed=100 * f))
+        loc = Localizer(
+            seq,
+            cfg,
+            cache_root,
+            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
+        )
     try:
         with progress_bar() as bar:
             task = bar.add_task(f"replaying {seq.name} to scan {scan}", total=scan + 1)
@@ -78,21 +106,24 @@ def run_inspect(spec: SourceSpec, cfg: Config, scan: int, out: Path, cache_root:
             while snap.scan_index < scan and not loc.done:
                 snap = loc.step()
                 bar.update(task, completed=snap.scan_index + 1)
-        if snap.scan_index != scan:      # a kidnap cannot happen here; the sequence ended early
+        if snap.scan_index != scan:  # a kidnap cannot happen here; the sequence ended early
             raise LidarlocError(f"the run ended at scan {snap.scan_index} before scan {scan}")
         model = LikelihoodModel.of(loc)
         result = _write(snap, model, loc.prior_map.points, out, best_over_yaw, origin=loc.prior_map.origin)
     finally:
         loc.close()
     err_m = result["surface_argmax_error_m"]
-    console.print(f"scan {scan} of {seq.name}: "
-                  + ("" if err_m is None else f"the surface's maximum {err_m:.2f} m from the truth, ")
-                  + f"{result['residual_share_beyond_dmax']:.1%} of the scan beyond d_max → {out}")
+    console.print(
+        f"scan {scan} of {seq.name}: "
+        + ("" if err_m is None else f"the surface's maximum {err_m:.2f} m from the truth, ")
+        + f"{result['residual_share_beyond_dmax']:.1%} of the scan beyond d_max → {out}"
+    )
     return result
 
 
-def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best_over_yaw: bool,
-           origin=(0.0, 0.0, 0.0)) -> dict:
+def _write(
+    snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best_over_yaw: bool, origin=(0.0, 0.0, 0.0)
+) -> dict:
     pts = scan_in_sensor_frame(snap)
     if len(pts) == 0:
         raise LidarlocError(f"scan {snap.scan_index} has no points left after preparation")
@@ -125,9 +156,13 @@ def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best
         "residual_share_beyond_dmax": res.share_beyond,
         "surface_ms": round(around_est.ms, 1),
         "surface_estimate": _grid_json(around_est),
-        "surface_truth": None if around_gt is None else {
-            **_grid_json(around_gt), "argmax_xy": [float(v) for v in around_gt.argmax_xy],
-            "argmax_error_m": float(np.linalg.norm(around_gt.argmax_xy - gt[:2, 3]))},
+        "surface_truth": None
+        if around_gt is None
+        else {
+            **_grid_json(around_gt),
+            "argmax_xy": [float(v) for v in around_gt.argmax_xy],
+            "argmax_error_m": float(np.linalg.norm(around_gt.argmax_xy - gt[:2, 3])),
+        },
         "d_max_m": model.d_max,
         "sigma_m": model.sigma,
         "scan_points": int(len(pts)),
@@ -143,7 +178,7 @@ def _write(snap, model: LikelihoodModel, map_points: np.ndarray, out: Path, best
 def _figure():
     import matplotlib
 
-    matplotlib.use("Agg")        # files only, no display
+    matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
     return plt
@@ -165,8 +200,9 @@ def _surface_png(path: Path, s: Surface, snap, around: str) -> None:
     lo, hi = surface_scale(s.ll)
     fig, ax = plt.subplots(figsize=(7, 6), dpi=110)
     x0, y0, x1, y1 = s.extent
-    im = ax.imshow(s.ll.T, origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", vmin=lo, vmax=hi,
-                   interpolation="nearest")
+    im = ax.imshow(
+        s.ll.T, origin="lower", extent=(x0, x1, y0, y1), cmap="viridis", vmin=lo, vmax=hi, interpolation="nearest"
+    )
     fig.colorbar(im, ax=ax, label="log-likelihood (nats)")
     _marks(ax, snap, s.argmax_xy)
     ax.set_xlim(x0, x1)
@@ -194,7 +230,7 @@ def _residual_png(path: Path, res, snap, model: LikelihoodModel, map_points: np.
     fig, ax = plt.subplots(figsize=(8, 7), dpi=110)
     ax.set_facecolor("#202020")
     ax.scatter(near[:, 0], near[:, 1], s=0.3, c="#6a6a6a", linewidths=0, rasterized=True)
-    order = np.argsort(res.distance)            # red on top: the points to look at
+    order = np.argsort(res.distance)  # red on top: the points to look at
     colors = residual_colors(res.distance, model.sigma, res.d_max)[order] / 255.0
     ax.scatter(pts[order, 0], pts[order, 1], s=1.5, c=colors, linewidths=0, rasterized=True)
     cmap = ListedColormap(RESIDUAL_LUT / 255.0)
@@ -204,8 +240,10 @@ def _residual_png(path: Path, res, snap, model: LikelihoodModel, map_points: np.
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
-    ax.set_title(f"scan {snap.scan_index} at the estimate: {res.share_beyond:.1%} of "
-                 f"{len(pts):,} points beyond d_max", fontsize=10)
+    ax.set_title(
+        f"scan {snap.scan_index} at the estimate: {res.share_beyond:.1%} of {len(pts):,} points beyond d_max",
+        fontsize=10,
+    )
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     fig.tight_layout()

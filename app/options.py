@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import inspect
 from pathlib import Path
-from typing import Annotated, Any, NamedTuple, Optional
+from typing import Annotated, Any, NamedTuple
 
 import typer
 
@@ -39,68 +39,148 @@ def source_options(panel: str) -> SourceOptions:
     """The source options under the help panel ``panel`` (a command whose default source is not
     the built-in town says which it is there)."""
     return SourceOptions(
-        Annotated[Optional[Path], typer.Option("--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=panel)],
-        Annotated[Optional[str], typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=panel)],
-        Annotated[Optional[Path], typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=panel)],
-        Annotated[Optional[str], typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=panel)],
-        Annotated[Optional[str], typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=panel)],
-        Annotated[int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=panel)],
-        Annotated[Optional[Path], typer.Option("--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=panel)],
-        Annotated[Optional[Path], typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=panel)],
-        Annotated[Optional[int], typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=panel)],
+        Annotated[
+            Path | None,
+            typer.Option(
+                "--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=panel
+            ),
+        ],
+        Annotated[
+            str | None, typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=panel)
+        ],
+        Annotated[
+            Path | None, typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=panel)
+        ],
+        Annotated[str | None, typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=panel)],
+        Annotated[str | None, typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=panel)],
+        Annotated[
+            int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=panel)
+        ],
+        Annotated[
+            Path | None,
+            typer.Option(
+                "--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=panel
+            ),
+        ],
+        Annotated[
+            Path | None,
+            typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=panel),
+        ],
+        Annotated[
+            int | None, typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=panel)
+        ],
     )
 
 
-(KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt,
- ScansOpt) = source_options(_SRC)
+(KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt, ScansOpt) = (
+    source_options(_SRC)
+)
 
-_MAP_HELP = ("Prior map file (.pcd, .ply, .las, .laz, .npy, .npz) instead of the map built from the drive; "
-             "results are written in its frame.")
+_MAP_HELP = (
+    "Prior map file (.pcd, .ply, .las, .laz, .npy, .npz) instead of the map built from the drive; "
+    "results are written in its frame."
+)
 _GT_HELP = "Ground truth of --bag/--scans-dir: TUM (t x y z qx qy qz qw) or KITTI (12 numbers a line) poses file."
 
 
 def own_data_options(panel: str) -> dict[str, Any]:
     """The options for a user's own data (map file, recording, truth), under ``panel``."""
     return {
-        "map": Annotated[Optional[Path], typer.Option("--map", help=_MAP_HELP, rich_help_panel=panel)],
-        "bag": Annotated[Optional[Path], typer.Option("--bag", help="ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap with PointCloud2 scans.", rich_help_panel=panel)],
-        "topic": Annotated[Optional[str], typer.Option("--topic", help="PointCloud2 topic of --bag (default: its only one).", rich_help_panel=panel)],
-        "scans_dir": Annotated[Optional[Path], typer.Option("--scans-dir", help="Folder of scans (.pcd, .ply, .bin or .npy, in name order; times from its times.txt).", rich_help_panel=panel)],
-        "gt": Annotated[Optional[Path], typer.Option("--gt", help=_GT_HELP, rich_help_panel=panel)],
-        "gt_times": Annotated[Optional[Path], typer.Option("--gt-times", help="Times (s, one a line) of a KITTI-format --gt file.", rich_help_panel=panel)],
-        "extrinsic": Annotated[Optional[Path], typer.Option("--extrinsic", help="4×4 base ← LiDAR transform file for --gt (default: the bag's /tf_static, else identity).", rich_help_panel=panel)],
+        "map": Annotated[Path | None, typer.Option("--map", help=_MAP_HELP, rich_help_panel=panel)],
+        "bag": Annotated[
+            Path | None,
+            typer.Option(
+                "--bag",
+                help="ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap with PointCloud2 scans.",
+                rich_help_panel=panel,
+            ),
+        ],
+        "topic": Annotated[
+            str | None,
+            typer.Option("--topic", help="PointCloud2 topic of --bag (default: its only one).", rich_help_panel=panel),
+        ],
+        "scans_dir": Annotated[
+            Path | None,
+            typer.Option(
+                "--scans-dir",
+                help="Folder of scans (.pcd, .ply, .bin or .npy, in name order; times from its times.txt).",
+                rich_help_panel=panel,
+            ),
+        ],
+        "gt": Annotated[Path | None, typer.Option("--gt", help=_GT_HELP, rich_help_panel=panel)],
+        "gt_times": Annotated[
+            Path | None,
+            typer.Option(
+                "--gt-times", help="Times (s, one a line) of a KITTI-format --gt file.", rich_help_panel=panel
+            ),
+        ],
+        "extrinsic": Annotated[
+            Path | None,
+            typer.Option(
+                "--extrinsic",
+                help="4×4 base ← LiDAR transform file for --gt (default: the bag's /tf_static, else identity).",
+                rich_help_panel=panel,
+            ),
+        ],
     }
 
 
 #: the defaults of the source options (what SourceSpec has when an option is not given)
 _SOURCE_DEFAULTS = {"town_seed": 0}
 #: every source option's parameter name, in the order of the help
-SOURCE_PARAMS = ("kitti_odometry", "sequence", "kitti_raw", "date", "drive", "town_seed", "trajectory", "calib",
-                 "scans", "map", "bag", "topic", "scans_dir", "gt", "gt_times", "extrinsic")
+SOURCE_PARAMS = (
+    "kitti_odometry",
+    "sequence",
+    "kitti_raw",
+    "date",
+    "drive",
+    "town_seed",
+    "trajectory",
+    "calib",
+    "scans",
+    "map",
+    "bag",
+    "topic",
+    "scans_dir",
+    "gt",
+    "gt_times",
+    "extrinsic",
+)
 #: ``--init``: run, view and inspect start around a pose with it
-InitOpt = Annotated[Optional[str], typer.Option(
-    "--init", metavar="X,Y,YAW[,σXY,σYAW]",
-    help="Start the particles around this pose (map frame; metres, degrees; default σ 2 m, 10°) instead of over the whole map.")]
+InitOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--init",
+        metavar="X,Y,YAW[,σXY,σYAW]",
+        help="Start the particles around this pose (map frame; metres, degrees; default σ 2 m, 10°) instead of over the whole map.",
+    ),
+]
 
 
 def source_parameters(panel: str = _SRC, exclude: tuple[str, ...] = ()) -> list[inspect.Parameter]:
     """The source options as keyword parameters of a command, under the help panel ``panel``."""
     annotations = dict(zip(SOURCE_PARAMS[:9], source_options(panel)))
     annotations.update(own_data_options(panel))
-    return [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotations[name],
-                              default=_SOURCE_DEFAULTS.get(name))
-            for name in SOURCE_PARAMS if name not in exclude]
+    return [
+        inspect.Parameter(
+            name, inspect.Parameter.KEYWORD_ONLY, annotation=annotations[name], default=_SOURCE_DEFAULTS.get(name)
+        )
+        for name in SOURCE_PARAMS
+        if name not in exclude
+    ]
 
 
 def with_source(panel: str = _SRC, exclude: tuple[str, ...] = ()):
     """Decorator: the command gets every source option (but ``exclude``) under the help panel
     ``panel``, and its ``spec`` parameter receives the SourceSpec they make. The options keep their
     names, so :func:`given` still asks about them."""
+
     def decorate(func):
         # eval_str: the command's module may use string annotations (``from __future__ import annotations``)
         signature = inspect.signature(func, eval_str=True)
-        params = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for name, p in signature.parameters.items()
-                  if name != "spec"] + source_parameters(panel, exclude)
+        params = [
+            p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for name, p in signature.parameters.items() if name != "spec"
+        ] + source_parameters(panel, exclude)
 
         @functools.wraps(func)
         def command(**kwargs):
@@ -112,25 +192,56 @@ def with_source(panel: str = _SRC, exclude: tuple[str, ...] = ()):
         command.__signature__ = signature.replace(parameters=params)
         command.__annotations__ = {p.name: p.annotation for p in params}
         return command
+
     return decorate
 
 
-ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)]
-SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override one entry, e.g. --set pf.sigma=0.7 or --set town.changes=0.3 (repeatable).", rich_help_panel=_CFG)]
+ConfigOpt = Annotated[
+    Path | None, typer.Option("--config", help="YAML or TOML configuration file.", rich_help_panel=_CFG)
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override one entry, e.g. --set pf.sigma=0.7 or --set town.changes=0.3 (repeatable).",
+        rich_help_panel=_CFG,
+    ),
+]
 # a plain string checked by load_config, not a click Choice: a bad name is then one line and exit
 # status 2 like every other configuration error, not a usage box
-PresetOpt = Annotated[Optional[str], typer.Option(
-    "--preset", metavar="|".join(PRESETS), rich_help_panel=_CFG,
-    help="Named configuration the defaults start from, before --config and --set: "
-         "'paper' pins the paper's method (untempered likelihood, fixed particle count, its S2M acceptance).")]
+PresetOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--preset",
+        metavar="|".join(PRESETS),
+        rich_help_panel=_CFG,
+        help="Named configuration the defaults start from, before --config and --set: "
+        "'paper' pins the paper's method (untempered likelihood, fixed particle count, its S2M acceptance).",
+    ),
+]
 # a plain string checked by load_config too (one line, exit status 2)
-WorldOpt = Annotated[str, typer.Option(
-    "--world", metavar="|".join(WORLDS), rich_help_panel=_CFG,
-    help="The built-in town's drive: 'lived-in' (30 % of the movable objects changed since mapping, traffic, "
-         "scans swept while moving: what a map meets in use) or 'kind' (the town as it was mapped). After "
-         "--preset, before --config and --set; other sources ignore it.")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (else a readable summary on stderr).")]
-CacheOpt = Annotated[Optional[Path], typer.Option("--cache", help="Cache directory for maps and tables (default ~/.cache/lidarloc or $LIDARLOC_CACHE).", rich_help_panel=_CFG)]
+WorldOpt = Annotated[
+    str,
+    typer.Option(
+        "--world",
+        metavar="|".join(WORLDS),
+        rich_help_panel=_CFG,
+        help="The built-in town's drive: 'lived-in' (30 % of the movable objects changed since mapping, traffic, "
+        "scans swept while moving: what a map meets in use) or 'kind' (the town as it was mapped). After "
+        "--preset, before --config and --set; other sources ignore it.",
+    ),
+]
+JsonOpt = Annotated[
+    bool, typer.Option("--json", help="Print the result as JSON on stdout (else a readable summary on stderr).")
+]
+CacheOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--cache",
+        help="Cache directory for maps and tables (default ~/.cache/lidarloc or $LIDARLOC_CACHE).",
+        rich_help_panel=_CFG,
+    ),
+]
 
 
 # The options that choose which sequence (the others refine it): a command whose default source
@@ -144,7 +255,9 @@ OWN_DATA = ("map", "bag", "topic", "scans_dir", "gt", "gt_times", "extrinsic")
 def given(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
     """Which of the parameters ``names`` were given on the command line (not left at their default)."""
     # by name: typer may bring its own copy of click, whose ParameterSource is another enum
-    return [n for n in names if getattr(ctx.get_parameter_source(n), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")]
+    return [
+        n for n in names if getattr(ctx.get_parameter_source(n), "name", "DEFAULT") not in ("DEFAULT", "DEFAULT_MAP")
+    ]
 
 
 def source_spec(**values) -> SourceSpec:
@@ -156,7 +269,6 @@ def open_source(spec: SourceSpec, cfg: Config, console=None):
     """``open_sequence`` with a progress bar while a bag's topic is indexed, and the source's
     notes printed on ``console`` (stderr), one line each."""
     from ..core.sequences.factory import open_sequence, sequence_notes
-
     from .console import err, progress_bar
 
     console = console or err
@@ -171,8 +283,13 @@ def open_source(spec: SourceSpec, cfg: Config, console=None):
     return seq
 
 
-def config_from(config: Path | None, overrides: list[str] | None, seed: int | None = None,
-                preset: str | None = None, world: str | None = None) -> Config:
+def config_from(
+    config: Path | None,
+    overrides: list[str] | None,
+    seed: int | None = None,
+    preset: str | None = None,
+    world: str | None = None,
+) -> Config:
     """The configuration: the defaults, then ``preset`` (``--preset``), ``world`` (``--world``),
     ``config`` (``--config``), ``overrides`` (``--set``), and ``seed`` (``--seed``) last."""
     cfg = load_config(config, overrides, preset=preset, world=world)

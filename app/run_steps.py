@@ -36,13 +36,14 @@ TRUTH_FRAME = "lidar_truth"
 MAP_POINTS = 400_000
 
 #: event kinds a log reader should not miss (warning) and the ones that are failures (error)
-WARN_EVENTS = frozenset({"loss", "false_positive", "confidence_low", "frame_mismatch", "relocalized", "kidnap",
-                         "s2m_rejected"})
+WARN_EVENTS = frozenset(
+    {"loss", "false_positive", "confidence_low", "frame_mismatch", "relocalized", "kidnap", "s2m_rejected"}
+)
 ERROR_EVENTS = frozenset({"false_fire", "error"})
 
 
 def event_level(kind: str) -> str:
-    """"info", "warning" or "error": how a log panel should show an event of ``kind``."""
+    """ "info", "warning" or "error": how a log panel should show an event of ``kind``."""
     return "error" if kind in ERROR_EVENTS else "warning" if kind in WARN_EVENTS else "info"
 
 
@@ -53,15 +54,15 @@ class Step:
     index: int
     scan: int
     stamp_ns: int
-    pose: np.ndarray                  # 4×4 estimate (map ← LiDAR), float64
-    truth: np.ndarray | None          # 4×4 ground truth where known
-    particles: np.ndarray             # (N, 6) x, y, z (map frame), yaw, pitch, roll
-    weights: np.ndarray               # (N,) normalised
-    covariance: np.ndarray            # 6×6, ROS order: x, y, z, rotation about X, Y, Z (m², rad²)
-    ellipse_xy: tuple                 # 2σ ellipse of x-y: (semi-axis a, semi-axis b, angle rad)
-    figures: dict                     # the per-scan figures the viewer plots (SI units; ms for latencies)
-    events: list = field(default_factory=list)   # Event of this step (the first step: also those before it)
-    s2m: object | None = None         # the S2MView of a match that landed at this step
+    pose: np.ndarray  # 4×4 estimate (map ← LiDAR), float64
+    truth: np.ndarray | None  # 4×4 ground truth where known
+    particles: np.ndarray  # (N, 6) x, y, z (map frame), yaw, pitch, roll
+    weights: np.ndarray  # (N,) normalised
+    covariance: np.ndarray  # 6×6, ROS order: x, y, z, rotation about X, Y, Z (m², rad²)
+    ellipse_xy: tuple  # 2σ ellipse of x-y: (semi-axis a, semi-axis b, angle rad)
+    figures: dict  # the per-scan figures the viewer plots (SI units; ms for latencies)
+    events: list = field(default_factory=list)  # Event of this step (the first step: also those before it)
+    s2m: object | None = None  # the S2MView of a match that landed at this step
 
 
 def particle_covariance(particles: np.ndarray, weights: np.ndarray, cov_xyz: np.ndarray) -> np.ndarray:
@@ -76,7 +77,7 @@ def particle_covariance(particles: np.ndarray, weights: np.ndarray, cov_xyz: np.
         w = w / w.sum() if w.sum() > 0 else np.full(len(w), 1.0 / len(w))
         d = np.empty((len(particles), 6))
         d[:, :3] = particles[:, :3] - w @ particles[:, :3]
-        for col, state in ((3, 5), (4, 4), (5, 3)):          # roll, pitch, yaw from states 5, 4, 3
+        for col, state in ((3, 5), (4, 4), (5, 3)):  # roll, pitch, yaw from states 5, 4, 3
             a = particles[:, state]
             mean = math.atan2(float(w @ np.sin(a)), float(w @ np.cos(a)))
             d[:, col] = wrap_angle(a - mean)
@@ -92,9 +93,25 @@ def in_map(T: np.ndarray, origin: np.ndarray) -> np.ndarray:
     return T
 
 
-def make_step(index: int, scan: int, stamp_ns: int, origin: np.ndarray, mean_pose, gt_pose, particles, weights,
-              cov_xyz, std_xyz, ellipse_xy, n_eff: float, n_particles: int, localized: bool, latencies: dict,
-              events: list, s2m) -> Step:
+def make_step(
+    index: int,
+    scan: int,
+    stamp_ns: int,
+    origin: np.ndarray,
+    mean_pose,
+    gt_pose,
+    particles,
+    weights,
+    cov_xyz,
+    std_xyz,
+    ellipse_xy,
+    n_eff: float,
+    n_particles: int,
+    localized: bool,
+    latencies: dict,
+    events: list,
+    s2m,
+) -> Step:
     """A :class:`Step` from one step's state in the localizer's local frame (a recording's row or
     a live snapshot); ``latencies``: error_m, pf_ms, rpe_ms, s2m_ms, NaN or None where unknown."""
     parts = np.asarray(particles, np.float64)[:, :6].copy()
@@ -106,13 +123,32 @@ def make_step(index: int, scan: int, stamp_ns: int, origin: np.ndarray, mean_pos
 
     def known(v):
         return None if v is None or not math.isfinite(float(v)) else float(v)
-    figures = {"std_m": float(max(std[0], std[1])), "std_x_m": float(std[0]), "std_y_m": float(std[1]),
-               "std_z_m": float(std[2]), "n_eff": float(n_eff), "n_eff_share": float(n_eff) / max(n, 1),
-               "particles": n, "localized": bool(localized), **{k: known(v) for k, v in latencies.items()}}
-    return Step(index=index, scan=scan, stamp_ns=int(stamp_ns), pose=in_map(mean_pose, origin),
-                truth=in_map(gt, origin) if gt is not None and np.isfinite(gt).all() else None, particles=parts,
-                weights=weights, covariance=particle_covariance(parts, weights, cov_xyz),
-                ellipse_xy=tuple(float(v) for v in ellipse_xy), figures=figures, events=list(events), s2m=s2m)
+
+    figures = {
+        "std_m": float(max(std[0], std[1])),
+        "std_x_m": float(std[0]),
+        "std_y_m": float(std[1]),
+        "std_z_m": float(std[2]),
+        "n_eff": float(n_eff),
+        "n_eff_share": float(n_eff) / max(n, 1),
+        "particles": n,
+        "localized": bool(localized),
+        **{k: known(v) for k, v in latencies.items()},
+    }
+    return Step(
+        index=index,
+        scan=scan,
+        stamp_ns=int(stamp_ns),
+        pose=in_map(mean_pose, origin),
+        truth=in_map(gt, origin) if gt is not None and np.isfinite(gt).all() else None,
+        particles=parts,
+        weights=weights,
+        covariance=particle_covariance(parts, weights, cov_xyz),
+        ellipse_xy=tuple(float(v) for v in ellipse_xy),
+        figures=figures,
+        events=list(events),
+        s2m=s2m,
+    )
 
 
 def display_map(points: np.ndarray, max_points: int = MAP_POINTS) -> tuple[np.ndarray, float]:
@@ -136,9 +172,8 @@ class RunSteps:
     missing or empty recording, or a source that moved)."""
 
     def __init__(self, run_dir, cache_root: Path | None = None, console: Console | None = None):
-        from ..core.runs import recording
         from ..core.maps.mapping import load_or_build_map
-
+        from ..core.runs import recording
         from .console import progress_bar
 
         self.rec = rec = recording.open(run_dir)
@@ -146,10 +181,14 @@ class RunSteps:
             raise LidarlocError(f"{rec.path}: the recording has no complete step to export")
         self.seq = rec.open_sequence()
         cfg = rec.config()
-        with progress_bar() as bar:     # from the cache; built (minutes) only if the cache lost it
+        with progress_bar() as bar:  # from the cache; built (minutes) only if the cache lost it
             task = bar.add_task("preparing map", total=100)
-            self.prior = load_or_build_map(self.seq.map_source, cfg.map, cache_root,
-                                           progress=lambda i, n: bar.update(task, completed=100 * i / max(n, 1))).value
+            self.prior = load_or_build_map(
+                self.seq.map_source,
+                cfg.map,
+                cache_root,
+                progress=lambda i, n: bar.update(task, completed=100 * i / max(n, 1)),
+            ).value
         self.origin = np.asarray(self.prior.origin, np.float64).reshape(3)
         self.local_frame = LOCAL_FRAME if self.origin.any() else MAP_FRAME
         self.n = rec.n
@@ -175,12 +214,25 @@ class RunSteps:
 
     def step(self, i: int) -> Step:
         rec = self.rec
-        return make_step(i, int(rec.scan_index[i]), int(self.stamps_ns[i]), self.origin, rec.mean_pose[i],
-                         rec.gt_pose[i], rec.particles(i), rec.weights(i), rec.cov_xyz[i], rec.std_xyz[i],
-                         rec.ellipse_xy[i], float(rec.n_eff[i]), int(rec.n_particles[i]), bool(rec.localized[i]),
-                         {"error_m": rec.error_m[i], "pf_ms": rec.pf_ms[i], "rpe_ms": rec.rpe_ms[i],
-                          "s2m_ms": rec.s2m_ms[i]},
-                         self._events.get(i, []), rec.s2m(i) if i in self._s2m_steps else None)
+        return make_step(
+            i,
+            int(rec.scan_index[i]),
+            int(self.stamps_ns[i]),
+            self.origin,
+            rec.mean_pose[i],
+            rec.gt_pose[i],
+            rec.particles(i),
+            rec.weights(i),
+            rec.cov_xyz[i],
+            rec.std_xyz[i],
+            rec.ellipse_xy[i],
+            float(rec.n_eff[i]),
+            int(rec.n_particles[i]),
+            bool(rec.localized[i]),
+            {"error_m": rec.error_m[i], "pf_ms": rec.pf_ms[i], "rpe_ms": rec.rpe_ms[i], "s2m_ms": rec.s2m_ms[i]},
+            self._events.get(i, []),
+            rec.s2m(i) if i in self._s2m_steps else None,
+        )
 
     def __iter__(self):
         return (self.step(i) for i in range(self.n))

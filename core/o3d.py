@@ -11,7 +11,7 @@ import ctypes
 import functools
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def open3d():
     """Return the open3d module, imported once after preloading the bundled libusb.
 

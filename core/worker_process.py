@@ -23,11 +23,12 @@ import struct
 import subprocess
 import sys
 import threading
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 _LEN = struct.Struct("<Q")
 _STOP = "__stop__"
-_PING = "__ping__"    # answered by the serving loop itself, once the handler is built
+_PING = "__ping__"  # answered by the serving loop itself, once the handler is built
 
 
 def _read_exact(stream, n: int) -> bytes:
@@ -58,12 +59,17 @@ class WorkerProcess:
 
     def __init__(self, module: str, init: Any, name: str):
         self.name = name
-        self._proc = subprocess.Popen([sys.executable, "-m", module], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, bufsize=0, start_new_session=True)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", module],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            bufsize=0,
+            start_new_session=True,
+        )
         self._lock = threading.Lock()
         self._init_sent = False
         self._init = init
-        self._answered = False    # it has answered a call: its set-up is over
+        self._answered = False  # it has answered a call: its set-up is over
 
     def call(self, request: Any) -> Any:
         with self._lock:
@@ -72,7 +78,7 @@ class WorkerProcess:
                 _send(self._proc.stdin, request)
                 status, value = _receive(self._proc.stdout)
                 self._answered = True
-            except (BrokenPipeError, EOFError, OSError, ValueError):   # ValueError: pipe closed by close()
+            except (BrokenPipeError, EOFError, OSError, ValueError):  # ValueError: pipe closed by close()
                 raise RuntimeError(f"{self.name} process exited (code {self._proc.poll()})") from None
         if status == "error":
             raise RuntimeError(value)
@@ -92,8 +98,8 @@ class WorkerProcess:
         ``/proc`` cannot tell (not Linux, or the child is gone)."""
         try:
             with open(f"/proc/{self._proc.pid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()   # after "pid (name)": state is field 3
-            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime
+                fields = f.read().rsplit(")", 1)[1].split()  # after "pid (name)": state is field 3
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
         except (OSError, ValueError, IndexError):
             return None
 
@@ -103,7 +109,7 @@ class WorkerProcess:
             try:
                 self._send_init_once()
             except (BrokenPipeError, OSError):
-                pass                           # reported by the first call
+                pass  # reported by the first call
 
     def _send_init_once(self) -> None:
         """The set-up message goes first, exactly once (caller holds the lock)."""
@@ -120,9 +126,9 @@ class WorkerProcess:
         proc = self._proc
         if proc.poll() is None:
             asked = False
-            if self._lock.acquire(blocking=False):      # no call in flight …
+            if self._lock.acquire(blocking=False):  # no call in flight …
                 try:
-                    if self._answered:                  # … and past its set-up: ask it to exit
+                    if self._answered:  # … and past its set-up: ask it to exit
                         _send(proc.stdin, _STOP)
                         proc.stdin.close()
                         asked = True
@@ -203,7 +209,7 @@ def lower_priority(nice: int) -> None:
     try:
         with open("/proc/self/autogroup", "w") as f:
             f.write(str(max(-20, min(19, int(nice)))))
-    except OSError:   # no autogroups (kernel option off, not Linux): os.nice is then what counts
+    except OSError:  # no autogroups (kernel option off, not Linux): os.nice is then what counts
         pass
 
 

@@ -11,14 +11,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-
 from lidarloc.core.runs import recording
 from lidarloc.core.runs.branch import open_branch
 from lidarloc.core.runs.results import summarize_run, write_run
 
 
 def after(rec, step: int) -> np.ndarray:
-    errors = np.asarray(rec.error_m, float)[step + 1:]
+    errors = np.asarray(rec.error_m, float)[step + 1 :]
     return errors[np.isfinite(errors)]
 
 
@@ -42,8 +41,11 @@ def main() -> None:
         e = np.asarray(e, float)
         e = e[np.isfinite(e)]
         return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
-    print(f"after step {args.step}: RMSE original σ {rmse(after(original, args.step)):.3f} m, "
-          f"σ {args.sigma:g} {rmse(errors):.3f} m; branch written to {args.out}")
+
+    print(
+        f"after step {args.step}: RMSE original σ {rmse(after(original, args.step)):.3f} m, "
+        f"σ {args.sigma:g} {rmse(errors):.3f} m; branch written to {args.out}"
+    )
 
 
 if __name__ == "__main__":

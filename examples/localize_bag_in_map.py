@@ -14,7 +14,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-
 from lidarloc.core.config import load_config
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
@@ -28,7 +27,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("error.png"))
     args = parser.parse_args()
 
-    cfg = load_config()                                   # the defaults; load_config(overrides=[...]) to change them
+    cfg = load_config()  # the defaults; load_config(overrides=[...]) to change them
     seq = open_sequence(SourceSpec(map=args.map, bag=args.bag, gt=args.gt), cfg)
     with Localizer(seq, cfg) as loc:
         loc.run()
@@ -47,7 +46,9 @@ def main() -> None:
     fig.savefig(args.out, dpi=120)
     after = error[localized]
     rmse = float(np.sqrt(np.mean(after**2))) if after.size else float("nan")
-    print(f"localized at scan {scans[localized][0] if localized.any() else None}; RMSE after: {rmse:.2f} m; plot: {args.out}")
+    print(
+        f"localized at scan {scans[localized][0] if localized.any() else None}; RMSE after: {rmse:.2f} m; plot: {args.out}"
+    )
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-
 from lidarloc.core.runs import recording
 
 
@@ -32,7 +31,7 @@ def main() -> None:
     bottom.plot(scans, rec.error_m)
     bottom.set_ylabel("error to the truth (m)")
     bottom.set_xlabel("scan")
-    for step, event in rec.events:
+    for _step, event in rec.events:
         if event.kind == "localized":
             for ax in (top, bottom):
                 ax.axvline(event.scan, color="green", linestyle=":")

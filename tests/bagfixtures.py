@@ -19,9 +19,14 @@ TOPIC = "/velodyne_points"
 FRAME = "velodyne"
 RECORD_DELAY_S = 0.031
 #: Ouster-like point: x y z, 4 bytes of padding, intensity, t, reflectivity, ring; 48 bytes
-OUSTER_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "t", "reflectivity", "ring"],
-                         "formats": ["<f4", "<f4", "<f4", "<f4", "<u4", "<u2", "<u2"],
-                         "offsets": [0, 4, 8, 16, 20, 24, 26], "itemsize": 48})
+OUSTER_DTYPE = np.dtype(
+    {
+        "names": ["x", "y", "z", "intensity", "t", "reflectivity", "ring"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "<u4", "<u2", "<u2"],
+        "offsets": [0, 4, 8, 16, 20, 24, 26],
+        "itemsize": 48,
+    }
+)
 TFMESSAGE_DEF = "geometry_msgs/TransformStamped[] transforms\n"
 
 
@@ -66,8 +71,15 @@ def cloud_layout(points: np.ndarray, layout: str, rng) -> dict:
         data = np.ascontiguousarray(points[:, :4], dtype="<f4")
         fields = [(c, 4 * k, 7, 1) for k, c in enumerate(("x", "y", "z", "intensity"))]
         n = len(points)
-        return dict(fields=fields, point_step=16, height=1, width=n, row_step=16 * n,
-                    data=data.view(np.uint8).reshape(-1), is_dense=True)
+        return dict(
+            fields=fields,
+            point_step=16,
+            height=1,
+            width=n,
+            row_step=16 * n,
+            data=data.view(np.uint8).reshape(-1),
+            is_dense=True,
+        )
     assert layout == "ouster"
     n = len(points)
     n_missing = n // 10
@@ -84,14 +96,23 @@ def cloud_layout(points: np.ndarray, layout: str, rng) -> dict:
     missing = np.flatnonzero(~valid)
     nan = missing[rng.random(len(missing)) < 0.5]
     for c in ("x", "y", "z"):
-        cells[c][nan] = np.nan                           # the others stay 0 (Ouster's "no return")
+        cells[c][nan] = np.nan  # the others stay 0 (Ouster's "no return")
     row_step = width * 48 + 16
     buf = np.full((height, row_step), 0xAB, dtype=np.uint8)  # padding bytes are garbage, not zeros
     buf[:, : width * 48] = cells.view(np.uint8).reshape(height, width * 48)
-    fields = [(name, OUSTER_DTYPE.fields[name][1], code, 1)
-              for name, code in (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("t", 6), ("reflectivity", 4), ("ring", 4))]
-    return dict(fields=fields, point_step=48, height=height, width=width, row_step=row_step,
-                data=buf.reshape(-1), is_dense=False)
+    fields = [
+        (name, OUSTER_DTYPE.fields[name][1], code, 1)
+        for name, code in (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("t", 6), ("reflectivity", 4), ("ring", 4))
+    ]
+    return dict(
+        fields=fields,
+        point_step=48,
+        height=height,
+        width=width,
+        row_step=row_step,
+        data=buf.reshape(-1),
+        is_dense=False,
+    )
 
 
 def pointcloud2(ts, points, t, layout: str = "xyzi", rng=None, seq: int = 0, frame: str = FRAME):
@@ -105,10 +126,16 @@ def pointcloud2(ts, points, t, layout: str = "xyzi", rng=None, seq: int = 0, fra
     header = T["std_msgs/msg/Header"](**({"seq": seq} if "seq" in hdr_fields else {}), stamp=stamp, frame_id=frame)
     PF = T["sensor_msgs/msg/PointField"]
     return T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=lay["height"], width=lay["width"],
+        header=header,
+        height=lay["height"],
+        width=lay["width"],
         fields=[PF(name=n, offset=o, datatype=d, count=c) for n, o, d, c in lay["fields"]],
-        is_bigendian=False, point_step=lay["point_step"], row_step=lay["row_step"], data=lay["data"],
-        is_dense=lay["is_dense"])
+        is_bigendian=False,
+        point_step=lay["point_step"],
+        row_step=lay["row_step"],
+        data=lay["data"],
+        is_dense=lay["is_dense"],
+    )
 
 
 def tf_static_message(ts, t, parent: str, child: str, T_parent_child: np.ndarray):
@@ -122,15 +149,28 @@ def tf_static_message(ts, t, parent: str, child: str, T_parent_child: np.ndarray
     q = Rotation.from_matrix(T_parent_child[:3, :3]).as_quat()
     x, y, z = T_parent_child[:3, 3]
     tf = T["geometry_msgs/msg/TransformStamped"](
-        header=header, child_frame_id=child,
-        transform=T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
-                                                   rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+        header=header,
+        child_frame_id=child,
+        transform=T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
     return T["tf2_msgs/msg/TFMessage"](transforms=[tf])
 
 
 # --------------------------------------------------------------------------------- bags
-def write_bag(path: Path, kind: str, scans, times, layout: str = "xyzi", topic: str = TOPIC,
-              extra_topics: dict | None = None, tf_static: tuple | None = None, record_times=None) -> Path:
+def write_bag(
+    path: Path,
+    kind: str,
+    scans,
+    times,
+    layout: str = "xyzi",
+    topic: str = TOPIC,
+    extra_topics: dict | None = None,
+    tf_static: tuple | None = None,
+    record_times=None,
+) -> Path:
     """Write ``scans`` (list of (N, 4)) stamped ``times`` (integer ns, or float seconds) as a bag.
 
     ``kind``: ``ros1`` (``path`` is the .bag file), ``mcap`` or ``sqlite3`` (``path`` is the ROS 2
@@ -138,7 +178,8 @@ def write_bag(path: Path, kind: str, scans, times, layout: str = "xyzi", topic: 
     message each. ``tf_static``: (parent, child, T_parent_child) published once.
     ``record_times``: the recorder's times (int ns) instead of the stamps + RECORD_DELAY_S."""
     from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
 
     ros1 = kind == "ros1"
     ts = typestore(ros1)
@@ -159,8 +200,11 @@ def write_bag(path: Path, kind: str, scans, times, layout: str = "xyzi", topic: 
             writer.write(tf_conn, stamp_ns(t_first), ser(msg, "tf2_msgs/msg/TFMessage"))
         for name, msgtype in (extra_topics or {}).items():
             c = writer.add_connection(name, msgtype, typestore=ts)
-            msg = (pointcloud2(ts, scans[0], t_first, "xyzi", rng) if msgtype == PC2
-                   else ts.types["std_msgs/msg/String"](data="not a scan"))
+            msg = (
+                pointcloud2(ts, scans[0], t_first, "xyzi", rng)
+                if msgtype == PC2
+                else ts.types["std_msgs/msg/String"](data="not a scan")
+            )
             writer.write(c, stamp_ns(t_first), ser(msg, msgtype))
         for i, (pts, t) in enumerate(zip(scans, times)):
             msg = pointcloud2(ts, pts, stamp_ns(t), layout, rng, seq=i)
@@ -194,8 +238,10 @@ def write_tum(path: Path, times, poses) -> Path:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         for t, T in zip(times, poses):
             q = Rotation.from_matrix(T[:3, :3]).as_quat()
-            f.write(f"{seconds_text(t)} {T[0, 3]:.12f} {T[1, 3]:.12f} {T[2, 3]:.12f} "
-                    f"{q[0]:.15f} {q[1]:.15f} {q[2]:.15f} {q[3]:.15f}\n")
+            f.write(
+                f"{seconds_text(t)} {T[0, 3]:.12f} {T[1, 3]:.12f} {T[2, 3]:.12f} "
+                f"{q[0]:.15f} {q[1]:.15f} {q[2]:.15f} {q[3]:.15f}\n"
+            )
     return path
 
 

@@ -10,9 +10,16 @@ from pathlib import Path
 
 CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--headless"]
-LOAD_TIMEOUT = 90_000      # ms: first load compiles the viewer's shaders in software
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--headless",
+]
+LOAD_TIMEOUT = 90_000  # ms: first load compiles the viewer's shaders in software
 STEP_TIMEOUT = 60_000
 
 JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+/); return m ? +m[1] : -1; })()"

@@ -81,7 +81,6 @@ def recorded_town_run(cache_root, tmp_path_factory):
 def toy_world():
     """The particle filter's toy world (helpers.toy_map) and its 0.25 m / 5 m lookup table."""
     from helpers import toy_map
-
     from lidarloc.core.maps.lookup import LookupTable
 
     pts = toy_map()
@@ -114,7 +113,6 @@ def street():
 def viewer(street, cache_root):
     """A paused viewer on the street, on a free port."""
     from helpers import make_localizer
-
     from lidarloc.app.viewer.serve import serve
 
     loc = make_localizer(street, cache_root)

@@ -8,10 +8,9 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-
 from lidarloc.core.config import Config, PFConfig, load_config
-from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
 from lidarloc.core.filter.scanprep import voxel_downsample_random
+from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
 from lidarloc.core.sequences.base import Sequence
 
 
@@ -46,10 +45,14 @@ def process_gone(pid: int) -> bool:
 
 
 # ---------------------------------------------------------------------------------- KITTI odometry tree
-Tr_KITTI = np.array([[4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
-                     [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
-                     [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
-                     [0, 0, 0, 1]])
+Tr_KITTI = np.array(
+    [
+        [4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
+        [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
+        [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
+        [0, 0, 0, 1],
+    ]
+)
 
 
 def make_odometry(root: Path, n_scans=3, n_poses=None, n_points=500, seq="00"):
@@ -86,8 +89,14 @@ def toy_map() -> np.ndarray:
     wall_b = np.c_[wx.ravel(), np.zeros(wx.size), wz.ravel()]
     s, z = np.meshgrid(np.arange(0, 2, sp), np.arange(0, 3, sp), indexing="ij")
     s, z = s.ravel(), z.ravel()
-    pillar = np.concatenate([np.c_[30 + s, 25 + 0 * s, z], np.c_[30 + s, 27 + 0 * s, z],
-                             np.c_[30 + 0 * s, 25 + s, z], np.c_[32 + 0 * s, 25 + s, z]])
+    pillar = np.concatenate(
+        [
+            np.c_[30 + s, 25 + 0 * s, z],
+            np.c_[30 + s, 27 + 0 * s, z],
+            np.c_[30 + 0 * s, 25 + s, z],
+            np.c_[32 + 0 * s, 25 + s, z],
+        ]
+    )
     return np.concatenate([ground, wall_a, wall_b, pillar]).astype(np.float32)
 
 
@@ -124,6 +133,7 @@ def scripted_std(loc, stds):
         except StopIteration:
             return est
         return replace(est, std_xyz=np.array([s, s, s], dtype=float))
+
     loc.pf.estimate = estimate
 
 
@@ -135,8 +145,15 @@ def instant_matcher(loc, accepted=False, before=None):
     def match(scan, pose, level=False):
         if before is not None:
             before()
-        return S2MOutcome(accepted=accepted, pose=np.asarray(pose), score=1.0 if accepted else 0.0,
-                          start_score=0.0 if accepted else 1.0, region=(0, 0, 1, 1), ms=1.0)
+        return S2MOutcome(
+            accepted=accepted,
+            pose=np.asarray(pose),
+            score=1.0 if accepted else 0.0,
+            start_score=0.0 if accepted else 1.0,
+            region=(0, 0, 1, 1),
+            ms=1.0,
+        )
+
     loc.s2m.matcher.match_local = match
 
 
@@ -152,7 +169,7 @@ class StreetSequence(Sequence):
         self.n = n
         walls = []
         for side in (-1, 1):
-            for x0 in np.arange(-20, 260, 14.0):           # façades with gaps and varying depth
+            for x0 in np.arange(-20, 260, 14.0):  # façades with gaps and varying depth
                 depth = rng.uniform(7, 11)
                 h = rng.uniform(6, 15)
                 xs = rng.uniform(x0, x0 + 11, 2500)
@@ -183,7 +200,7 @@ class StreetSequence(Sequence):
         local = local + rng.normal(0, 0.02, local.shape)
         return np.concatenate([local, np.ones((len(local), 1))], 1).astype(np.float32)
 
-    def _describe_scan(self, i):
+    def describe_scan(self, i):
         return f"test street scan {i}"
 
     @property
@@ -235,7 +252,7 @@ def assert_floor_keeps_the_weights(exact, floored, min_floored: int, margin: flo
     kept = exact > exact.max() - margin
     np.testing.assert_allclose(floored[kept], exact[kept], rtol=1e-9)
     assert np.all(floored[~kept] == pytest.approx(exact.max() - margin, rel=1e-9))
-    assert (~kept).sum() > min_floored                           # the floor did apply
+    assert (~kept).sum() > min_floored  # the floor did apply
 
 
 def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> dict:
@@ -243,17 +260,17 @@ def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> d
     recording/); its summary."""
     import io
 
-    from rich.console import Console
-
     from lidarloc.app.headless import run_headless
     from lidarloc.core.sequences.factory import SourceSpec
+    from rich.console import Console
 
     cfg = Config()
     cfg.town.n_scans = MAPPING_SCANS
     cfg.pf.n_particles = 300
     cfg.seed = seed
-    summary, interrupted = run_headless(SourceSpec(scans=scans), cfg, out, cache_root,
-                                        console=Console(file=io.StringIO()))
+    summary, interrupted = run_headless(
+        SourceSpec(scans=scans), cfg, out, cache_root, console=Console(file=io.StringIO())
+    )
     assert not interrupted and (out / "recording").is_dir()
     return summary
 
@@ -261,15 +278,15 @@ def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> d
 def viewer_options(command: str, args: list[str], monkeypatch) -> dict:
     """The keyword options ``lidarloc <command> <args>`` hands to the viewer's server (which is not
     started: a stand-in records what it was given)."""
-    from typer.testing import CliRunner
-
     from lidarloc.app import cli
     from lidarloc.app.viewer import serve as serve_module
+    from typer.testing import CliRunner
 
     seen: dict = {}
 
     def fake(spec, cfg, **kwargs):
         seen.update(kwargs)
+
     monkeypatch.setattr(serve_module, "serve_until_interrupted", fake)
     result = CliRunner().invoke(cli.app, [command, *args])
     assert result.exit_code == 0, result.output

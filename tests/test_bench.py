@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-
 from lidarloc.core.config import Config
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -16,8 +15,8 @@ SCANS = 25
 def small_cfg():
     cfg = Config()
     cfg.pf.n_particles = 300
-    cfg.localize.recorded_odometry = True    # as `lidarloc bench localize` sets it
-    cfg.town.n_scans = 150                   # a short mapping drive: its map builds in seconds
+    cfg.localize.recorded_odometry = True  # as `lidarloc bench localize` sets it
+    cfg.town.n_scans = 150  # a short mapping drive: its map builds in seconds
     return cfg
 
 
@@ -61,7 +60,9 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS
     # resumable: a second call keeps the finished runs (same numbers, nothing recomputed)
     stamp = (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns
-    agg2 = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+    agg2 = run_bench(
+        SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache"
+    )
     assert (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns == stamp
     assert agg2["B"] == agg["B"]
     # … but not into runs of other code: they would mix two versions' numbers in one report
@@ -82,8 +83,9 @@ def test_ray_matches_process_pool(tmp_path):
 
     spec = SourceSpec(scans=12)
     a = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "pool", cache_root=tmp_path / "cache")
-    b = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray",
-                  cache_root=tmp_path / "cache")
+    b = run_bench(
+        spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray", cache_root=tmp_path / "cache"
+    )
     for key in "ABCDE":
         assert a[key] == b[key]
     ta = np.loadtxt(tmp_path / "pool" / "runs" / "seed_001" / "trajectory_kitti.txt")

@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import pytest
-
 from lidarloc.core.config import PRESETS
 
 SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
@@ -16,8 +15,13 @@ SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
 
 def cli(*args, cache):
     env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", "bench", "robustness", *args],
-                          capture_output=True, text=True, env=env, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", "bench", "robustness", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
 
 
 def test_the_time_estimate_counts_each_configuration_at_its_own_pace():
@@ -41,12 +45,15 @@ def test_the_full_matrix_has_108_cells_and_slices_restrict_it():
     assert len(cells) == 3 * 2 * 3 * 2 * 3 == 108
     assert len({c.name for c in cells}) == 108
     assert len(full.cells(real=True)) == 111 and [c.name for c in full.cells(real=True)[-3:]] == [
-        "real-paper", "real-default", "real-no-S2M"]
+        "real-paper",
+        "real-default",
+        "real-no-S2M",
+    ]
     part = parse_matrix("0, 0.3", "on", "hdl64e", "off,on", "Paper,default")
     assert part.changes == (0.0, 0.3) and part.traffic == (True,) and part.sensors == ("hdl64e",)
     assert part.skew == (False, True) and part.configs == ("paper", "default")
     assert len(part.cells(real=False)) == 2 * 1 * 1 * 2 * 2
-    assert parse_matrix("0.3,0.3", "on", "vlp16", "on", "no-s2m").configs == ("no-S2M",)   # once each
+    assert parse_matrix("0.3,0.3", "on", "vlp16", "on", "no-s2m").configs == ("no-S2M",)  # once each
 
 
 def test_each_cell_runs_its_preset_and_world_over_the_users_settings():
@@ -66,17 +73,20 @@ def test_each_cell_runs_its_preset_and_world_over_the_users_settings():
     assert real.s2m.reject_if_weight_drops is True
 
 
-@pytest.mark.parametrize("args,needle", [
-    (("--changes", "0,1.5"), "--changes: '1.5' is not a share in [0, 1]"),
-    (("--changes", "lots"), "--changes: 'lots' is not a share"),
-    (("--traffic", "heavy"), "--traffic: 'heavy' is not on or off"),
-    (("--skew", ""), "--skew: give at least one value"),
-    (("--sensors", "hdl64e,lidar9000"), "unknown sensor 'lidar9000'"),
-    (("--configs", "fast"), "unknown configuration 'fast'"),
-    (("--set", "town.sensor=vlp16"), "the matrix sets it; restrict the matrix with --sensors"),
-    (("--runs", "0"), "--runs and --workers must be ≥ 1"),
-    (("--kitti-raw", "somewhere"), "--kitti-odometry and --kitti-raw do not apply"),
-])
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (("--changes", "0,1.5"), "--changes: '1.5' is not a share in [0, 1]"),
+        (("--changes", "lots"), "--changes: 'lots' is not a share"),
+        (("--traffic", "heavy"), "--traffic: 'heavy' is not on or off"),
+        (("--skew", ""), "--skew: give at least one value"),
+        (("--sensors", "hdl64e,lidar9000"), "unknown sensor 'lidar9000'"),
+        (("--configs", "fast"), "unknown configuration 'fast'"),
+        (("--set", "town.sensor=vlp16"), "the matrix sets it; restrict the matrix with --sensors"),
+        (("--runs", "0"), "--runs and --workers must be ≥ 1"),
+        (("--kitti-raw", "somewhere"), "--kitti-odometry and --kitti-raw do not apply"),
+    ],
+)
 def test_bad_slice_values_are_one_line(tmp_path, args, needle):
     out = tmp_path / "out"
     r = cli(*args, "--out", str(out), cache=tmp_path / "cache")
@@ -93,20 +103,50 @@ def test_one_cell_slice_writes_the_table_csv_json_and_heat_map(tmp_path, cache_r
     from lidarloc.app.bench.robustness_report import COLUMNS
 
     out = tmp_path / "robust"
-    args = ("--runs", "1", "--scans", "15", "--changes", "0.3", "--traffic", "on", "--sensors", "vlp16",
-            "--skew", "on", "--configs", "no-S2M", "--no-real", "--workers", "1", *SMALL_TOWN, "--out", str(out))
+    args = (
+        "--runs",
+        "1",
+        "--scans",
+        "15",
+        "--changes",
+        "0.3",
+        "--traffic",
+        "on",
+        "--sensors",
+        "vlp16",
+        "--skew",
+        "on",
+        "--configs",
+        "no-S2M",
+        "--no-real",
+        "--workers",
+        "1",
+        *SMALL_TOWN,
+        "--out",
+        str(out),
+    )
     r = cli(*args, "--json", cache=cache_root)
     assert r.returncode == 0, r.stderr
     assert "1 cell × 1 run of up to 15 scans" in r.stderr and "estimated" in r.stderr
     summary = json.loads(r.stdout)
     assert summary == json.loads((out / "summary.json").read_text())
-    assert summary["matrix"] == {"changes": [0.3], "traffic": ["on"], "sensors": ["vlp16"], "skew": ["on"],
-                                 "configs": ["no-S2M"]}
+    assert summary["matrix"] == {
+        "changes": [0.3],
+        "traffic": ["on"],
+        "sensors": ["vlp16"],
+        "skew": ["on"],
+        "configs": ["no-S2M"],
+    }
     assert summary["real"] is False and summary["runs"] == 1 and summary["scans"] == 15
     [cell] = summary["cells"]
     assert list(cell) == list(COLUMNS)
     assert (cell["changes"], cell["traffic"], cell["sensor"], cell["skew"], cell["config"]) == (
-        0.3, "on", "vlp16", "on", "no-S2M")
+        0.3,
+        "on",
+        "vlp16",
+        "on",
+        "no-S2M",
+    )
     assert cell["runs"] == 1 and cell["scans"] == 15 and cell["pf_ms_median"] > 0
     assert 0.0 <= cell["success"] <= 1.0 and cell["false_fire_rate"] in (0.0, 1.0)
     for k in "ABCDE":

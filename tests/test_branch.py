@@ -8,20 +8,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rich.console import Console
-
-from lidarloc.core.runs import recording
-from lidarloc.core.runs.branch import open_branch
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
+from lidarloc.core.runs import recording
+from lidarloc.core.runs.branch import open_branch
 from lidarloc.core.runs.recording import RecordingError
 from lidarloc.core.runs.resume import CHECKPOINT_EVERY
 from lidarloc.core.sequences.factory import SourceSpec
+from rich.console import Console
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 N_SCANS = 40
-BRANCH_AT = 23          # not a multiple of CHECKPOINT_EVERY: the branch replays steps 21…23
+BRANCH_AT = 23  # not a multiple of CHECKPOINT_EVERY: the branch replays steps 21…23
 
 
 def quiet() -> Console:
@@ -32,13 +31,16 @@ def town_cfg() -> Config:
     from helpers import MAPPING_SCANS
 
     cfg = Config()
-    cfg.town.n_scans = MAPPING_SCANS      # as helpers.short_town: the map builds in seconds
+    cfg.town.n_scans = MAPPING_SCANS  # as helpers.short_town: the map builds in seconds
     return cfg
 
 
 def folder_digest(folder: Path) -> dict[str, str]:
-    return {str(f.relative_to(folder)): hashlib.sha256(f.read_bytes()).hexdigest()
-            for f in sorted(folder.rglob("*")) if f.is_file()}
+    return {
+        str(f.relative_to(folder)): hashlib.sha256(f.read_bytes()).hexdigest()
+        for f in sorted(folder.rglob("*"))
+        if f.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +49,9 @@ def original(tmp_path_factory, cache_root) -> Path:
     from lidarloc.app.headless import run_headless
 
     out = tmp_path_factory.mktemp("original") / "run"
-    summary, interrupted = run_headless(SourceSpec(scans=N_SCANS), town_cfg(), out, cache_root=cache_root,
-                                        console=quiet())
+    summary, interrupted = run_headless(
+        SourceSpec(scans=N_SCANS), town_cfg(), out, cache_root=cache_root, console=quiet()
+    )
     assert not interrupted and summary["s2m_landed"] > 5
     return out
 
@@ -63,17 +66,27 @@ def test_a_run_records_by_default_and_not_with_no_record(original, tmp_path, cac
     assert rec.resume_steps("checkpoint") == list(range(0, N_SCANS, CHECKPOINT_EVERY))
     landed = np.flatnonzero(rec.field("s2m_landed_started") >= 0).tolist()
     assert landed == rec.resume_steps("s2m_outcome") == rec.s2m_steps and len(landed) > 5
-    per_step = sum((rec.path / f"{name}.bin").stat().st_size for name in
-                   ("odom_pose", "odom_prev_pose", "odom_path_turned", "odom_prev_path_turned", "odom_origin",
-                    "odom_used", "s2m_landed_started"))
+    per_step = sum(
+        (rec.path / f"{name}.bin").stat().st_size
+        for name in (
+            "odom_pose",
+            "odom_prev_pose",
+            "odom_path_turned",
+            "odom_prev_path_turned",
+            "odom_origin",
+            "odom_used",
+            "s2m_landed_started",
+        )
+    )
     assert per_step / rec.n < 400
     # the recorded odometry is the one the filter used: consecutive steps chain up
     pose, prev = rec.field("odom_pose"), rec.field("odom_prev_pose")
     assert np.array_equal(pose[5], prev[6]) and np.all(np.isfinite(pose))
 
     out = tmp_path / "unrecorded"
-    run_headless(SourceSpec(scans=N_SCANS), town_cfg(), out, cache_root=cache_root, console=quiet(),
-                 stop_after=2, record=False)
+    run_headless(
+        SourceSpec(scans=N_SCANS), town_cfg(), out, cache_root=cache_root, console=quiet(), stop_after=2, record=False
+    )
     assert (out / "summary.json").is_file() and not (out / "recording").exists()
 
 
@@ -87,8 +100,9 @@ def branch_to_the_end(rec, seq, k: int, out, cache_root, check=None) -> None:
     try:
         if check is not None:
             check(branch)
-        w = RecordingWriter(out, rec.source_spec(), branch.cfg, seq, branch_of={"run": str(rec.run_dir), "step": k},
-                            first_step=k + 1)
+        w = RecordingWriter(
+            out, rec.source_spec(), branch.cfg, seq, branch_of={"run": str(rec.run_dir), "step": k}, first_step=k + 1
+        )
         continue_recording(w, branch)
         while not branch.done:
             w.on_scan(branch, branch.step())
@@ -144,8 +158,9 @@ def test_a_branch_with_another_sigma_diverges_into_its_own_folder(original, tmp_
 
     before = folder_digest(original)
     out = tmp_path / "sigma"
-    run_branch(original, BRANCH_AT, ["pf.sigma=0.7"], out, cache_root=cache_root, console=quiet(),
-               stop_after=BRANCH_AT + 1 + 6)
+    run_branch(
+        original, BRANCH_AT, ["pf.sigma=0.7"], out, cache_root=cache_root, console=quiet(), stop_after=BRANCH_AT + 1 + 6
+    )
     rec, branch = recording.open(original), recording.open(out)
     assert branch.n == 6 and branch.meta["config"]["pf"]["sigma"] == 0.7
     assert rec.meta["config"]["pf"]["sigma"] == 0.5
@@ -155,7 +170,7 @@ def test_a_branch_with_another_sigma_diverges_into_its_own_folder(original, tmp_
     assert not np.array_equal(branch.n_eff, rec.n_eff[rows])
     assert not np.array_equal(branch.mean_pose, rec.mean_pose[rows])
     # … but it is still localized where the original was (σ 0.7 is a sane value)
-    err = np.linalg.norm(branch.mean_pose[:, :3, 3] - rec.mean_pose[BRANCH_AT + 1:BRANCH_AT + 7, :3, 3], axis=1)
+    err = np.linalg.norm(branch.mean_pose[:, :3, 3] - rec.mean_pose[BRANCH_AT + 1 : BRANCH_AT + 7, :3, 3], axis=1)
     assert np.all(err < 2.0)
     assert folder_digest(original) == before
     with pytest.raises(LidarlocError, match="folder of its own"):
@@ -166,7 +181,6 @@ def test_a_branch_across_a_kidnap_in_the_original(tmp_path, cache_root):
     """The kidnap is a control between two steps: the step after it is checkpointed, so a branch
     after it restores the restarted odometry and repeats the run from there bit for bit."""
     from helpers import short_town
-
     from lidarloc.core.localizer import Localizer
     from lidarloc.core.runs.recording import RecordingWriter
 
@@ -177,17 +191,19 @@ def test_a_branch_across_a_kidnap_in_the_original(tmp_path, cache_root):
         w = RecordingWriter(run, SourceSpec(scans=24), loc.cfg, seq)
         while not loc.done:
             if loc.steps == 6:
-                loc.kidnap(3)                        # scans 6…8 are skipped
+                loc.kidnap(3)  # scans 6…8 are skipped
             w.on_scan(loc, loc.step())
         w.close()
     finally:
         loc.close()
     rec = recording.open(run)
     assert any(e.kind == "kidnap" for _, e in rec.events) and rec.scan_index[6] == 9
-    assert 6 in rec.resume_steps("checkpoint")            # the first step after the kidnap
-    k = 8                                                 # replays steps 7 and 8
+    assert 6 in rec.resume_steps("checkpoint")  # the first step after the kidnap
+    k = 8  # replays steps 7 and 8
+
     def after_the_kidnap(branch):
         assert branch.odometry.origin == 9 and branch.k == rec.scan_index[k] + 1
+
     branch_to_the_end(rec, seq, k, tmp_path / "branch", cache_root, after_the_kidnap)
     # before the kidnap: a branch repeats the original up to it, then drives on without it (the
     # kidnap was a control, not part of the recorded run's state)
@@ -203,20 +219,19 @@ def test_s2m_joining_late_joins_the_replay_at_the_same_scan(tmp_path, cache_root
     """A viewer's first start on an empty cache plays without S2M until its tables are built in
     the background, at a scan timing chose: a replay from before it holds S2M back until then."""
     from helpers import short_town
-
     from lidarloc.core.localizer import S2M_READY_DETAIL, Localizer
+    from lidarloc.core.matching.pending import S2MNotReady
     from lidarloc.core.runs.recording import RecordingWriter
     from lidarloc.core.runs.resume import checkpoint_state
-    from lidarloc.core.matching.pending import S2MNotReady
 
     seq = short_town(20)
     run = tmp_path / "late"
     loc = Localizer(seq, town_cfg(), cache_root)
     try:
-        real, loc.s2m = loc.s2m, S2MNotReady()               # as Localizer(defer_s2m=True) starts
+        real, loc.s2m = loc.s2m, S2MNotReady()  # as Localizer(defer_s2m=True) starts
         w = RecordingWriter(run, SourceSpec(scans=20), loc.cfg, seq)
         while not loc.done:
-            if loc.steps == 12:                               # as Localizer._join_s2m
+            if loc.steps == 12:  # as Localizer._join_s2m
                 loc.s2m = real
                 loc._event(loc.k, "s2m_ready", S2M_READY_DETAIL)
             w.on_scan(loc, loc.step())
@@ -236,9 +251,9 @@ def test_a_recording_cut_short_branches_at_its_last_complete_step(original, tmp_
     cut = tmp_path / "killed"
     shutil.copytree(original, cut)
     steps = cut / "recording" / "steps.bin"
-    steps.write_bytes(steps.read_bytes()[:-8 * 6])        # the last six steps did not commit …
+    steps.write_bytes(steps.read_bytes()[: -8 * 6])  # the last six steps did not commit …
     particles = cut / "recording" / "particles.bin"
-    particles.write_bytes(particles.read_bytes()[:-44 * 500])   # … and the last is half written
+    particles.write_bytes(particles.read_bytes()[: -44 * 500])  # … and the last is half written
     (cut / "summary.json").unlink()
     rec, full = recording.open(cut), recording.open(original)
     last = rec.n - 1
@@ -247,12 +262,12 @@ def test_a_recording_cut_short_branches_at_its_last_complete_step(original, tmp_
     try:
         assert np.array_equal(loc.snapshot().mean_pose, full.mean_pose[last])
         reused, landed = loc.s2m.recorded.reused, loc.s2m.n_landed
-        for i in range(last + 1, last + 4):                  # scans the recording has no pose for
+        for i in range(last + 1, last + 4):  # scans the recording has no pose for
             snap = loc.step()
             assert snap.scan_index == full.scan_index[i]
             assert np.linalg.norm(snap.mean_pose[:3, 3] - full.mean_pose[i][:3, 3]) < 1.0
         assert loc.odometry.live_from == full.scan_index[last + 1]
-        assert loc.s2m.n_landed > landed and loc.s2m.recorded.reused == reused    # the matcher ran
+        assert loc.s2m.n_landed > landed and loc.s2m.recorded.reused == reused  # the matcher ran
     finally:
         loc.close()
 
@@ -268,7 +283,7 @@ def test_a_real_time_original_branches_from_its_recorded_state(tmp_path, cache_r
     out = tmp_path / "realtime"
     run_headless(SourceSpec(scans=24), cfg, out, cache_root=cache_root, console=quiet())
     rec = recording.open(out)
-    k = rec.resume_steps("checkpoint")[-1] - CHECKPOINT_EVERY + 3      # replays three steps
+    k = rec.resume_steps("checkpoint")[-1] - CHECKPOINT_EVERY + 3  # replays three steps
     assert rec.meta["clock"] == "realtime" and 0 < k < rec.n - 1 and k not in rec.resume_steps("checkpoint")
     loc = open_branch(rec, k, cache_root=cache_root)
     try:
@@ -331,7 +346,10 @@ def test_bench_branch_times_every_replay_length_and_sizes_the_payload(original, 
     assert set(result["branch_start_s_by_replayed_steps"]) == {str(r) for r in range(CHECKPOINT_EVERY)}
     assert 0 < result["branch_start_s_median"] < 30 and result["recorded_steps"] == N_SCANS
     assert 0 < result["checkpoints_and_per_step_mb_per_1000"] < BUDGET_MB_PER_1000
-    assert result["checkpoints_and_per_step_mb_per_1000_at_1000_particles"] > result["checkpoints_and_per_step_mb_per_1000"]
+    assert (
+        result["checkpoints_and_per_step_mb_per_1000_at_1000_particles"]
+        > result["checkpoints_and_per_step_mb_per_1000"]
+    )
     assert result["s2m_outcomes_mb_per_1000"] > 0
 
 
@@ -353,9 +371,13 @@ def test_catching_up_after_a_checkpoint_registers_only_the_scans_after_its_newes
         for k in range(12):
             feed.wait_registered(k)
         saved = feed.checkpoint()
-        keep = slice(len(saved["scans"]) - 3, None)               # a buffer holding only scans 9–11
-        saved = {**saved, "scans": saved["scans"][keep], "poses": saved["poses"][keep],
-                 "times_path_turned": saved["times_path_turned"][keep]}
+        keep = slice(len(saved["scans"]) - 3, None)  # a buffer holding only scans 9–11
+        saved = {
+            **saved,
+            "scans": saved["scans"][keep],
+            "poses": saved["poses"][keep],
+            "times_path_turned": saved["times_path_turned"][keep],
+        }
         read = []
         feed.restore(saved)
         feed.catch_up(14, lambda k: read.append(k) or np.zeros((1, 3)), lambda k: 0.1 * k)

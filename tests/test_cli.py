@@ -24,8 +24,9 @@ STOP_BOUND_S = 10.0
 
 def cli(*args, env_cache):
     env = {"LIDARLOC_CACHE": str(env_cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True,
-                          env=env, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
+    )
 
 
 def assert_one_line_error(result, *needles):
@@ -79,8 +80,17 @@ def test_missing_directory_and_unknown_sequence(tmp_path):
     root = make_odometry(tmp_path / "kitti")
     r = cli("map", "build", "--kitti-odometry", str(root), "--sequence", "42", env_cache=tmp_path / "c")
     assert_one_line_error(r, "unknown sequence id '42'", "found: 00")
-    r = cli("map", "build", "--kitti-raw", str(tmp_path / "nope"), "--date", "2011_09_26", "--drive", "0013",
-            env_cache=tmp_path / "c")
+    r = cli(
+        "map",
+        "build",
+        "--kitti-raw",
+        str(tmp_path / "nope"),
+        "--date",
+        "2011_09_26",
+        "--drive",
+        "0013",
+        env_cache=tmp_path / "c",
+    )
     assert_one_line_error(r, "not found")
 
 
@@ -114,9 +124,13 @@ def test_demo_serves_and_stops_on_ctrl_c(tmp_path):
     # a short drive (and mapping drive: the map comes from all of it) keeps the first (uncached)
     # start of this test quick; the default town's
     # first-start time is measured in BENCHMARKS.md
-    proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "demo", "--port", "0", "--scans", "30",
-                             "--set", "town.n_scans=150"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "lidarloc.app.cli", "demo", "--port", "0", "--scans", "30", "--set", "town.n_scans=150"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         url, seen = None, ""
         deadline = time.monotonic() + 120
@@ -154,9 +168,26 @@ def test_run_ctrl_c_writes_results(tmp_path, cache_root):
     env = dict(os.environ, LIDARLOC_CACHE=str(cache_root))
     # the localizer tests' town (a 150-scan mapping drive, 60 played): its map may already be in
     # the session's cache
-    proc = subprocess.Popen([sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", "60",
-                             "--set", "pf.n_particles=300", "--set", "town.n_scans=150"], stderr=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True, env=env)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "lidarloc.app.cli",
+            "run",
+            "--out",
+            str(out),
+            "--scans",
+            "60",
+            "--set",
+            "pf.n_particles=300",
+            "--set",
+            "town.n_scans=150",
+        ],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     # wait until it is localizing (the progress line appears), then interrupt
     deadline = time.monotonic() + 240
     seen = ""

@@ -10,17 +10,13 @@ import shutil
 
 import numpy as np
 import pytest
-from rich.console import Console
-
 from helpers import record_run
-
 from lidarloc.app.compare import ROWS, _fmt, compare_runs, load_run, success
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.runs.metrics import METRIC_KEYS
+from rich.console import Console
 
 SCANS = 16
-
-
 
 
 @pytest.fixture(scope="module")
@@ -35,9 +31,13 @@ def runs(cache_root, tmp_path_factory):
 
 
 def expected(summary: dict) -> dict:
-    return {**{k: summary["metrics"][k] for k in METRIC_KEYS},
-            **{k: summary[k] for k in ("rmse_after_localized_m", "consistency_2sigma", "false_fire",
-                                       "pf_ms_median", "scans")}}
+    return {
+        **{k: summary["metrics"][k] for k in METRIC_KEYS},
+        **{
+            k: summary[k]
+            for k in ("rmse_after_localized_m", "consistency_2sigma", "false_fire", "pf_ms_median", "scans")
+        },
+    }
 
 
 def test_the_table_shows_each_runs_summary_and_the_plot_is_written(runs, tmp_path):
@@ -50,7 +50,7 @@ def test_the_table_shows_each_runs_summary_and_the_plot_is_written(runs, tmp_pat
         assert row["recorded"] is True and row["run"] == str(d)
         for key, value in expected(summary).items():
             assert row[key] == (pytest.approx(value) if isinstance(value, float) else value), key
-    assert any(s["localized_at_scan"] is not None for _, s in runs)       # the plot has marks to draw
+    assert any(s["localized_at_scan"] is not None for _, s in runs)  # the plot has marks to draw
     # every row of the table, with both runs' values as formatted
     for key, label, kind in ROWS:
         line = next(ln for ln in text.splitlines() if ln.count("│") > 2 and ln.split("│")[1].strip() == label)
@@ -62,7 +62,7 @@ def test_the_table_shows_each_runs_summary_and_the_plot_is_written(runs, tmp_pat
     assert data["plot"] == str(png)
     img = np.asarray(Image.open(png).convert("RGB"))
     assert img.shape[0] > 500 and img.shape[1] > 800
-    blue, orange = np.array([31, 119, 180]), np.array([255, 127, 14])      # matplotlib's first two colours
+    blue, orange = np.array([31, 119, 180]), np.array([255, 127, 14])  # matplotlib's first two colours
     for color in (blue, orange):
         assert (np.abs(img.astype(int) - color).sum(axis=2) < 30).sum() > 200
 
@@ -79,10 +79,10 @@ def test_a_plain_results_folder_and_a_recording_without_summary_compare_alike(ru
     (d0, s0), (d1, _) = runs
     plain = tmp_path / "plain"
     shutil.copytree(d0, plain)
-    shutil.rmtree(plain / "recording")                       # summary.json + scans.csv only
+    shutil.rmtree(plain / "recording")  # summary.json + scans.csv only
     bare = tmp_path / "bare"
     shutil.copytree(d1, bare)
-    (bare / "summary.json").unlink()                         # a run killed before its summary
+    (bare / "summary.json").unlink()  # a run killed before its summary
     index = json.loads((bare / "recording" / "index.json").read_text())
     index["meta"].pop("summary", None)
     (bare / "recording" / "index.json").write_text(json.dumps(index))
@@ -95,7 +95,7 @@ def test_a_plain_results_folder_and_a_recording_without_summary_compare_alike(ru
         assert b.figures[key] == (pytest.approx(value) if isinstance(value, float) else value), key
     # the curves of the plain folder are its scans.csv: the recording's own
     rec_curves = load_run(d0).curves
-    np.testing.assert_allclose(a.curves.x, rec_curves.x, rtol=1e-5)      # the CSV keeps 6 digits
+    np.testing.assert_allclose(a.curves.x, rec_curves.x, rtol=1e-5)  # the CSV keeps 6 digits
     np.testing.assert_array_equal(a.curves.localized, rec_curves.localized)
 
 
@@ -105,12 +105,14 @@ def test_success_is_the_rule_met_and_within_5_m_to_the_end():
     def curves(localized, err):
         n = len(err)
         z = np.zeros(n)
-        return RunCurves(np.arange(n), z, z, z, z, np.asarray(err, float), z, z, np.asarray(localized, bool), z,
-                         [None] * n)
+        return RunCurves(
+            np.arange(n), z, z, z, z, np.asarray(err, float), z, z, np.asarray(localized, bool), z, [None] * n
+        )
+
     assert success(curves([0, 1, 1, 1], [30, 2, 4.9, 1])) is True
-    assert success(curves([0, 1, 1, 1], [30, 2, 6.0, 1])) is False        # 6 m after the rule fired
-    assert success(curves([0, 0, 0, 0], [1, 1, 1, 1])) is False           # never fired
-    assert success(curves([0, 1, 1, 1], [np.nan] * 4)) is None            # no truth: unknown
+    assert success(curves([0, 1, 1, 1], [30, 2, 6.0, 1])) is False  # 6 m after the rule fired
+    assert success(curves([0, 0, 0, 0], [1, 1, 1, 1])) is False  # never fired
+    assert success(curves([0, 1, 1, 1], [np.nan] * 4)) is None  # no truth: unknown
 
 
 @pytest.mark.parametrize("make", ["missing", "foreign", "one", "not_png"])
@@ -119,10 +121,12 @@ def test_bad_input_is_one_line(runs, tmp_path, make):
     foreign = tmp_path / "photos"
     foreign.mkdir()
     (foreign / "cat.jpg").write_bytes(b"\xff\xd8")
-    args = {"missing": ([d0, tmp_path / "nope"], None, "no such run folder"),
-            "foreign": ([d0, foreign], None, "not a lidarloc run folder"),
-            "one": ([d0], None, "at least two"),
-            "not_png": ([d0, runs[1][0]], tmp_path / "plot.pdf", "PNG")}[make]
+    args = {
+        "missing": ([d0, tmp_path / "nope"], None, "no such run folder"),
+        "foreign": ([d0, foreign], None, "not a lidarloc run folder"),
+        "one": ([d0], None, "at least two"),
+        "not_png": ([d0, runs[1][0]], tmp_path / "plot.pdf", "PNG"),
+    }[make]
     with pytest.raises(LidarlocError) as exc:
         compare_runs(args[0], args[1], console=Console(file=io.StringIO()))
     msg = str(exc.value)

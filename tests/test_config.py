@@ -5,7 +5,6 @@ import math
 from pathlib import Path
 
 import pytest
-
 from lidarloc.core.config import DEG, Config, load_config
 from lidarloc.core.errors import LidarlocError
 
@@ -31,14 +30,27 @@ def test_config_yaml_toml_and_overrides(tmp_path):
     y = tmp_path / "c.yaml"
     y.write_text("pf:\n  sigma: 0.7\n  n_particles: 500\ns2m:\n  enabled: false\n")
     cfg = load_config(y, ["pf.d_max=4", "s2m.region_x=30"])
-    assert (cfg.pf.sigma, cfg.pf.n_particles, cfg.s2m.enabled, cfg.pf.d_max, cfg.s2m.region_x) == (0.7, 500, False, 4.0, 30.0)
+    assert (cfg.pf.sigma, cfg.pf.n_particles, cfg.s2m.enabled, cfg.pf.d_max, cfg.s2m.region_x) == (
+        0.7,
+        500,
+        False,
+        4.0,
+        30.0,
+    )
     t = tmp_path / "c.toml"
     t.write_text("[pf]\nsigma = 0.9\n")
     assert load_config(t).pf.sigma == 0.9
 
 
-@pytest.mark.parametrize("text,needle", [("pf: [1, 2", "unreadable config"), ("pf:\n  sigmaa: 1\n", "unknown key"),
-                                         ("pf:\n  sigma: -1\n", "sigma must be > 0"), ("pf:\n  sigma: abc\n", "not a valid")])
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("pf: [1, 2", "unreadable config"),
+        ("pf:\n  sigmaa: 1\n", "unknown key"),
+        ("pf:\n  sigma: -1\n", "sigma must be > 0"),
+        ("pf:\n  sigma: abc\n", "not a valid"),
+    ],
+)
 def test_config_errors_are_one_line(tmp_path, text, needle):
     y = tmp_path / "bad.yaml"
     y.write_text(text)

@@ -9,7 +9,6 @@ import threading
 import numpy as np
 import pytest
 from helpers import short_town, wait_for
-
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.maps.mapping import BEV_FILE, load_or_build_map
@@ -25,6 +24,7 @@ def held_tables(monkeypatch):
     def held(self):
         assert go.wait(300), "the test never released the background build"
         return build(self)
+
     monkeypatch.setattr(Localizer, "_build_s2m_tables", held)
     return go
 
@@ -39,16 +39,16 @@ def test_s2m_joins_once_its_tables_are_built_and_the_cache_keeps_them(tmp_path, 
         # the map reached the viewer before the tables were built, without its road-removed copy
         assert len(shown) == 1 and shown[0] is loc.prior_map and len(shown[0].points) > 100_000
         assert loc.s2m_pending and loc.pyramid is None
-        snap = loc.step()                                   # the filter plays meanwhile
+        snap = loc.step()  # the filter plays meanwhile
         assert snap.scan_index == 0 and np.isfinite(snap.mean_pose).all() and snap.s2m_pending
         assert loc.s2m_pending and not any(e.kind.startswith("s2m") for e in loc.events)
         held_tables.set()
-        wait_for(lambda: loc._pending_s2m.done(), timeout=300, what="road removal and pyramid")
+        wait_for(lambda: loc.s2m_tables_built, timeout=300, what="road removal and pyramid")
         loc.step()
         assert not loc.s2m_pending and loc.pyramid is not None
         assert loc.prior_map.points_bev is not None and 0 < len(loc.prior_map.points_bev) < len(loc.prior_map.points)
         kinds = [e.kind for e in loc.events]
-        assert "s2m_ready" in kinds and "s2m_started" in kinds           # S2M works from then on
+        assert "s2m_ready" in kinds and "s2m_started" in kinds  # S2M works from then on
         assert kinds.index("s2m_ready") < kinds.index("s2m_started")
         assert (loc.map_dir / BEV_FILE).is_file()
     finally:
@@ -89,7 +89,7 @@ def test_viewer_plays_while_s2m_tables_are_built_then_shows_them(tmp_path, held_
         assert "building in the background" in status and "S2M not ready" in status and "**localized**" not in status
         assert not v.scene.has_map_bev and not v.controls.bev_level.visible
         held_tables.set()
-        wait_for(lambda: loc._pending_s2m.done(), timeout=300, what="road removal and pyramid")
+        wait_for(lambda: loc.s2m_tables_built, timeout=300, what="road removal and pyramid")
         v.step_once()
         wait_for(lambda: v.latest.scan_index == 1, timeout=60, what="scan 1")
         v.update_display()

@@ -8,16 +8,15 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from lidarloc.core.config import TownConfig
-from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose
+from lidarloc.core.o3d import open3d
+from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 from lidarloc.core.sequences.lidar_sim import LidarModel, Sweep, raycasting_scene
 from lidarloc.core.sequences.town import TownSequence
 from lidarloc.core.sequences.town.drive import interpolate_poses
-from lidarloc.core.o3d import open3d
+from scipy.spatial.transform import Rotation
 
 
 @pytest.fixture(scope="module")
@@ -63,10 +62,10 @@ def test_deskew_moves_points_with_the_sensor():
     v, w = np.array([10.0, 0.5, 0.1]), np.array([0.01, -0.02, 0.4])
     out = deskew(pts, offsets, v, w)
     assert out.dtype == np.float32 and out.shape == pts.shape
-    np.testing.assert_array_equal(out[:, 3], pts[:, 3])                    # intensity kept
+    np.testing.assert_array_equal(out[:, 3], pts[:, 3])  # intensity kept
     want = Rotation.from_rotvec(offsets[:, None] * w).apply(pts[:, :3].astype(np.float64)) + offsets[:, None] * v
     np.testing.assert_allclose(out[:, :3], want, atol=1e-4)
-    np.testing.assert_array_equal(deskew(pts, np.zeros(500), v, w), pts)   # mid-sweep points stay
+    np.testing.assert_array_equal(deskew(pts, np.zeros(500), v, w), pts)  # mid-sweep points stay
     with pytest.raises(LidarlocError, match="offsets"):
         deskew(pts, offsets[:10], v, w)
 
@@ -75,7 +74,7 @@ def test_twist_from_relative_pose():
     v, w, dt = np.array([12.0, 0.3, -0.1]), np.array([0.02, 0.0, 0.5]), 0.1
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(w * dt).as_matrix()
-    T[:3, 3] = T[:3, :3] @ v * dt          # the displacement, seen from the later frame, is v·dt
+    T[:3, 3] = T[:3, :3] @ v * dt  # the displacement, seen from the later frame, is v·dt
     got_v, got_w = twist_from_relative_pose(T, dt)
     np.testing.assert_allclose(got_v, v, atol=1e-12)
     np.testing.assert_allclose(got_w, w, atol=1e-12)
@@ -96,8 +95,8 @@ def test_skewed_scan_deskewed_with_the_true_motion_is_exact(town, surfaces):
     fixed = deskew(raw, sweep_offsets(raw, 1.0 / town.rate_hz), *_true_motion(town, i))
     d_plain, d_raw, d_fixed = (_on_surfaces(surfaces, T, s) for s in (plain, raw, fixed))
     far = 0.1
-    assert np.mean(d_raw > far) > 0.03                                      # skew is visible …
-    assert np.mean(d_fixed > far) <= np.mean(d_plain > far) + 0.002          # … and de-skew removes it
+    assert np.mean(d_raw > far) > 0.03  # skew is visible …
+    assert np.mean(d_fixed > far) <= np.mean(d_plain > far) + 0.002  # … and de-skew removes it
     assert np.percentile(d_fixed, 90) < 1.1 * np.percentile(d_plain, 90)
     assert np.percentile(d_raw, 90) > 1.5 * np.percentile(d_plain, 90)
     # skew moves each point by where the sensor was: the de-skewed points are the raw ones moved

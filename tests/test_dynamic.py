@@ -8,13 +8,12 @@ import math
 import numpy as np
 import pytest
 from helpers import paper_pf, toy_scan
-
-from lidarloc.core.filter.dynamic import DynamicPointFilter
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
+from lidarloc.core.filter.dynamic import DynamicPointFilter
 from lidarloc.core.filter.likelihood import log_likelihood, scrambled_order
 from lidarloc.core.filter.motion import propagate
 from lidarloc.core.filter.pf import ParticleFilter
+from lidarloc.core.geometry import inv_pose, pose_matrix, transform_points
 
 POSE = np.array([12.0, 10.0, 1.7, 0.3, 0.0, 0.0])
 
@@ -34,11 +33,11 @@ def test_a_cluster_far_from_the_map_is_rejected_from_its_second_scan(toy_world):
     f = DynamicPointFilter(table, distance=1.0, scans=2)
     for k in range(3):
         static = pts[rng.integers(0, len(pts), 3000)] + rng.normal(0, 0.02, (3000, 3))
-        car = box([18, 14, 2.5], rng)                      # 1.9 m above the ground: far from the map
+        car = box([18, 14, 2.5], rng)  # 1.9 m above the ground: far from the map
         keep = f.keep_mask(sensor_scan(np.concatenate([static, car])), POSE)
-        assert keep[:3000].all()                           # map-consistent points are always kept
+        assert keep[:3000].all()  # map-consistent points are always kept
         if k == 0:
-            assert keep.all() and f.n_far == 200           # one scan's misfit rejects nothing
+            assert keep.all() and f.n_far == 200  # one scan's misfit rejects nothing
         else:
             assert not keep[3000:].any() and f.n_rejected == 200
 
@@ -49,7 +48,7 @@ def test_more_scans_needed_when_asked_and_a_passing_cluster_is_kept(toy_world):
     f = DynamicPointFilter(table, distance=1.0, scans=3)
     static = pts[rng.integers(0, len(pts), 2000)]
     rejected = []
-    for k in range(4):
+    for _k in range(4):
         keep = f.keep_mask(sensor_scan(np.concatenate([static, box([18, 14, 2.5], rng)])), POSE)
         rejected.append(int((~keep[2000:]).sum()))
     assert rejected == [0, 0, 200, 200]
@@ -82,7 +81,7 @@ def test_a_wrong_pose_rejects_nothing(toy_world):
     f = DynamicPointFilter(table, distance=1.0, scans=1)
     world = pts[rng.integers(0, len(pts), 3000)]
     scan = sensor_scan(world)
-    wrong = POSE + [0, 0, 3.0, 0, 0, 0]                        # 3 m up: the ground is 3 m away
+    wrong = POSE + [0, 0, 3.0, 0, 0, 0]  # 3 m up: the ground is 3 m away
     for _ in range(3):
         assert f.keep_mask(scan, wrong).all() and f.suspect and f.n_cells == 0
     assert f.keep_mask(scan, POSE).all() and not f.suspect
@@ -104,8 +103,9 @@ def test_bad_arguments(toy_world):
 def tracking_filter(table, **kw):
     q = np.zeros(11)
     q[0] = q[1] = 0.1
-    cfg = paper_pf(n_particles=300, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0,
-                   q_std=tuple(q), **kw)
+    cfg = paper_pf(
+        n_particles=300, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, q_std=tuple(q), **kw
+    )
     pf = ParticleFilter(cfg, table, [0, 0, 1.7], [40, 40, 1.7], seed=4)
     pf.initialize(pose=pose_matrix(*POSE), pose_std=(0.3, 0.3, 0.0, 0.0, 0.0, 0.0), speed=0.0)
     return pf
@@ -164,9 +164,10 @@ def test_no_change_with_the_option_off_or_nothing_to_reject(toy_world):
 def test_a_spread_cloud_rejects_nothing(toy_world):
     pts, table = toy_world
     rng = np.random.default_rng(7)
-    pf = ParticleFilter(paper_pf(n_particles=300, dynamic_rejection=True, dynamic_scans=1), table,
-                        [0, 0, 1.7], [40, 40, 1.7], seed=0)           # uniform over the map
+    pf = ParticleFilter(
+        paper_pf(n_particles=300, dynamic_rejection=True, dynamic_scans=1), table, [0, 0, 1.7], [40, 40, 1.7], seed=0
+    )  # uniform over the map
     scan = np.concatenate([sensor_scan(pts[rng.integers(0, len(pts), 1000)]), sensor_scan(box([16, 13, 2.5], rng))])
     pf.update(scan)
-    assert len(pf._scan) == len(scan) and pf.dynamic.n_cells == 0
+    assert len(pf.weighed_points) == len(scan) and pf.dynamic.n_cells == 0
     assert math.isfinite(pf.log_weights.max())

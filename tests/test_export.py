@@ -12,18 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rich.console import Console
-
+from helpers import record_run
 from lidarloc.app.export import DATA_SCRIPT, PAGE, STEP_SECONDS, export_run
 from lidarloc.app.export_scene import step_text
-from lidarloc.core.runs import recording
 from lidarloc.core.errors import LidarlocError
-
-from helpers import record_run
+from lidarloc.core.runs import recording
+from rich.console import Console
 
 SCANS = 14
-
-
 
 
 def decode_viser(data: bytes) -> dict:
@@ -35,7 +31,7 @@ def decode_viser(data: bytes) -> dict:
     size = int.from_bytes(data[:8], "little")
     inner = zstandard.ZstdDecompressor().decompress(data[8:], max_output_size=size)
     n = int.from_bytes(inner[:8], "little")
-    return msgspec.msgpack.decode(inner[8:8 + n])
+    return msgspec.msgpack.decode(inner[8 : 8 + n])
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +73,16 @@ def test_the_recording_plays_each_step_with_its_figures(run, exported):
     assert doc["durationSeconds"] == pytest.approx(rec.n * STEP_SECONDS)
     msgs = doc["messages"]
     names = {m.get("name") for _, m in msgs}
-    for node in ("/map", "/particles/positions", "/particles/headings", "/estimate/ellipse_2sigma",
-                 "/estimate/vehicle", "/truth/vehicle", "/estimate/scan", "/estimate/label"):
+    for node in (
+        "/map",
+        "/particles/positions",
+        "/particles/headings",
+        "/estimate/ellipse_2sigma",
+        "/estimate/vehicle",
+        "/truth/vehicle",
+        "/estimate/scan",
+        "/estimate/label",
+    ):
         assert node in names, node
     # the overlay: one update per step, at that step's time, with that step's figures
     huds = [(t, m["source"]) for t, m in msgs if m["type"] == "RunJavascriptMessage" and "lidarloc-hud" in m["source"]]
@@ -89,29 +93,60 @@ def test_the_recording_plays_each_step_with_its_figures(run, exported):
         assert json.dumps(text) in source
         assert f"scan {rec.scan_index[i]} (step {i + 1} of {rec.n})" in text
     # the particles change every step: one points update per step after the first
-    updates = [t for t, m in msgs if m["type"] == "SceneNodeUpdateMessage" and m.get("name") == "/particles/positions"
-               and "points" in m.get("updates", {})]
+    updates = [
+        t
+        for t, m in msgs
+        if m["type"] == "SceneNodeUpdateMessage"
+        and m.get("name") == "/particles/positions"
+        and "points" in m.get("updates", {})
+    ]
     assert len(updates) >= rec.n - 1
 
 
 def test_step_text_says_what_the_panel_would():
     from lidarloc.core.snapshot import Snapshot
 
-    snap = Snapshot(scan_index=41, n_scans=100, timestamp=4.1, particles=np.zeros((200, 11)),
-                    weights=np.full(200, 1 / 200), best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3),
-                    std_xyz=np.array([0.3, 0.5, 0.1]), ellipse_xy=(1.0, 0.6, 0.0), n_eff=50.0, localized=True,
-                    localized_since=30, scan_world=np.zeros((0, 3), np.float32), gt_pose=None, error_m=1.234,
-                    pf_ms=10.0, s2m=None, s2m_running=False, s2m_acceptance=0.0, n_particles=200)
+    snap = Snapshot(
+        scan_index=41,
+        n_scans=100,
+        timestamp=4.1,
+        particles=np.zeros((200, 11)),
+        weights=np.full(200, 1 / 200),
+        best_index=0,
+        mean_pose=np.eye(4),
+        cov_xyz=np.eye(3),
+        std_xyz=np.array([0.3, 0.5, 0.1]),
+        ellipse_xy=(1.0, 0.6, 0.0),
+        n_eff=50.0,
+        localized=True,
+        localized_since=30,
+        scan_world=np.zeros((0, 3), np.float32),
+        gt_pose=None,
+        error_m=1.234,
+        pf_ms=10.0,
+        s2m=None,
+        s2m_running=False,
+        s2m_acceptance=0.0,
+        n_particles=200,
+    )
     text = step_text(snap, 7, 60)
-    assert text.splitlines() == ["scan 41 (step 8 of 60) · localized",
-                                 "std 0.50 m · error 1.23 m · N_eff 25.0 % of 200"]
+    assert text.splitlines() == [
+        "scan 41 (step 8 of 60) · localized",
+        "std 0.50 m · error 1.23 m · N_eff 25.0 % of 200",
+    ]
     unknown = step_text(Snapshot(**{**snap.__dict__, "error_m": None, "localized": False}), 0, 1)
     assert "error —" in unknown and "not localized" in unknown
 
 
 def test_the_map_is_thinned_to_its_budget(run, cache_root, tmp_path):
-    small = export_run(run, tmp_path / "small", console=Console(file=io.StringIO()), cache_root=cache_root,
-                       scans=False, max_map_points=5_000)
+    small = export_run(
+        run,
+        tmp_path / "small",
+        console=Console(file=io.StringIO()),
+        cache_root=cache_root,
+        scans=False,
+        max_map_points=5_000,
+    )
     assert 0 < small["map_points"] <= 5_000 and small["map_voxel_m"] > 0.5
     doc = decode_viser(Path(small["viser"]).read_bytes())
     assert not any(m.get("name") == "/estimate/scan" for _, m in doc["messages"])

@@ -12,12 +12,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lidarloc.app.export_bag import (
+    DIAGNOSTICS,
+    MAP,
+    PARTICLE_CLOUD,
+    PARTICLES,
+    POSE,
+    ROSOUT,
+    SCAN,
+    TF,
+    TOPICS,
+    TRUTH,
+    export_bag,
+)
+from lidarloc.core.runs import recording
 from rich.console import Console
 from scipy.spatial.transform import Rotation
-
-from lidarloc.app.export_bag import (DIAGNOSTICS, MAP, PARTICLE_CLOUD, PARTICLES, POSE, ROSOUT, SCAN, TF, TOPICS,
-                                     TRUTH, export_bag)
-from lidarloc.core.runs import recording
 
 QUIET = Console(file=io.StringIO())
 
@@ -64,7 +74,7 @@ def test_the_bag_holds_every_topic_with_one_message_per_step(bag):
     run, out, result = bag
     rec = recording.open(run)
     assert out.is_file() and result["bag"] == str(out) and result["steps"] == rec.n
-    assert not list(out.parent.glob(".*writing*"))             # no half-written folder left behind
+    assert not list(out.parent.glob(".*writing*"))  # no half-written folder left behind
     msgs = read_bag(out)
     types = msgs.pop("__types__")
     assert types == {t: TOPICS[t] for t in (POSE, TF, PARTICLES, PARTICLE_CLOUD, TRUTH, SCAN, MAP, ROSOUT, DIAGNOSTICS)}
@@ -83,7 +93,8 @@ def test_stamps_and_poses_equal_the_trajectory_file(bag):
     msgs = read_bag(out)
     poses = msgs[POSE]
     expected_ns = np.round(tum[:, 0] * 1e9).astype(np.int64)
-    for (t, m), row, truth in zip(poses, tum, gt):
+    assert len(gt) == len(tum)
+    for (t, m), row in zip(poses, tum):
         # the scans' stamps (this source's times), as the message's stamp and its recorded time
         assert abs(stamp(m.header) - round(row[0] * 1e9)) <= 1000 and t == stamp(m.header)
         assert m.header.frame_id == "map"
@@ -119,8 +130,9 @@ def test_particles_carry_the_recorded_states_and_weights(bag):
     assert len(pa.poses) == len(parts)
     xyz = np.array([[p.position.x, p.position.y, p.position.z] for p in pa.poses])
     assert np.allclose(xyz, parts[:, :3], atol=1e-4)
-    yaw = Rotation.from_quat([[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
-                              for p in pa.poses]).as_euler("ZYX")[:, 0]
+    yaw = Rotation.from_quat(
+        [[p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w] for p in pa.poses]
+    ).as_euler("ZYX")[:, 0]
     assert np.allclose(np.angle(np.exp(1j * (yaw - parts[:, 3]))), 0, atol=1e-5)
     cloud = msgs[PARTICLE_CLOUD][i][1]
     assert [f.name for f in cloud.fields] == ["x", "y", "z", "weight"]
@@ -141,8 +153,12 @@ def test_the_mcap_reader_sees_the_same_bag_and_the_map_is_latched(bag):
         schemas = {s.name: s.encoding for s in summary.schemas.values()}
         assert set(schemas) == set(TOPICS.values())
         assert set(schemas.values()) <= {"ros2msg", "ros2idl"}
-        latched = {c.topic for c in channels.values() if "durability: 1" in c.metadata.get("offered_qos_profiles", "")
-                   or "transient_local" in c.metadata.get("offered_qos_profiles", "")}
+        latched = {
+            c.topic
+            for c in channels.values()
+            if "durability: 1" in c.metadata.get("offered_qos_profiles", "")
+            or "transient_local" in c.metadata.get("offered_qos_profiles", "")
+        }
         assert latched == {MAP}
         times = [m.log_time for _, c, m in reader.iter_messages(topics=[POSE])]
     tum = np.loadtxt(run / "trajectory_tum.txt")
@@ -150,26 +166,54 @@ def test_the_mcap_reader_sees_the_same_bag_and_the_map_is_latched(bag):
 
 
 def cli(*args, env_cache):
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True,
-                          env={"LIDARLOC_CACHE": str(env_cache), "PATH": "/usr/bin:/bin"}, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *args],
+        capture_output=True,
+        text=True,
+        env={"LIDARLOC_CACHE": str(env_cache), "PATH": "/usr/bin:/bin"},
+        timeout=300,
+    )
 
 
 def test_bad_names_and_missing_runs_are_one_line(recorded_town_run, tmp_path, cache_root):
     run, _ = recorded_town_run
-    assert_one_line_error(cli("export", str(tmp_path / "nothing"), "--bag", str(tmp_path / "x.mcap"),
-                              env_cache=cache_root), "no such run folder")
+    assert_one_line_error(
+        cli("export", str(tmp_path / "nothing"), "--bag", str(tmp_path / "x.mcap"), env_cache=cache_root),
+        "no such run folder",
+    )
     assert_one_line_error(cli("export", str(run), "--bag", str(tmp_path / "x.db3"), env_cache=cache_root), ".mcap")
     (tmp_path / "there.mcap").write_bytes(b"")
-    assert_one_line_error(cli("export", str(run), "--bag", str(tmp_path / "there.mcap"), env_cache=cache_root),
-                          "already exists")
-    assert_one_line_error(cli("export", str(run), "--bag", "/proc/nope/x.mcap", env_cache=cache_root),
-                          "cannot create")
-    assert_one_line_error(cli("export", str(run), "--bag", str(tmp_path / "y.mcap"), "--with-input",
-                              env_cache=cache_root), "--with-input")
-    assert_one_line_error(cli("run", "--out", str(tmp_path / "r"), "--no-record", "--write-bag",
-                              str(tmp_path / "r.mcap"), env_cache=cache_root), "--no-record")
-    assert_one_line_error(cli("run", "--out", str(tmp_path / "r"), "--write-bag", str(tmp_path / "r.mcap"),
-                              "--with-input", env_cache=cache_root), "--bag")
+    assert_one_line_error(
+        cli("export", str(run), "--bag", str(tmp_path / "there.mcap"), env_cache=cache_root), "already exists"
+    )
+    assert_one_line_error(cli("export", str(run), "--bag", "/proc/nope/x.mcap", env_cache=cache_root), "cannot create")
+    assert_one_line_error(
+        cli("export", str(run), "--bag", str(tmp_path / "y.mcap"), "--with-input", env_cache=cache_root), "--with-input"
+    )
+    assert_one_line_error(
+        cli(
+            "run",
+            "--out",
+            str(tmp_path / "r"),
+            "--no-record",
+            "--write-bag",
+            str(tmp_path / "r.mcap"),
+            env_cache=cache_root,
+        ),
+        "--no-record",
+    )
+    assert_one_line_error(
+        cli(
+            "run",
+            "--out",
+            str(tmp_path / "r"),
+            "--write-bag",
+            str(tmp_path / "r.mcap"),
+            "--with-input",
+            env_cache=cache_root,
+        ),
+        "--bag",
+    )
 
 
 @pytest.mark.slow
@@ -186,8 +230,23 @@ def test_a_run_on_a_bag_writes_its_bag_with_the_scans_stamps_and_the_input_besid
     gt = write_tum(tmp_path / "gt.tum", stamps, np.asarray(seq.poses))
     out = tmp_path / "out"
     # the world is the truth's first LiDAR pose: start around it
-    r = cli("run", "--bag", str(bag_in), "--gt", str(gt), "--out", str(out), "--set", "pf.n_particles=300",
-            "--init", "0,0,0", "--write-bag", str(tmp_path / "results.mcap"), "--with-input", env_cache=cache_root)
+    r = cli(
+        "run",
+        "--bag",
+        str(bag_in),
+        "--gt",
+        str(gt),
+        "--out",
+        str(out),
+        "--set",
+        "pf.n_particles=300",
+        "--init",
+        "0,0,0",
+        "--write-bag",
+        str(tmp_path / "results.mcap"),
+        "--with-input",
+        env_cache=cache_root,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     msgs = read_bag(tmp_path / "results.mcap")
     types = msgs.pop("__types__")

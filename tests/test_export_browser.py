@@ -13,18 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser import ARTIFACTS, LOAD_TIMEOUT
-from helpers import wait_for
+from helpers import record_run, wait_for
 from rich.console import Console
-
-from helpers import record_run
 
 # ~30 s (software WebGL): the slow lane
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 SCANS = 14
 JS_HUD = "(() => { const d = document.getElementById('lidarloc-hud'); return d ? d.innerText : ''; })()"
-
-
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +56,11 @@ def test_the_exported_folder_plays_from_file_with_no_server(browser, exported):
         page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
         assert page.title().startswith("lidarloc · ")
         page.wait_for_function(f"() => /step \\d+ of {SCANS}/.test({JS_HUD})", timeout=LOAD_TIMEOUT)
-        assert re.search(r"scan \d+ \(step \d+ of 14\) · (not )?localized\nstd \d+\.\d\d m · error \d+\.\d\d m · "
-                         r"N_eff \d+\.\d % of \d+", page.evaluate(JS_HUD))
+        assert re.search(
+            r"scan \d+ \(step \d+ of 14\) · (not )?localized\nstd \d+\.\d\d m · error \d+\.\d\d m · "
+            r"N_eff \d+\.\d % of \d+",
+            page.evaluate(JS_HUD),
+        )
         # the scene renders: many colours, most of the canvas not background
         canvas = page.locator("canvas").first
         shots = {}
@@ -70,6 +69,7 @@ def test_the_exported_folder_plays_from_file_with_no_server(browser, exported):
             shots["png"] = canvas.screenshot()
             colours, share = canvas_stats(shots["png"])
             return colours > 200 and share > 0.15
+
         wait_for(drawn, timeout=LOAD_TIMEOUT / 1000, what="the exported scene on the canvas")
         ARTIFACTS.mkdir(exist_ok=True)
         (ARTIFACTS / "export_file_url.png").write_bytes(shots["png"])
@@ -80,7 +80,7 @@ def test_the_exported_folder_plays_from_file_with_no_server(browser, exported):
         bar = page.locator(".mantine-Slider-root").first
         box = bar.bounding_box()
         for frac in (0.9, 0.5):
-            target = round(frac * SCANS)      # the step shown at time frac × duration (± one at the edge)
+            target = round(frac * SCANS)  # the step shown at time frac × duration (± one at the edge)
             page.mouse.click(box["x"] + frac * box["width"], box["y"] + box["height"] / 2)
             page.mouse.click(box["x"] + frac * box["width"], box["y"] + box["height"] / 2)
             wait_for(lambda: abs(hud_step(page) - target) <= 1, timeout=30, what=f"the step at {frac:.0%}")
@@ -89,5 +89,7 @@ def test_the_exported_folder_plays_from_file_with_no_server(browser, exported):
         assert requests and all(u.startswith(("file:", "data:", "blob:")) for u in requests), requests
     finally:
         page.close()
-    print(f"\n.viser {exported['viser_bytes'] / 1e6:.2f} MB, folder {exported['folder_bytes'] / 1e6:.2f} MB "
-          f"for {exported['steps']} steps")
+    print(
+        f"\n.viser {exported['viser_bytes'] / 1e6:.2f} MB, folder {exported['folder_bytes'] / 1e6:.2f} MB "
+        f"for {exported['steps']} steps"
+    )

@@ -9,10 +9,9 @@ import json
 
 import numpy as np
 import pytest
-from rich.console import Console
-
 from lidarloc.app import export_foxglove as fx
 from lidarloc.core.runs import recording
+from rich.console import Console
 
 
 @pytest.fixture(scope="module")
@@ -55,10 +54,18 @@ def test_every_message_validates_against_its_schema(exported):
     run, out, result = exported
     rec = recording.open(run)
     msgs = decode_all(out)
-    expected = {fx.POSE: "foxglove.PoseInFrame", fx.TRUTH: "foxglove.PoseInFrame", fx.TF: "foxglove.FrameTransforms",
-                fx.PARTICLES: "foxglove.PosesInFrame", fx.PARTICLE_CLOUD: "foxglove.PointCloud",
-                fx.SCAN: "foxglove.PointCloud", fx.MAP: "foxglove.PointCloud", fx.SCENE: "foxglove.SceneUpdate",
-                fx.LOG: "foxglove.Log", fx.FIGURES: "lidarloc.Figures"}
+    expected = {
+        fx.POSE: "foxglove.PoseInFrame",
+        fx.TRUTH: "foxglove.PoseInFrame",
+        fx.TF: "foxglove.FrameTransforms",
+        fx.PARTICLES: "foxglove.PosesInFrame",
+        fx.PARTICLE_CLOUD: "foxglove.PointCloud",
+        fx.SCAN: "foxglove.PointCloud",
+        fx.MAP: "foxglove.PointCloud",
+        fx.SCENE: "foxglove.SceneUpdate",
+        fx.LOG: "foxglove.Log",
+        fx.FIGURES: "lidarloc.Figures",
+    }
     assert {t: m[0][2] for t, m in msgs.items()} == expected
     for topic in set(expected) - {fx.MAP, fx.LOG}:
         assert len(msgs[topic]) == rec.n, topic

@@ -3,13 +3,12 @@
 import numpy as np
 import pytest
 from bagfixtures import kitti_drive, write_tum  # noqa: F401  (fixture)
-
 from lidarloc.core.errors import DataError
-from lidarloc.core.sequences.extrinsic import from_tf_static, read_extrinsic
 from lidarloc.core.geometry import euler_zyx, pose_matrix
+from lidarloc.core.sequences.extrinsic import from_tf_static, read_extrinsic
 from lidarloc.core.sequences.groundtruth import Truth, load_truth, match, read_kitti, truth_for_scans
 
-T0 = 1317042651.175862   # Unix seconds, as a recorder's clock gives them
+T0 = 1317042651.175862  # Unix seconds, as a recorder's clock gives them
 
 
 def straight_drive(n=11, dt=0.1):
@@ -59,10 +58,14 @@ def test_kitti_poses_with_and_without_times(tmp_path):
 def test_nearest_within_20ms_else_interpolated_else_none():
     times, poses = straight_drive()
     truth = Truth(poses=poses, times=times, source="gt.tum")
-    scans = np.array([times[2] + 0.015,           # within 20 ms of sample 2: taken as is
-                      times[4] + 0.05,            # halfway between 4 and 5: interpolated
-                      times[0] - 0.5,             # before the truth
-                      times[-1] + 0.5])           # after it
+    scans = np.array(
+        [
+            times[2] + 0.015,  # within 20 ms of sample 2: taken as is
+            times[4] + 0.05,  # halfway between 4 and 5: interpolated
+            times[0] - 0.5,  # before the truth
+            times[-1] + 0.5,
+        ]
+    )  # after it
     got, has = match(scans, truth)
     assert has.tolist() == [True, True, False, False]
     np.testing.assert_array_equal(got[0], poses[2])
@@ -75,9 +78,9 @@ def test_nearest_within_20ms_else_interpolated_else_none():
 
 def test_truth_that_does_not_overlap_is_a_clear_error():
     times, poses = straight_drive()
-    truth = Truth(poses=poses, times=times - T0, source="gt.tum")   # relative seconds
+    truth = Truth(poses=poses, times=times - T0, source="gt.tum")  # relative seconds
     with pytest.raises(DataError) as exc:
-        match(times, truth)                                          # scans in Unix time
+        match(times, truth)  # scans in Unix time
     text = one_line(exc)
     assert text.startswith("gt.tum") and "do not overlap" in text
 
@@ -92,13 +95,16 @@ def test_truth_moves_to_the_lidar_and_scans_outside_are_left_out():
     assert len(m.notes) == 1 and "3 of 14 scans" in m.notes[0] and "2 at the start, 1 at the end" in m.notes[0]
 
 
-@pytest.mark.parametrize("content, words", [
-    ("1 2 3 4 5\n", ["5 numbers per line", "TUM", "KITTI"]),
-    ("0 0 0 0 0 0 0 1\n1 2 x 4 5 6 7 8\n", [":2:", "not a line of numbers"]),
-    ("0 0 0 0 0 0 0 1\n1 2 3 4 5 6 7\n", [":2:", "expected 8 numbers"]),
-    ("0 1 2 3 0 0 0 0\n", ["quaternion is zero"]),
-    ("# only a comment\n", ["no poses"]),
-])
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ("1 2 3 4 5\n", ["5 numbers per line", "TUM", "KITTI"]),
+        ("0 0 0 0 0 0 0 1\n1 2 x 4 5 6 7 8\n", [":2:", "not a line of numbers"]),
+        ("0 0 0 0 0 0 0 1\n1 2 3 4 5 6 7\n", [":2:", "expected 8 numbers"]),
+        ("0 1 2 3 0 0 0 0\n", ["quaternion is zero"]),
+        ("# only a comment\n", ["no poses"]),
+    ],
+)
 def test_bad_truth_files_are_one_line_errors(tmp_path, content, words):
     path = tmp_path / "gt.txt"
     path.write_text(content)
@@ -150,8 +156,11 @@ def test_extrinsic_files(tmp_path):
 def test_tf_static_chain_goes_up_to_the_root():
     T_base_imu = pose_matrix(0.5, 0, 0.9, 0, 0, 0)
     T_imu_velo = pose_matrix(0.3, 0.1, 0.8, 0.05, 0, 0)
-    edges = {"imu_link": ("base_link", T_base_imu), "velodyne": ("imu_link", T_imu_velo),
-             "camera": ("base_link", np.eye(4))}
+    edges = {
+        "imu_link": ("base_link", T_base_imu),
+        "velodyne": ("imu_link", T_imu_velo),
+        "camera": ("base_link", np.eye(4)),
+    }
     root, T = from_tf_static(edges, "/velodyne")
     assert root == "base_link"
     np.testing.assert_allclose(T, T_base_imu @ T_imu_velo, atol=1e-12)

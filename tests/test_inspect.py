@@ -11,7 +11,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from lidarloc.app.inspect import FILES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -22,8 +21,13 @@ REAL = ["--date", "2011_09_26", "--drive", "0013"]
 
 def lidarloc(*args, cache):
     env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *map(str, args)], capture_output=True,
-                          text=True, env=env, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
 
 
 def assert_one_line_error(result, needle):
@@ -42,8 +46,14 @@ def check_outputs(out, printed: str, scan: int) -> dict:
     saved = json.loads((out / "inspect.json").read_text())
     assert json.loads(printed) == saved
     assert saved["scan"] == scan
-    for key in ("estimate", "truth", "surface_argmax_xy", "surface_argmax_error_m", "residual_share_beyond_dmax",
-                "surface_ms"):
+    for key in (
+        "estimate",
+        "truth",
+        "surface_argmax_xy",
+        "surface_argmax_error_m",
+        "residual_share_beyond_dmax",
+        "surface_ms",
+    ):
         assert saved[key] is not None, key
     for around in ("surface_estimate", "surface_truth"):
         ll = np.load(out / f"{around}.npy")
@@ -51,7 +61,7 @@ def check_outputs(out, printed: str, scan: int) -> dict:
         assert list(ll.shape) == grid["shape"] == [81, 81] and np.isfinite(ll).all()
         i, k = np.unravel_index(np.argmax(ll), ll.shape)
         best = [grid["x0"] + i * grid["cell"], grid["y0"] + k * grid["cell"]]
-        if around == "surface_estimate":      # the .npy's geometry is the JSON's
+        if around == "surface_estimate":  # the .npy's geometry is the JSON's
             np.testing.assert_allclose(best, saved["surface_argmax_xy"], atol=1e-9)
     truth = np.array([saved["truth"]["x"], saved["truth"]["y"]])
     err = np.linalg.norm(np.array(saved["surface_argmax_xy"]) - truth)
@@ -74,8 +84,7 @@ def test_inspect_writes_every_file_on_the_town(tmp_path, cache_root):
 @pytest.mark.timeout(600)
 def test_inspect_writes_every_file_on_the_real_drive(tmp_path, cache_root, kitti_raw_dir):
     out = tmp_path / "inspect-real"
-    r = lidarloc("inspect", "--kitti-raw", kitti_raw_dir, *REAL, "--scan", 20, "--out", out, "--json",
-                 cache=cache_root)
+    r = lidarloc("inspect", "--kitti-raw", kitti_raw_dir, *REAL, "--scan", 20, "--out", out, "--json", cache=cache_root)
     assert r.returncode == 0, r.stderr
     saved = check_outputs(out, r.stdout, 20)
     assert saved["localized"] and saved["surface_argmax_error_m"] <= 1.0
@@ -88,6 +97,7 @@ def test_inspect_refuses_a_scan_beyond_the_sequence(tmp_path, cache_root):
 
 
 def test_inspect_refuses_a_missing_path(tmp_path, cache_root):
-    r = lidarloc("inspect", "--kitti-raw", tmp_path / "nowhere", *REAL, "--scan", 3, "--out", tmp_path / "o",
-                 cache=cache_root)
+    r = lidarloc(
+        "inspect", "--kitti-raw", tmp_path / "nowhere", *REAL, "--scan", 3, "--out", tmp_path / "o", cache=cache_root
+    )
     assert_one_line_error(r, "nowhere")

@@ -8,13 +8,18 @@ import math
 import numpy as np
 import pytest
 from helpers import short_town
-
 from lidarloc.core.config import Config, load_config
 from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.rules.integrity import DISAGREEMENTS_FOR_CHECK, FIT_MIN_SAMPLES, Integrity, fits_clearly_better, judge
-from lidarloc.core.rules.truth import truth_alarm
 from lidarloc.core.localizer import Localizer
+from lidarloc.core.rules.integrity import (
+    DISAGREEMENTS_FOR_CHECK,
+    FIT_MIN_SAMPLES,
+    Integrity,
+    fits_clearly_better,
+    judge,
+)
 from lidarloc.core.rules.paper import LocalizationRules
+from lidarloc.core.rules.truth import truth_alarm
 
 
 # ------------------------------------------------------------------------------ the rule's word
@@ -33,6 +38,7 @@ def test_the_rule_waits_for_s2m_to_agree_within_its_window():
 
     def confirmed(k0):
         return agreed_at["k"] is not None and agreed_at["k"] >= k0
+
     outcomes = _feed(rules, 15, confirmed)
     # the paper's conditions hold from the 10th scan on, but nothing agreed: no fire, and it says why
     assert not any(o.localized for o in outcomes) and rules.awaiting_confirmation
@@ -70,15 +76,18 @@ def _pose(x, y, yaw_deg=0.0):
     return pose_matrix(x, y, 0.0, math.radians(yaw_deg), 0.0, 0.0)
 
 
-@pytest.mark.parametrize("mode, accepted, unbeaten, match, score, start, kind", [
-    ("global", True, False, (2.0, 1.0, 5.0), 300, 100, "agrees"),
-    ("global", False, True, (0.0, 0.0, 0.0), 300, 300, "agrees"),       # nothing in the map beat the start
-    ("global", True, False, (80.0, 0.0, 0.0), 900, 100, "disagrees"),   # written as the paper does
-    ("local", True, False, (0.0, 0.0, 40.0), 300, 100, "disagrees"),    # turned too far
-    ("check", True, False, (80.0, 0.0, 0.0), 200, 100, "relocalize"),   # 2× the estimate's score
-    ("check", True, False, (80.0, 0.0, 0.0), 110, 100, "look_alike"),   # far, but not clearly better
-    ("check", False, False, (80.0, 0.0, 0.0), 900, 100, "no_opinion"),  # refused by GICP
-])
+@pytest.mark.parametrize(
+    "mode, accepted, unbeaten, match, score, start, kind",
+    [
+        ("global", True, False, (2.0, 1.0, 5.0), 300, 100, "agrees"),
+        ("global", False, True, (0.0, 0.0, 0.0), 300, 300, "agrees"),  # nothing in the map beat the start
+        ("global", True, False, (80.0, 0.0, 0.0), 900, 100, "disagrees"),  # written as the paper does
+        ("local", True, False, (0.0, 0.0, 40.0), 300, 100, "disagrees"),  # turned too far
+        ("check", True, False, (80.0, 0.0, 0.0), 200, 100, "relocalize"),  # 2× the estimate's score
+        ("check", True, False, (80.0, 0.0, 0.0), 110, 100, "look_alike"),  # far, but not clearly better
+        ("check", False, False, (80.0, 0.0, 0.0), 900, 100, "no_opinion"),  # refused by GICP
+    ],
+)
 def test_a_match_is_judged_against_the_estimate(mode, accepted, unbeaten, match, score, start, kind):
     v = judge(mode, accepted, unbeaten, _pose(*match), _pose(0.0, 0.0), score, start, Config())
     assert v.kind == kind
@@ -95,16 +104,18 @@ def test_local_disagreements_in_a_row_ask_for_the_second_opinion():
     for i in range(DISAGREEMENTS_FOR_CHECK - 1):
         integ.note_verdict(20 + i, far)
     assert integ.check_due(22, localized=True) is None
-    integ.note_verdict(22, near)                              # an agreement resets the count
+    integ.note_verdict(22, near)  # an agreement resets the count
     for i in range(DISAGREEMENTS_FOR_CHECK):
         integ.note_verdict(23 + i, far)
     assert "did not agree" in integ.check_due(26, localized=True)
     integ.check_started(26)
     assert integ.check_due(27, localized=True) is None
     # and periodically
-    assert integ.check_due(26 + cfg.s2m.global_check_interval, localized=True) == \
-        f"every {cfg.s2m.global_check_interval} scans"
-    assert integ.check_due(200, localized=False) is None      # before localization every match is global
+    assert (
+        integ.check_due(26 + cfg.s2m.global_check_interval, localized=True)
+        == f"every {cfg.s2m.global_check_interval} scans"
+    )
+    assert integ.check_due(200, localized=False) is None  # before localization every match is global
 
 
 def test_a_poor_fit_is_judged_against_the_recent_baseline_and_a_long_one_is_a_loss():
@@ -120,7 +131,7 @@ def test_a_poor_fit_is_judged_against_the_recent_baseline_and_a_long_one_is_a_lo
     k0 = 100
     lost = [integ.note_fit(k0 + i, True, 0.8, 2.5) for i in range(cfg.localize.lost_after_scans)]
     assert all(v is None for v in lost[:-1]) and "poorly" in lost[-1]
-    assert integ.check_reason is not None               # the poor fit asked for the second opinion
+    assert integ.check_reason is not None  # the poor fit asked for the second opinion
     # a whole-map match agreeing with the estimate says the poor fit is the world's change
     integ.note_fit(200, True, 0.8, 2.5)
     integ.note_verdict(201, judge("check", False, True, _pose(0, 0), _pose(0, 0), 5, 5, cfg))
@@ -128,9 +139,9 @@ def test_a_poor_fit_is_judged_against_the_recent_baseline_and_a_long_one_is_a_lo
 
 
 def test_far_poses_must_fit_clearly_better_in_3d():
-    assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))          # 80 m off: 1.1 m vs 0.15 m
-    assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))       # a VLP-16 look-alike
-    assert not fits_clearly_better((0.70, 0.2), (0.90, 0.9))       # fewer of the points fit there
+    assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))  # 80 m off: 1.1 m vs 0.15 m
+    assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))  # a VLP-16 look-alike
+    assert not fits_clearly_better((0.70, 0.2), (0.90, 0.9))  # fewer of the points fit there
     assert not fits_clearly_better((0.0, math.nan), (0.9, 0.9))
 
 

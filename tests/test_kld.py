@@ -7,12 +7,11 @@ import math
 import numpy as np
 import pytest
 from helpers import paper_pf, toy_scan
-from scipy.stats import chi2
-
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.filter.kld import bin_keys, kld_bound, kld_count
 from lidarloc.core.filter.motion import propagate
 from lidarloc.core.filter.pf import ParticleFilter
+from scipy.stats import chi2
 
 DEG = math.pi / 180
 
@@ -24,8 +23,8 @@ def test_bound_approximates_the_chi_square_quantile():
         assert kld_bound(k, 0.05, 2.326) == pytest.approx(exact, rel=0.01)
     assert kld_bound(1, 0.05, 2.326) == 0.0 and kld_bound(0, 0.05, 2.326) == 0.0
     b = kld_bound(np.arange(2, 100), 0.05, 2.326)
-    assert np.all(np.diff(b) > 0)                              # more bins, more particles
-    assert kld_bound(10, 0.02, 2.326) > kld_bound(10, 0.05, 2.326)   # tighter ε, more particles
+    assert np.all(np.diff(b) > 0)  # more bins, more particles
+    assert kld_bound(10, 0.02, 2.326) > kld_bound(10, 0.05, 2.326)  # tighter ε, more particles
 
 
 def test_stopping_rule():
@@ -33,34 +32,43 @@ def test_stopping_rule():
     assert kld_count(one_bin, 0.05, 2.326, 100, 1000) == (100, 1)
     all_distinct = np.arange(1000, dtype=np.int64)
     assert kld_count(all_distinct, 0.05, 2.326, 100, 1000) == (1000, 1000)
-    ten_bins = np.tile(np.arange(10, dtype=np.int64), 100)   # every bin seen within the first 10 draws
+    ten_bins = np.tile(np.arange(10, dtype=np.int64), 100)  # every bin seen within the first 10 draws
     n, k = kld_count(ten_bins, 0.05, 2.326, 50, 1000)
     assert k == 10 and n == math.ceil(kld_bound(10, 0.05, 2.326))
-    assert kld_count(ten_bins, 0.05, 2.326, 500, 1000) == (500, 10)    # the floor
-    assert kld_count(ten_bins, 0.05, 2.326, 50, 30)[0] == 30           # the budget
+    assert kld_count(ten_bins, 0.05, 2.326, 500, 1000) == (500, 10)  # the floor
+    assert kld_count(ten_bins, 0.05, 2.326, 50, 30)[0] == 30  # the budget
     with pytest.raises(LidarlocError):
         kld_count(ten_bins, 0.0, 2.326, 50, 1000)
 
 
 def test_bins_are_x_y_yaw():
     s = np.zeros((5, 11))
-    s[1, 0] = 0.99                     # same 1 m bin as particle 0
-    s[2, 0] = 1.01                     # next bin in x
-    s[3, 3] = 11 * DEG                 # next 10° yaw bin
-    s[4, 2] = 50.0                     # z does not count
+    s[1, 0] = 0.99  # same 1 m bin as particle 0
+    s[2, 0] = 1.01  # next bin in x
+    s[3, 3] = 11 * DEG  # next 10° yaw bin
+    s[4, 2] = 50.0  # z does not count
     keys = bin_keys(s, 1.0, 10 * DEG)
     assert keys[0] == keys[1] == keys[4] and len(set(keys.tolist())) == 3
-    s[0, 3], s[1, 3] = 0.5, 0.5 + 2 * math.pi                         # the same angle, unwrapped
+    s[0, 3], s[1, 3] = 0.5, 0.5 + 2 * math.pi  # the same angle, unwrapped
     assert bin_keys(s[:2], 1.0, 10 * DEG)[0] == bin_keys(s[:2], 1.0, 10 * DEG)[1]
-    assert len(bin_keys(np.full((2, 11), np.nan), 1.0, 0.1)) == 2      # no crash on a lost particle
+    assert len(bin_keys(np.full((2, 11), np.nan), 1.0, 0.1)) == 2  # no crash on a lost particle
 
 
 def planar_cfg(**kw):
     q = np.zeros(11)
     q[0] = q[1] = 0.3
     q[6] = 0.1
-    base = dict(n_particles=2000, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, v_max=2.0,
-                q_std=tuple(q), kld=True, kld_min=50)
+    base = dict(
+        n_particles=2000,
+        init_yaw=0.0,
+        init_pitch=0.0,
+        init_roll=0.0,
+        init_rate_std=0.0,
+        v_max=2.0,
+        q_std=tuple(q),
+        kld=True,
+        kld_min=50,
+    )
     base.update(kw)
     return paper_pf(**base)
 
@@ -86,7 +94,7 @@ def test_count_shrinks_once_localized_and_grows_back_on_reinit(toy_world):
     assert np.linalg.norm(est.state[:2] - truth[:2]) < 0.5
     assert counts[-1] < 400 and len(pf.states) == len(pf.log_weights) == pf.n == counts[-1]
     assert pf.weights.sum() == pytest.approx(1.0)
-    pf.initialize()                                            # a kidnap / re-initialisation
+    pf.initialize()  # a kidnap / re-initialisation
     assert pf.n == 2000 and pf.states.shape == (2000, 11)
 
 
@@ -117,9 +125,9 @@ def test_spread_cloud_keeps_the_budget_and_a_spreading_cloud_grows(toy_world):
 def test_protected_particle_survives_a_count_change(toy_world, protect):
     pts, table = toy_world
     pf = ParticleFilter(planar_cfg(n_particles=1000), table, [0, 0, 1.7], [40, 40, 1.7], seed=0)
-    pf.states[:, :2] = [20.0, 20.0]                            # all in one bin …
+    pf.states[:, :2] = [20.0, 20.0]  # all in one bin …
     kept = pf.states[protect].copy()
-    kept[:2] = [5.0, 5.0]                                      # … but the protected one
+    kept[:2] = [5.0, 5.0]  # … but the protected one
     pf.states[protect] = kept
     pf.log_weights[:] = -np.inf
     pf.log_weights[7] = 0.0
@@ -161,7 +169,7 @@ def test_a_set_count_is_the_new_ceiling(toy_world):
     pf = ParticleFilter(paper_pf(n_particles=500, kld=True, kld_min=200), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.set_n_particles(120)
     pf.log_weights[:] = np.log(np.full(120, 1 / 120) * np.r_[1.0, np.full(119, 1e-6)])
-    assert pf.resample_if_needed() and pf.n == 120           # kld_min 200 > 120: the set count holds
+    assert pf.resample_if_needed() and pf.n == 120  # kld_min 200 > 120: the set count holds
     restored = ParticleFilter(paper_pf(n_particles=500, kld=True, kld_min=200), table, [0, 0, 0], [40, 40, 4], seed=0)
     restored.restore(pf.checkpoint())
     restored.initialize()

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import instant_matcher, process_gone, scripted_std, short_town, wait_for
-
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.localizer import BlockError, Localizer
@@ -41,8 +40,13 @@ def test_replay_is_deterministic(town, cache_root):
     for _ in range(2):
         with make(town, cache_root) as loc:
             loc.run(12)
-            runs.append((loc.pf.states.copy(), [(r.x, r.y, r.yaw, r.n_eff) for r in loc.records],
-                         [(e.scan, e.kind) for e in loc.events]))
+            runs.append(
+                (
+                    loc.pf.states.copy(),
+                    [(r.x, r.y, r.yaw, r.n_eff) for r in loc.records],
+                    [(e.scan, e.kind) for e in loc.events],
+                )
+            )
     assert np.array_equal(runs[0][0], runs[1][0])
     assert runs[0][1] == runs[1][1]
     assert runs[0][2] == runs[1][2]
@@ -55,7 +59,7 @@ def test_s2m_particle_survives_and_is_updated(town, cache_root):
     with make(town, cache_root) as loc:
         gt0 = town.poses[0]
         loc.reset(pose=gt0)
-        loc.step()                                     # scan 0: a job starts on the best particle
+        loc.step()  # scan 0: a job starts on the best particle
         job = loc.s2m.job
         assert job is not None and job.started_at == 0
         j = job.particle
@@ -87,8 +91,9 @@ def test_false_positive_triggers_reinit(town, cache_root):
         loc.run(5)
         kinds = [(e.scan, e.kind) for e in loc.events]
         assert (4, "false_positive") in kinds
-        assert spread_calls == [((), {"region": None, "pose": None})], \
+        assert spread_calls == [((), {"region": None, "pose": None})], (
             "a false positive re-initialises over the whole map"
+        )
         assert loc.records[4].reinit
 
 
@@ -100,23 +105,25 @@ def test_a_cancelled_match_is_reported(town, cache_root):
     try:
         instant_matcher(loc)
         scripted_std(loc, [100.0, 3.0, 3.0, 3.0, 100.0])
-        loc.run(5)                       # starts at 0, lands and restarts at 3, false positive at 4
+        loc.run(5)  # starts at 0, lands and restarts at 3, false positive at 4
         kinds = [(e.scan, e.kind) for e in loc.events]
         assert (3, "s2m_started") in kinds and (4, "false_positive") in kinds
         cancelled = [e for e in loc.events if e.kind == "s2m_cancelled"]
         assert [(e.scan, e.detail) for e in cancelled] == [(4, "started 3 (re-initialised after a false positive)")]
         assert loc.s2m.job is None
-        loc.run(1)                       # a new job starts at 5 …
+        loc.run(1)  # a new job starts at 5 …
         assert loc.s2m.job is not None
-        loc.kidnap(10)                   # … and the kidnap cancels it
+        loc.kidnap(10)  # … and the kidnap cancels it
         assert [e.kind for e in loc.events][-2:] == ["s2m_cancelled", "kidnap"]
-        loc.run(1)                       # one more starts, and is in flight when the run ends
+        loc.run(1)  # one more starts, and is in flight when the run ends
         assert loc.s2m.job is not None
     finally:
         loc.close()
     assert loc.events[-1].kind == "s2m_cancelled" and loc.events[-1].detail.endswith("(localizer closed)")
-    counts = {kind: sum(e.kind == kind for e in loc.events)
-              for kind in ("s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled")}
+    counts = {
+        kind: sum(e.kind == kind for e in loc.events)
+        for kind in ("s2m_started", "s2m_accepted", "s2m_rejected", "s2m_cancelled")
+    }
     assert counts["s2m_started"] == counts["s2m_accepted"] + counts["s2m_rejected"] + counts["s2m_cancelled"]
 
 
@@ -135,6 +142,7 @@ def test_failing_block_stops_cleanly(town, cache_root):
 
     def boom(*a, **k):
         raise RuntimeError("matcher exploded")
+
     loc.s2m.matcher.match_local = boom
     t0 = time.perf_counter()
     with pytest.raises(BlockError, match="S2M block failed at scan 2: RuntimeError: matcher exploded"):
@@ -166,6 +174,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
     scheduling (autogroups), its group's too (otherwise it competes with the PF as an equal
     group). Switching to real time replaces it with a child at normal priority, which still
     matches."""
+
     def nice_of(pid):
         value = os.getpriority(os.PRIO_PROCESS, pid)
         group = Path(f"/proc/{pid}/autogroup")
@@ -177,7 +186,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
     with make(town, cache_root) as loc:
         want = loc.cfg.s2m.replay_process_nice
         assert want > 0
-        loc.run(3)                    # the first match landed at scan 2: the child is set up
+        loc.run(3)  # the first match landed at scan 2: the child is set up
         assert any(e.kind in ("s2m_accepted", "s2m_rejected") for e in loc.events)
         first = loc.s2m.matcher
         value, group = nice_of(first.pid)
@@ -189,7 +198,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         value, group = nice_of(loc.s2m.matcher.pid)
         assert value == own and group in (None, 0)
         wait_for(lambda: process_gone(first.pid), timeout=30, what="the replaced S2M process to be closed")
-        job = loc.s2m.job            # real time lands a match at the first scan after it is done
+        job = loc.s2m.job  # real time lands a match at the first scan after it is done
         assert job is not None and job.started_at >= 3
         job.future.result(timeout=120)
         # An accepted match waits (at most REALTIME_LAND_MAX_DEFERRALS scans) for the odometry
@@ -216,8 +225,15 @@ def test_s2m_process_matches_thread(town, cache_root):
 
 def test_live_parameters_validated(town, cache_root):
     with make(town, cache_root) as loc:
-        for bad in ({"sigma": 0.0}, {"sigma": -1}, {"d_max": float("nan")}, {"q_std": (1.0,) * 3},
-                    {"n_particles": 0}, {"clock": "warp"}, {"nonsense": 1}):
+        for bad in (
+            {"sigma": 0.0},
+            {"sigma": -1},
+            {"d_max": float("nan")},
+            {"q_std": (1.0,) * 3},
+            {"n_particles": 0},
+            {"clock": "warp"},
+            {"nonsense": 1},
+        ):
             with pytest.raises(LidarlocError):
                 loc.set_params(**bad)
         loc.set_params(sigma=0.8, d_max=3.0, region_x=10.0, n_particles=200)
@@ -244,10 +260,10 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
 
     from lidarloc.core.localizer import Interrupted
 
-    gate = threading.Event()                # the match never finishes until the gate opens
+    gate = threading.Event()  # the match never finishes until the gate opens
     with make(town, cache_root, localize__s2m_process=False) as loc:
         instant_matcher(loc, before=gate.wait)
-        loc.run(loc.cfg.s2m.n_s2m)          # the match started at scan 0 is due at scan n_s2m …
+        loc.run(loc.cfg.s2m.n_s2m)  # the match started at scan 0 is due at scan n_s2m …
         events = list(loc.events)
         raised = []
 
@@ -256,8 +272,9 @@ def test_interrupt_stops_a_step_waiting_for_a_block(town, cache_root):
                 loc.step()
             except Interrupted as exc:
                 raised.append(exc)
+
         worker = threading.Thread(target=step)
-        worker.start()                      # … so this step waits for it
+        worker.start()  # … so this step waits for it
         loc.interrupt()
         worker.join(timeout=30)
         gate.set()
@@ -337,11 +354,12 @@ def test_realtime_clock_counts_odometry_once(town, cache_root):
         def update(k, std_xyz, step_distance, yaw_odom, confirmed=None):
             steps.append(step_distance)
             return real(k, std_xyz, step_distance, yaw_odom, confirmed)
+
         loc.rules.update = update
-        loc.run(25)                      # as fast as possible: the odometry may fall behind …
+        loc.run(25)  # as fast as possible: the odometry may fall behind …
         for k in range(25):
             loc.odometry.futures[k].result(timeout=60)
-        loc.run(1)                       # … and scan 25's rules see all of it, however slow the machine
+        loc.run(1)  # … and scan 25's rules see all of it, however slow the machine
         assert len(steps) == 26 and loc.odometry.used is not None and loc.odometry.used >= 24
         assert sum(steps) == pytest.approx(loc.odometry.rpe.moved_since(0, loc.odometry.used), abs=1e-9)
         assert sum(steps) > 10.0, "the town drives ~1 m per scan"
@@ -357,9 +375,15 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
     whole-map match from a cold S2M process landed 17–33 scans late when the steps ran as fast as
     possible, and a slow CI machine left room for one start after localization. (The instant
     rejections would ask for the whole-map second opinion, which goes out at once; it is off here.)"""
-    with make(town, cache_root, localize__clock="realtime", localize__s2m_process=False,
-              s2m__realtime_interval_localized=6, localize__require_s2m_confirmation=False,
-              s2m__global_check_interval=0) as loc:
+    with make(
+        town,
+        cache_root,
+        localize__clock="realtime",
+        localize__s2m_process=False,
+        s2m__realtime_interval_localized=6,
+        localize__require_s2m_confirmation=False,
+        s2m__global_check_interval=0,
+    ) as loc:
         instant_matcher(loc)
         scripted_std(loc, [3.0] * 40)
         for _ in range(40):
@@ -383,21 +407,22 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
 
     from lidarloc.core.matching import schedule as schedule_module
 
-    gate = threading.Event()           # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
+    gate = threading.Event()  # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
     try:
         loc.wait_ready()
         real_add = loc.odometry.rpe.add
 
-        def add(k, scan, t):            # the RPE thread registers scan k (in the KISS-ICP child)
+        def add(k, scan, t):  # the RPE thread registers scan k (in the KISS-ICP child)
             if k >= 3:
                 gate.wait()
             real_add(k, scan, t)
+
         loc.odometry.rpe.add = add
         instant_matcher(loc, accepted=True)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 60.0)   # scans 0–2: always land
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 60.0)  # scans 0–2: always land
         loc.run(3)
-        job = loc.s2m.job                 # started at scan 1 or 2, whichever match was last
+        job = loc.s2m.job  # started at scan 1 or 2, whichever match was last
         assert job is not None and job.started_at <= 2
         job.future.result(timeout=60)
         monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 0.03)
@@ -411,22 +436,24 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
             if not loc.odometry.futures[k].done():
                 landing_waits.set()
             return real_wait_registered(k)
+
         loc.odometry.wait_registered = wait_registered
 
-        def step_in_thread():              # a landing that blocked on the gate would hang here
+        def step_in_thread():  # a landing that blocked on the gate would hang here
             worker = threading.Thread(target=loc.run, args=(1,))
             worker.start()
             return worker
-        for _ in (3, 4):                   # the match is done but its odometry is not: no landing
+
+        for _ in (3, 4):  # the match is done but its odometry is not: no landing
             worker = step_in_thread()
             worker.join(timeout=60)
             assert not worker.is_alive(), "the step waited for the stalled odometry"
         assert loc.s2m.job is job and job.deferrals == 2 and not landing_waits.is_set()
         started = f"started {job.started_at}"
         assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and started in e.detail]
-        worker = step_in_thread()          # scan 5: two tries are the limit, so it waits …
+        worker = step_in_thread()  # scan 5: two tries are the limit, so it waits …
         assert landing_waits.wait(timeout=60)
-        gate.set()                         # … until the odometry catches up, then lands
+        gate.set()  # … until the odometry catches up, then lands
         worker.join(timeout=60)
         assert not worker.is_alive()
         landed = [e for e in loc.events if e.kind == "s2m_accepted" and started in e.detail]
@@ -443,7 +470,7 @@ def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
     from lidarloc.core.matching.worker import S2MProcess
 
     with make(town, cache_root) as loc:
-        loc.wait_ready()               # the normal case: returns once everything is up
+        loc.wait_ready()  # the normal case: returns once everything is up
         good = loc.s2m.matcher
         loc.s2m.matcher = S2MProcess(tmp_path / "no-such-map", loc.cfg.map, loc.cfg.s2m)
         try:

@@ -5,13 +5,12 @@ constant velocity before the PF, the RPE and S2M use it."""
 import numpy as np
 import pytest
 from helpers import StreetSequence
-
 from lidarloc.core.config import Config
-from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.localizer import Localizer
+from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
 
-SPEED = 20.0     # m/s: 1 m of travel per sweep, so the skew is plain to see
+SPEED = 20.0  # m/s: 1 m of travel per sweep, so the skew is plain to see
 
 
 class SkewedStreet(StreetSequence):
@@ -35,7 +34,7 @@ class SkewedStreet(StreetSequence):
             return scan
         tau = sweep_offsets(scan, 0.1)
         out = scan.copy()
-        out[:, 0] -= (tau * SPEED).astype(np.float32)     # the inverse of de-skewing (no rotation)
+        out[:, 0] -= (tau * SPEED).astype(np.float32)  # the inverse of de-skewing (no rotation)
         return out
 
 
@@ -59,6 +58,7 @@ def capture(loc):
     def update(prepared):
         to_pf[loc.k] = np.array(prepared)
         real_update(prepared)
+
     loc.odometry.submit, loc.pf.update = submit, update
     return to_rpe, to_pf
 
@@ -71,7 +71,7 @@ def test_scans_are_deskewed_with_the_last_odometry_step(cache_root, deskewed):
         loc.run(5)
         for k in range(5):
             raw = seq.scan(k)
-            if not deskewed or k < 2:         # no odometry step known before scan 2
+            if not deskewed or k < 2:  # no odometry step known before scan 2
                 np.testing.assert_array_equal(to_rpe[k], raw)
                 continue
             step = loc.odometry.rpe.relative(k - 2, k - 1)

@@ -6,7 +6,6 @@ inside the localizer's steps."""
 import numpy as np
 import pytest
 from helpers import instant_matcher, short_town
-
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
 
@@ -26,8 +25,9 @@ def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root
         instant_matcher(loc, accepted=True)
         real_start, real_resample, real_set = loc.s2m.start, loc.pf.resample_if_needed, loc.pf.set_particle
         # the match starts from the last particle: the slot a shrinking count takes away first
-        loc.s2m.start = lambda k, j, state, scan, localized, *rest: real_start(k, loc.pf.n - 1, loc.pf.states[-1],
-                                                                               scan, localized, *rest)
+        loc.s2m.start = lambda k, j, state, scan, localized, *rest: real_start(
+            k, loc.pf.n - 1, loc.pf.states[-1], scan, localized, *rest
+        )
         protected = {}
 
         def resample_if_needed(protect=None):
@@ -36,6 +36,7 @@ def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root
             if protect is not None:
                 protected[loc.k] = (before, loc.pf.protected_index, loc.pf.n)
             return resampled
+
         written = []
         loc.pf.resample_if_needed = resample_if_needed
         loc.pf.set_particle = lambda j, state: (written.append((loc.k, j, loc.s2m.job)), real_set(j, state))[1]
@@ -45,8 +46,8 @@ def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root
         assert job is not None and job.started_at == 0
         before, index, n = protected[0]
         assert n < 1000, "a converged cloud is resampled to fewer particles"
-        assert index == n - 1 and job.particle == index     # moved into the last slot, and followed
-        np.testing.assert_array_equal(loc.pf.states[index], before)    # the same particle
+        assert index == n - 1 and job.particle == index  # moved into the last slot, and followed
+        np.testing.assert_array_equal(loc.pf.states[index], before)  # the same particle
         loc.run(cfg.s2m.n_s2m)
         landed = [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected", "s2m_cancelled")]
         assert [(e.scan, e.kind) for e in landed][:1] == [(cfg.s2m.n_s2m, "s2m_accepted")]
@@ -69,4 +70,4 @@ def test_dynamic_rejection_runs_in_the_localizer(town, cache_root):
         loc.reset(pose=town.poses[0])
         loc.run(6)
         assert len(loc.records) == 6
-        assert len(seen) >= 5      # every scan whose prior cloud was tight enough to judge by
+        assert len(seen) >= 5  # every scan whose prior cloud was tight enough to judge by

@@ -7,11 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
-
 from lidarloc.core.errors import DataError, LidarlocError
 from lidarloc.core.maps.lookup import LookupTable, load_or_build_lookup
 from lidarloc.core.maps.mapping import PriorMap
+from scipy.spatial import cKDTree
 
 RES = 0.25
 D_MAX = 3.0
@@ -27,8 +26,16 @@ def street_points(seed=0) -> np.ndarray:
     m = 20_000
     facade_a = np.c_[rng.uniform(0, 40, m), np.full(m, 2.0) + rng.normal(0, 0.02, m), rng.uniform(0, 8, m)]
     facade_b = np.c_[rng.uniform(0, 40, m), np.full(m, 27.0) + rng.normal(0, 0.02, m), rng.uniform(0, 6, m)]
-    poles = np.concatenate([np.c_[np.full(500, x) + rng.normal(0, 0.05, 500), np.full(500, y) + rng.normal(0, 0.05, 500),
-                                  rng.uniform(0, 4, 500)] for x, y in [(8, 10), (20, 15), (33, 20)]])
+    poles = np.concatenate(
+        [
+            np.c_[
+                np.full(500, x) + rng.normal(0, 0.05, 500),
+                np.full(500, y) + rng.normal(0, 0.05, 500),
+                rng.uniform(0, 4, 500),
+            ]
+            for x, y in [(8, 10), (20, 15), (33, 20)]
+        ]
+    )
     clutter = rng.uniform([0, 0, 0], [40, 30, 3], (300, 3))
     return np.concatenate([ground, facade_a, facade_b, poles, clutter]).astype(np.float32)
 
@@ -51,13 +58,13 @@ def test_distances_match_kdtree_within_half_cell_diagonal(street):
     truth = np.minimum(tree.query(q, distance_upper_bound=D_MAX + 1)[0], D_MAX)
     got = table.query(q)
     assert got.dtype == np.float32
-    assert (truth < D_MAX).sum() > 20_000 and (truth >= D_MAX).sum() > 2_000   # both sides of the band
+    assert (truth < D_MAX).sum() > 20_000 and (truth >= D_MAX).sum() > 2_000  # both sides of the band
     err = np.abs(got - truth)
     # A query reads its cell's centre node: 1-Lipschitz distance ⇒ ≤ δ·√3/2 from the node, plus the
     # uint8 quantisation (half a step) of the stored value.
     bound = RES * math.sqrt(3) / 2 + table.step / 2 + 1e-6
     assert err.max() <= bound, f"max error {err.max():.4f} m > {bound:.4f} m"
-    assert np.median(err) < RES / 4       # typical error far below the worst case
+    assert np.median(err) < RES / 4  # typical error far below the worst case
 
 
 def test_node_values_are_exact_nearest_distances(street):
@@ -94,7 +101,7 @@ def test_lower_d_max_is_a_read_time_clamp(street):
 
 def test_memory_is_block_sparse(street):
     _, table, _ = street
-    dense = np.prod(table.shape)          # one byte per cell
+    dense = np.prod(table.shape)  # one byte per cell
     assert table.nbytes < dense
     assert table.nbytes == table.brick_index.nbytes + table.bricks.nbytes
 
@@ -117,7 +124,7 @@ def test_cache_is_keyed_reused_for_smaller_d_max_and_rebuilt_when_corrupt(tmp_pa
     assert not cached and fractions and fractions[-1] == pytest.approx(1.0)
     entry = tmp_path / f"lookup-r{RES:g}-d{D_MAX:g}"
     assert (entry / "lookup.json").is_file()
-    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]        # atomic: no leftovers
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]  # atomic: no leftovers
     t2, _, cached = load_or_build_lookup(prior, tmp_path, RES, D_MAX)
     assert cached and np.array_equal(t2.bricks, t1.bricks)
     # a smaller d_max needs no rebuild: the larger table is reused and clamped at read time
@@ -148,8 +155,12 @@ def test_lookup_matches_kdtree_on_the_real_map(kitti_raw_map):
     _, prior, table = kitti_raw_map
     rng = np.random.default_rng(0)
     pts = prior.points
-    q = np.concatenate([pts[rng.integers(0, len(pts), 15_000)] + rng.normal(0, 1.0, (15_000, 3)),
-                        rng.uniform(pts.min(axis=0), pts.max(axis=0), (15_000, 3))])
+    q = np.concatenate(
+        [
+            pts[rng.integers(0, len(pts), 15_000)] + rng.normal(0, 1.0, (15_000, 3)),
+            rng.uniform(pts.min(axis=0), pts.max(axis=0), (15_000, 3)),
+        ]
+    )
     truth = np.minimum(cKDTree(pts).query(q, distance_upper_bound=6.0)[0], 5.0)
     err = np.abs(table.query(q) - truth)
     assert err.max() <= 0.25 * math.sqrt(3) / 2 + table.step / 2 + 1e-6

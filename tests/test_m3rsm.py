@@ -8,10 +8,9 @@ import math
 import numpy as np
 import pytest
 from helpers import random_segments
-
-from lidarloc.core.matching import m3rsm
-from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.errors import LidarlocError
+from lidarloc.core.maps.bev import BEVPyramid
+from lidarloc.core.matching import m3rsm
 
 DEG = math.pi / 180
 
@@ -19,7 +18,7 @@ DEG = math.pi / 180
 def to_sensor(xy_world, x, y, yaw):
     c, s = math.cos(yaw), math.sin(yaw)
     d = xy_world - [x, y]
-    return d @ np.array([[c, -s], [s, c]])   # R(yaw)ᵀ applied to each row
+    return d @ np.array([[c, -s], [s, c]])  # R(yaw)ᵀ applied to each row
 
 
 # ------------------------------------------------------------------------ admissible bounds
@@ -27,18 +26,18 @@ def test_bounds_are_admissible_for_every_block():
     """Level-l bound of a block ≥ the L0 score of every translation in it, including blocks that
     hang over the grid's edges (negative cells) — both bound kinds.
 
-    Admissibility is a property of the search's inner kernels (``_Prepared``, ``_cells``,
-    ``_bound``, …), so this test calls them directly: the public ``match`` shows it only through
+    Admissibility is a property of the search's inner kernels (``_Prepared``, ``angle_cells``,
+    ``bound``, …), so this test calls them directly: the public ``match`` shows it only through
     its result (the exhaustive-optimum test below), and public names for numba kernels that
     nothing else should call would be artificial."""
     rng = np.random.default_rng(7)
     pyr = BEVPyramid.build(random_segments(rng, 12, 30, 12), 1.0, cell_value="sat4")
-    prep = m3rsm._Prepared(pyr, dense_upto=99, strided_from=1)   # both bound kinds at every level
+    prep = m3rsm._Prepared(pyr, dense_upto=99, strided_from=1)  # both bound kinds at every level
     B = m3rsm.scan_cells(rng.uniform(-9, 9, (60, 2)), 1.0)
     angles = np.array([0.3, -2.0])
-    cx, cy = m3rsm._cells(pyr, B, angles, (3.7, 21.2))
+    cx, cy = m3rsm.angle_cells(pyr, B, angles, (3.7, 21.2))
     top = prep.n_levels - 1
-    ex, ey, ec, ew, eoff = m3rsm._level_entries(cx, cy, 1, top)
+    ex, ey, ec, ew, eoff = m3rsm.level_entries(cx, cy, 1, top)
     checked = 0
     for l in range(1, top + 1):
         size = 1 << l
@@ -46,13 +45,13 @@ def test_bounds_are_admissible_for_every_block():
             r = int(rng.integers(len(angles)))
             kx = int(rng.integers(-40, 40)) // size * size
             ky = int(rng.integers(-40, 40)) // size * size
-            exact = max(m3rsm._score_l0(prep.L0, cx[r], cy[r], kx + i, ky + j)
-                        for i in range(size) for j in range(size))
-            strided = m3rsm._bound(prep.G, prep.gnx, prep.gny, prep.goff, l, ex, ey, ec, ew,
-                                   eoff[l, r], eoff[l, r + 1], kx >> l, ky >> l)
-            dense = m3rsm._bound_dense(prep.S, prep.snx, prep.sny, prep.soff, l, cx[r], cy[r], kx, ky)
+            exact = max(m3rsm.score_l0(prep.L0, cx[r], cy[r], kx + i, ky + j) for i in range(size) for j in range(size))
+            strided = m3rsm.bound(
+                prep.G, prep.gnx, prep.gny, prep.goff, l, ex, ey, ec, ew, eoff[l, r], eoff[l, r + 1], kx >> l, ky >> l
+            )
+            dense = m3rsm.bound_dense(prep.S, prep.snx, prep.sny, prep.soff, l, cx[r], cy[r], kx, ky)
             assert strided >= exact and dense >= exact
-            assert dense <= strided          # the stride-1 pooling is the tighter of the two
+            assert dense <= strided  # the stride-1 pooling is the tighter of the two
             checked += exact > 0
     assert checked > 20
 
@@ -65,12 +64,21 @@ def test_branch_and_bound_finds_the_exhaustive_optimum(monkeypatch, dense_upto):
     for seed in range(24):
         rng = np.random.default_rng(1000 * dense_upto + seed)
         xy = random_segments(rng, int(rng.integers(3, 12)), 40, 15) + rng.normal(0, 0.2, (1, 2))
-        pyr = BEVPyramid.build(xy, float(rng.choice([0.5, 1.0])), cell_value=str(rng.choice(["sat4", "binary", "count"])))
+        pyr = BEVPyramid.build(
+            xy, float(rng.choice([0.5, 1.0])), cell_value=str(rng.choice(["sat4", "binary", "count"]))
+        )
         scan = rng.uniform(-12, 12, (int(rng.integers(5, 60)), 2))
         step = float(rng.choice([3.0, 10.0, 30.0])) * DEG
         if seed % 2:
-            args = (pyr, scan, rng.uniform(0, 40, 2), tuple(rng.uniform(1, 12, 2)), rng.uniform(-3, 3),
-                    float(rng.choice([0.5, math.pi])), step)
+            args = (
+                pyr,
+                scan,
+                rng.uniform(0, 40, 2),
+                tuple(rng.uniform(1, 12, 2)),
+                rng.uniform(-3, 3),
+                float(rng.choice([0.5, math.pi])),
+                step,
+            )
             fast, slow = m3rsm.match(*args), m3rsm.exhaustive_match(*args)
         else:
             fast, slow = m3rsm.match_global(pyr, scan, step), m3rsm.exhaustive_match(pyr, scan, angle_step=step)
@@ -121,12 +129,22 @@ def _random_searches(seed):
     """One random map and scan; a local search (with and without a score to beat), a global one,
     and the exhaustive search over the same space as each."""
     rng = np.random.default_rng(seed)
-    pyr = BEVPyramid.build(random_segments(rng, int(rng.integers(3, 12)), 40, 15), float(rng.choice([0.5, 1.0])),
-                           cell_value=str(rng.choice(["sat4", "binary", "count"])))
+    pyr = BEVPyramid.build(
+        random_segments(rng, int(rng.integers(3, 12)), 40, 15),
+        float(rng.choice([0.5, 1.0])),
+        cell_value=str(rng.choice(["sat4", "binary", "count"])),
+    )
     scan = rng.uniform(-12, 12, (int(rng.integers(5, 60)), 2))
     step = float(rng.choice([5.0, 10.0, 30.0])) * DEG
-    local = (pyr, scan, rng.uniform(0, 40, 2), tuple(rng.uniform(1, 12, 2)), rng.uniform(-3, 3),
-             float(rng.choice([0.5, math.pi])), step)
+    local = (
+        pyr,
+        scan,
+        rng.uniform(0, 40, 2),
+        tuple(rng.uniform(1, 12, 2)),
+        rng.uniform(-3, 3),
+        float(rng.choice([0.5, math.pi])),
+        step,
+    )
     return pyr, scan, step, local
 
 
@@ -134,16 +152,18 @@ def _random_searches(seed):
 def test_candidates_are_the_best_leaves_best_first_and_the_first_is_the_result(seed):
     pyr, scan, step, local = _random_searches(seed)
     found = m3rsm.match(*local)
-    searches = [(found, m3rsm.exhaustive_match(*local)),
-                (m3rsm.match_global(pyr, scan, step), m3rsm.exhaustive_match(pyr, scan, angle_step=step))]
+    searches = [
+        (found, m3rsm.exhaustive_match(*local)),
+        (m3rsm.match_global(pyr, scan, step), m3rsm.exhaustive_match(pyr, scan, angle_step=step)),
+    ]
     for bnb, brute in searches:
         for res in (bnb, brute):
             c = res.candidates
             assert c.shape[1] == 4 and 1 <= len(c) <= m3rsm.N_CANDIDATES
-            assert np.all(np.diff(c[:, 3]) <= 0)                     # best first
+            assert np.all(np.diff(c[:, 3]) <= 0)  # best first
             assert tuple(c[0]) == (res.x, res.y, res.yaw, res.score)  # the result itself, exactly
             assert sum(res.nodes_per_level) == res.nodes_expanded
-            assert len({tuple(row[:3]) for row in c}) == len(c)      # each pose once
+            assert len({tuple(row[:3]) for row in c}) == len(c)  # each pose once
         # the exhaustive search's are the search space's best; branch and bound's are among what it scored
         assert len(brute.candidates) == min(m3rsm.N_CANDIDATES, brute.nodes_expanded)
         assert np.all(bnb.candidates[:, 3] <= brute.candidates[: len(bnb.candidates), 3])
@@ -162,10 +182,12 @@ def test_keeping_candidates_changes_no_result(seed):
     for bit (the leaves are only copied aside)."""
     pyr, scan, step, local = _random_searches(100 + seed)
     beat = m3rsm.match(*local).score - 1.0
-    pairs = [(m3rsm.match(*local, keep_candidates=0), m3rsm.match(*local)),
-             (m3rsm.match(*local, min_score=beat, keep_candidates=0), m3rsm.match(*local, min_score=beat)),
-             (m3rsm.match_global(pyr, scan, step, keep_candidates=0), m3rsm.match_global(pyr, scan, step)),
-             (m3rsm.exhaustive_match(*local, keep_candidates=0), m3rsm.exhaustive_match(*local))]
+    pairs = [
+        (m3rsm.match(*local, keep_candidates=0), m3rsm.match(*local)),
+        (m3rsm.match(*local, min_score=beat, keep_candidates=0), m3rsm.match(*local, min_score=beat)),
+        (m3rsm.match_global(pyr, scan, step, keep_candidates=0), m3rsm.match_global(pyr, scan, step)),
+        (m3rsm.exhaustive_match(*local, keep_candidates=0), m3rsm.exhaustive_match(*local)),
+    ]
     for without, kept in pairs:
         assert len(without.candidates) == 0 and len(kept.candidates) > 0
         for f in ("x", "y", "yaw", "score", "nodes_expanded", "nodes_per_level", "n_points", "region", "n_angles"):
@@ -196,8 +218,15 @@ def test_scan_cut_from_the_map_is_recovered_locally_and_globally(seed):
     near = world[np.hypot(world[:, 0] - x, world[:, 1] - y) < 40]
     scan = to_sensor(near, x, y, yaw)
 
-    local = m3rsm.match(pyr, scan, (x + rng.uniform(-20, 20), y + rng.uniform(-20, 20)), (25, 25),
-                        yaw + int(rng.integers(-40, 40)) * d_t, math.pi, d_t)
+    local = m3rsm.match(
+        pyr,
+        scan,
+        (x + rng.uniform(-20, 20), y + rng.uniform(-20, 20)),
+        (25, 25),
+        yaw + int(rng.integers(-40, 40)) * d_t,
+        math.pi,
+        d_t,
+    )
     glob = m3rsm.match_global(pyr, scan, d_t)
     for res in (local, glob):
         assert math.hypot(res.x - x, res.y - y) <= d_m, res

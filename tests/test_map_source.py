@@ -4,7 +4,6 @@ shares a map keeps its own recorded odometry."""
 
 import numpy as np
 from helpers import StreetSequence
-
 from lidarloc.core.config import Config
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.maps.mapping import load_or_build_map

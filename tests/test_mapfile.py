@@ -12,14 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import make_odometry
-from scipy.spatial import cKDTree
-
 from lidarloc.core.config import MapConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.maps.map_source import MapFileSource
 from lidarloc.core.maps.mapfile import read_map
 from lidarloc.core.maps.mapfile_write import write_map, write_map_chunks
 from lidarloc.core.maps.mapping import load_or_build_map
+from scipy.spatial import cKDTree
 
 UTM_SHIFT = np.array([500_000.0, 4_000_000.0, 100.0])
 
@@ -54,7 +53,7 @@ def test_each_format_round_trips_and_drops_non_finite_points(tmp_path, suffix):
         np.savez(path, points=pts, colours=np.zeros((len(pts), 3), np.uint8))
     else:
         write_map(path, pts)
-    got = read_map(path, chunk_points=1234)       # several chunks, the last one partial
+    got = read_map(path, chunk_points=1234)  # several chunks, the last one partial
     finite = np.isfinite(pts).all(axis=1)
     assert (got.n_read, got.n_dropped_nonfinite) == (len(pts), 3)
     assert got.points.dtype == np.float32 and got.points.flags.c_contiguous
@@ -68,7 +67,7 @@ def test_las_and_laz_read_within_their_scale(tmp_path, suffix):
     write_las(tmp_path / f"map{suffix}", pts)
     got = read_map(tmp_path / f"map{suffix}", chunk_points=999)
     assert got.n_read == len(pts) and got.n_dropped_nonfinite == 0
-    assert np.abs(got.points + got.origin - pts).max() <= 0.0005 + 1e-6   # half the 1 mm scale
+    assert np.abs(got.points + got.origin - pts).max() <= 0.0005 + 1e-6  # half the 1 mm scale
 
 
 @pytest.mark.parametrize("suffix", [".pcd", ".ply"])
@@ -89,10 +88,12 @@ def test_ascii_pcd_and_ply_with_extra_fields(tmp_path):
     (tmp_path / "a.pcd").write_text(
         "# .PCD v0.7\nVERSION 0.7\nFIELDS intensity x y z normal\nSIZE 4 4 4 4 4\nTYPE F F F F F\n"
         "COUNT 1 1 1 1 3\nWIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n"
-        "7 1 2 3 0 0 1\n7 nan nan nan 0 0 1\n7 4.5 5.5 6.5 0 0 1\n")
+        "7 1 2 3 0 0 1\n7 nan nan nan 0 0 1\n7 4.5 5.5 6.5 0 0 1\n"
+    )
     (tmp_path / "a.ply").write_text(
         "ply\nformat ascii 1.0\nelement vertex 2\nproperty uchar red\nproperty float x\nproperty float y\n"
-        "property float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n9 1 2 3\n9 4.5 5.5 6.5\n")
+        "property float z\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n9 1 2 3\n9 4.5 5.5 6.5\n"
+    )
     for name in ("a.pcd", "a.ply"):
         got = read_map(tmp_path / name)
         np.testing.assert_array_equal(got.points, np.array([[1, 2, 3], [4.5, 5.5, 6.5]], np.float32))
@@ -105,8 +106,10 @@ def test_binary_pcd_with_padding_and_float64_fields(tmp_path):
     data = np.zeros(4, rec)
     world = cloud(4).astype(np.float64) + UTM_SHIFT
     data["x"], data["y"], data["z"] = world.T
-    header = ("VERSION 0.7\nFIELDS intensity x y z _ _\nSIZE 4 8 8 8 1 2\nTYPE F F F F U U\nCOUNT 1 1 1 1 4 1\n"
-              "WIDTH 2\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA binary\n")
+    header = (
+        "VERSION 0.7\nFIELDS intensity x y z _ _\nSIZE 4 8 8 8 1 2\nTYPE F F F F U U\nCOUNT 1 1 1 1 4 1\n"
+        "WIDTH 2\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA binary\n"
+    )
     path = tmp_path / "pcl.pcd"
     path.write_bytes(header.encode() + data.tobytes())
     got = read_map(path)
@@ -159,7 +162,9 @@ def _bad_files(tmp_path: Path) -> dict:
     p.write_bytes(b"\x00\x01garbage" * 20)
     files["garbage pcd"] = (p, "not a")
     p = tmp_path / "noxyz.pcd"
-    p.write_text("VERSION 0.7\nFIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n")
+    p.write_text(
+        "VERSION 0.7\nFIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n"
+    )
     files["no x/y/z"] = (p, "no x/y/z")
     p = tmp_path / "notply.ply"
     p.write_text("hello\n")
@@ -183,9 +188,22 @@ def _bad_files(tmp_path: Path) -> dict:
     return files
 
 
-BAD = ["unknown extension", "missing file", "empty pcd", "all-NaN ply", "all-NaN npy", "truncated pcd",
-       "garbage pcd", "no x/y/z", "not a ply", "garbage las", "las with no points", "truncated laz", "npy of 2 columns",
-       "npz without points"]
+BAD = [
+    "unknown extension",
+    "missing file",
+    "empty pcd",
+    "all-NaN ply",
+    "all-NaN npy",
+    "truncated pcd",
+    "garbage pcd",
+    "no x/y/z",
+    "not a ply",
+    "garbage las",
+    "las with no points",
+    "truncated laz",
+    "npy of 2 columns",
+    "npz without points",
+]
 
 
 @pytest.mark.parametrize("case", BAD)
@@ -297,8 +315,9 @@ def test_real_kitti_map_shifted_to_utm_keeps_its_local_points(tmp_path, kitti_ra
 # ----------------------------------------------------------------------------- command line
 def cli(*args, cache):
     env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True,
-                          env=env, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
+    )
 
 
 def assert_one_line_error(result, *needles):
@@ -332,8 +351,9 @@ def test_map_info_reports_points_extent_origin_and_density(tmp_path):
 
 def test_map_info_on_a_bad_file_is_one_line(tmp_path):
     (tmp_path / "bad.ply").write_text("nope\n")
-    assert_one_line_error(cli("map", "info", str(tmp_path / "bad.ply"), cache=tmp_path / "cache"),
-                          "bad.ply", "not a PLY")
+    assert_one_line_error(
+        cli("map", "info", str(tmp_path / "bad.ply"), cache=tmp_path / "cache"), "bad.ply", "not a PLY"
+    )
 
 
 def test_map_export_writes_a_sources_map_and_refuses_a_bad_name(tmp_path):

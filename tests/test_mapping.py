@@ -2,7 +2,6 @@
 built once and then read from its cache."""
 
 import numpy as np
-
 from lidarloc.core.config import MapConfig
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.maps.mapping import VoxelAccumulator, flat_surface_mask, load_or_build_map, range_filter
@@ -10,7 +9,7 @@ from lidarloc.core.sequences.base import Limited
 
 
 def test_voxel_accumulator_centroids_and_growth():
-    acc = VoxelAccumulator(1.0, capacity=16)   # tiny capacity forces several table growths
+    acc = VoxelAccumulator(1.0, capacity=16)  # tiny capacity forces several table growths
     rng = np.random.default_rng(1)
     cells = rng.integers(-50, 50, size=(400, 3))
     pts = np.repeat(cells, 3, axis=0) + rng.uniform(0.01, 0.99, size=(1200, 3))
@@ -36,7 +35,7 @@ def test_adding_a_scan_at_a_pose_equals_filtering_and_transforming_it_first():
     direction = rng.normal(size=(30_000, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     ranges = rng.uniform(0.5 * cfg.scan_min_range, 1.2 * cfg.scan_max_range, len(direction))
-    ranges[:20], ranges[20:40] = cfg.scan_min_range, cfg.scan_max_range          # on the limits
+    ranges[:20], ranges[20:40] = cfg.scan_min_range, cfg.scan_max_range  # on the limits
     scan = np.concatenate([direction * ranges[:, None], rng.uniform(0, 1, (len(ranges), 1))], axis=1)
     scan = scan.astype(np.float32)
     fused, reference = VoxelAccumulator(cfg.voxel_size, capacity=64), VoxelAccumulator(cfg.voxel_size, capacity=64)
@@ -53,8 +52,8 @@ def test_road_removal_keeps_walls_drops_road(kitti_raw_seq):
     pts = kitti_raw_seq.scan(10)[:, :3]
     pts = pts[np.linalg.norm(pts, axis=1) < 30]
     flat = flat_surface_mask(pts, MapConfig())
-    road = (pts[:, 2] < -1.4) & (np.linalg.norm(pts[:, :2], axis=1) < 12)   # sensor is 1.73 m above the road
-    tall = pts[:, 2] > 0.5                                                    # above the car roofs: walls, trees
+    road = (pts[:, 2] < -1.4) & (np.linalg.norm(pts[:, :2], axis=1) < 12)  # sensor is 1.73 m above the road
+    tall = pts[:, 2] > 0.5  # above the car roofs: walls, trees
     assert flat[road].mean() > 0.8, "most road points should be removed"
     assert (~flat[tall]).mean() > 0.7, "most wall/tree points should be kept"
 

@@ -2,7 +2,6 @@
 aggregate over runs."""
 
 import numpy as np
-
 from lidarloc.core.runs.metrics import ScanLog, aggregate, compute_metrics
 
 
@@ -32,8 +31,8 @@ def test_false_positive_then_success():
     loc = [(10 <= i < 15) or i >= 30 for i in range(n)]
     err = [80.0 if i < 30 else 3.0 for i in range(n)]
     m = compute_metrics(log(loc, err))
-    assert m["B"] == 11                      # the rule was first met (falsely) at scan 10
-    assert m["A"] == 10 + 15 + 2             # scans 0–9 and 15–29 not localized, 2 localizations
+    assert m["B"] == 11  # the rule was first met (falsely) at scan 10
+    assert m["A"] == 10 + 15 + 2  # scans 0–9 and 15–29 not localized, 2 localizations
     assert m["C"] == 31 and m["D"] == 31 and m["E"] is None
 
 
@@ -43,8 +42,8 @@ def test_loss_then_relocalization():
     err = [2.0 if (10 <= i < 55) or i >= 85 else 60.0 for i in range(n)]
     m = compute_metrics(log(loc, err))
     assert m["B"] == 11 and m["A"] == 10 + 20 + 2
-    assert m["C"] == 11                      # [10, 20] within 5 m
-    assert m["D"] == 86                      # 10..54 is only 45 long; the next window starts at 85
+    assert m["C"] == 11  # [10, 20] within 5 m
+    assert m["D"] == 86  # 10..54 is only 45 long; the next window starts at 85
     assert m["E"] == 86
 
 

@@ -14,7 +14,6 @@ import sys
 import numpy as np
 import pytest
 from bagfixtures import N_SCANS, kitti_drive, kitti_recordings, write_pcd_folder, write_tum  # noqa: F401
-
 from lidarloc.core.config import Config
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
@@ -64,8 +63,7 @@ def run(spec: SourceSpec, out, cache_root, seed: int = 0) -> dict:
 def reference(kitti_raw_dir, drive_maps, cache_root, tmp_path_factory):
     """The KITTI raw reader's run over the recordings' scans, in the drive's map file."""
     out = tmp_path_factory.mktemp("reference")
-    spec = SourceSpec(kitti_raw=kitti_raw_dir, date="2011_09_26", drive="0013", scans=N_SCANS,
-                      map=drive_maps["local"])
+    spec = SourceSpec(kitti_raw=kitti_raw_dir, date="2011_09_26", drive="0013", scans=N_SCANS, map=drive_maps["local"])
     return run(spec, out, cache_root), out
 
 
@@ -77,16 +75,16 @@ def trajectory(out, name="trajectory_kitti.txt") -> np.ndarray:
 # ------------------------------------------------------------------------- same trajectory
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["ros1", "sqlite3", "pcd"])
-def test_recordings_localize_like_the_kitti_reader(kind, kitti_recordings, drive_maps, reference, cache_root,
-                                                   tmp_path):
+def test_recordings_localize_like_the_kitti_reader(kind, kitti_recordings, drive_maps, reference, cache_root, tmp_path):
     ref_summary, ref_out = reference
     source = {"scans_dir": kitti_recordings["pcd"]} if kind == "pcd" else {"bag": kitti_recordings[kind]}
     spec = SourceSpec(**source, gt=kitti_recordings["tum"], map=drive_maps["local"])
     summary = run(spec, tmp_path, cache_root)
     assert summary["scans"] == N_SCANS
     np.testing.assert_allclose(trajectory(tmp_path), trajectory(ref_out), atol=1e-6)
-    np.testing.assert_allclose(trajectory(tmp_path, "groundtruth_kitti.txt"),
-                               trajectory(ref_out, "groundtruth_kitti.txt"), atol=1e-5)
+    np.testing.assert_allclose(
+        trajectory(tmp_path, "groundtruth_kitti.txt"), trajectory(ref_out, "groundtruth_kitti.txt"), atol=1e-5
+    )
     assert summary["localized_at_scan"] == ref_summary["localized_at_scan"]
     assert summary["rmse_after_localized_m"] == pytest.approx(ref_summary["rmse_after_localized_m"], abs=1e-6)
 
@@ -98,10 +96,30 @@ def test_lidarloc_run_from_an_mcap_bag(kitti_recordings, drive_maps, reference, 
 
     ref_summary, ref_out = reference
     out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "lidarloc.app.cli", "run", "--bag", str(kitti_recordings["mcap"]),
-                        "--map", str(drive_maps["local"]), "--gt", str(kitti_recordings["tum"]), "--out", str(out),
-                        "--set", f"pf.n_particles={PARTICLES}", "--cache", str(cache_root), "--json"],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lidarloc.app.cli",
+            "run",
+            "--bag",
+            str(kitti_recordings["mcap"]),
+            "--map",
+            str(drive_maps["local"]),
+            "--gt",
+            str(kitti_recordings["tum"]),
+            "--out",
+            str(out),
+            "--set",
+            f"pf.n_particles={PARTICLES}",
+            "--cache",
+            str(cache_root),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["scans"] == N_SCANS and summary["frame_mismatch"] == []
@@ -110,13 +128,14 @@ def test_lidarloc_run_from_an_mcap_bag(kitti_recordings, drive_maps, reference, 
 
 
 @pytest.mark.slow
-def test_a_utm_map_localizes_with_the_same_error_and_utm_results(kitti_recordings, drive_maps, utm_truth,
-                                                                 reference, cache_root, tmp_path):
+def test_a_utm_map_localizes_with_the_same_error_and_utm_results(
+    kitti_recordings, drive_maps, utm_truth, reference, cache_root, tmp_path
+):
     ref_summary, ref_out = reference
     spec = SourceSpec(bag=kitti_recordings["mcap"], gt=utm_truth, map=drive_maps["utm"])
     summary = run(spec, tmp_path, cache_root)
     origin = np.array(summary["map_origin_m"])
-    assert np.abs(origin[:2]).min() > 1e5          # the localizer worked in a local frame
+    assert np.abs(origin[:2]).min() > 1e5  # the localizer worked in a local frame
     assert summary["localized_at_scan"] is not None
     # the local frame is the file's minus a rounded origin: float32 map points land on other
     # roundings and lookup cells than in the drive's frame, so the run differs a little
@@ -125,7 +144,7 @@ def test_a_utm_map_localizes_with_the_same_error_and_utm_results(kitti_recording
     assert (tum[:, 1] > 4.9e5).all() and (tum[:, 2] > 3.9e6).all()
     np.testing.assert_allclose(tum[:, 1:4] - UTM_SHIFT, ref_tum[:, 1:4], atol=0.5)
     kitti = trajectory(tmp_path)
-    np.testing.assert_allclose(kitti[:, [3, 7, 11]], tum[:, 1:4], atol=1e-5)   # full precision in both
+    np.testing.assert_allclose(kitti[:, [3, 7, 11]], tum[:, 1:4], atol=1e-5)  # full precision in both
     # the truth goes back out in the map's frame at full precision
     gt = trajectory(tmp_path, "groundtruth_tum.txt")
     np.testing.assert_allclose(gt[:, 1:4] - UTM_SHIFT, trajectory(ref_out, "groundtruth_tum.txt")[:, 1:4], atol=1e-5)
@@ -148,12 +167,13 @@ def test_without_truth_run_writes_no_errors(kitti_recordings, drive_maps, refere
 # ------------------------------------------------------------------------------ --init
 @pytest.mark.slow
 @pytest.mark.parametrize("frame", ["local", "utm"])
-def test_init_starts_the_particles_around_the_given_pose(frame, kitti_recordings, kitti_drive, utm_truth,
-                                                         drive_maps, cache_root):
+def test_init_starts_the_particles_around_the_given_pose(
+    frame, kitti_recordings, kitti_drive, utm_truth, drive_maps, cache_root
+):
     from lidarloc.core.localizer import Localizer
 
     pose = kitti_drive[2][0]
-    x, y = pose[:2, 3] + (1.0, -0.5)                   # a guess a metre or so off, in the map's frame
+    x, y = pose[:2, 3] + (1.0, -0.5)  # a guess a metre or so off, in the map's frame
     if frame == "utm":
         x, y = x + UTM_SHIFT[0], y + UTM_SHIFT[1]
     yaw_deg = np.degrees(np.arctan2(pose[1, 0], pose[0, 0])) + 3.0
@@ -172,7 +192,7 @@ def test_init_starts_the_particles_around_the_given_pose(frame, kitti_recordings
         assert [e.kind for e in loc.events] == ["initial_guess"]
         snap = loc.run(N_SCANS)
         assert snap.error_m is not None and snap.error_m < 1.5
-        loc.restart()                                     # every start is around the guess
+        loc.restart()  # every start is around the guess
         assert np.linalg.norm(loc.pf.states[:, :2].mean(axis=0) - (np.array([x, y]) - origin[:2])) < 0.3
 
 
@@ -202,10 +222,14 @@ def test_bad_combinations_are_one_line_each(kitti_recordings, drive_maps, cache_
         (["run", "--bag", bag, "--map", tum], "cannot read a map of this type"),
         (["run", "--bag", bag, "--gt", tum, "--init", "1,2"], "--init takes x,y,yaw"),
         (["run", "--bag", bag, "--gt", tum, "--init", "1,2,3,0,5"], "σ_xy and σ_yaw must be > 0"),
-        (["run", "--bag", bag, "--map", drive_maps["local"], "--init", "5000,5000,0", "--cache", cache_root],
-         "no map point within"),
-        (["map", "build", "--bag", bag, "--map", drive_maps["local"], "--out", tmp_path / "m.pcd"],
-         "no ground-truth poses"),
+        (
+            ["run", "--bag", bag, "--map", drive_maps["local"], "--init", "5000,5000,0", "--cache", cache_root],
+            "no map point within",
+        ),
+        (
+            ["map", "build", "--bag", bag, "--map", drive_maps["local"], "--out", tmp_path / "m.pcd"],
+            "no ground-truth poses",
+        ),
     ]
     for args, needle in cases:
         if args[0] in ("run", "inspect"):
@@ -217,13 +241,26 @@ def test_bad_combinations_are_one_line_each(kitti_recordings, drive_maps, cache_
 
 
 # ------------------------------------------------------------------------------ map build
-def test_map_build_writes_a_map_file_and_its_road_removed_layer(kitti_recordings, cache_root, capsys, monkeypatch,
-                                                                tmp_path):
+def test_map_build_writes_a_map_file_and_its_road_removed_layer(
+    kitti_recordings, cache_root, capsys, monkeypatch, tmp_path
+):
     from lidarloc.core.maps.mapfile import read_map
 
     out = tmp_path / "built.pcd"
-    code, err = lidarloc(capsys, monkeypatch, "map", "build", "--bag", kitti_recordings["ros1"],
-                         "--gt", kitti_recordings["tum"], "--out", out, "--cache", cache_root)
+    code, err = lidarloc(
+        capsys,
+        monkeypatch,
+        "map",
+        "build",
+        "--bag",
+        kitti_recordings["ros1"],
+        "--gt",
+        kitti_recordings["tum"],
+        "--out",
+        out,
+        "--cache",
+        cache_root,
+    )
     assert code in (0, None), err
     both = read_map(out).points
     road_removed = read_map(tmp_path / "built_road_removed.pcd").points
@@ -245,8 +282,9 @@ def test_scans_in_another_frame_are_reported(kitti_drive, drive_maps, cache_root
     folder = write_pcd_folder(tmp_path / "mm", [np.c_[s[:, :3] * 1000.0, s[:, 3:]] for s in scans[:12]], times[:12])
     cfg = small_cfg()
     cfg.s2m.enabled = False
-    summary, _ = run_headless(SourceSpec(scans_dir=folder, map=drive_maps["local"]), cfg, tmp_path / "out",
-                              cache_root=cache_root)
+    summary, _ = run_headless(
+        SourceSpec(scans_dir=folder, map=drive_maps["local"]), cfg, tmp_path / "out", cache_root=cache_root
+    )
     assert len(summary["frame_mismatch"]) == 1 and "different frames" in summary["frame_mismatch"][0]
     assert "warning: over the first 10 scans" in capsys.readouterr().err
 
@@ -303,8 +341,14 @@ def test_kitti_format_truth_with_its_times_file(kitti_recordings, kitti_drive, d
     _, times, poses = kitti_drive
     np.savetxt(tmp_path / "poses.txt", poses[:, :3, :4].reshape(len(poses), 12), fmt="%.15e")
     (tmp_path / "times.txt").write_text("".join(seconds_text(t) + "\n" for t in times))
-    kitti = open_sequence(SourceSpec(bag=kitti_recordings["mcap"], gt=tmp_path / "poses.txt",
-                                     gt_times=tmp_path / "times.txt", map=drive_maps["local"]))
+    kitti = open_sequence(
+        SourceSpec(
+            bag=kitti_recordings["mcap"],
+            gt=tmp_path / "poses.txt",
+            gt_times=tmp_path / "times.txt",
+            map=drive_maps["local"],
+        )
+    )
     tum = open_sequence(SourceSpec(bag=kitti_recordings["mcap"], gt=kitti_recordings["tum"], map=drive_maps["local"]))
     kitti.use_map_origin(np.zeros(3))
     tum.use_map_origin(np.zeros(3))

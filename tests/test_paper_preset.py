@@ -9,17 +9,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from helpers import short_town
-
-from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.config import Config, apply_preset
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.localizer import Localizer
+from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap
 from lidarloc.core.matching.s2m import S2MOutcome, ScanToMapMatcher
 
-SHIFT_M = 15.0          # how far the stub's "match" is from the pose it started at
+SHIFT_M = 15.0  # how far the stub's "match" is from the pose it started at
 
 
 @pytest.fixture(scope="module")
@@ -31,10 +29,12 @@ def wrong_matcher(loc):
     """The in-process matcher replaced by one that answers at once with an "accepted" match
     SHIFT_M metres across the street from its start and turned by 90°: a failed match that the
     BEV score let through."""
+
     def match(scan, pose, level=False):
         wrong = np.asarray(pose, float) @ pose_matrix(0.0, 0.0, 0.0, math.pi / 2, 0.0, 0.0)
         wrong[1, 3] += SHIFT_M
         return S2MOutcome(accepted=True, pose=wrong, score=2.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
+
     loc.s2m.matcher.match_local = match
 
 
@@ -52,8 +52,9 @@ def place_particles(loc, town, pose):
     """Every particle at ``pose`` (4×4), driving at the drive's speed with no turn rates."""
     loc.reset(pose=pose)
     loc.pf.states[:, :6] = pose_to_xyz_ypr(pose)
-    loc.pf.states[:, 6] = np.linalg.norm(town.poses[1][:3, 3] - town.poses[0][:3, 3]) / (town.timestamps[1] -
-                                                                                          town.timestamps[0])
+    loc.pf.states[:, 6] = np.linalg.norm(town.poses[1][:3, 3] - town.poses[0][:3, 3]) / (
+        town.timestamps[1] - town.timestamps[0]
+    )
     loc.pf.states[:, 7:] = 0.0
 
 
@@ -82,6 +83,7 @@ def land_wrong_match(town, cache_root, preset):
             if loc.k == landing:
                 seen["landed"] = (loc.pf.states[j].copy(), loc.pf.log_weights.copy())
             return real_resample(protect=protect)
+
         loc.pf.update, loc.pf.resample_if_needed = update, resample_if_needed
         loc.run(landing)
         event = next(e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected"))
@@ -98,7 +100,7 @@ def test_paper_preset_rejects_a_match_that_lowers_the_weight(town, cache_root):
     assert not view.accepted and view.reason.startswith("lowers the particle's weight")
     state_before, weights_before = seen["updated"]
     state_after, weights_after = seen["landed"]
-    np.testing.assert_array_equal(state_after, state_before)      # the particle keeps its state …
+    np.testing.assert_array_equal(state_after, state_before)  # the particle keeps its state …
     np.testing.assert_array_equal(weights_after, weights_before)  # … and every weight stays
 
 
@@ -118,12 +120,15 @@ def test_a_match_that_raises_the_weight_is_accepted_by_the_paper_preset(town, ca
     the truth back onto it is accepted."""
     loc = make(town, cache_root, "paper")
     try:
+
         def to_truth(scan, pose, level=False):
-            return S2MOutcome(accepted=True, pose=town.poses[0].copy(), score=2.0, start_score=1.0,
-                              region=(0, 0, 1, 1), ms=1.0)
+            return S2MOutcome(
+                accepted=True, pose=town.poses[0].copy(), score=2.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0
+            )
+
         loc.s2m.matcher.match_local = to_truth
         start = town.poses[0].copy()
-        start[1, 3] += 4.0                  # every particle 4 m across the street from the truth
+        start[1, 3] += 4.0  # every particle 4 m across the street from the truth
         place_particles(loc, town, start)
         loc.run(1 + loc.cfg.s2m.n_s2m)
         event = next(e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected"))
@@ -150,8 +155,12 @@ def scene():
             walls.append(np.c_[xy, np.full(n, z)])
     walls = np.concatenate(walls)
     walls = walls[(walls[:, :2] >= 0).all(1) & (walls[:, :2] <= 140).all(1)]
-    return PriorMap(points=np.concatenate([ground, walls]).astype(np.float32),
-                    points_bev=walls.astype(np.float32), voxel_size=0.2, source="synthetic")
+    return PriorMap(
+        points=np.concatenate([ground, walls]).astype(np.float32),
+        points_bev=walls.astype(np.float32),
+        voxel_size=0.2,
+        source="synthetic",
+    )
 
 
 @pytest.mark.parametrize("preset", ["paper", "default"])
@@ -159,8 +168,7 @@ def test_unbeaten_start_is_refined_only_outside_the_paper_preset(scene, preset):
     """The search is cut down to the start itself (region below one cell, no yaw window, the
     start's yaw on the lattice), so no lattice pose can beat it. The paper rejects it outright;
     the default refines the start by GICP and accepts the refined pose, which scores higher."""
-    s2m = replace(apply_preset(Config(), preset).s2m, binary_cells=True, region_x=0.4, region_y=0.4,
-                  yaw_window=0.0)
+    s2m = replace(apply_preset(Config(), preset).s2m, binary_cells=True, region_x=0.4, region_y=0.4, yaw_window=0.0)
     matcher = ScanToMapMatcher(scene, BEVPyramid.build(scene.points_bev, 1.0, binary=True), s2m)
     yaw = -math.pi + 100 * s2m.angle_step
     truth = pose_matrix(70.3, 64.6, 1.7, yaw, 0.0, 0.0)

@@ -7,14 +7,13 @@ import math
 import numpy as np
 import pytest
 from helpers import paper_pf, toy_scan
-
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import pose_matrix, wrap_angle
 from lidarloc.core.filter.likelihood import log_likelihood
 from lidarloc.core.filter.motion import propagate
 from lidarloc.core.filter.pf import ParticleFilter, systematic_resample
-from lidarloc.core.filter.support import SupportGrid
 from lidarloc.core.filter.scanprep import voxel_downsample_random
+from lidarloc.core.filter.support import SupportGrid
+from lidarloc.core.geometry import pose_matrix, wrap_angle
 
 DEG = math.pi / 180
 ZERO_Q = np.zeros(11)
@@ -25,8 +24,9 @@ def planar_cfg(**kw):
     q = np.zeros(11)
     q[0] = q[1] = 0.3
     q[6] = 0.1
-    base = dict(n_particles=2000, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, v_max=2.0,
-                q_std=tuple(q))
+    base = dict(
+        n_particles=2000, init_yaw=0.0, init_pitch=0.0, init_roll=0.0, init_rate_std=0.0, v_max=2.0, q_std=tuple(q)
+    )
     base.update(kw)
     return paper_pf(**base)
 
@@ -65,17 +65,17 @@ def test_resampling_keeps_the_protected_particle(toy_world):
     cfg = paper_pf(n_particles=500)
     pf = ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0)
     lw = np.full(500, -50.0)
-    lw[:5] = 0.0                                                 # five particles hold all weight
+    lw[:5] = 0.0  # five particles hold all weight
     pf.log_weights = lw - np.log(np.exp(lw).sum())
-    protected = 321                                              # a particle of weight ≈ e^−50
+    protected = 321  # a particle of weight ≈ e^−50
     kept = pf.states[protected].copy()
     heavy = pf.states[:5].copy()
     assert pf.resample_if_needed(protect=protected)
-    np.testing.assert_array_equal(pf.states[protected], kept)    # survives, at its own index
+    np.testing.assert_array_equal(pf.states[protected], kept)  # survives, at its own index
     copies_of_heavy = np.all(pf.states[:, None] == heavy[None], axis=2).any(axis=1)
     assert copies_of_heavy.sum() == 499 and not copies_of_heavy[protected]
     assert pf.n_eff() == pytest.approx(500)
-    assert not pf.resample_if_needed(protect=protected)          # N_eff = N: nothing to do
+    assert not pf.resample_if_needed(protect=protected)  # N_eff = N: nothing to do
 
 
 def test_set_n_particles_resamples_to_the_new_count(toy_world):
@@ -129,13 +129,13 @@ def test_map_support_init_stays_on_the_map_at_sensor_height(toy_world):
     pf = ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0, map_points=part)
     s = pf.states
     assert s[:, 0].max() <= 10.5
-    assert np.all(np.abs(s[:, 2] - cfg.sensor_height) < 0.01)   # ground at z = 0 everywhere
+    assert np.all(np.abs(s[:, 2] - cfg.sensor_height) < 0.01)  # ground at z = 0 everywhere
     assert np.abs(s[:, 4]).max() < math.radians(10) and np.abs(s[:, 5]).max() < math.radians(10)
     grid = SupportGrid.from_points(part)
     pf2 = ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0, support=grid)
     np.testing.assert_array_equal(pf2.states, s)
     with pytest.raises(LidarlocError):
-        ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0)   # no map for map_support
+        ParticleFilter(cfg, table, [0, 0, 0], [40, 40, 4], seed=0)  # no map for map_support
 
 
 def test_initialize_in_region_and_around_pose(toy_world):
@@ -158,7 +158,7 @@ def test_estimate_mean_covariance_ellipse(toy_world):
     pf.states = np.zeros((4, 11))
     pf.states[:, 0] = [0, 2, 0, 2]
     pf.states[:, 1] = [0, 0, 1, 1]
-    pf.states[:, 3] = [math.pi - 0.1, -math.pi + 0.1, math.pi - 0.1, -math.pi + 0.1]   # circular mean: π
+    pf.states[:, 3] = [math.pi - 0.1, -math.pi + 0.1, math.pi - 0.1, -math.pi + 0.1]  # circular mean: π
     pf.log_weights = np.log(np.full(4, 0.25))
     est = pf.estimate()
     np.testing.assert_allclose(est.state[:2], [1.0, 0.5])
@@ -192,18 +192,18 @@ def test_live_parameters_take_effect_at_the_next_update(toy_world):
     pf = ParticleFilter(paper_pf(n_particles=50), table, [0, 0, 0], [40, 40, 4], seed=0)
     pf.initialize(pose=pose_matrix(12, 10, 1.7, 0, 0, 0), pose_std=2.0)
     states = pf.states.copy()
-    pf.set_d_max(2.0)                      # below the built 5 m: no rebuild
+    pf.set_d_max(2.0)  # below the built 5 m: no rebuild
     pf.set_sigma(0.8)
     pf.update(scan)
     expected = log_likelihood(states, scan, table, 2.0, 0.8)
     keep = expected > expected.max() - 800
     np.testing.assert_allclose(pf.log_likelihoods[keep], expected[keep], rtol=1e-6)
-    pf.set_d_max(50.0)                     # beyond the table: capped at the built value
+    pf.set_d_max(50.0)  # beyond the table: capped at the built value
     assert pf.d_max == table.d_max_built
     pf.set_q_std(np.zeros(11))
     before = pf.states.copy()
     pf.predict(0.1)
-    np.testing.assert_allclose(pf.states[:, 6], before[:, 6])   # no noise now
+    np.testing.assert_allclose(pf.states[:, 6], before[:, 6])  # no noise now
     with pytest.raises(LidarlocError):
         pf.set_sigma(0.0)
     with pytest.raises(LidarlocError):
@@ -221,7 +221,7 @@ def test_set_particle_and_reweight(toy_world):
     j = int(np.argmin(pf.log_weights))
     pf.set_particle(j, truth)
     ll = pf.reweight(j)
-    assert pf.estimate().best_index == j                         # the corrected particle now dominates
+    assert pf.estimate().best_index == j  # the corrected particle now dominates
     assert ll == pytest.approx(log_likelihood(truth[None], scan, table, 5.0, 0.5)[0], rel=1e-6)
     assert pf.weights.sum() == pytest.approx(1.0)
 
@@ -231,8 +231,11 @@ def test_filter_step_on_real_scans_tracks_from_near_the_truth(kitti_raw_map):
     seq, prior, table = kitti_raw_map
     lo, hi = prior.bounds
     pf = ParticleFilter(paper_pf(n_particles=500), table, lo, hi, seed=0, map_points=prior.points)
-    pf.initialize(pose=seq.pose(10), pose_std=(1.0, 1.0, 0.2, 3 * DEG, 1 * DEG, 1 * DEG),
-                  speed=float(np.linalg.norm(seq.pose(11)[:3, 3] - seq.pose(10)[:3, 3]) / 0.1))
+    pf.initialize(
+        pose=seq.pose(10),
+        pose_std=(1.0, 1.0, 0.2, 3 * DEG, 1 * DEG, 1 * DEG),
+        speed=float(np.linalg.norm(seq.pose(11)[:3, 3] - seq.pose(10)[:3, 3]) / 0.1),
+    )
     errors = []
     for k in range(11, 31):
         scan = voxel_downsample_random(seq.scan(k), 0.5, k)

@@ -5,7 +5,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.pointcloud2 import cloud_dtype, to_xyzi
 
@@ -21,19 +20,34 @@ def message(points: np.ndarray, height: int = 1, row_pad: int = 0, bigendian: bo
     buf = np.full((height, width * dt.itemsize + row_pad), 0xCD, dtype=np.uint8)
     buf[:, : rows.shape[1]] = rows
     if fields is None:
-        fields = [SimpleNamespace(name=n, offset=dt.fields[n][1], datatype=CODES[dt.fields[n][0].base.str[1:]],
-                                  count=int(np.prod(dt.fields[n][0].shape)) or 1) for n in dt.names]
-    return SimpleNamespace(height=height, width=width, fields=fields, is_bigendian=bigendian,
-                           point_step=dt.itemsize, row_step=width * dt.itemsize + row_pad,
-                           data=buf.reshape(-1), is_dense=False)
+        fields = [
+            SimpleNamespace(
+                name=n,
+                offset=dt.fields[n][1],
+                datatype=CODES[dt.fields[n][0].base.str[1:]],
+                count=int(np.prod(dt.fields[n][0].shape)) or 1,
+            )
+            for n in dt.names
+        ]
+    return SimpleNamespace(
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=bigendian,
+        point_step=dt.itemsize,
+        row_step=width * dt.itemsize + row_pad,
+        data=buf.reshape(-1),
+        is_dense=False,
+    )
 
 
 def structured(spec, n, itemsize=None, order="<", rng=None):
     names = [s[0] for s in spec]
     formats = [order + s[1] if isinstance(s[1], str) else (order + s[1][0], s[1][1]) for s in spec]
     offsets = [s[2] for s in spec]
-    dt = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                   **({"itemsize": itemsize} if itemsize else {})})
+    dt = np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, **({"itemsize": itemsize} if itemsize else {})}
+    )
     arr = np.zeros(n, dtype=dt)
     rng = rng or np.random.default_rng(0)
     for name in names:
@@ -54,8 +68,15 @@ def test_dense_float32_xyzi_is_read_exactly():
 
 def test_float64_xyz_and_extra_fields_in_any_order():
     # ring and t before the coordinates, a 3-element field, intensity as uint16
-    spec = [("ring", "u2", 0), ("t", "f8", 2), ("normal", ("f4", (3,)), 10), ("x", "f8", 22), ("y", "f8", 30),
-            ("z", "f8", 38), ("intensity", "u2", 46)]
+    spec = [
+        ("ring", "u2", 0),
+        ("t", "f8", 2),
+        ("normal", ("f4", (3,)), 10),
+        ("x", "f8", 22),
+        ("y", "f8", 30),
+        ("z", "f8", 38),
+        ("intensity", "u2", 46),
+    ]
     arr = structured(spec, 500)
     out = to_xyzi(message(arr))
     np.testing.assert_array_equal(out[:, 0], arr["x"].astype(np.float32))
@@ -74,8 +95,15 @@ def test_big_endian_cloud():
 
 def test_padded_organised_cloud_drops_missing_returns_and_keeps_order():
     """Ouster: 48-byte points, 16 rows, row padding; cells without a return are NaN or all-zero."""
-    spec = [("x", "f4", 0), ("y", "f4", 4), ("z", "f4", 8), ("intensity", "f4", 16), ("t", "u4", 20),
-            ("reflectivity", "u2", 24), ("ring", "u2", 26)]
+    spec = [
+        ("x", "f4", 0),
+        ("y", "f4", 4),
+        ("z", "f4", 8),
+        ("intensity", "f4", 16),
+        ("t", "u4", 20),
+        ("reflectivity", "u2", 24),
+        ("ring", "u2", 26),
+    ]
     arr = structured(spec, 16 * 64, itemsize=48)
     rng = np.random.default_rng(1)
     missing = rng.random(len(arr)) < 0.2
@@ -109,19 +137,24 @@ def test_dtype_itemsize_is_point_step():
     assert cloud_dtype(message(arr)).itemsize == 32
 
 
-@pytest.mark.parametrize("case, words", [
-    ("no_xyz", ["no x/y/z fields", "rgb", "label"]),
-    ("bad_datatype", ["unknown PointField datatype 9"]),
-    ("field_outside_point", ["does not fit in point_step"]),
-    ("truncated", ["truncated"]),
-    ("short_row_step", ["row_step"]),
-])
+@pytest.mark.parametrize(
+    "case, words",
+    [
+        ("no_xyz", ["no x/y/z fields", "rgb", "label"]),
+        ("bad_datatype", ["unknown PointField datatype 9"]),
+        ("field_outside_point", ["does not fit in point_step"]),
+        ("truncated", ["truncated"]),
+        ("short_row_step", ["row_step"]),
+    ],
+)
 def test_bad_clouds_are_one_line_errors(case, words):
     arr = structured([("x", "f4", 0), ("y", "f4", 4), ("z", "f4", 8)], 20)
     msg = message(arr)
     if case == "no_xyz":
-        msg.fields = [SimpleNamespace(name="rgb", offset=0, datatype=7, count=1),
-                      SimpleNamespace(name="label", offset=4, datatype=6, count=1)]
+        msg.fields = [
+            SimpleNamespace(name="rgb", offset=0, datatype=7, count=1),
+            SimpleNamespace(name="label", offset=4, datatype=6, count=1),
+        ]
     elif case == "bad_datatype":
         msg.fields[1].datatype = 9
     elif case == "field_outside_point":

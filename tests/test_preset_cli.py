@@ -8,21 +8,49 @@ import sys
 
 import pytest
 import typer
-
 from lidarloc.core.config import PRESETS
 
 # A small town (100 m, a 40-scan mapping drive) keeps the map build to seconds.
 SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
 # The commands with a configuration; bench robustness runs the presets as one of its axes instead.
-WITH_PRESET = {("demo",), ("view",), ("run",), ("synth",), ("inspect",), ("map", "build"), ("map", "export"), *[
-    ("bench", b) for b in ("town", "map", "pf", "s2m", "rpe", "viewer", "startup", "stop", "localize", "surface",
-                           "bag", "record", "branch", "scrub", "filter", "peers", "integrity")]}
+WITH_PRESET = {
+    ("demo",),
+    ("view",),
+    ("run",),
+    ("synth",),
+    ("inspect",),
+    ("map", "build"),
+    ("map", "export"),
+    *[
+        ("bench", b)
+        for b in (
+            "town",
+            "map",
+            "pf",
+            "s2m",
+            "rpe",
+            "viewer",
+            "startup",
+            "stop",
+            "localize",
+            "surface",
+            "bag",
+            "record",
+            "branch",
+            "scrub",
+            "filter",
+            "peers",
+            "integrity",
+        )
+    ],
+}
 
 
 def cli(*args, cache):
     env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run([sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True,
-                          env=env, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
+    )
 
 
 def _commands(group, prefix=()):
@@ -46,7 +74,7 @@ def test_every_command_with_a_configuration_takes_preset():
 def test_preset_comes_before_the_config_file_and_set(tmp_path):
     from lidarloc.app.options import config_from
 
-    assert PRESETS["paper"]["s2m.reject_if_weight_drops"] is True     # the entry this test follows
+    assert PRESETS["paper"]["s2m.reject_if_weight_drops"] is True  # the entry this test follows
     assert config_from(None, None).s2m.reject_if_weight_drops is False
     assert config_from(None, None, preset="default").s2m.reject_if_weight_drops is False
     assert config_from(None, None, preset="paper").s2m.reject_if_weight_drops is True
@@ -63,7 +91,7 @@ def test_the_world_comes_after_the_preset_and_before_the_config_file_and_set(tmp
 
     lived_in = config_from(None, None, preset="paper", world="lived-in")
     assert (lived_in.town.changes, lived_in.town.traffic, lived_in.town.skew) == (0.3, True, True)
-    assert lived_in.pf.temperature == 1.0                       # the preset is still applied
+    assert lived_in.pf.temperature == 1.0  # the preset is still applied
     kind = config_from(None, None, world="kind")
     assert (kind.town.changes, kind.town.traffic, kind.town.skew) == (0.0, False, False) and WORLDS["kind"] == {}
     f = tmp_path / "c.yaml"
@@ -113,9 +141,25 @@ def test_a_bad_preset_is_one_line(tmp_path, command):
 def test_bench_s2m_matches_a_lived_in_drive_unless_told_kind(tmp_path, cache_root):
     worlds = {}
     for world in ("lived-in", "kind"):
-        r = cli("bench", "s2m", "--world", world, "--matches", "3", "--no-gicp-comparison", "--scans", "12",
-                *SMALL_TOWN, "--json", cache=cache_root)
+        r = cli(
+            "bench",
+            "s2m",
+            "--world",
+            world,
+            "--matches",
+            "3",
+            "--no-gicp-comparison",
+            "--scans",
+            "12",
+            *SMALL_TOWN,
+            "--json",
+            cache=cache_root,
+        )
         assert r.returncode == 0, r.stderr
         worlds[world] = json.loads(r.stdout)["world"]
-    assert (worlds["lived-in"]["changes"], worlds["lived-in"]["traffic"], worlds["lived-in"]["skew"]) == (0.3, True, True)
+    assert (worlds["lived-in"]["changes"], worlds["lived-in"]["traffic"], worlds["lived-in"]["skew"]) == (
+        0.3,
+        True,
+        True,
+    )
     assert (worlds["kind"]["changes"], worlds["kind"]["traffic"], worlds["kind"]["skew"]) == (0.0, False, False)

@@ -5,9 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from lidarloc.core.runs import recording
 from lidarloc.core.config import Config
+from lidarloc.core.runs import recording
 from lidarloc.core.runs.recording import RecordingError, RecordingWriter, ResumePayload
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -40,7 +39,7 @@ def test_every_step_reads_back_as_the_localizer_reported_it(recorded):
     assert rec.path == run / "recording" and rec.run_dir == run
     for i, snap in enumerate(snaps):
         assert rec.scan_index[i] == snap.scan_index
-        assert np.array_equal(rec.mean_pose[i], snap.mean_pose)       # float64 kept exactly
+        assert np.array_equal(rec.mean_pose[i], snap.mean_pose)  # float64 kept exactly
         assert np.array_equal(rec.cov_xyz[i], snap.cov_xyz)
         assert rec.n_eff[i] == snap.n_eff and rec.localized[i] == snap.localized
         assert np.array_equal(rec.particles(i), snap.particles.astype(np.float32))
@@ -66,7 +65,7 @@ def test_a_rebuilt_snapshot_is_the_step_the_viewer_saw(recorded, street):
     # the scan is recomputed from the source with the filter's own voxel and seed: the same points
     assert np.array_equal(snap.scan_world, live.scan_world)
     assert [e.kind for e in snap.events] == [e.kind for e in live.events]
-    assert live.s2m is not None and rec.s2m_steps     # S2M matches landed by then: they are recorded
+    assert live.s2m is not None and rec.s2m_steps  # S2M matches landed by then: they are recorded
     if live.s2m is not None:
         view = rec.s2m(i)
         assert view.started_at == live.s2m.started_at and view.accepted == live.s2m.accepted
@@ -91,7 +90,7 @@ def test_a_recording_cut_short_opens_up_to_its_last_complete_step(recorded, tmp_
     assert np.array_equal(rec.mean_pose[10], snaps[10].mean_pose)
     # a kill while step 11 was being committed (its commit row half written)
     with open(folder / "steps.bin", "r+b") as f:
-        f.truncate(f.seek(0, 2) - 8 - 3)   # step 11 not committed, step 10 half
+        f.truncate(f.seek(0, 2) - 8 - 3)  # step 11 not committed, step 10 half
     assert recording.open(copy).n == 10
 
 
@@ -120,18 +119,39 @@ class _FakeLocalizer:
         self.cfg, self.steps, self.events, self.records = cfg, 0, [], []
 
     def resume_payload(self, step):
-        files = {"checkpoint": {"states": np.full((3, 11), step, np.float64), "rng": np.array('{"a": 1}')}} \
-            if step % 2 == 0 else {}
+        files = (
+            {"checkpoint": {"states": np.full((3, 11), step, np.float64), "rng": np.array('{"a": 1}')}}
+            if step % 2 == 0
+            else {}
+        )
         return ResumePayload(per_step={"odom_pose": np.eye(4) * (step + 1)}, files=files)
 
 
 def _snap(k: int):
     from lidarloc.core.snapshot import Snapshot
 
-    return Snapshot(scan_index=k, n_scans=5, timestamp=0.1 * k, particles=np.zeros((3, 11)), weights=np.ones(3) / 3,
-                    best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3), std_xyz=np.ones(3), ellipse_xy=(1, 1, 0),
-                    n_eff=3.0, localized=False, localized_since=None, scan_world=np.zeros((0, 3), np.float32),
-                    gt_pose=None, error_m=None, pf_ms=1.0, s2m=None, s2m_running=False, s2m_acceptance=0.0)
+    return Snapshot(
+        scan_index=k,
+        n_scans=5,
+        timestamp=0.1 * k,
+        particles=np.zeros((3, 11)),
+        weights=np.ones(3) / 3,
+        best_index=0,
+        mean_pose=np.eye(4),
+        cov_xyz=np.eye(3),
+        std_xyz=np.ones(3),
+        ellipse_xy=(1, 1, 0),
+        n_eff=3.0,
+        localized=False,
+        localized_since=None,
+        scan_world=np.zeros((0, 3), np.float32),
+        gt_pose=None,
+        error_m=None,
+        pf_ms=1.0,
+        s2m=None,
+        s2m_running=False,
+        s2m_acceptance=0.0,
+    )
 
 
 def test_the_resume_payload_is_stored_per_step_and_as_files(tmp_path):
@@ -142,7 +162,7 @@ def test_the_resume_payload_is_stored_per_step_and_as_files(tmp_path):
         loc.steps += 1
         w.on_scan(loc, _snap(k))
     with pytest.raises(RecordingError, match="not a new step"):
-        w.on_scan(loc, _snap(4))        # the same step again
+        w.on_scan(loc, _snap(4))  # the same step again
     w.close()
     rec = recording.open(tmp_path)
     assert rec.n == 5
@@ -167,7 +187,7 @@ def test_the_source_round_trips_and_a_moved_source_is_named(tmp_path):
     rec = recording.open(tmp_path / "run")
     back = rec.source_spec()
     assert back.bag == data.resolve() and back.topic == "/points" and back.scans == 40
-    assert back.map.is_absolute()           # relative paths are stored absolute: the run opens from anywhere
+    assert back.map.is_absolute()  # relative paths are stored absolute: the run opens from anywhere
     assert rec.config().pf.sigma == 0.7 and rec.meta["preset"] == "paper"
     with pytest.raises(RecordingError, match="relative-map.pcd: the run's source is not there"):
         rec.check_source()
@@ -180,9 +200,8 @@ def test_a_benchmark_run_records_itself_with_record(cache_root, tmp_path):
     with the run's own per-scan results."""
     import csv
 
-    from lidarloc.app.bench.localize import run_one
-
     from helpers import MAPPING_SCANS
+    from lidarloc.app.bench.localize import run_one
 
     cfg = Config()
     cfg.pf.n_particles = 300
@@ -209,7 +228,7 @@ def test_a_step_is_recorded_as_it_was_handed_over_and_seen_after_flush(tmp_path)
     snap = _snap(0)
     loc.steps = 1
     w.on_scan(loc, snap)
-    snap.particles[:] = 7.0                     # the filter moves on: the next step's state
+    snap.particles[:] = 7.0  # the filter moves on: the next step's state
     payload.per_step["odom_pose"][:] = 5.0
     w.flush()
     assert w.committed == w.n == 1 and recording.open(tmp_path).n == 1
@@ -224,9 +243,9 @@ def test_a_failure_to_write_is_one_line_at_the_next_step_and_at_close(tmp_path):
     import shutil
 
     cfg = Config()
-    loc = _FakeLocalizer(cfg)            # its payload has a checkpoint file at step 0
+    loc = _FakeLocalizer(cfg)  # its payload has a checkpoint file at step 0
     w = RecordingWriter(tmp_path, SourceSpec(), cfg, [0] * 5)
-    shutil.rmtree(tmp_path / "recording" / "resume")      # the disk loses the folder
+    shutil.rmtree(tmp_path / "recording" / "resume")  # the disk loses the folder
     loc.steps = 1
     w.on_scan(loc, _snap(0))
     with pytest.raises(RecordingError, match="cannot write the recording") as caught:
@@ -237,7 +256,7 @@ def test_a_failure_to_write_is_one_line_at_the_next_step_and_at_close(tmp_path):
         w.on_scan(loc, _snap(1))
     with pytest.raises(RecordingError, match="cannot write the recording"):
         w.close()
-    assert recording.open(tmp_path).n == 0        # the failed step was never committed
+    assert recording.open(tmp_path).n == 0  # the failed step was never committed
 
 
 def test_the_viewers_recorder_reports_a_write_that_failed_after_the_last_step(tmp_path):
@@ -255,7 +274,7 @@ def test_the_viewers_recorder_reports_a_write_that_failed_after_the_last_step(tm
     messages = []
     rec = Recorder(tmp_path / "runs", SourceSpec(), on_failure=messages.append)
     path = rec.start(loc)
-    shutil.rmtree(path / "recording" / "resume")          # the checkpoint of step 0 cannot be written
+    shutil.rmtree(path / "recording" / "resume")  # the checkpoint of step 0 cannot be written
     loc.steps = 1
     assert rec.on_scan(loc, snap)
     rec.close(None)

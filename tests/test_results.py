@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-
 from lidarloc.core.config import Config
 from lidarloc.core.runs.results import lag_summary
 from lidarloc.core.sequences.factory import SourceSpec
@@ -19,7 +18,7 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
 
     cfg = Config()
     cfg.pf.n_particles = 300
-    cfg.town.n_scans = 150        # a short mapping drive: its map builds in seconds
+    cfg.town.n_scans = 150  # a short mapping drive: its map builds in seconds
     out = tmp_path / "run"
     summary, interrupted = run_headless(SourceSpec(scans=15), cfg, out, cache_root=cache_root)
     assert not interrupted and summary["scans"] == 15
@@ -30,16 +29,33 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
     assert np.loadtxt(out / "groundtruth_kitti.txt").shape == (15, 12)
     rows = list(csv.DictReader(open(out / "scans.csv")))
     assert len(rows) == 15 and {"scan", "std_x", "n_eff", "localized", "error_m", "pf_ms"} <= set(rows[0])
-    assert {"n_particles", "n_eff_share", "converged", "inlier_share", "mean_residual_m", "cov_xx", "cov_xy",
-            "cov_yy", "inside_2sigma"} <= set(rows[0])
+    assert {
+        "n_particles",
+        "n_eff_share",
+        "converged",
+        "inlier_share",
+        "mean_residual_m",
+        "cov_xx",
+        "cov_xy",
+        "cov_yy",
+        "inside_2sigma",
+    } <= set(rows[0])
     events = json.loads((out / "events.json").read_text())
     assert any(e["kind"] == "s2m_started" for e in events)
     s = json.loads((out / "summary.json").read_text())
-    for key in ("localized_at_scan", "within_5m_for_50_at_scan", "rmse_after_localized_m", "pf_ms_median",
-                "scans_per_second", "preset", "consistency_2sigma", "false_fire"):
+    for key in (
+        "localized_at_scan",
+        "within_5m_for_50_at_scan",
+        "rmse_after_localized_m",
+        "pf_ms_median",
+        "scans_per_second",
+        "preset",
+        "consistency_2sigma",
+        "false_fire",
+    ):
         assert key in s
     assert s["n_particles_median"] == 300
-    assert s["world"]["sensor"] == "hdl64e"      # the generated town says what world it drove in
+    assert s["world"]["sensor"] == "hdl64e"  # the generated town says what world it drove in
     # what each block's process cost: the PF here, KISS-ICP and S2M in their children
     cpu = s["cpu_ms_per_scan"]
     assert set(cpu) == {"main", "rpe", "s2m"}
@@ -50,7 +66,7 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
 
 def test_realtime_lag_summary():
     """How the real-time clock kept up, from each step's start lag after its scan's arrival."""
-    assert lag_summary(None)["kept_up_from_scan"] is None            # replay: no real-time figures
+    assert lag_summary(None)["kept_up_from_scan"] is None  # replay: no real-time figures
     s = lag_summary([0.0, 250.0, 400.0, 120.0, 80.0, 10.0, 0.0])
     assert s == {"late_scans": 3, "max_lag_ms": 400.0, "lag_at_end_ms": 0.0, "kept_up_from_scan": 4}
     assert lag_summary([0.0, 5.0])["kept_up_from_scan"] == 0

@@ -8,9 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from bagfixtures import (FRAME, N_SCANS, TOPIC, kitti_drive, kitti_recordings, write_bag,  # noqa: F401 (fixtures)
-                         write_tum)
-
+from bagfixtures import FRAME, N_SCANS, TOPIC, kitti_drive, kitti_recordings, write_bag, write_tum  # noqa: F401 (fixtures)
 from lidarloc.core.errors import DataError, LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix
 from lidarloc.core.sequences.base import Limited
@@ -32,7 +30,7 @@ def test_bag_reads_the_kitti_readers_scans_times_and_poses(kind, kitti_drive, ki
     assert len(seq) == len(scans) == N_SCANS
     assert seq.topic == TOPIC and seq.frame_id == FRAME
     for i in range(len(seq)):
-        np.testing.assert_array_equal(seq.scan(i), scans[i])     # same points, same order, same bits
+        np.testing.assert_array_equal(seq.scan(i), scans[i])  # same points, same order, same bits
     # header stamps, not the recorder's times (written RECORD_DELAY_S later)
     np.testing.assert_array_equal(seq.timestamps, kitti_raw_seq.timestamps[:N_SCANS])
     np.testing.assert_allclose(seq.poses, poses, atol=1e-6)
@@ -54,7 +52,7 @@ def test_random_access_jumps_and_returns(kitti_drive, kitti_recordings):
 def test_scans_recorded_at_the_same_instant(kind, kitti_drive, tmp_path):
     """A recorder may write several scans with one time: each is still found by its index."""
     scans, stamps = kitti_drive[0][:6], kitti_drive[1][:6]
-    recorded = np.repeat(stamps[::2], 2) + 50_000_000        # pairs share a recorded time
+    recorded = np.repeat(stamps[::2], 2) + 50_000_000  # pairs share a recorded time
     bag = write_bag(tmp_path / ("b.bag" if kind == "ros1" else "b"), kind, scans, stamps, record_times=recorded)
     seq = BagSequence(bag)
     for i in (1, 3, 2, 5, 4, 0, 1):
@@ -63,7 +61,7 @@ def test_scans_recorded_at_the_same_instant(kind, kitti_drive, tmp_path):
 
 def test_scans_are_ordered_by_their_header_stamps(kitti_drive, tmp_path):
     scans, stamps = kitti_drive[0][:4], kitti_drive[1][:4]
-    recorded = stamps[[1, 0, 3, 2]] + 50_000_000               # the recorder got them out of order
+    recorded = stamps[[1, 0, 3, 2]] + 50_000_000  # the recorder got them out of order
     seq = BagSequence(write_bag(tmp_path / "b", "mcap", scans, stamps, record_times=recorded))
     for i in range(4):
         np.testing.assert_array_equal(seq.scan(i), scans[i])
@@ -87,7 +85,7 @@ def test_bench_bag_reads_every_scan(kitti_raw_dir):
     spec = SourceSpec(kitti_raw=kitti_raw_dir, date="2011_09_26", drive="0013", scans=2)
     result = run(spec, Config(), total=5, repeats=1, random_reads=3)
     assert result["scans"] == 5 and result["storage"] == "mcap"
-    assert result["points_per_scan_median"] > 100_000          # the 64-beam scans came through
+    assert result["points_per_scan_median"] > 100_000  # the 64-beam scans came through
     assert result["scans_per_s"] > 0 and result["bag_mb"] > 5
     with pytest.raises(LidarlocError):
         run(spec, Config(), storage="rosbag3")
@@ -116,8 +114,10 @@ def test_sequence_is_shared_by_threads_and_pickled(kitti_drive, kitti_recordings
             if not np.array_equal(seq.scan(i), scans[i]):
                 wrong.append(i)
 
-    threads = [threading.Thread(target=read, args=(range(N_SCANS),)),
-               threading.Thread(target=read, args=(range(N_SCANS - 1, -1, -1),))]
+    threads = [
+        threading.Thread(target=read, args=(range(N_SCANS),)),
+        threading.Thread(target=read, args=(range(N_SCANS - 1, -1, -1),)),
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -170,13 +170,18 @@ def small_drive(kitti_drive):
 
 def test_topic_choice(small_drive, tmp_path):
     scans, times = small_drive
-    bag = write_bag(tmp_path / "two", "mcap", scans, times,
-                    extra_topics={"/os_cloud_node/points": "sensor_msgs/msg/PointCloud2", "/status": "std_msgs/msg/String"})
+    bag = write_bag(
+        tmp_path / "two",
+        "mcap",
+        scans,
+        times,
+        extra_topics={"/os_cloud_node/points": "sensor_msgs/msg/PointCloud2", "/status": "std_msgs/msg/String"},
+    )
     with pytest.raises(DataError) as exc:
         BagSequence(bag)
     text = one_line(exc)
     assert text.startswith(str(bag)) and "--topic" in text and TOPIC in text and "/os_cloud_node/points" in text
-    assert len(BagSequence(bag, topic="velodyne_points")) == 3            # the leading slash may be left out
+    assert len(BagSequence(bag, topic="velodyne_points")) == 3  # the leading slash may be left out
     with pytest.raises(DataError) as exc:
         BagSequence(bag, topic="/points_raw")
     text = one_line(exc)
@@ -198,7 +203,11 @@ def test_bag_without_pointcloud2(tmp_path):
     with pytest.raises(DataError) as exc:
         BagSequence(only)
     text = one_line(exc)
-    assert text.startswith(str(only)) and "no sensor_msgs/PointCloud2 topic" in text and "/status (std_msgs/msg/String)" in text
+    assert (
+        text.startswith(str(only))
+        and "no sensor_msgs/PointCloud2 topic" in text
+        and "/status (std_msgs/msg/String)" in text
+    )
 
 
 def test_cloud_without_xyz(small_drive, tmp_path):
@@ -227,13 +236,15 @@ def test_truncated_or_corrupt_bags(kind, small_drive, tmp_path):
     write_bag(target, kind, scans, times)
     storage = target if kind == "ros1" else next(p for p in target.iterdir() if p.suffix in (".mcap", ".db3"))
     data = storage.read_bytes()
-    for label, damaged in (("truncated", data[: len(data) * 2 // 3]),
-                           ("corrupt", data[:1000] + bytes(len(data) - 2000) + data[-1000:]),
-                           ("empty", b"")):
+    for label, damaged in (
+        ("truncated", data[: len(data) * 2 // 3]),
+        ("corrupt", data[:1000] + bytes(len(data) - 2000) + data[-1000:]),
+        ("empty", b""),
+    ):
         storage.write_bytes(damaged)
         with pytest.raises(DataError) as exc:
             seq = BagSequence(target)
-            for i in range(len(seq)):             # damage the index did not see shows on reading
+            for i in range(len(seq)):  # damage the index did not see shows on reading
                 seq.scan(i)
         text = one_line(exc)
         assert str(target) in text, f"{kind} {label}: {text}"
@@ -282,13 +293,15 @@ class _Drive(Limited):
 @pytest.mark.timeout(600)
 def test_localizing_from_a_bag_or_a_folder_replays_the_kitti_trajectory(kitti_raw_seq, kitti_recordings, cache_root):
     from helpers import make_localizer
-
     from lidarloc.core.sequences.scan_folder import ScanFolderSequence
 
     poses = np.asarray(kitti_raw_seq.poses[:N_SCANS])
     runs = {}
-    for name, seq in (("kitti", kitti_raw_seq), ("mcap", BagSequence(kitti_recordings["mcap"])),
-                      ("pcd", ScanFolderSequence(kitti_recordings["pcd"]))):
+    for name, seq in (
+        ("kitti", kitti_raw_seq),
+        ("mcap", BagSequence(kitti_recordings["mcap"])),
+        ("pcd", ScanFolderSequence(kitti_recordings["pcd"])),
+    ):
         with make_localizer(_Drive(seq, N_SCANS, poses, f"replay-{name}"), cache_root) as loc:
             loc.run(N_SCANS)
             runs[name] = [(r.x, r.y, r.z, r.yaw, r.n_eff) for r in loc.records]
@@ -304,11 +317,36 @@ def test_bench_bag_command_line(kitti_raw_dir, tmp_path):
     import sys
 
     env = {**os.environ, "LIDARLOC_DATA": str(kitti_raw_dir.parent), "LIDARLOC_CACHE": str(tmp_path / "cache")}
-    run = subprocess.run([sys.executable, "-m", "lidarloc.app.cli", "bench", "bag", "--total", "4", "--repeats", "1",
-                          "--scans", "2", "--storage", "ros1", "--json"], capture_output=True, text=True, env=env, timeout=300)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "lidarloc.app.cli",
+            "bench",
+            "bag",
+            "--total",
+            "4",
+            "--repeats",
+            "1",
+            "--scans",
+            "2",
+            "--storage",
+            "ros1",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr
     result = json.loads(run.stdout)
     assert result["storage"] == "ros1" and result["scans"] == 4 and result["source"].startswith("kitti-raw")
-    bad = subprocess.run([sys.executable, "-m", "lidarloc.app.cli", "bench", "bag", "--storage", "rosbag3"],
-                         capture_output=True, text=True, env=env, timeout=300)
+    bad = subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", "bench", "bag", "--storage", "rosbag3"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "--storage" in bad.stderr

@@ -7,7 +7,6 @@ import threading
 
 import numpy as np
 import pytest
-
 from lidarloc.core.geometry import euler_zyx, inv_pose
 from lidarloc.core.odometry.rpe import RelativePoseEstimator
 
@@ -28,7 +27,7 @@ def test_relative_motion_matches_ground_truth(odometry, kitti_raw_seq):
     est = odometry.relative(a, b)
     gt = inv_pose(G[a]) @ G[b]
     dist = np.linalg.norm(gt[:3, 3])
-    assert dist > 3.0                                       # the car really moves in these scans
+    assert dist > 3.0  # the car really moves in these scans
     assert np.linalg.norm(est[:3, 3] - gt[:3, 3]) < 0.03 * dist + 0.05
     D = inv_pose(gt) @ est
     assert math.degrees(math.acos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.5
@@ -78,7 +77,7 @@ def test_readers_run_while_the_writer_registers(kitti_raw_seq):
                 reads[0] += 1
             except KeyError:
                 pass
-            except Exception as exc:   # pragma: no cover - reported below
+            except Exception as exc:  # pragma: no cover - reported below
                 errors.append(exc)
 
     threads = [threading.Thread(target=reader) for _ in range(2)]
@@ -95,6 +94,7 @@ def test_readers_run_while_the_writer_registers(kitti_raw_seq):
 def test_an_injected_odometry_is_used():
     """The estimator only needs register_frame and last_pose from its odometry (the localizer may
     run KISS-ICP in a child process): a scripted one drives a straight 1 m/scan line."""
+
     class Scripted:
         def __init__(self):
             self.last_pose = np.eye(4)

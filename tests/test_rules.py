@@ -2,7 +2,6 @@
 threshold with enough motion or turning, false positives and losses."""
 
 import numpy as np
-
 from lidarloc.core.config import DEG, LocalizeConfig
 from lidarloc.core.rules.paper import LocalizationRules
 

@@ -11,10 +11,9 @@ import pickle
 import numpy as np
 import pytest
 from helpers import make_localizer, short_town
-
-from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.config import MapConfig, S2MConfig
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
+from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap, build_prior_map
 from lidarloc.core.matching.s2m import ScanToMapMatcher, carry_forward, carry_forward_poses
 
@@ -46,8 +45,12 @@ def scene():
             walls.append(np.c_[xy, np.full(n, z)])
     walls = np.concatenate(walls)
     walls = walls[(walls[:, :2] >= 0).all(1) & (walls[:, :2] <= 140).all(1)]
-    prior = PriorMap(points=np.concatenate([ground, walls]).astype(np.float32),
-                     points_bev=walls.astype(np.float32), voxel_size=0.2, source="synthetic")
+    prior = PriorMap(
+        points=np.concatenate([ground, walls]).astype(np.float32),
+        points_bev=walls.astype(np.float32),
+        voxel_size=0.2,
+        source="synthetic",
+    )
     return prior
 
 
@@ -156,7 +159,7 @@ def test_global_match_guesses_z_from_the_map_and_the_scan_ground(scene, matcher)
     truth = pose_matrix(52.8, 81.1, SENSOR_HEIGHT, -2.2, 0.0, 0.0)
     out = matcher.match_global(cut_scan(scene, truth))
     assert out.accepted, out.reason
-    assert abs(out.match_pose[2, 3] - SENSOR_HEIGHT) < 0.3     # initial z: ground 0 − scan ground −1.7
+    assert abs(out.match_pose[2, 3] - SENSOR_HEIGHT) < 0.3  # initial z: ground 0 − scan ground −1.7
     dt, dr = pose_error(out.pose, truth)
     assert dt < 0.1 and dr < 0.3, (dt, dr)
 
@@ -192,7 +195,7 @@ def test_localizer_views_say_what_each_match_did(cache_root):
     views, localized = {}, {}
     with make_localizer(town, cache_root, n_particles=300) as loc:
         assert loc.cfg.localize.s2m_process
-        loc.reset(pose=town.poses[0])        # near the truth: the first matches land and are accepted
+        loc.reset(pose=town.poses[0])  # near the truth: the first matches land and are accepted
         for _ in range(len(town)):
             snap = loc.step()
             localized[snap.scan_index] = snap.localized
@@ -215,9 +218,9 @@ def test_localizer_views_say_what_each_match_did(cache_root):
             assert 0.0 <= v.gicp_fitness <= 1.0 and len(v.gicp_correction) == 2
             moved = np.linalg.norm(v.gicp_pose[:3, 3] - v.match_pose[:3, 3])
             assert v.gicp_correction[0] == pytest.approx(moved, abs=1e-6)
-            if v.stage == "m3rsm":           # the 2D match is the search's best candidate
+            if v.stage == "m3rsm":  # the 2D match is the search's best candidate
                 assert (c[0, 0], c[0, 1]) == (v.match_pose[0, 3], v.match_pose[1, 3]) and c[0, 3] == v.score
-            else:                            # GICP refined the start itself
+            else:  # GICP refined the start itself
                 assert np.array_equal(v.match_pose, v.start_pose)
         else:
             assert v.reason
@@ -237,7 +240,7 @@ def test_a_match_refused_at_its_landing_says_why_in_its_view(cache_root):
     cfg.pf.n_particles = 200
     cfg.localize.s2m_process = False
 
-    def across_the_street(scan, pose, level=False):     # "accepted", 15 m off and turned 90°
+    def across_the_street(scan, pose, level=False):  # "accepted", 15 m off and turned 90°
         wrong = np.asarray(pose, float) @ pose_matrix(0.0, 0.0, 0.0, math.pi / 2, 0.0, 0.0)
         wrong[1, 3] += 15.0
         return S2MOutcome(accepted=True, pose=wrong, score=2.0, start_score=1.0, region=(0, 0, 1, 1), ms=1.0)
@@ -250,7 +253,7 @@ def test_a_match_refused_at_its_landing_says_why_in_its_view(cache_root):
     view = snap.s2m
     assert view is not None and not view.accepted
     assert view.reason.startswith("lowers the particle's weight")
-    assert carried_pose(view) is not None                      # carried forward, then not written
+    assert carried_pose(view) is not None  # carried forward, then not written
     assert "**rejected**: lowers the particle's weight" in s2m_detail_markdown(view)
     assert "(not written)" in s2m_detail_markdown(view)
 

@@ -7,9 +7,7 @@ import math
 import numpy as np
 import pytest
 import viser
-
-from lidarloc.app.viewer.s2m_detail import (ROOT, WINNER_ARROW, S2MDetailView, carried_pose,
-                                            s2m_detail_markdown)
+from lidarloc.app.viewer.s2m_detail import ROOT, WINNER_ARROW, S2MDetailView, carried_pose, s2m_detail_markdown
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.snapshot import S2MView
 
@@ -33,28 +31,61 @@ def accepted_view(started_at=10) -> S2MView:
     match = pose_matrix(104.0, 47.0, 1.7, 40 * DEG, 0.0, 0.0)
     gicp = pose_matrix(104.3, 46.8, 1.72, 41 * DEG, 0.0, 0.0)
     carried = pose_matrix(107.0, 46.0, 1.72, 41 * DEG, 0.0, 0.0)
-    candidates = np.array([[104.0, 47.0, 40 * DEG, 5200.0], [105.0, 47.0, 40 * DEG, 4900.0],
-                           [104.0, 48.0, 37.5 * DEG, 4100.0], [90.0, 60.0, -170 * DEG, 3000.0]])
-    return S2MView(started_at=started_at, landed_at=started_at + 2, accepted=True, score=5200.0, start_score=4000.0,
-                   pose=carried, scan_world=np.zeros((0, 3), np.float32), region=(75.0, 25.0, 125.0, 75.0), ms=180.0,
-                   mode="local", start_pose=start, candidates=candidates, nodes_per_level=(0, 1, 3, 40, 12),
-                   match_pose=match, gicp_pose=gicp, gicp_fitness=0.83, gicp_correction=(0.36, 1.0 * DEG),
-                   stage="m3rsm")
+    candidates = np.array(
+        [
+            [104.0, 47.0, 40 * DEG, 5200.0],
+            [105.0, 47.0, 40 * DEG, 4900.0],
+            [104.0, 48.0, 37.5 * DEG, 4100.0],
+            [90.0, 60.0, -170 * DEG, 3000.0],
+        ]
+    )
+    return S2MView(
+        started_at=started_at,
+        landed_at=started_at + 2,
+        accepted=True,
+        score=5200.0,
+        start_score=4000.0,
+        pose=carried,
+        scan_world=np.zeros((0, 3), np.float32),
+        region=(75.0, 25.0, 125.0, 75.0),
+        ms=180.0,
+        mode="local",
+        start_pose=start,
+        candidates=candidates,
+        nodes_per_level=(0, 1, 3, 40, 12),
+        match_pose=match,
+        gicp_pose=gicp,
+        gicp_fitness=0.83,
+        gicp_correction=(0.36, 1.0 * DEG),
+        stage="m3rsm",
+    )
 
 
 def refused_before_gicp() -> S2MView:
     start = pose_matrix(10.0, 5.0, 1.7, 0.0, 0.0, 0.0)
-    return S2MView(started_at=3, landed_at=5, accepted=False, score=0.0, start_score=0.0, pose=start.copy(),
-                   scan_world=np.zeros((0, 3), np.float32), region=(-15.0, -20.0, 35.0, 30.0), ms=20.0,
-                   reason="too few road-removed scan points to match", mode="global", start_pose=start)
+    return S2MView(
+        started_at=3,
+        landed_at=5,
+        accepted=False,
+        score=0.0,
+        start_score=0.0,
+        pose=start.copy(),
+        scan_world=np.zeros((0, 3), np.float32),
+        region=(-15.0, -20.0, 35.0, 30.0),
+        ms=20.0,
+        reason="too few road-removed scan points to match",
+        mode="global",
+        start_pose=start,
+    )
 
 
 def test_draws_each_part_of_a_landed_match_and_clears_it(server):
     view = S2MDetailView(server.scene)
     v = accepted_view()
     view.draw(v, visible=True)
-    parts = {ROOT + "/" + p for p in ("candidates", "winner", "start", "refined", "refine_line", "carried",
-                                      "carried_ring")}
+    parts = {
+        ROOT + "/" + p for p in ("candidates", "winner", "start", "refined", "refine_line", "carried", "carried_ring")
+    }
     assert scene_nodes(server) == {ROOT} | parts
     assert set(view.node_names) == {ROOT} | parts
     h = server.scene._handle_from_node_name
@@ -67,7 +98,7 @@ def test_draws_each_part_of_a_landed_match_and_clears_it(server):
     assert np.asarray(others.points).shape == (len(v.candidates) - 1, 2, 3)
     assert h[ROOT + "/winner"].shaft_radius > others.shaft_radius
     colors = np.asarray(others.colors).reshape(-1, 3).astype(int)
-    assert np.all(np.diff(colors.sum(axis=1)) <= 0)          # dimmer down the ranking
+    assert np.all(np.diff(colors.sum(axis=1)) <= 0)  # dimmer down the ranking
     # the line from the 2D match to GICP's pose, both at their own heights
     line = np.asarray(h[ROOT + "/refine_line"].points)[0]
     assert line[0] == pytest.approx(v.match_pose[:3, 3], abs=1e-5)
@@ -84,7 +115,7 @@ def test_draws_each_part_of_a_landed_match_and_clears_it(server):
 
     view.clear()
     assert scene_nodes(server) == set() and view.node_names == []
-    view.draw(None, visible=True)                  # after a restart no match has landed
+    view.draw(None, visible=True)  # after a restart no match has landed
     assert scene_nodes(server) == set()
 
 
@@ -102,13 +133,13 @@ def test_a_match_refused_before_the_search_shows_only_its_start(server):
 def test_hidden_view_sends_nothing_until_shown(server):
     view = S2MDetailView(server.scene)
     view.draw(accepted_view(), visible=False)
-    assert scene_nodes(server) == set()            # nothing drawn while hidden
+    assert scene_nodes(server) == set()  # nothing drawn while hidden
     view.set_visible(True)
     assert ROOT + "/winner" in scene_nodes(server)
     root = server.scene._handle_from_node_name[ROOT]
     assert root.visible
     view.draw(accepted_view(started_at=20), visible=False)
-    assert not root.visible                        # one switch hides every part
+    assert not root.visible  # one switch hides every part
     view.set_visible(True)
     assert root.visible
     view.clear()
@@ -124,7 +155,7 @@ def test_markdown_names_the_verdict_and_what_the_match_did():
     assert "L1 1 · L2 3 · L3 40 · L4 12 (total 56)" in text
     assert "5200 · 4900 · 4100 · 3000" in text and "only 4 scored at the finest level" in text
     assert "moved 0.36 m, turned 1.0°" in text and "83 %" in text
-    assert "107.0, 46.0 m, 41.0°" in text           # the carried-forward pose, in degrees
+    assert "107.0, 46.0 m, 41.0°" in text  # the carried-forward pose, in degrees
     refused = s2m_detail_markdown(refused_before_gicp())
     assert "**rejected**: too few road-removed scan points to match" in refused
     assert "whole map" in refused and "not run" in refused

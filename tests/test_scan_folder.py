@@ -4,7 +4,6 @@ scans, times from times.txt, ground truth from TUM; bad folders are one-line err
 import numpy as np
 import pytest
 from bagfixtures import N_SCANS, kitti_drive, kitti_recordings  # noqa: F401 (fixtures)
-
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.scan_folder import ScanFolderSequence
 
@@ -30,7 +29,7 @@ def test_other_kinds_natural_order_and_default_times(kitti_drive, tmp_path):
 
     scans = kitti_drive[0][:3]
     o3d = open3d()
-    names = ["scan_1", "scan_2", "scan_10"]          # scans 0, 1, 2; by plain string order 10 would come second
+    names = ["scan_1", "scan_2", "scan_10"]  # scans 0, 1, 2; by plain string order 10 would come second
     for kind in (".bin", ".npy", ".ply"):
         d = tmp_path / kind[1:]
         d.mkdir()
@@ -39,7 +38,7 @@ def test_other_kinds_natural_order_and_default_times(kitti_drive, tmp_path):
             if kind == ".bin":
                 scans[k].tofile(path)
             elif kind == ".npy":
-                np.save(path, scans[k][:, :3].astype(np.float64))   # x, y, z only
+                np.save(path, scans[k][:, :3].astype(np.float64))  # x, y, z only
             else:
                 pc = o3d.t.geometry.PointCloud()
                 pc.point.positions = o3d.core.Tensor(scans[k][:, :3])

@@ -4,7 +4,6 @@ occupied voxel, picked uniformly, deterministically per seed, with the compiled 
 import time
 
 import numpy as np
-
 from lidarloc.core.filter.scanprep import voxel_downsample_random
 
 
@@ -17,9 +16,9 @@ def test_voxel_downsample_keeps_one_random_real_point_per_voxel():
     keys_in = {tuple(k) for k in np.floor(pts[:, :3] / voxel).astype(np.int64)}
     keys_out = np.floor(out / voxel).astype(np.int64)
     assert out.shape[1] == 3 and out.dtype == np.float32
-    assert len({tuple(k) for k in keys_out}) == len(out) == len(keys_in)   # one per occupied voxel
+    assert len({tuple(k) for k in keys_out}) == len(out) == len(keys_in)  # one per occupied voxel
     assert len(np.intersect1d(out.view("V12"), pts[:, :3].copy().view("V12"))) == len(out)  # real points
-    np.testing.assert_array_equal(out, voxel_downsample_random(pts, voxel, 7))             # deterministic
+    np.testing.assert_array_equal(out, voxel_downsample_random(pts, voxel, 7))  # deterministic
     assert not np.array_equal(out, voxel_downsample_random(pts, voxel, 8))
     np.testing.assert_array_equal(out, voxel_downsample_random(pts, voxel, np.random.default_rng(7)))
 
@@ -38,7 +37,7 @@ def test_voxel_downsample_runs_compiled():
     kernel's ~17 ms, a loaded 2-core machine does not break it."""
     rng = np.random.default_rng(0)
     scan = rng.uniform(-60, 60, (120_000, 4)).astype(np.float32)
-    voxel_downsample_random(scan, 0.5, 0)      # loads the kernel (numba cache) outside the timing
+    voxel_downsample_random(scan, 0.5, 0)  # loads the kernel (numba cache) outside the timing
     times = []
     for i in range(3):
         t0 = time.perf_counter()
@@ -59,13 +58,16 @@ def test_points_above_the_elevation_cap_are_left_out():
     r = rng.uniform(3, 60, 20_000)
     elevation = np.radians(rng.uniform(-25, 25, len(r)))
     azimuth = rng.uniform(-np.pi, np.pi, len(r))
-    pts = np.c_[r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth),
-                r * np.sin(elevation), np.zeros(len(r))].astype(np.float32)
+    pts = np.c_[
+        r * np.cos(elevation) * np.cos(azimuth),
+        r * np.cos(elevation) * np.sin(azimuth),
+        r * np.sin(elevation),
+        np.zeros(len(r)),
+    ].astype(np.float32)
     cap = math.radians(2.0)
     kept = prepare_scan(pts, PFConfig(scan_voxel=0.05, max_elevation=cap), 3)
     seen = np.degrees(np.arctan2(kept[:, 2], np.hypot(kept[:, 0], kept[:, 1])))
     assert seen.max() <= 2.0 + 1e-3
     below = np.count_nonzero(np.degrees(elevation) <= 2.0)
-    assert 0.95 * below < len(kept) <= below           # 5 cm voxels: nearly every point below is kept
-    np.testing.assert_array_equal(prepare_scan(pts, PFConfig(scan_voxel=0.5), 3),
-                                  voxel_downsample_random(pts, 0.5, 3))
+    assert 0.95 * below < len(kept) <= below  # 5 cm voxels: nearly every point below is kept
+    np.testing.assert_array_equal(prepare_scan(pts, PFConfig(scan_voxel=0.5), 3), voxel_downsample_random(pts, 0.5, 3))

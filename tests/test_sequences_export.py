@@ -3,7 +3,6 @@ reader gives the same scans, poses and timestamps, and an interrupted export lea
 
 import numpy as np
 import pytest
-
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import Limited
 from lidarloc.core.sequences.export import export_kitti_odometry

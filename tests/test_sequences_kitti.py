@@ -4,12 +4,11 @@ to the LiDAR frame, real consecutive scans that agree under their poses, scan in
 import numpy as np
 import pytest
 from helpers import Tr_KITTI, make_odometry
-from scipy.spatial import cKDTree
-
 from lidarloc.core.errors import DataError
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.sequences.base import validate_scan
 from lidarloc.core.sequences.kitti_odometry import KittiOdometry
+from scipy.spatial import cKDTree
 
 
 def test_kitti_odometry_reader_converts_cam0_to_lidar(tmp_path):
@@ -30,7 +29,7 @@ def test_kitti_raw_consecutive_scans_agree(kitti_raw_seq):
     medians = []
     for i in (0, 30, 60, 90):
         a, b = seq.scan(i)[:, :3].astype(float), seq.scan(i + 1)[:, :3].astype(float)
-        a = a[(a[:, 2] > -1.2) & (np.linalg.norm(a, axis=1) < 40)]   # non-ground, near
+        a = a[(a[:, 2] > -1.2) & (np.linalg.norm(a, axis=1) < 40)]  # non-ground, near
         b = b[(b[:, 2] > -1.2) & (np.linalg.norm(b, axis=1) < 40)]
         rel = np.linalg.inv(seq.poses[i]) @ seq.poses[i + 1]
         b_in_a = b @ rel[:3, :3].T + rel[:3, 3]

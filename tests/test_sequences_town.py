@@ -8,16 +8,14 @@ import pickle
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
-
 from lidarloc.core.config import TownConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.geometry import inv_pose, pose_to_xyz_ypr
 from lidarloc.core.sequences.kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
-from lidarloc.core.sequences.lidar_sim import (HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG,
-                                               LidarModel)
+from lidarloc.core.sequences.lidar_sim import HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG, LidarModel
 from lidarloc.core.sequences.town import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION, TownSequence
 from lidarloc.core.sequences.town.drive import body_sway
+from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
@@ -105,11 +103,11 @@ def test_drive_revisits_a_place(town):
 def test_speed_profile_is_realistic(town):
     kmh = town.speeds * 3.6
     assert kmh.max() <= 50.0 + 1.0
-    assert np.mean(kmh < 3.0) > 0.01          # it stops
-    assert np.mean(kmh > 25.0) > 0.15         # and cruises
+    assert np.mean(kmh < 3.0) > 0.01  # it stops
+    assert np.mean(kmh > 25.0) > 0.15  # and cruises
     dt = np.diff(town.timestamps)
     accel = np.diff(town.speeds)[:-1] / dt[:-1]
-    assert np.abs(accel).max() < 4.0          # no jumps in speed
+    assert np.abs(accel).max() < 4.0  # no jumps in speed
     yaw = np.unwrap(pose_to_xyz_ypr(town.poses)[:, 3])
     yaw_rate = np.abs(np.diff(yaw)) / dt
     turning = yaw_rate > np.radians(10.0)
@@ -123,8 +121,8 @@ def test_car_follows_the_ground(town):
     up = town.poses_town[:, :3, 2]
     under = p - SENSOR_HEIGHT * up
     np.testing.assert_allclose(under[:, 2], town.ground(under[:, 0], under[:, 1]), atol=0.02)
-    assert np.ptp(p[:, 2]) > 0.2                               # it is not flat
-    assert np.degrees(np.arccos(up[:, 2])).max() < 6.0         # but gently sloped
+    assert np.ptp(p[:, 2]) > 0.2  # it is not flat
+    assert np.degrees(np.arccos(up[:, 2])).max() < 6.0  # but gently sloped
     np.testing.assert_allclose(world_to_town @ town.poses, town.poses_town, atol=1e-9)
 
 
@@ -147,7 +145,6 @@ def test_odometry_reads_the_first_steps_of_the_town_drive(town):
     """KISS-ICP measures the car's motion from the first scan (it read only about half of it
     when the simulated body followed the smooth ground exactly and the ground rings repeated)."""
     from kiss_icp.kiss_icp import KissICP
-
     from lidarloc.core.odometry.kiss import kiss_config
 
     icp = KissICP(kiss_config(100.0, 2.5, None))
@@ -170,7 +167,7 @@ def test_identity_and_config(town, small_town):
     assert small_town.scan(5).shape[1] == 4
     # the hook every Sequence implements for its error messages: a town scan never fails
     # validation, so no public call shows the description
-    assert town._describe_scan(12) == "town seed 0 scan 12"
+    assert town.describe_scan(12) == "town seed 0 scan 12"
     lo, hi = town.extent
     assert np.all(hi - lo > [300.0, 300.0, 10.0])
 

@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-
 from lidarloc.app.bench import startup
 from lidarloc.core.snapshot import Event
 
@@ -47,6 +46,7 @@ def opened(monkeypatch):
         rec = holder["rec"]
         rec.n = min(rec.n + 2, len(rec.all["localized"]))
         return rec
+
     monkeypatch.setattr(recording, "open", fake_open)
     monkeypatch.setattr(startup, "POLL_S", 0.001)
     return holder
@@ -54,7 +54,7 @@ def opened(monkeypatch):
 
 def watch(holder, rec, timeout=5.0):
     holder["rec"] = rec
-    return startup._first_steps("run", time.perf_counter(), timeout, Running())
+    return startup.first_steps("run", time.perf_counter(), timeout, Running())
 
 
 def test_confirmation_time_and_no_false_fire(opened):

@@ -8,8 +8,6 @@ import pickle
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
-
 from lidarloc.core.config import Config, TownConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import DiskCachedScans, Limited
@@ -18,11 +16,12 @@ from lidarloc.core.sequences.lidar_sim import SENSORS, LidarModel
 from lidarloc.core.sequences.town import SENSOR_HEIGHT, TownSequence
 from lidarloc.core.sequences.town.objects import MOVABLE_KINDS
 from lidarloc.core.sequences.town.traffic import CAR, LEADER, LEADER_GAP, PEDESTRIAN
+from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
 def town() -> TownSequence:
-    return TownSequence.from_config(TownConfig(), seed=0)   # the default town: the mapping drive
+    return TownSequence.from_config(TownConfig(), seed=0)  # the default town: the mapping drive
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +47,12 @@ def _box_frame(boxes: np.ndarray, pts: np.ndarray):
 
 def _in_boxes(boxes: np.ndarray, pts: np.ndarray, margin: float) -> np.ndarray:
     u, v, h = _box_frame(boxes, pts)
-    inside = ((np.abs(u) <= boxes[:, 3, None] / 2 + margin) & (np.abs(v) <= boxes[:, 4, None] / 2 + margin)
-              & (h >= -margin) & (h <= (boxes[:, 6] - boxes[:, 5])[:, None] + margin))
+    inside = (
+        (np.abs(u) <= boxes[:, 3, None] / 2 + margin)
+        & (np.abs(v) <= boxes[:, 4, None] / 2 + margin)
+        & (h >= -margin)
+        & (h <= (boxes[:, 6] - boxes[:, 5])[:, None] + margin)
+    )
     return inside.any(axis=0)
 
 
@@ -61,8 +64,11 @@ def _behind_boxes(boxes: np.ndarray, origin: np.ndarray, pts: np.ndarray, margin
     lo = np.zeros(u1.shape)
     hi = np.ones(u1.shape)
     half = [boxes[:, 3] / 2 + margin, boxes[:, 4] / 2 + margin]
-    for a0, a1, low, high in ((u0, u1, -half[0], half[0]), (v0, v1, -half[1], half[1]),
-                              (h0, h1, np.full(len(boxes), -margin), boxes[:, 6] - boxes[:, 5] + margin)):
+    for a0, a1, low, high in (
+        (u0, u1, -half[0], half[0]),
+        (v0, v1, -half[1], half[1]),
+        (h0, h1, np.full(len(boxes), -margin), boxes[:, 6] - boxes[:, 5] + margin),
+    ):
         d = a1 - a0[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             t0 = (low[:, None] - a0[:, None]) / d
@@ -77,8 +83,9 @@ def _behind_boxes(boxes: np.ndarray, origin: np.ndarray, pts: np.ndarray, margin
 # ------------------------------------------------------------------------------ the map source
 def test_mapping_drive_is_its_own_map_source(town):
     assert town.map_source is town
-    assert town.world_options() == dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT,
-                                        skew=False, route=1)
+    assert town.world_options() == dict(
+        changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1
+    )
     assert "world=" not in town.identity()
 
 
@@ -86,20 +93,22 @@ def test_map_source_is_the_town_as_mapped():
     """Whatever the world options, the map source is the same mapping drive: same identity and
     cache key as the town built without options, same streets, objects, poses and scans."""
     plain = TownSequence(seed=3, size=150.0, n_scans=120)
-    drive = TownSequence(seed=3, size=150.0, n_scans=120, changes=0.5, traffic=True, sensor="vlp16",
-                         mount_height=2.1, skew=True, route=2)
+    drive = TownSequence(
+        seed=3, size=150.0, n_scans=120, changes=0.5, traffic=True, sensor="vlp16", mount_height=2.1, skew=True, route=2
+    )
     mapping = drive.map_source
     assert mapping is not drive and mapping.map_source is mapping
     assert mapping.identity() == plain.identity() and mapping.cache_key() == plain.cache_key()
     assert drive.identity() != plain.identity() and drive.cache_key() != plain.cache_key()
-    assert mapping.town is drive.town                        # one layout, shared
+    assert mapping.town is drive.town  # one layout, shared
     np.testing.assert_array_equal(mapping.poses, plain.poses)
     np.testing.assert_array_equal(mapping.timestamps, plain.timestamps)
     for i in (0, 77):
         np.testing.assert_array_equal(mapping.scan(i), plain.scan(i))
     # every option changes the localized drive's identity, none the map's
-    for option, value in dict(changes=0.2, traffic=True, sensor="os1-128", mount_height=1.5, skew=True,
-                              route=2).items():
+    for option, value in dict(
+        changes=0.2, traffic=True, sensor="os1-128", mount_height=1.5, skew=True, route=2
+    ).items():
         other = plain.with_world(**{option: value})
         assert other.map_source.cache_key() == plain.cache_key()
         assert other.cache_key() != plain.cache_key(), option
@@ -113,8 +122,8 @@ def test_limited_plays_inside_the_full_map():
     plain = TownSequence(seed=3, size=150.0, n_scans=120)
     short_plain = Limited(plain, 40)
     assert short_plain.map_source is plain and len(short_plain.map_source) == 120
-    assert short_plain.cache_key() != plain.cache_key()     # the drive is shorter, the map is not
-    assert short.world_options()["sensor"] == "vlp16"        # the town's extras pass through
+    assert short_plain.cache_key() != plain.cache_key()  # the drive is shorter, the map is not
+    assert short.world_options()["sensor"] == "vlp16"  # the town's extras pass through
 
 
 def test_disk_cached_scans_keep_the_map_source(tmp_path):
@@ -136,8 +145,12 @@ def test_factory_passes_the_world_options():
 
 
 def test_bad_world_options_are_reported():
-    for options, message in ((dict(changes=1.5), "changes"), (dict(sensor="hdl32"), "sensor"),
-                             (dict(mount_height=9.0), "mount_height"), (dict(route=3), "route")):
+    for options, message in (
+        (dict(changes=1.5), "changes"),
+        (dict(sensor="hdl32"), "sensor"),
+        (dict(mount_height=9.0), "mount_height"),
+        (dict(route=3), "route"),
+    ):
         with pytest.raises(DataError, match=message):
             TownSequence(seed=3, size=150.0, n_scans=10, **options)
     with pytest.raises(DataError, match="unknown"):
@@ -164,7 +177,7 @@ def test_changes_change_a_share_of_the_movable_objects(town, changed):
     assert record.n_movable == n_movable > 100 and record.n_trees == n_trees > 100
     n_changed = len(record.moved) + len(record.removed) + len(record.added)
     assert n_changed == round(0.3 * n_movable)
-    for kind in (record.moved, record.removed, record.added):      # about a third each
+    for kind in (record.moved, record.removed, record.added):  # about a third each
         assert 0.2 * n_changed <= len(kind) <= 0.45 * n_changed
     assert len(record.cut) + len(record.grown) == round(0.3 * n_trees)
     assert abs(len(record.cut) - len(record.grown)) <= 1
@@ -184,7 +197,7 @@ def test_changes_change_a_share_of_the_movable_objects(town, changed):
         rays = np.zeros((len(xy), 6), np.float32)
         rays[:, :2], rays[:, 2], rays[:, 5] = xy, ground + 20.0, -1.0
         t = scene.cast_rays(open3d().core.Tensor(rays))["t_hit"].numpy()
-        return 20.0 - t                                   # height of the first hit above the ground
+        return 20.0 - t  # height of the first hit above the ground
 
     removed_cars = [it for it in record.removed if it.kind == "parked_car"]
     added_cars = [it for it in record.added if it.kind == "parked_car"]
@@ -214,9 +227,12 @@ def test_changed_scans_differ_from_the_mapped_ones_only_near_changes(town, chang
     """Scanned noise-free from the same poses, the mapped and the changed world differ only in
     rays that pass a changed object (on it, or behind it: uncovered or hidden)."""
     record = changed.changes_made
-    sites = np.array([(it.x, it.y, 6.0 if it.kind == "tree" else 3.5)   # (a grown crown is up to 5.6 m wide)
-                      for it in record.moved + record.moved_to + record.removed + record.added + record.cut
-                      + record.grown])
+    sites = np.array(
+        [
+            (it.x, it.y, 6.0 if it.kind == "tree" else 3.5)  # (a grown crown is up to 5.6 m wide)
+            for it in record.moved + record.moved_to + record.removed + record.added + record.cut + record.grown
+        ]
+    )
     exact = LidarModel(range_sigma=0.0, dropout=0.0, weak_dropout=0.0, intensity_noise=0.0)
     mapped, now = town.lidar.with_model(exact), changed.lidar.with_model(exact)
     differing = 0
@@ -234,7 +250,7 @@ def test_changed_scans_differ_from_the_mapped_ones_only_near_changes(town, chang
         o, q = T[:2, 3], pts[:, :2]
         seg = q - o
         f = np.clip(((sites[None, :, :2] - o) * seg[:, None]).sum(-1) / (seg * seg).sum(-1)[:, None], 0.0, 1.0)
-        d = np.linalg.norm(o + f[..., None] * seg[:, None] - sites[None, :, :2], axis=-1)     # (n, sites)
+        d = np.linalg.norm(o + f[..., None] * seg[:, None] - sites[None, :, :2], axis=-1)  # (n, sites)
         assert (d <= sites[None, :, 2]).any(axis=1).all(), f"scan {i}"
     assert differing > 100
 
@@ -262,7 +278,7 @@ def test_traffic_is_in_the_scans_and_nowhere_else(town, busy):
         if len(gone):
             sample = gone[:: max(1, len(gone) // 300)]
             assert _behind_boxes(boxes, T[:3, 3], _to_town(T, sample), margin=0.12).all(), f"scan {i}"
-        np.testing.assert_array_equal(busy.scan(i), b)     # deterministic
+        np.testing.assert_array_equal(busy.scan(i), b)  # deterministic
     assert seen > 1000
     # the map source's scans are the plain ones (no traffic in the map)
     np.testing.assert_array_equal(busy.map_source.scan(400), town.scan(400))
@@ -277,14 +293,14 @@ def test_traffic_moves_on_plausible_paths(busy):
         t_cars.append(on_road[a["kind"] == CAR])
         t_walk.append(on_road[a["kind"] == PEDESTRIAN])
     cars, walkers = np.concatenate(t_cars), np.concatenate(t_walk)
-    assert len(cars) > 50 and cars.all()                   # cars drive on the road
-    assert len(walkers) > 50 and np.mean(~walkers) > 0.8   # pedestrians walk on the sidewalks (and cross)
+    assert len(cars) > 50 and cars.all()  # cars drive on the road
+    assert len(walkers) > 50 and np.mean(~walkers) > 0.8  # pedestrians walk on the sidewalks (and cross)
     # they move: a car is somewhere else a second later
     a0, a1 = traffic.agents_at(30.0), traffic.agents_at(31.0)
     common, i0, i1 = np.intersect1d(a0["index"], a1["index"], return_indices=True)
     cars = (a0["kind"][i0] == CAR) & (common >= 0)
     step = np.linalg.norm(a1["xy"][i1] - a0["xy"][i0], axis=1)[cars]
-    assert np.all((step > 7.0) & (step < 14.0))           # 8–13 m/s
+    assert np.all((step > 7.0) & (step < 14.0))  # 8–13 m/s
 
 
 def test_a_car_drives_ahead_now_and_then(busy):
@@ -326,7 +342,7 @@ def test_sensor_rings_are_the_datasheets(town, name):
     # range noise moves a point along its ray: its elevation is the ring's (float32 rounding)
     assert np.abs(elevation - nearest).max() < 0.01
     counts = np.array([(nearest == e).sum() for e in rings])
-    assert len(rings) == model.n_beams and (counts > 0).mean() > 0.9   # (a ring may see only sky)
+    assert len(rings) == model.n_beams and (counts > 0).mean() > 0.9  # (a ring may see only sky)
     assert np.linalg.norm(pts[:, :3], axis=1).max() <= model.max_range
     assert seq.map_source is town
 
@@ -337,7 +353,9 @@ def test_vlp16_rings_every_two_degrees():
     assert max(SENSORS["vlp32c"].elevations_deg) == 15.0
     os1 = np.asarray(SENSORS["os1-128"].elevations_deg)
     assert len(os1) == 128 and os1.min() == -22.5 and os1.max() == 22.5
-    assert repr(SENSORS["hdl64e"]).startswith("LidarModel(n_azimuth=2000") and "elevations" not in repr(SENSORS["hdl64e"])
+    assert repr(SENSORS["hdl64e"]).startswith("LidarModel(n_azimuth=2000") and "elevations" not in repr(
+        SENSORS["hdl64e"]
+    )
 
 
 @pytest.mark.parametrize("name", ["vlp16", "vlp32c", "os1-128"])
@@ -375,7 +393,7 @@ def test_mount_height(town):
     pts = high.scan(333)
     r = np.linalg.norm(pts[:, :3], axis=1)
     elevation = np.degrees(np.arcsin(pts[:, 2] / r))
-    assert abs(np.median(pts[elevation < -22.0, 2]) + 2.3) < 0.1    # the road is 2.3 m below
+    assert abs(np.median(pts[elevation < -22.0, 2]) + 2.3) < 0.1  # the road is 2.3 m below
 
 
 # ------------------------------------------------------------------------------ route 2
@@ -383,11 +401,11 @@ def test_second_route_drives_the_mapped_streets(town):
     second = town.with_world(route=2)
     assert second.map_source is town and len(second) == len(town)
     xy2, xy1 = second.poses_town[:, :2, 3], town.poses_town[:, :2, 3]
-    assert np.linalg.norm(xy2[0] - xy1[0]) > 30.0                  # another start
+    assert np.linalg.norm(xy2[0] - xy1[0]) > 30.0  # another start
     assert not np.allclose(second.poses, town.poses)
-    assert town.raster.lookup(town.road, xy2[:, 0], xy2[:, 1]).all()   # on the road
+    assert town.raster.lookup(town.road, xy2[:, 0], xy2[:, 1]).all()  # on the road
     d, _ = cKDTree(xy1).query(xy2)
-    assert np.mean(d < 8.0) > 0.95                                 # on route 1's streets
+    assert np.mean(d < 8.0) > 0.95  # on route 1's streets
     # it is a drive of its own: other speeds and stops, the same world frame as the map
     assert np.abs(second.speeds - town.speeds).max() > 1.0
     np.testing.assert_allclose(second.poses, town.town_to_world[None] @ second.poses_town, atol=1e-9)

@@ -14,17 +14,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rich.console import Console
-
 from lidarloc.core.runs.trajectory_errors import trajectory_errors
+from rich.console import Console
 
 EVO_BIN = Path(sys.executable).parent
 
 
 def evo_rmse(command: str, gt: Path, est: Path) -> float:
     """The rmse line of ``evo_ape tum GT EST`` / ``evo_rpe tum GT EST`` (their defaults)."""
-    out = subprocess.run([str(EVO_BIN / command), "tum", str(gt), str(est)], capture_output=True, text=True,
-                         timeout=120, check=True).stdout
+    out = subprocess.run(
+        [str(EVO_BIN / command), "tum", str(gt), str(est)], capture_output=True, text=True, timeout=120, check=True
+    ).stdout
     return float(re.search(r"^\s*rmse\s+([0-9.eE+-]+)\s*$", out, re.M).group(1))
 
 
@@ -42,8 +42,9 @@ def test_evo_figures_equal_the_evo_commands_and_are_not_aligned(tmp_path):
     gt = write_tum(tmp_path / "groundtruth_tum.txt", t, truth, yaw)
     # the estimate: 4 ms late (associated by time), a constant 3 m offset plus noise, one pose more
     est_xyz = truth + [3.0, 0.0, 0.0] + rng.normal(0, 0.2, truth.shape)
-    est = write_tum(tmp_path / "trajectory_tum.txt", np.r_[t + 0.004, 6.5], np.r_[est_xyz, [[60.0, 0, 0]]],
-                    np.r_[yaw, 0.0])
+    est = write_tum(
+        tmp_path / "trajectory_tum.txt", np.r_[t + 0.004, 6.5], np.r_[est_xyz, [[60.0, 0, 0]]], np.r_[yaw, 0.0]
+    )
     got = trajectory_errors(est, gt)
     assert got["ape_rmse_m"] == pytest.approx(evo_rmse("evo_ape", gt, est), abs=1e-6)
     assert got["rpe_rmse_m"] == pytest.approx(evo_rmse("evo_rpe", gt, est), abs=1e-6)

@@ -12,7 +12,6 @@ import urllib.request
 import numpy as np
 import pytest
 from helpers import make_localizer, wait_for
-
 from lidarloc.core.config import DEG, Config
 from lidarloc.core.errors import LidarlocError
 
@@ -32,21 +31,19 @@ def test_step_advances_exactly_one_scan_and_pause_holds(viewer):
     v, loc = viewer.viewer, viewer.localizer
     c = v.controls
     assert loc.k == 0
-    c.step.value = True                    # a click: runs the button's callbacks
+    c.step.value = True  # a click: runs the button's callbacks
     wait_for(lambda: v.player.idle and loc.k == 1, what="one step")
     assert loc.k == 1
     c.step.value = True
     c.step.value = True
     wait_for(lambda: v.player.idle and loc.k == 3, what="two more steps")
-    time.sleep(0.3)
-    assert loc.k == 3                       # paused: nothing else happens
-    c.play.value = True                     # play …
+    assert v.player.idle and loc.k == 3  # idle: nothing queued, nothing running; the counter stays
+    c.play.value = True  # play …
     wait_for(lambda: loc.k >= 6, what="playing")
-    c.play.value = True                     # … and pause
+    c.play.value = True  # … and pause
     wait_for(lambda: v.player.idle, what="pause")
     k = loc.k
-    time.sleep(0.3)
-    assert loc.k == k
+    assert v.player.idle and not v.player.playing and loc.k == k
 
 
 def test_display_shows_latest_snapshot(viewer):
@@ -62,15 +59,15 @@ def test_display_shows_latest_snapshot(viewer):
 def test_numeric_params_reach_the_localizer(viewer):
     v, loc = viewer.viewer, viewer.localizer
     c = v.controls
-    c.params["d_max"].value = 4.0               # below the built table: no rebuild
+    c.params["d_max"].value = 4.0  # below the built table: no rebuild
     c.params["sigma"].value = 0.8
     c.params["region_x"].value = 12.0
     c.params["region_y"].value = 18.0
-    c.params["angle_step"].value = 5.0          # degrees in the GUI
+    c.params["angle_step"].value = 5.0  # degrees in the GUI
     c.params["n_particles"].value = 500
     c.params["scan_voxel"].value = 0.7
     assert c.apply.label == "Apply 7 changes" and not c.apply.disabled
-    assert loc.cfg.pf.sigma == 0.5                 # nothing sent before Apply
+    assert loc.cfg.pf.sigma == 0.5  # nothing sent before Apply
     c.apply.value = True
     assert loc.cfg.pf.d_max == 4.0
     assert loc.cfg.pf.sigma == 0.8
@@ -78,7 +75,7 @@ def test_numeric_params_reach_the_localizer(viewer):
     assert loc.cfg.s2m.angle_step == pytest.approx(5.0 * DEG)
     assert loc.cfg.pf.n_particles == 500 and isinstance(loc.cfg.pf.n_particles, int)
     assert loc.cfg.pf.scan_voxel == 0.7
-    assert loc.pf.sigma == 0.8 and loc.pf.d_max == 4.0          # the filter itself, not just the config
+    assert loc.pf.sigma == 0.8 and loc.pf.d_max == 4.0  # the filter itself, not just the config
     assert c.apply.disabled and "applied" in v.message
     assert loc.rebuild_progress is None
     # effective from the next scan
@@ -90,9 +87,9 @@ def test_numeric_params_reach_the_localizer(viewer):
 def test_q_is_shown_and_set_in_paper_units(viewer):
     v, loc = viewer.viewer, viewer.localizer
     q = v.controls.q
-    assert q[3].value == pytest.approx(5.0)          # yaw: 5°
-    assert q[9].value == pytest.approx(0.02)         # roll rate: 0.02°/s
-    assert q[0].value == pytest.approx(0.5)          # x: 0.5 m
+    assert q[3].value == pytest.approx(5.0)  # yaw: 5°
+    assert q[9].value == pytest.approx(0.02)  # roll rate: 0.02°/s
+    assert q[0].value == pytest.approx(0.5)  # x: 0.5 m
     q[3].value = 8.0
     q[6].value = 0.3
     v.controls.apply.value = True
@@ -113,8 +110,18 @@ def test_s2m_switch_and_clock(viewer):
     assert v.controls.speed.disabled
 
 
-@pytest.mark.parametrize("key,value", [("sigma", 0.0), ("sigma", -1.0), ("d_max", -2.0), ("n_particles", 0),
-                                       ("region_x", 0.0), ("match_resolution", 50.0), ("angle_step", 0.0)])
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("sigma", 0.0),
+        ("sigma", -1.0),
+        ("d_max", -2.0),
+        ("n_particles", 0),
+        ("region_x", 0.0),
+        ("match_resolution", 50.0),
+        ("angle_step", 0.0),
+    ],
+)
 def test_invalid_values_are_refused_with_a_message(viewer, key, value):
     v, loc = viewer.viewer, viewer.localizer
     before = loc.cfg.to_dict()
@@ -157,6 +164,7 @@ def test_reset_global_point_and_rectangle(viewer):
         client = None
         ray_origin = tuple(origin)
         ray_direction = tuple((target - origin) / np.linalg.norm(target - origin))
+
     v.on_shift_click(Click())
     assert loc.events[-1].kind == "reset" and "around a pose" in loc.events[-1].detail
     xy = np.median(loc.pf.states[:, :2], axis=0)
@@ -164,10 +172,10 @@ def test_reset_global_point_and_rectangle(viewer):
     assert "particles reset around (30.0, 2.0)" in v.message
 
     # a rectangle dragged in a top-down view: its corners land where the camera model says
-    class Camera:   # straight down from 100 m over (50, 0); image "up" = +y
+    class Camera:  # straight down from 100 m over (50, 0); image "up" = +y
         position = np.array([50.0, 0.0, 100.0])
-        wxyz = np.array([0.0, 1.0, 0.0, 0.0])          # 180° about x: z forward = down, y down = -y
-        fov = 2 * math.atan(0.5)                       # tan(fov/2) = 0.5: 100 m up sees ±50 m vertically
+        wxyz = np.array([0.0, 1.0, 0.0, 0.0])  # 180° about x: z forward = down, y down = -y
+        fov = 2 * math.atan(0.5)  # tan(fov/2) = 0.5: 100 m up sees ±50 m vertically
         aspect = 1.0
 
     class Client:
@@ -177,6 +185,7 @@ def test_reset_global_point_and_rectangle(viewer):
         client = Client()
         screen_min = (0.5, 0.25)
         screen_max = (0.75, 0.5)
+
     v.on_shift_rect(Rect())
     assert loc.events[-1].kind == "reset"
     # half-height of the view at the ground is 0.5·(100 − z0); u 0.5…0.75 → x 50…50 + half/2
@@ -214,7 +223,7 @@ def test_kidnap_and_restart(viewer):
 def test_layers_and_bev_level(viewer):
     v = viewer.viewer
     c = v.controls
-    assert c.layers["bev_level"].visible      # the localizer has a pyramid: the toggle is offered
+    assert c.layers["bev_level"].visible  # the localizer has a pyramid: the toggle is offered
     c.layers["map"].value = False
     assert v.scene.node("map").visible is False
     c.layers["map_bev"].value = True
@@ -245,8 +254,10 @@ def test_factory_shows_progress_then_attaches(street, cache_root):
 
     handle = serve(factory, port=0, autoplay=True)
     try:
-        wait_for(lambda: handle.viewer.controls.progress_text.content.startswith("Building the prior map… 50%"),
-                 what="progress")
+        wait_for(
+            lambda: handle.viewer.controls.progress_text.content.startswith("Building the prior map… 50%"),
+            what="progress",
+        )
         assert handle.viewer.controls.progress.visible
         handle.viewer.controls.reset.value = True
         assert "still starting" in handle.viewer.message
@@ -311,7 +322,7 @@ def test_rebuild_progress_shows_in_the_page(viewer):
     c = v.controls
     c.layers["bev_level"].value = True
     old = loc.pyramid
-    c.params["match_resolution"].value = 2.0       # d_m: the BEV pyramid is rebuilt in the background
+    c.params["match_resolution"].value = 2.0  # d_m: the BEV pyramid is rebuilt in the background
     c.apply.value = True
     assert loc.rebuild_progress is not None
     v.update_display()
@@ -335,12 +346,12 @@ def test_status_and_plots_follow_the_run(viewer):
     text = v.controls.status.content
     assert "Scan 3 of 24" in text and "paused" in text
     assert "N_eff" in text and "S2M" in text and "error to truth" in text
-    assert "s2m started" in text                                  # recent events
+    assert "s2m started" in text  # recent events
     plots = v.controls.plots.handles
     x, std, spread, err, cursor = plots["std"].data
     assert list(x) == [0, 1, 2, 3] and (std > 0).all() and (spread > 0).all() and (err > 0).all()
     x, pf_ms, rpe_ms, s2m_ms, accepted, rejected, cursor = plots["latency"].data
-    assert not np.isfinite(cursor).any()          # live: no timeline cursor
+    assert not np.isfinite(cursor).any()  # live: no timeline cursor
     assert len(pf_ms) == 4 and (pf_ms > 0).all() and s2m_ms[-1] > 0
     # the scene shows this scan: its points in green at the estimate, the S2M match with its label
     snap = loc.snapshot()
@@ -370,6 +381,7 @@ def test_status_shows_the_scans_confidence_and_warns_while_it_is_low(viewer):
 
     def status(s):
         return status_markdown(s, "paused", "replay", "10", [], min_inlier_share=floor)
+
     assert f"low confidence: {100 * (floor - 0.2):.0f}% of the scan fits the map" in status(low)
     assert "low confidence" not in status(replace(low, inlier_share=floor + 0.1))
     assert "low confidence" not in status(replace(low, localized=False))

@@ -19,7 +19,6 @@ from helpers import browser_localizer, wait_for
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     from lidarloc.app.viewer.serve import serve
@@ -105,12 +104,14 @@ def test_tab_opened_while_playing_gets_the_history_and_live_plots(browser, playi
     wait_for(lambda: loc.k >= 8, what="playback before the tab opens")
     page = open_viewer(browser, playing.url)
     n_plots = len(playing.viewer.controls.plots.handles)
-    page.wait_for_function(f"{JS_PLOTS}.length === {n_plots} && {JS_PLOTS}.every(p => p.n >= 8)",
-                           polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        f"{JS_PLOTS}.length === {n_plots} && {JS_PLOTS}.every(p => p.n >= 8)", polling=250, timeout=STEP_TIMEOUT
+    )
     first = page.evaluate(JS_PLOTS)
     # live updates: every chart grows, and the newest scan stays inside its x range (the whole run)
-    page.wait_for_function(f"{JS_PLOTS}.every(p => p.n >= {max(p['n'] for p in first) + 6})",
-                           polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        f"{JS_PLOTS}.every(p => p.n >= {max(p['n'] for p in first) + 6})", polling=250, timeout=STEP_TIMEOUT
+    )
     for p in page.evaluate(JS_PLOTS):
         assert p["min"] == 0 and p["max"] == loc.n_scans - 1, p
         assert p["min"] <= p["last"] <= p["max"], p
@@ -144,7 +145,8 @@ def test_viewer_in_chromium(browser, served):
     # the canvas is drawn: many colours, and a good share of pixels that are not background
     canvas = page.locator("canvas").first
     page.wait_for_function(
-        "(() => { const t = document.body.innerText; return t.includes('Scan') })()", timeout=STEP_TIMEOUT)
+        "(() => { const t = document.body.innerText; return t.includes('Scan') })()", timeout=STEP_TIMEOUT
+    )
     colours, foreground = canvas_stats(canvas.screenshot(timeout=LOAD_TIMEOUT))
     assert colours > 50 and foreground > 0.02, (colours, foreground)
 
@@ -171,10 +173,13 @@ def test_viewer_in_chromium(browser, served):
     for close in page.locator(".mantine-Notification-closeButton").all():
         try:
             close.click(timeout=5_000)
-        except PlaywrightTimeout:       # it closed by itself meanwhile
+        except PlaywrightTimeout:  # it closed by itself meanwhile
             pass
-    wait_for(lambda: particle_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 5_000, timeout=STEP_TIMEOUT / 1000,
-             what="the re-drawn particles on the canvas")
+    wait_for(
+        lambda: particle_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 5_000,
+        timeout=STEP_TIMEOUT / 1000,
+        what="the re-drawn particles on the canvas",
+    )
     page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)
 
     # shift+click on the scene: particles reset around the clicked ground point
@@ -196,10 +201,10 @@ def test_viewer_in_chromium(browser, served):
     page.wait_for_function("document.body.innerText.includes('particles reset in x')", timeout=STEP_TIMEOUT)
     text = page.evaluate("document.body.innerText")
     x0, x1, y0, y1 = map(float, re.search(r"reset in x (-?\d+)…(-?\d+), y (-?\d+)…(-?\d+)", text).groups())
-    P = served.localizer.pf.states          # reset() re-draws the particles; snapshots show them from the next scan
+    P = served.localizer.pf.states  # reset() re-draws the particles; snapshots show them from the next scan
     assert (P[:, 0] >= x0 - 1).all() and (P[:, 0] <= x1 + 1).all()
     assert (P[:, 1] >= y0 - 1).all() and (P[:, 1] <= y1 + 1).all()
-    assert served.viewer.scene.node("reset_area").visible      # the reset area is outlined until the next scan
+    assert served.viewer.scene.node("reset_area").visible  # the reset area is outlined until the next scan
     page.get_by_role("button", name="Step").click()
     page.wait_for_function(f"{JS_SCAN} === {paused_at + 2}", timeout=STEP_TIMEOUT)
     page.screenshot(path=str(ARTIFACTS / "viewer-after-rect-reset.png"))
@@ -235,8 +240,9 @@ def test_viewer_in_chromium(browser, served):
     sigma.fill("0.7")
     wait_for(lambda: sigma_on_server.value == 0.7, what="σ = 0.7 on the server")
     page.get_by_role("button", name="Apply 1 change").click()
-    page.wait_for_function("document.body.innerText.includes('applied from the next scan: σ (m)')",
-                           polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        "document.body.innerText.includes('applied from the next scan: σ (m)')", polling=250, timeout=STEP_TIMEOUT
+    )
     assert served.localizer.cfg.pf.sigma == 0.7 and served.localizer.pf.sigma == 0.7
     page.close()
 
@@ -245,7 +251,6 @@ def test_viewer_in_chromium(browser, served):
 def waiting(tmp_path_factory):
     """A short run that waits for its first tab (the demo's default)."""
     from helpers import StreetSequence, make_localizer
-
     from lidarloc.app.viewer.serve import serve
 
     loc = make_localizer(StreetSequence(n=40), tmp_path_factory.mktemp("waiting-cache"), n_particles=300)
@@ -264,11 +269,11 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     the end and says "off" when S2M is off."""
     loc, viewer = waiting.localizer, waiting.viewer
     assert waiting.wait_ready(60)
-    assert not viewer.player.playing and loc.k == 0          # nobody is watching yet: not playing
+    assert not viewer.player.playing and loc.k == 0  # nobody is watching yet: not playing
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     page.goto(waiting.url, timeout=LOAD_TIMEOUT)
     page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT)
-    page.wait_for_function(f"{JS_SCAN} >= 1", timeout=LOAD_TIMEOUT)     # the tab started it
+    page.wait_for_function(f"{JS_SCAN} >= 1", timeout=LOAD_TIMEOUT)  # the tab started it
 
     # pause, then step until an accepted S2M match has landed: its scan and search area are on
     # the canvas in magenta (a rejected one would be grey)
@@ -281,8 +286,11 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
         viewer.step_once()
         wait_for(lambda: loc.k == before + 1 and viewer.player.idle, timeout=LOAD_TIMEOUT / 1000, what="one step")
     canvas = page.locator("canvas").first
-    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500, timeout=LOAD_TIMEOUT / 1000,
-             what="the accepted S2M match on the canvas")
+    wait_for(
+        lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) > 500,
+        timeout=LOAD_TIMEOUT / 1000,
+        what="the accepted S2M match on the canvas",
+    )
 
     # kidnap while paused: the status shows it at once, without another scan
     at = scan_counter(page)
@@ -293,8 +301,11 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     # restart (still paused): the old run's S2M match leaves the scene
     page.get_by_role("button", name="Restart from scan 0").click()
     page.wait_for_function("document.body.innerText.includes('restarted from scan 0')", timeout=STEP_TIMEOUT)
-    wait_for(lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) < 50, timeout=STEP_TIMEOUT / 1000,
-             what="no S2M match on the canvas after the restart")
+    wait_for(
+        lambda: magenta_pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) < 50,
+        timeout=STEP_TIMEOUT / 1000,
+        what="no S2M match on the canvas after the restart",
+    )
 
     # to the end: the S2M row does not say "running"; switched off, it says "off"
     page.get_by_role("button", name="Play").click()

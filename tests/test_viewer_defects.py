@@ -19,18 +19,26 @@ class Tab:
     reads (and drops) everything the server sends, and can press a button."""
 
     def __init__(self, port: int):
+        import msgspec
         import viser
+        from viser._messages import ViewerCameraMessage
         from websockets.sync.client import connect
 
-        import msgspec
-        from viser._messages import ViewerCameraMessage
-
-        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
-                          max_size=None, open_timeout=10)
+        self.ws = connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=10
+        )
         # viser counts a tab as connected once it reports its camera
-        camera = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 10.0), fov=1.0, near=0.01,
-                                     far=1000.0, image_height=600, image_width=800, look_at=(0.0, 0.0, 0.0),
-                                     up_direction=(0.0, 0.0, 1.0))
+        camera = ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0),
+            position=(0.0, 0.0, 10.0),
+            fov=1.0,
+            near=0.01,
+            far=1000.0,
+            image_height=600,
+            image_width=800,
+            look_at=(0.0, 0.0, 0.0),
+            up_direction=(0.0, 0.0, 1.0),
+        )
         self.ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
         self._thread = threading.Thread(target=self._drain, daemon=True)
         self._thread.start()
@@ -46,7 +54,9 @@ class Tab:
         import msgspec
         from viser._messages import GuiUpdateMessage
 
-        self.ws.send(msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict()))
+        self.ws.send(
+            msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict())
+        )
 
     def close(self):
         self.ws.close()
@@ -94,11 +104,11 @@ def test_kidnap_while_paused_updates_the_status_at_once(viewer):
     v.controls.kidnap_skip.value = 5
     v.controls.kidnap.value = True
     assert loc.k == 7 and not v.player.playing
-    v.update_display()                        # what the display thread does next; no step in between
+    v.update_display()  # what the display thread does next; no step in between
     text = v.controls.status.content
     assert text != before
     assert "next scan: 7" in text
-    assert "kidnap — vehicle moved from scan 2 to 7" in text       # the recent events
+    assert "kidnap — vehicle moved from scan 2 to 7" in text  # the recent events
     assert "not localized" in text
 
 
@@ -127,11 +137,28 @@ def test_s2m_status_says_running_while_a_match_is_in_flight():
     from lidarloc.app.viewer.readouts import status_markdown
     from lidarloc.core.snapshot import Snapshot
 
-    snap = Snapshot(scan_index=3, n_scans=10, timestamp=0.3, particles=np.zeros((4, 11)), weights=np.full(4, 0.25),
-                    best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3), std_xyz=np.ones(3),
-                    ellipse_xy=(2.0, 2.0, 0.0), n_eff=4.0, localized=False, localized_since=None,
-                    scan_world=np.zeros((0, 3), np.float32), gt_pose=None, error_m=None, pf_ms=5.0, s2m=None,
-                    s2m_running=True, s2m_acceptance=0.0)
+    snap = Snapshot(
+        scan_index=3,
+        n_scans=10,
+        timestamp=0.3,
+        particles=np.zeros((4, 11)),
+        weights=np.full(4, 0.25),
+        best_index=0,
+        mean_pose=np.eye(4),
+        cov_xyz=np.eye(3),
+        std_xyz=np.ones(3),
+        ellipse_xy=(2.0, 2.0, 0.0),
+        n_eff=4.0,
+        localized=False,
+        localized_since=None,
+        scan_world=np.zeros((0, 3), np.float32),
+        gt_pose=None,
+        error_m=None,
+        pf_ms=5.0,
+        s2m=None,
+        s2m_running=True,
+        s2m_acceptance=0.0,
+    )
     assert "running" in s2m_row(status_markdown(snap, "playing", "replay", "10", []))
     assert "running" not in s2m_row(status_markdown(snap, "finished", "replay", "10", []))
     assert s2m_row(status_markdown(snap, "playing", "replay", "10", [], s2m_enabled=False)) == "| S2M | off |"
@@ -147,7 +174,7 @@ def test_playback_waits_for_the_first_tab(street, cache_root):
     try:
         assert handle.wait_ready(30)
         v = handle.viewer
-        assert not v.player.playing and loc.k == 0        # attach returned without playing
+        assert not v.player.playing and loc.k == 0  # attach returned without playing
         tab = Tab(handle.port)
         wait_for(lambda: loc.k >= 2, what="playback after the first tab connected")
         # a second tab does not resume a run the user paused
@@ -196,8 +223,9 @@ def test_messages_are_notified_to_the_tab_that_acted(viewer, monkeypatch):
     def record(self, title, body, **kwargs):
         sent.append((self.client_id, body, kwargs.get("color")))
         return real(self, title, body, **kwargs)
+
     monkeypatch.setattr(viser.ClientHandle, "add_notification", record)
-    v, loc = viewer.viewer, viewer.localizer
+    v, _loc = viewer.viewer, viewer.localizer
     a, b = Tab(viewer.port), Tab(viewer.port)
     try:
         wait_for(lambda: len(viewer.server.get_clients()) == 2, what="two tabs")
@@ -205,7 +233,7 @@ def test_messages_are_notified_to_the_tab_that_acted(viewer, monkeypatch):
         a.click(v.controls.reset)
         wait_for(lambda: sent, what="a notification")
         assert sent == [(first, "particles reset globally", "blue")]
-        assert v.message == "particles reset globally"           # the panel line stays
+        assert v.message == "particles reset globally"  # the panel line stays
         v.controls.kidnap_skip.value = 0
         b.click(v.controls.kidnap)
         wait_for(lambda: len(sent) == 2, what="the refusal")
@@ -217,15 +245,15 @@ def test_messages_are_notified_to_the_tab_that_acted(viewer, monkeypatch):
 
 # ---------------------------------------------------------------------------------- achieved rate
 def test_status_shows_the_achieved_rate_while_playing(viewer):
-    v, loc = viewer.viewer, viewer.localizer
+    v, _loc = viewer.viewer, viewer.localizer
     v.controls.speed.value = "5"
     v.controls.play.value = True
     wait_for(lambda: v.player.achieved_rate() is not None, what="a measured rate")
     rate = v.player.achieved_rate()
-    assert 0 < rate <= 5.5                   # never faster than the set speed
+    assert 0 < rate <= 5.5  # never faster than the set speed
     wait_for(lambda: "achieved" in v.controls.status.content, what="the rate in the status")
     assert "scans/s" in v.controls.status.content
-    v.controls.play.value = True             # pause: no rate
+    v.controls.play.value = True  # pause: no rate
     wait_for(lambda: v.player.idle)
     v.update_display()
     assert "achieved" not in v.controls.status.content
@@ -246,7 +274,8 @@ def test_map_is_shown_while_the_tables_are_built_and_sent_once(street, cache_roo
         def shown(prior_map):
             on_map(prior_map)
             seen.set()
-            go.wait(30)                      # hold the build here: the tables are not built yet
+            go.wait(30)  # hold the build here: the tables are not built yet
+
         cfg = Config()
         cfg.pf.n_particles = 200
         built.append(Localizer(street, cfg, cache_root, progress=progress, on_map=shown))
@@ -263,7 +292,7 @@ def test_map_is_shown_while_the_tables_are_built_and_sent_once(street, cache_roo
         assert np.linalg.norm(v.scene.map_center[:2]) > 10
         go.set()
         assert handle.wait_ready(60)
-        assert v.scene.node("map") is cloud         # attach did not send it again
+        assert v.scene.node("map") is cloud  # attach did not send it again
     finally:
         go.set()
         handle.stop()

@@ -13,7 +13,6 @@ from dataclasses import replace
 
 import numpy as np
 from helpers import wait_for
-
 from lidarloc.app.viewer.readouts import GREEN_CSS, status_markdown
 from lidarloc.core.snapshot import Event, Snapshot
 
@@ -21,11 +20,29 @@ GREEN = f"color:{GREEN_CSS}"
 
 
 def snapshot(**kw) -> Snapshot:
-    base = dict(scan_index=30, n_scans=100, timestamp=3.0, particles=np.zeros((4, 11)), weights=np.full(4, 0.25),
-                best_index=0, mean_pose=np.eye(4), cov_xyz=np.eye(3) * 0.01, std_xyz=np.full(3, 0.1),
-                ellipse_xy=(0.2, 0.2, 0.0), n_eff=4.0, localized=False, localized_since=None,
-                scan_world=np.zeros((0, 3), np.float32), gt_pose=np.eye(4), error_m=0.3, pf_ms=5.0, s2m=None,
-                s2m_running=False, s2m_acceptance=0.0, converged=True)
+    base = dict(
+        scan_index=30,
+        n_scans=100,
+        timestamp=3.0,
+        particles=np.zeros((4, 11)),
+        weights=np.full(4, 0.25),
+        best_index=0,
+        mean_pose=np.eye(4),
+        cov_xyz=np.eye(3) * 0.01,
+        std_xyz=np.full(3, 0.1),
+        ellipse_xy=(0.2, 0.2, 0.0),
+        n_eff=4.0,
+        localized=False,
+        localized_since=None,
+        scan_world=np.zeros((0, 3), np.float32),
+        gt_pose=np.eye(4),
+        error_m=0.3,
+        pf_ms=5.0,
+        s2m=None,
+        s2m_running=False,
+        s2m_acceptance=0.0,
+        converged=True,
+    )
     base.update(kw)
     return Snapshot(**base)
 
@@ -79,7 +96,8 @@ def test_dropped_scans_are_not_called_a_kidnap():
     assert "vehicle was moved" not in realtime
     kidnap = [Event(5, "kidnap", "vehicle moved from scan 6 to 8")]
     assert "the vehicle was moved; the filter was not told" in status_markdown(
-        snap, "paused", "realtime", "10", kidnap, next_scan=8)
+        snap, "paused", "realtime", "10", kidnap, next_scan=8
+    )
 
 
 # ---------------------------------------------------------------------------------- on a live viewer
@@ -107,17 +125,24 @@ def test_truth_alarm_is_notified_once_per_onset(viewer, monkeypatch):
     monkeypatch.setattr(v, "show_message", lambda text, **kw: sent.append((text, kw.get("error"))))
     base = loc.snapshot()
     alarm = "the rule says localized; the truth is 102 m away"
-    for k, since in ((base.scan_index, 1), (base.scan_index + 1, 1)):      # one onset, two scans
-        v.publish(replace(base, scan_index=k, localized=True, localized_since=since, error_m=102.0,
-                          truth_alarm=alarm))
+    for k, since in ((base.scan_index, 1), (base.scan_index + 1, 1)):  # one onset, two scans
+        v.publish(replace(base, scan_index=k, localized=True, localized_since=since, error_m=102.0, truth_alarm=alarm))
         v.update_display()
     assert sent == [(f"false fire at scan {base.scan_index}: {alarm}", True)]
     assert "false fire: " + alarm in v.controls.status.content
-    v.publish(replace(base, scan_index=base.scan_index + 2))                  # the alarm goes …
+    v.publish(replace(base, scan_index=base.scan_index + 2))  # the alarm goes …
     v.update_display()
-    v.publish(replace(base, scan_index=base.scan_index + 3, localized=True, localized_since=base.scan_index + 3,
-                      error_m=60.0, truth_alarm="the rule says localized; the truth is 60 m away"))
-    v.update_display()                                                        # … and comes back
+    v.publish(
+        replace(
+            base,
+            scan_index=base.scan_index + 3,
+            localized=True,
+            localized_since=base.scan_index + 3,
+            error_m=60.0,
+            truth_alarm="the rule says localized; the truth is 60 m away",
+        )
+    )
+    v.update_display()  # … and comes back
     assert len(sent) == 2 and sent[1][0].startswith(f"false fire at scan {base.scan_index + 3}")
 
 
@@ -143,11 +168,20 @@ def test_timeline_lists_and_jumps_to_false_fires(viewer):
 
     assert "false_fire" in MARKED_EVENTS and any("false_fire" in kinds for _, _, kinds in RUN_MARKS)
     tl = viewer.viewer.travel.timeline
-    events = [(s, Event(s, kind)) for s, kind in ((3, "s2m_accepted"), (5, "s2m_rejected"), (7, "localized"),
-                                                   (7, "false_fire"), (9, "s2m_accepted"), (12, "relocalized"))]
+    events = [
+        (s, Event(s, kind))
+        for s, kind in (
+            (3, "s2m_accepted"),
+            (5, "s2m_rejected"),
+            (7, "localized"),
+            (7, "false_fire"),
+            (9, "s2m_accepted"),
+            (12, "relocalized"),
+        )
+    ]
     tl.set_run(_Run(20, events), live_available=False)
     tl.go(0)
-    assert tl.next_event() == 7                   # the default passes over the S2M verdicts
+    assert tl.next_event() == 7  # the default passes over the S2M verdicts
     assert tl.next_event() == 12
     tl.kinds.value = "false fire"
     assert "7 false fire" in tl.event_list.content and "localized" not in tl.event_list.content
@@ -167,7 +201,7 @@ def test_status_says_what_a_step_waits_for(street, cache_root):
     cfg.pf.n_particles = 300
     cfg.localize.s2m_process = False
     loc = Localizer(street, cfg, cache_root)
-    gate = threading.Event()                      # every match waits here until the test opens it
+    gate = threading.Event()  # every match waits here until the test opens it
     for name in ("match_local", "match_global"):
         real = getattr(loc.s2m.matcher, name)
         setattr(loc.s2m.matcher, name, lambda *a, _real=real, **k: (gate.wait(60), _real(*a, **k))[1])
@@ -180,12 +214,15 @@ def test_status_says_what_a_step_waits_for(street, cache_root):
         def says_waiting() -> bool:
             v.update_display()
             return "· waiting for the S2M match started at scan " in v.controls.status.content
+
         wait_for(says_waiting, what="the wait for the match in the status")
         first = v.controls.status.content.splitlines()[0]
         assert re.search(r"waiting for the S2M match started at scan \d+ \(\d+\.\d s\)", first), first
         # the rate achieved falls while the step waits, instead of the last one staying up
-        wait_for(lambda: v.player.achieved_rate(window=1.0) is not None and v.player.achieved_rate(window=1.0) < 1.0,
-                 what="the rate falling while waiting")
+        wait_for(
+            lambda: v.player.achieved_rate(window=1.0) is not None and v.player.achieved_rate(window=1.0) < 1.0,
+            what="the rate falling while waiting",
+        )
     finally:
         gate.set()
         handle.stop()
@@ -245,7 +282,7 @@ def test_truth_colour_stands_out_from_the_map_and_the_labels_name_it():
     from lidarloc.app.viewer.panel import LAYER_LABELS
 
     gt = np.asarray(style.GT_COLOR, float)
-    assert np.linalg.norm(style.HEIGHT_LUT.astype(float) - gt, axis=1).min() > 120     # roofs are near white
+    assert np.linalg.norm(style.HEIGHT_LUT.astype(float) - gt, axis=1).min() > 120  # roofs are near white
     for other in (style.SCAN_COLOR, style.EST_COLOR, style.BEST_COLOR, style.S2M_ACCEPTED_COLOR, style.BEV_COLOR):
         assert np.linalg.norm(np.asarray(other, float) - gt) > 70
     assert style.css(style.GT_COLOR) in legend_markdown()
@@ -258,5 +295,5 @@ def test_new_tabs_look_at_the_vehicle_not_the_whole_map(viewer, street):
     start = street.pose(0)[:3, 3]
     look_at = np.asarray(server.initial_camera.look_at)
     assert np.linalg.norm(look_at - start) < 1.0
-    assert np.linalg.norm(look_at - v.scene.map_center) > 10.0          # not the whole map's centre
-    assert np.linalg.norm(np.asarray(server.initial_camera.position) - look_at) < 80.0    # close enough to see it
+    assert np.linalg.norm(look_at - v.scene.map_center) > 10.0  # not the whole map's centre
+    assert np.linalg.norm(np.asarray(server.initial_camera.position) - look_at) < 80.0  # close enough to see it

@@ -30,8 +30,15 @@ def served(cache_root, tmp_path_factory):
     cfg.pf.n_particles = 300
     spec = SourceSpec(scans=40)
     loc = Localizer(open_sequence(spec, cfg), cfg, cache_root)
-    handle = serve(loc, port=0, autoplay=False, speed="5", record_to=tmp_path_factory.mktemp("keys-runs"),
-                   spec=spec, cache_root=cache_root)
+    handle = serve(
+        loc,
+        port=0,
+        autoplay=False,
+        speed="5",
+        record_to=tmp_path_factory.mktemp("keys-runs"),
+        spec=spec,
+        cache_root=cache_root,
+    )
     yield handle
     handle.stop()
     loc.close()
@@ -72,7 +79,7 @@ def test_space_and_arrows_drive_playback_and_the_timeline(browser, served):
     wait_for(lambda: tl.step == newest - 1, WAIT_S, "one forward after →")
     np.testing.assert_allclose(np.asarray(camera.wxyz), wxyz, atol=1e-6)
     k = loc.k
-    assert not v.player.playing and loc.k == k         # → on the timeline moves it, it processes nothing
+    assert not v.player.playing and loc.k == k  # → on the timeline moves it, it processes nothing
     # typing into a number field is typing: no shortcut fires (had ← gone through, the → after it
     # would land one step short)
     seed = page.get_by_label("Seed")

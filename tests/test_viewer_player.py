@@ -7,7 +7,6 @@ import time
 import numpy as np
 import pytest
 from helpers import wait_for
-
 from lidarloc.app.viewer.player import Player
 from lidarloc.core.errors import LidarlocError
 
@@ -53,7 +52,7 @@ def test_player_pacing():
     try:
         # replay at 20 scans/s: 6 scans are 5 intervals of 50 ms after the first
         assert 0.23 <= time_scans(player, loc, 6) < SLOW_BOUND_S
-        player.set_speed(None)                    # max: as fast as the localizer goes …
+        player.set_speed(None)  # max: as fast as the localizer goes …
         # … so 50 scans take less than the 2.5 s that pacing them at 20 scans/s would
         assert time_scans(player, loc, 50) < 50 / 20.0
         # realtime at the sequence's timestamps (0.1 s apart), whatever the speed says (at 100
@@ -91,7 +90,7 @@ def test_player_survives_a_failing_step():
         player.play()
         wait_for(lambda: errors, what="the error")
         assert errors == ["scan 2: corrupt file"] and not player.playing
-        loc.k = 3                                     # past the bad scan: playback resumes
+        loc.k = 3  # past the bad scan: playback resumes
         player.play()
         wait_for(lambda: loc.k >= 10, what="playing again")
     finally:
@@ -103,7 +102,7 @@ def test_player_reports_the_achieved_rate():
     player = Player(loc, lambda s: None, lambda m: None, speed=20.0)
     player.start()
     try:
-        assert player.achieved_rate() is None            # nothing played yet
+        assert player.achieved_rate() is None  # nothing played yet
         player.play()
         wait_for(lambda: loc.k >= 12, what="12 scans")
         rate = player.achieved_rate()
@@ -111,8 +110,8 @@ def test_player_reports_the_achieved_rate():
         assert rate is not None and 8.0 < rate <= 20.0 * 1.01
         player.pause()
         assert player.wait_idle(5)
-        assert player.achieved_rate() is None            # paused: no rate to show
-        assert player.lag_s is None                      # replay: no sensor clock to lag behind
+        assert player.achieved_rate() is None  # paused: no rate to show
+        assert player.lag_s is None  # replay: no sensor clock to lag behind
     finally:
         player.stop()
 

@@ -11,7 +11,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from helpers import StreetSequence, make_localizer, wait_for
-
 from lidarloc.core.geometry import pose_matrix
 
 
@@ -22,17 +21,17 @@ def test_log_weight_rank_orders_particles_that_hold_no_weight():
     lw = np.array([-2000.0, 0.0, -900.0, -900.0, -1500.0])
     r = log_weight_rank(lw)
     assert r[1] == 1.0 and r[0] == 0.0
-    assert r[2] == r[3] and r[4] < r[2] < r[1]                 # ties share a rank, the order is kept
+    assert r[2] == r[3] and r[4] < r[2] < r[1]  # ties share a rank, the order is kept
     w = np.exp(lw - lw.max())
-    assert (w[[0, 2, 3, 4]] == 0).all()                        # by weight they would all look the same
+    assert (w[[0, 2, 3, 4]] == 0).all()  # by weight they would all look the same
     assert np.array_equal(log_weight_rank(np.zeros(4)), np.full(4, 0.5))
 
 
 def test_error_components_follow_the_truths_heading():
     from lidarloc.app.viewer.history import error_components
 
-    truth = pose_matrix(10.0, 5.0, 1.0, math.pi / 2, 0.0, 0.0)        # heading +y
-    est = pose_matrix(9.0, 7.0, 1.5, math.pi / 2 + 0.1, 0.0, 0.0)     # 2 m ahead, 1 m to its right
+    truth = pose_matrix(10.0, 5.0, 1.0, math.pi / 2, 0.0, 0.0)  # heading +y
+    est = pose_matrix(9.0, 7.0, 1.5, math.pi / 2 + 0.1, 0.0, 0.0)  # 2 m ahead, 1 m to its right
     along, cross, vertical, heading = error_components(est, truth)
     assert along == pytest.approx(2.0) and cross == pytest.approx(1.0) and vertical == pytest.approx(0.5)
     assert heading == pytest.approx(0.1)
@@ -45,10 +44,10 @@ def test_error_components_follow_the_truths_heading():
 def test_event_marks_sit_on_the_plotted_scans():
     from lidarloc.app.viewer.plots import mark_series
 
-    x = np.array([0.0, 2.0, 4.0, 6.0])          # a decimated axis
+    x = np.array([0.0, 2.0, 4.0, 6.0])  # a decimated axis
     y = np.array([1.0, 2.0, np.nan, 4.0])
     m = mark_series(x, y, [(3, "localized"), (6, "loss"), (1, "s2m_accepted")], ("localized",))
-    assert np.isnan(m[[0, 1, 3]]).all() and m[2] == 0.0        # at scan 4 (the curve has no value there)
+    assert np.isnan(m[[0, 1, 3]]).all() and m[2] == 0.0  # at scan 4 (the curve has no value there)
     m = mark_series(x, y, [(6, "loss")], ("loss", "false_positive"))
     assert m[3] == 4.0
 
@@ -58,9 +57,21 @@ def test_legend_names_every_colour_the_scene_uses():
     from lidarloc.app.viewer.legend import legend_markdown
 
     text = legend_markdown()
-    for rgb in (style.SCAN_COLOR, style.EST_COLOR, style.GT_COLOR, style.BEST_COLOR, style.ELLIPSE_COLOR,
-                style.S2M_ACCEPTED_COLOR, style.S2M_REJECTED_COLOR, style.BEV_COLOR, style.RESET_COLOR,
-                style.PARTICLE_LOW, style.PARTICLE_HIGH, style.HEIGHT_LUT[0], style.HEIGHT_LUT[-1]):
+    for rgb in (
+        style.SCAN_COLOR,
+        style.EST_COLOR,
+        style.GT_COLOR,
+        style.BEST_COLOR,
+        style.ELLIPSE_COLOR,
+        style.S2M_ACCEPTED_COLOR,
+        style.S2M_REJECTED_COLOR,
+        style.BEV_COLOR,
+        style.RESET_COLOR,
+        style.PARTICLE_LOW,
+        style.PARTICLE_HIGH,
+        style.HEIGHT_LUT[0],
+        style.HEIGHT_LUT[-1],
+    ):
         assert style.css(rgb) in text, rgb
     assert "N_eff share" in text and "collapsed" in text
     assert "ground truth" not in legend_markdown(has_truth=False)

@@ -16,7 +16,7 @@ from helpers import MAPPING_SCANS
 
 pytestmark = pytest.mark.slow
 
-STOP_S = 1.0          # the README's promise
+STOP_S = 1.0  # the README's promise
 
 
 def _lines(proc) -> queue.Queue:
@@ -27,6 +27,7 @@ def _lines(proc) -> queue.Queue:
         for line in proc.stdout:
             q.put(line)
         q.put(None)
+
     threading.Thread(target=read, daemon=True).start()
     return q
 
@@ -49,10 +50,25 @@ def _wait_for_line(q: queue.Queue, prefix: str, timeout: float) -> None:
 
 @pytest.mark.timeout(300)
 def test_ctrl_c_stops_the_demo_within_a_second_under_load(cache_root):
-    cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record",
-           "--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, COLUMNS="200"))
+    cmd = [
+        sys.executable,
+        "-m",
+        "lidarloc.app.cli",
+        "demo",
+        "--autoplay",
+        "--port",
+        "0",
+        "--no-record",
+        "--scans",
+        "60",
+        "--set",
+        f"town.n_scans={MAPPING_SCANS}",
+        "--cache",
+        str(cache_root),
+    ]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
+    )
     burners = []
     try:
         _wait_for_line(_lines(proc), "ready:", timeout=240)

@@ -33,7 +33,7 @@ def test_surface_is_drawn_above_the_road_and_its_marks_above_the_vehicles(viewer
     v.why.request_surface()
     wait_for(lambda: v.why.surface.last is not None, what="the surface")
     surface, snap = v.why.surface.last, v.why.surface.last_snapshot
-    image_z = float(v.why.surface._image.position[2])
+    image_z = float(v.why.surface.image.position[2])
     # the map's road under the grid: its points' squares reach half a point size above them
     cloud = v.scene.node("map")
     p = np.asarray(cloud.points)
@@ -42,7 +42,7 @@ def test_surface_is_drawn_above_the_road_and_its_marks_above_the_vehicles(viewer
     road = float(np.median(under[under[:, 2] < np.percentile(under[:, 2], 30), 2]))
     assert image_z > road + cloud.point_size / 2, (image_z, road)
     # the marks (estimate, truth, maximum) above the vehicles' outlines, large enough to see round them
-    marks = np.asarray(v.why.surface._marks.points).reshape(-1, 3)
+    marks = np.asarray(v.why.surface.marks.points).reshape(-1, 3)
     vehicle_z = max(float(np.asarray(v.scene.node(n).points)[..., 2].max()) for n in ("est_vehicle", "gt_vehicle"))
     assert marks[:, 2].min() > vehicle_z
     est = np.asarray(snap.mean_pose)[:2, 3]
@@ -61,6 +61,7 @@ def test_a_superseded_result_is_still_delivered_unless_cancelled():
                 started.set()
                 release.wait(10)
                 return "first"
+
             worker.submit("surface", slow, done.append, done.append, superseded_ok=superseded_ok)
             assert started.wait(10)
             worker.submit("surface", lambda: "second", done.append, done.append, superseded_ok=superseded_ok)
@@ -69,8 +70,9 @@ def test_a_superseded_result_is_still_delivered_unless_cancelled():
             assert done == expect
         # cancel (a restart, a move on the timeline) drops even a superseded_ok result
         started, release, done = threading.Event(), threading.Event(), []
-        worker.submit("surface", lambda: (started.set(), release.wait(10), "old")[2], done.append, done.append,
-                      superseded_ok=True)
+        worker.submit(
+            "surface", lambda: (started.set(), release.wait(10), "old")[2], done.append, done.append, superseded_ok=True
+        )
         assert started.wait(10)
         worker.cancel("surface")
         release.set()

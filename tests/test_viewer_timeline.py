@@ -11,10 +11,9 @@ import shutil
 import numpy as np
 import pytest
 from helpers import MAPPING_SCANS, wait_for
-
-from lidarloc.core.runs import recording
 from lidarloc.core.config import Config
 from lidarloc.core.errors import LidarlocError
+from lidarloc.core.runs import recording
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
 SCANS = 30
@@ -22,8 +21,11 @@ SCANS = 30
 
 def show(v) -> None:
     """Redraw until the scene shows the timeline's step with its scan (recomputed on a thread)."""
-    wait_for(lambda: v.update_display(force_plots=True) is not None and v.travel.scan_shown, timeout=30,
-             what="the recorded step's scan")
+    wait_for(
+        lambda: v.update_display(force_plots=True) is not None and v.travel.scan_shown,
+        timeout=30,
+        what="the recorded step's scan",
+    )
 
 
 def town_setup(scans: int = SCANS, n_particles: int = 300):
@@ -79,16 +81,16 @@ def test_scrubbing_shows_the_recorded_step(recorded):
     tl = v.travel.timeline
     rec = recording.open(v.travel.recorder.run_dir)
     try:
-        tl.slider.value = 4                          # as a drag in the browser: the callbacks run
+        tl.slider.value = 4  # as a drag in the browser: the callbacks run
         assert tl.step == 4
-        v.update_display(force_plots=True)           # at once: the step's particles and estimate …
+        v.update_display(force_plots=True)  # at once: the step's particles and estimate …
         np.testing.assert_allclose(v.scene.node("particle_dots").points, rec.particles(4)[:, :3], atol=1e-5)
-        show(v)                                      # … then its scan
+        show(v)  # … then its scan
         drawn = v.drawn
         assert drawn.scan_index == 4
         np.testing.assert_allclose(v.scene.node("particle_dots").points, rec.particles(4)[:, :3], atol=1e-5)
         np.testing.assert_allclose(v.scene.node("pose").position, rec.mean_pose[4][:3, 3], atol=1e-5)
-        assert len(v.scene.node("scan").points) > 1000          # the scan, recomputed from the source
+        assert len(v.scene.node("scan").points) > 1000  # the scan, recomputed from the source
         assert "**Scan 4 of" in v.controls.status.content and "recorded" in v.controls.status.content
         assert "**Scan 4**" in tl.where.content
         # the plots' cursor: one dot, at scan 4
@@ -128,7 +130,7 @@ def test_dragging_pauses_live_playback_and_live_plays_on(recorded):
         v.pause()
         tl.live()
     wait_for(lambda: v.player.idle, what="the scan in progress")
-    assert not v.player.playing                         # Live after a pause by hand stays paused
+    assert not v.player.playing  # Live after a pause by hand stays paused
     wait_for(lambda: v.travel.recorder.n == loc.steps, what="the last step recorded")
     v.update_display()
     assert tl.slider.value == loc.steps - 1
@@ -150,6 +152,7 @@ def test_event_buttons_land_on_event_steps(recorded):
                 landed.append(tl.next_event())
             except LidarlocError:
                 return landed
+
     try:
         # "all": every event kind the filter offers, S2M verdicts included
         tl.kinds.value = "all"
@@ -159,7 +162,7 @@ def test_event_buttons_land_on_event_steps(recorded):
         assert landed == [s for s in steps if s > 0 and s < tl.n]
         back = tl.prev_event()
         assert back == landed[-2]
-        tl.buttons.value = "◀"            # the button group, as clicked
+        tl.buttons.value = "◀"  # the button group, as clicked
         assert tl.step == back - 1
         # the default passes over the S2M verdicts (every few scans) to what changed the run
         tl.kinds.value = DEFAULT_FILTER
@@ -188,13 +191,15 @@ def test_scrubbing_clears_or_redraws_another_scans_surface(recorded):
         assert why.surface.last_snapshot.scan_index == tl.run.scan_of(4)
         tl.go(6)
         show(v)
-        assert why.surface.last is None and why.surface._image is None      # not scan 4's under scan 6
+        assert why.surface.last is None and why.surface.image is None  # not scan 4's under scan 6
         # with "Surface on every scan" the shown scan gets its own
         why.surface.every_scan.value = True
         tl.go(7)
         show(v)
-        wait_for(lambda: why.surface.last is not None and why.surface.last_snapshot.scan_index == tl.run.scan_of(7),
-                 what="the surface of step 7")
+        wait_for(
+            lambda: why.surface.last is not None and why.surface.last_snapshot.scan_index == tl.run.scan_of(7),
+            what="the surface of step 7",
+        )
     finally:
         why.surface.every_scan.value = False
         why.clear()
@@ -270,14 +275,14 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
     v = handle.viewer
     first = v.travel.recorder.run_dir
     v.controls.seed.value = 1
-    v.controls.restart.value = True                 # a new run, recorded in a folder of its own
+    v.controls.restart.value = True  # a new run, recorded in a folder of its own
     second = v.travel.recorder.run_dir
     assert second != first and second.parent == root
     for _ in range(10):
         v.step_once()
         wait_for(lambda: v.player.idle, what="a step")
     wait_for(lambda: v.travel.recorder.n == 10, what="10 recorded steps")
-    v.travel.recorder.close()                       # as the viewer does on stop: the summary is written
+    v.travel.recorder.close()  # as the viewer does on stop: the summary is written
     assert recording.open(first).summary is not None
     h2 = open_runs([first, second], port=0, cache_root=cache_root)
     try:
@@ -289,7 +294,7 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
         w.update_display(force_plots=True)
         # both particle clouds at the same step, one colour each
         np.testing.assert_allclose(w.scene.node("particle_dots").points, a.particles(6)[:, :3], atol=1e-5)
-        ref = w.travel._ref_nodes["particles"]
+        ref = w.travel.reference_node("particles")
         np.testing.assert_allclose(ref.points, b.particles(6)[:, :3], atol=1e-5)
         assert tuple(ref.colors.reshape(-1, 3)[0]) != tuple(w.scene.node("particle_dots").colors.reshape(-1, 3)[0])
         # both trajectories, the second in its own colour, end at the step on screen
@@ -328,10 +333,13 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     tl.go(8)
     scan = tl.run.scan_of(8)
     original = handle.localizer
-    v.controls.params["sigma"].value = 0.9          # a changed parameter for the branch
-    tl.branch.value = True                           # the button, as clicked
-    wait_for(lambda: v.localizer is not original and v.travel.reference is not None and not v.travel.branching,
-             timeout=120, what="the branch to start")
+    v.controls.params["sigma"].value = 0.9  # a changed parameter for the branch
+    tl.branch.value = True  # the button, as clicked
+    wait_for(
+        lambda: v.localizer is not original and v.travel.reference is not None and not v.travel.branching,
+        timeout=120,
+        what="the branch to start",
+    )
     loc = v.localizer
     assert loc.k == scan + 1 and loc.cfg.pf.sigma == 0.9 and v.controls.apply.disabled
     branch_dir = v.travel.recorder.run_dir
@@ -366,6 +374,7 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     def compared(n_branch: int) -> bool:
         v.update_display()
         return f"branch after scan {scan} 9…{n_branch - 1}" in v.travel.compare_text.content
+
     wait_for(lambda: compared(12), what="the Compare table over the branch's 3 steps")
     v.step_once()
     wait_for(lambda: v.player.idle and v.travel.recorder.n == 13, what="one more branch step")
@@ -374,7 +383,7 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     rec = recording.open(branch_dir)
     err, loc = rec.error_m[:4], rec.localized[:4].astype(bool)
     row = next(line for line in table.splitlines() if line.startswith("| steps compared |"))
-    assert row.split("|")[2].strip() == "4"                     # the branch's own steps only
+    assert row.split("|")[2].strip() == "4"  # the branch's own steps only
     if loc.any():
         rmse = float(np.sqrt(np.mean(err[loc] ** 2)))
         row = next(line for line in table.splitlines() if line.startswith("| RMSE while localized"))

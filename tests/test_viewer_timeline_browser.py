@@ -62,6 +62,7 @@ def test_moving_the_slider_shows_the_chosen_scan(browser, served_run):
         def settled() -> bool:
             shots.append(pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)))
             return np.array_equal(shots[-1], shots[-2])
+
         wait_for(settled, timeout=LOAD_TIMEOUT / 1000, what="the first scene to settle")
         before = shots[-1]
         page.screenshot(path=str(ARTIFACTS / "timeline-scan-0.png"))
@@ -76,11 +77,12 @@ def test_moving_the_slider_shows_the_chosen_scan(browser, served_run):
         for _ in range(3):
             thumb.press("ArrowLeft")
         page.wait_for_function(f"{JS_SCAN} == {SCANS - 4}", timeout=STEP_TIMEOUT)
-        assert page.evaluate("document.body.innerText").count(f"Scan {SCANS - 4}") >= 2   # status and timeline
+        assert page.evaluate("document.body.innerText").count(f"Scan {SCANS - 4}") >= 2  # status and timeline
 
         def changed() -> bool:
             diff = np.abs(pixels(canvas.screenshot(timeout=LOAD_TIMEOUT)) - before).max(axis=2)
             return int((diff > 40).sum()) > 500
+
         wait_for(changed, timeout=STEP_TIMEOUT / 1000, what="the scene to show the chosen scan")
         page.screenshot(path=str(ARTIFACTS / f"timeline-scan-{SCANS - 4}.png"))
     finally:

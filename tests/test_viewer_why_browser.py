@@ -16,12 +16,11 @@ import pytest
 from browser import ARTIFACTS, JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT
 from helpers import browser_localizer, wait_for
 
-PANEL_LEFT = 0.72          # share of the canvas's width left of the panel (1400 px viewport)
-LINE_TOL = 40              # lines are drawn with some shading: their pixels stray further from the colour
-SCANS_BEFORE = 4           # scans stepped before the page opens: an S2M match has landed by then
+PANEL_LEFT = 0.72  # share of the canvas's width left of the panel (1400 px viewport)
+LINE_TOL = 40  # lines are drawn with some shading: their pixels stray further from the colour
+SCANS_BEFORE = 4  # scans stepped before the page opens: an S2M match has landed by then
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
-
 
 
 @pytest.fixture(scope="module")
@@ -92,11 +91,17 @@ def test_why_views_in_chromium(browser, served):
     # --- scan residuals: the panel gives the share beyond d_max, the canvas shows the ramp's green
     before = count_near(pixels(canvas_png(page)), RESIDUAL_GOOD)
     page.get_by_text("Show residuals", exact=True).click()
-    page.wait_for_function("/at the estimate: \\*?\\*?[\\d.]+%/.test(document.body.innerText) || "
-                           "/at the estimate: [\\d.]+% of [\\d,]+ points beyond d_max/.test(document.body.innerText)",
-                           polling=250, timeout=STEP_TIMEOUT)
-    wait_for(lambda: count_near(pixels(canvas_png(page)), RESIDUAL_GOOD) > before + 300, STEP_TIMEOUT / 1000,
-             "the residual colours on the canvas")
+    page.wait_for_function(
+        "/at the estimate: \\*?\\*?[\\d.]+%/.test(document.body.innerText) || "
+        "/at the estimate: [\\d.]+% of [\\d,]+ points beyond d_max/.test(document.body.innerText)",
+        polling=250,
+        timeout=STEP_TIMEOUT,
+    )
+    wait_for(
+        lambda: count_near(pixels(canvas_png(page)), RESIDUAL_GOOD) > before + 300,
+        STEP_TIMEOUT / 1000,
+        "the residual colours on the canvas",
+    )
     text = page.evaluate("document.body.innerText")
     share = float(re.search(r"at the estimate: ([\d.]+)% of ([\d,]+) points beyond d_max", text).group(1))
     assert share == pytest.approx(100 * why.residuals.last.share_beyond, abs=0.051)
@@ -107,18 +112,25 @@ def test_why_views_in_chromium(browser, served):
     # (seen from 15 m above the estimate: the default likelihood's peak is a few 0.5 m cells wide)
     estimate = np.asarray(snap.mean_pose, float)[:3, 3]
     look_down_at(served, estimate, 15.0)
-    wait_for(lambda: np.allclose(next(iter(served.server.get_clients().values())).camera.look_at, estimate, atol=0.05),
-             STEP_TIMEOUT / 1000, "the camera over the estimate")
+    wait_for(
+        lambda: np.allclose(next(iter(served.server.get_clients().values())).camera.look_at, estimate, atol=0.05),
+        STEP_TIMEOUT / 1000,
+        "the camera over the estimate",
+    )
     before = surface_yellows(pixels(canvas_png(page)))
     page.get_by_role("button", name="Likelihood surface here").click()
-    page.wait_for_function(f"document.body.innerText.includes('scan {snap.scan_index}: maximum at (')",
-                           polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        f"document.body.innerText.includes('scan {snap.scan_index}: maximum at (')", polling=250, timeout=STEP_TIMEOUT
+    )
     text = page.evaluate("document.body.innerText")
     assert re.search(r"81×81 cells of 0\.5 m, one yaw: \d+ ms", text), text
     best = re.search(r"maximum at \((-?[\d.]+), (-?[\d.]+)\)", text).groups()
     np.testing.assert_allclose([float(v) for v in best], why.surface.last.argmax_xy, atol=0.051)
-    wait_for(lambda: surface_yellows(pixels(canvas_png(page))) > before + 500, STEP_TIMEOUT / 1000,
-             "the surface's colours on the canvas")
+    wait_for(
+        lambda: surface_yellows(pixels(canvas_png(page))) > before + 500,
+        STEP_TIMEOUT / 1000,
+        "the surface's colours on the canvas",
+    )
     page.get_by_text(re.compile(r"one yaw: \d+ ms")).scroll_into_view_if_needed()
     page.screenshot(path=str(ARTIFACTS / "why-surface.png"))
 
@@ -127,20 +139,29 @@ def test_why_views_in_chromium(browser, served):
     target = np.asarray(snap.particles[j][:3], float)
     look_down_at(served, target, 45.0)
     canvas = page.locator("canvas").first
-    wait_for(lambda: np.allclose(next(iter(served.server.get_clients().values())).camera.look_at, target, atol=0.05),
-             30, "the camera over the particle")
+    wait_for(
+        lambda: np.allclose(next(iter(served.server.get_clients().values())).camera.look_at, target, atol=0.05),
+        30,
+        "the camera over the particle",
+    )
     box = canvas.bounding_box()
     before = count_near(pixels(canvas_png(page)), SELECTED_COLOR, LINE_TOL)
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-    page.wait_for_function("/particle \\d+ of \\d+ at scan \\d+: rank \\d+ by log-likelihood/"
-                           ".test(document.body.innerText)", polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        "/particle \\d+ of \\d+ at scan \\d+: rank \\d+ by log-likelihood/.test(document.body.innerText)",
+        polling=250,
+        timeout=STEP_TIMEOUT,
+    )
     text = page.evaluate("document.body.innerText")
     picked = int(re.search(r"particle (\d+) of \d+ at scan", text).group(1))
     assert np.linalg.norm(snap.particles[picked][:2] - target[:2]) < 2.0
     assert re.search(r"yaw\s+-?[\d.]+ deg", text) and re.search(r"v\s+-?[\d.]+ m/s", text)
-    assert "at the inspected particle:" in text            # the residual view switched to it
-    wait_for(lambda: count_near(pixels(canvas_png(page)), SELECTED_COLOR, LINE_TOL) > before + 100,
-             STEP_TIMEOUT / 1000, "the inspected particle's marker")
+    assert "at the inspected particle:" in text  # the residual view switched to it
+    wait_for(
+        lambda: count_near(pixels(canvas_png(page)), SELECTED_COLOR, LINE_TOL) > before + 100,
+        STEP_TIMEOUT / 1000,
+        "the inspected particle's marker",
+    )
     page.get_by_text(re.compile(r"rank \d+ by log-likelihood")).scroll_into_view_if_needed()
     page.screenshot(path=str(ARTIFACTS / "why-particle.png"))
 
@@ -148,13 +169,22 @@ def test_why_views_in_chromium(browser, served):
     s2m = viewer.drawn.s2m
     look_down_at(served, np.asarray(s2m.pose)[:3, 3], 70.0)
     page.get_by_text("S2M details", exact=True).click()
-    page.wait_for_function(f"/started {s2m.started_at} → landed {s2m.landed_at}, \\d+ ms/"
-                           ".test(document.body.innerText)", polling=250, timeout=STEP_TIMEOUT)
+    page.wait_for_function(
+        f"/started {s2m.started_at} → landed {s2m.landed_at}, \\d+ ms/.test(document.body.innerText)",
+        polling=250,
+        timeout=STEP_TIMEOUT,
+    )
     text = page.evaluate("document.body.innerText")
     assert re.search(r"total \d+", text) and ("accepted" in text or "rejected" in text)
     if len(s2m.candidates):
-        wait_for(lambda: count_near(pixels(canvas_png(page)), CANDIDATE_COLOR, LINE_TOL)
-                 + count_near(pixels(canvas_png(page)), WINNER_COLOR, LINE_TOL) > 30, STEP_TIMEOUT / 1000,
-                 "the S2M candidates' arrows")
+        wait_for(
+            lambda: (
+                count_near(pixels(canvas_png(page)), CANDIDATE_COLOR, LINE_TOL)
+                + count_near(pixels(canvas_png(page)), WINNER_COLOR, LINE_TOL)
+                > 30
+            ),
+            STEP_TIMEOUT / 1000,
+            "the S2M candidates' arrows",
+        )
     page.screenshot(path=str(ARTIFACTS / "why-s2m.png"))
     page.close()

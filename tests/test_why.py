@@ -12,14 +12,13 @@ import threading
 import numpy as np
 import pytest
 from helpers import browser_localizer, make_localizer, short_town, toy_scan, wait_for
-
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.geometry import pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.filter.likelihood import PER_POINT, log_likelihood
 from lidarloc.core.filter.residuals import move_scan, scan_residuals
 from lidarloc.core.filter.surface import LikelihoodModel
+from lidarloc.core.geometry import pose_matrix, pose_to_xyz_ypr, transform_points
 
-TRUTH_RADIUS_M = 1.0     # the bound: the surface's maximum within 1 m of the truth
+TRUTH_RADIUS_M = 1.0  # the bound: the surface's maximum within 1 m of the truth
 
 
 def until_localized(loc, extra: int = 2):
@@ -60,8 +59,8 @@ def test_surface_is_the_filters_likelihood_cell_by_cell(toy_world, temperature, 
     states = np.column_stack([X.ravel(), Y.ravel(), np.tile(state[2:6], (X.size, 1))])
     ref = log_likelihood(states, pts, lut, 4.0, 0.5, temperature=temperature, unexplained_share=unexplained)
     np.testing.assert_allclose(s.ll.ravel(), ref, rtol=1e-9)
-    assert s.ll.std() > 0                                   # not a flat field that agrees trivially
-    assert np.linalg.norm(s.argmax_xy - state[:2]) <= 0.5   # the toy world pins the pose down
+    assert s.ll.std() > 0  # not a flat field that agrees trivially
+    assert np.linalg.norm(s.argmax_xy - state[:2]) <= 0.5  # the toy world pins the pose down
 
 
 def test_best_over_yaw_is_the_best_single_yaw_surface(toy_world):
@@ -81,13 +80,16 @@ def test_best_over_yaw_is_the_best_single_yaw_surface(toy_world):
     np.testing.assert_allclose(window.yaw, state[3] + (best - 2) * step, atol=1e-12)
 
 
-@pytest.mark.parametrize("kwargs, needle", [
-    ({"center": [0, 0, 0, np.nan, 0, 0]}, "finite"),
-    ({"center": [0, 0, 0]}, "6 finite"),
-    ({"half_width": 2000.0}, "too large"),
-    ({"cell": 0.0}, "cell must be > 0"),
-    ({"yaw_window": -1.0}, "yaw window"),
-])
+@pytest.mark.parametrize(
+    "kwargs, needle",
+    [
+        ({"center": [0, 0, 0, np.nan, 0, 0]}, "finite"),
+        ({"center": [0, 0, 0]}, "6 finite"),
+        ({"half_width": 2000.0}, "too large"),
+        ({"cell": 0.0}, "cell must be > 0"),
+        ({"yaw_window": -1.0}, "yaw window"),
+    ],
+)
 def test_surface_refuses_bad_input_in_one_line(toy_world, kwargs, needle):
     _, lut = toy_world
     args = {"center": [10, 10, 1, 0, 0, 0], **kwargs}
@@ -127,12 +129,12 @@ def test_bench_surface_reports_time_and_accuracy(cache_root):
     from lidarloc.core.sequences.factory import SourceSpec
 
     cfg = Config()
-    cfg.town.n_scans = 150               # helpers.short_town's mapping drive: its map is cached already
+    cfg.town.n_scans = 150  # helpers.short_town's mapping drive: its map is cached already
     result = run(SourceSpec(scans=20), cfg, scans=2, repeats=2, cache_root=cache_root)
     assert result["grid"] == "81x81" and result["scans"] == 2 and result["points_median"] > 1000
     assert 0 < result["ms_median"] <= result["ms_max"] and result["ms_median_over_yaw"] > result["ms_median"]
     assert result["met"] == (result["ms_median"] <= TARGET_MS)
-    assert result["argmax_error_m_median"] <= 2.0     # centres up to 5 m and 3° off the truth
+    assert result["argmax_error_m_median"] <= 2.0  # centres up to 5 m and 3° off the truth
 
 
 # ---------------------------------------------------------------------------------- residuals
@@ -144,9 +146,8 @@ def _tolerance(lut) -> float:
 @pytest.mark.slow
 @pytest.mark.parametrize("at", ["estimate", "truth"])
 def test_residuals_agree_with_a_kdtree_nearest_neighbour(localized_town, at):
-    from scipy.spatial import cKDTree
-
     from lidarloc.app.viewer.why_style import RESIDUAL_LUT, residual_colors, residual_fraction
+    from scipy.spatial import cKDTree
 
     loc, snap = localized_town
     model = LikelihoodModel.of(loc)
@@ -164,14 +165,14 @@ def test_residuals_agree_with_a_kdtree_nearest_neighbour(localized_town, at):
     assert np.max(np.abs(ramp - ramp_exact)) <= tol / span + 1e-9
     colors = residual_colors(res.distance, model.sigma, model.d_max)
     assert (exact <= model.sigma - tol).sum() > 100
-    assert (colors[exact <= model.sigma - tol] == RESIDUAL_LUT[0]).all()          # green
+    assert (colors[exact <= model.sigma - tol] == RESIDUAL_LUT[0]).all()  # green
     beyond = res.distance >= np.float32(model.d_max)
-    assert beyond.sum() > 0 and (colors[beyond] == RESIDUAL_LUT[-1]).all()       # red
+    assert beyond.sum() > 0 and (colors[beyond] == RESIDUAL_LUT[-1]).all()  # red
     # the share beyond d_max is the k-d tree's, up to points within the tolerance of d_max
     sure_in, sure_out = raw < model.d_max - tol, raw >= model.d_max + tol
     assert sure_out.sum() > 0
     assert np.mean(sure_out) <= res.share_beyond <= 1.0 - np.mean(sure_in)
-    if at == "estimate":     # the localizer's own inlier share is the complement
+    if at == "estimate":  # the localizer's own inlier share is the complement
         assert res.share_beyond == pytest.approx(1.0 - snap.inlier_share, abs=2.0 / len(pts))
 
 
@@ -193,9 +194,9 @@ def test_pick_particle_takes_the_one_nearest_the_ray():
     P = np.zeros((4, 11))
     P[:, :3] = [[0, 0, 1.7], [10, 0, 1.7], [10, 3, 1.7], [50, 50, 1.7]]
     origin = np.array([10.0, 0.5, 40.0])
-    assert pick_particle(P, origin, np.array([0, -0.5, -38.3])) == 1       # just beside particle 1
+    assert pick_particle(P, origin, np.array([0, -0.5, -38.3])) == 1  # just beside particle 1
     with pytest.raises(LidarlocError, match="no particle near"):
-        pick_particle(P, origin, np.array([0.0, 0.0, 1.0]))                 # looking up at the sky
+        pick_particle(P, origin, np.array([0.0, 0.0, 1.0]))  # looking up at the sky
 
 
 @pytest.mark.slow
@@ -241,14 +242,16 @@ def test_worker_keeps_only_the_newest_job_of_a_kind():
     started = threading.Event()
     done: list = []
     try:
+
         def slow():
             started.set()
             release.wait(10)
             return "first"
+
         worker.submit("surface", slow, done.append, done.append)
         wait_for(started.is_set, 10, "the first job to start")
-        worker.submit("surface", lambda: "second", done.append, done.append)    # superseded while pending …
-        worker.submit("surface", lambda: "third", done.append, done.append)     # … by this one
+        worker.submit("surface", lambda: "second", done.append, done.append)  # superseded while pending …
+        worker.submit("surface", lambda: "third", done.append, done.append)  # … by this one
         worker.submit("particle", lambda: 1 / 0, done.append, lambda m: done.append(f"failed: {m}"))
         release.set()
         wait_for(lambda: worker.idle, 10, "the worker to finish")
@@ -282,14 +285,14 @@ def test_why_views_draw_and_a_restart_clears_them(tmp_path_factory):
             v.step_once()
             wait_for(lambda: v.drawn is not None and v.drawn.scan_index == k, 60, f"scan {k} drawn")
         with pytest.raises(LidarlocError):
-            w.inspect_at((0, 0, 1000), (0, 0, 1))          # nothing up there
+            w.inspect_at((0, 0, 1000), (0, 0, 1))  # nothing up there
         w.residuals.enabled.value = True
         assert "beyond d_max" in w.residuals.readout.content
         assert w.residuals.last is not None and len(w.residuals.last.distance) == len(v.drawn.scan_world)
         w.request_surface()
         wait_for(lambda: w.surface.last is not None, 60, "the surface")
         assert "maximum at" in w.surface.readout.content and w.surface.bar.visible
-        w.surface.over_yaw.value = True              # recomputes the surface, best over the yaw window
+        w.surface.over_yaw.value = True  # recomputes the surface, best over the yaw window
         wait_for(lambda: "best of ±10° in 2° steps" in w.surface.readout.content, 60, "the best-over-yaw surface")
         assert "best yaw there:" in w.surface.readout.content and w.surface.last.yaw_window > 0
         w.inspect_best()
@@ -299,13 +302,13 @@ def test_why_views_draw_and_a_restart_clears_them(tmp_path_factory):
         assert "rank" in w.particle.details.content
         w.s2m_enabled.value = True
         assert w.s2m_text.visible and "S2M" in w.s2m_text.content
-        nodes = [w.residuals._cloud, w.surface._image, w.surface._marks, w.particle._marker]
+        nodes = [w.residuals.cloud, w.surface.image, w.surface.marks, w.particle.marker]
         assert all(n is not None for n in nodes)
 
-        v._restart()
+        v.restart()
         assert w.surface.last is None and w.particle.report is None and w.residuals.last is None
         assert w.surface.readout.content == "" and w.particle.details.content == ""
-        assert w.residuals._cloud is None and w.surface._image is None and w.particle._marker is None
+        assert w.residuals.cloud is None and w.surface.image is None and w.particle.marker is None
         assert w.s2m.node_names == []
     finally:
         handle.stop()

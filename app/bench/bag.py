@@ -28,13 +28,12 @@ import numpy as np
 from ...core.config import Config
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
-
 from .common import load_avg, open_source
 
 TARGET_SCANS_PER_S = 200.0
 STORAGES = ("mcap", "sqlite3", "ros1")
 TOPIC = "/velodyne_points"
-T0_NS = 1_700_000_000 * 10**9           # an arbitrary Unix time for the header stamps
+T0_NS = 1_700_000_000 * 10**9  # an arbitrary Unix time for the header stamps
 
 
 def _cloud(ts, points: np.ndarray, stamp_ns: int, seq: int):
@@ -45,15 +44,23 @@ def _cloud(ts, points: np.ndarray, stamp_ns: int, seq: int):
     PF = T["sensor_msgs/msg/PointField"]
     data = np.ascontiguousarray(points[:, :4], dtype="<f4")
     return T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=len(data),
+        header=header,
+        height=1,
+        width=len(data),
         fields=[PF(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate(("x", "y", "z", "intensity"))],
-        is_bigendian=False, point_step=16, row_step=16 * len(data), data=data.view(np.uint8).reshape(-1), is_dense=True)
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * len(data),
+        data=data.view(np.uint8).reshape(-1),
+        is_dense=True,
+    )
 
 
 def write_bag(path: Path, seq, total: int, storage: str) -> Path:
     """``total`` scans of ``seq`` (cycling through it) as a PointCloud2 bag at ``path``."""
     from rosbags.rosbag1 import Writer as Writer1
-    from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
     from rosbags.typesys import Stores, get_typestore
 
     ros1 = storage == "ros1"
@@ -62,7 +69,9 @@ def write_bag(path: Path, seq, total: int, storage: str) -> Path:
     if ros1:
         writer = Writer1(path)
     else:
-        writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3)
+        writer = Writer2(
+            path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        )
     msgtype = "sensor_msgs/msg/PointCloud2"
     with writer:
         conn = writer.add_connection(TOPIC, msgtype, typestore=ts)
@@ -76,8 +85,15 @@ def _size_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.is_dir() else path.stat().st_size
 
 
-def run(spec: SourceSpec, cfg: Config, total: int = 300, storage: str = "mcap", repeats: int = 3,
-        random_reads: int = 30, workdir: Path | None = None) -> dict:
+def run(
+    spec: SourceSpec,
+    cfg: Config,
+    total: int = 300,
+    storage: str = "mcap",
+    repeats: int = 3,
+    random_reads: int = 30,
+    workdir: Path | None = None,
+) -> dict:
     from ...core.sequences.rosbag import BagSequence
 
     if storage not in STORAGES:

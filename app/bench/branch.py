@@ -28,14 +28,19 @@ import numpy as np
 from ...core.runs import recording
 from ...core.runs.branch import open_branch
 from ...core.runs.resume import CHECKPOINT_EVERY
-
 from .common import load_avg, machine, record_run
 
 TARGET_START_S = 1.0
 BUDGET_MB_PER_1000 = 10.0
-RESUME_FIELDS = ("odom_pose", "odom_prev_pose", "odom_path_turned", "odom_prev_path_turned", "odom_origin",
-                 "odom_used", "s2m_landed_started")
-
+RESUME_FIELDS = (
+    "odom_pose",
+    "odom_prev_pose",
+    "odom_path_turned",
+    "odom_prev_path_turned",
+    "odom_origin",
+    "odom_used",
+    "s2m_landed_started",
+)
 
 
 def sizes(rec: recording.Recording) -> dict:
@@ -44,29 +49,38 @@ def sizes(rec: recording.Recording) -> dict:
 
     def mb(pattern: str) -> float:
         return sum(f.stat().st_size for f in folder.glob(pattern) if f.is_file()) / 1e6 * 1000.0 / max(rec.n, 1)
-    per_step = sum((rec.path / f"{name}.bin").stat().st_size for name in RESUME_FIELDS
-                   if (rec.path / f"{name}.bin").is_file()) / 1e6 * 1000.0 / max(rec.n, 1)
+
+    per_step = (
+        sum((rec.path / f"{name}.bin").stat().st_size for name in RESUME_FIELDS if (rec.path / f"{name}.bin").is_file())
+        / 1e6
+        * 1000.0
+        / max(rec.n, 1)
+    )
     checkpoints = mb("*-checkpoint.npz")
     # each checkpoint's particle arrays scaled to 1000 particles by its own count (KLD-sampling
     # changes it from step to step); the rest (rules, odometry, S2M state) as it is
     scaled = 0.0
     for f in folder.glob("*-checkpoint.npz"):
         with np.load(f) as data:
-            per_particle = [data[k].nbytes for k in ("pf_states", "pf_log_weights", "pf_log_likelihoods")
-                            if k in data.files]
+            per_particle = [
+                data[k].nbytes for k in ("pf_states", "pf_log_weights", "pf_log_likelihoods") if k in data.files
+            ]
             n = data["pf_states"].shape[0] if "pf_states" in data.files else 0
         particle_bytes = sum(per_particle)
         scaled += f.stat().st_size - particle_bytes + (particle_bytes * 1000.0 / n if n else 0.0)
-    at_1000 = scaled / 1e6 * 1000.0 / max(rec.n, 1) + per_step      # per-step fields hold no particle
-    return {"checkpoints_mb_per_1000": round(checkpoints, 2),
-            "s2m_outcomes_mb_per_1000": round(mb("*-s2m_outcome.npz"), 2),
-            "per_step_fields_mb_per_1000": round(per_step, 2),
-            "checkpoints_and_per_step_mb_per_1000": round(checkpoints + per_step, 2),
-            "checkpoints_and_per_step_mb_per_1000_at_1000_particles": round(at_1000, 2)}
+    at_1000 = scaled / 1e6 * 1000.0 / max(rec.n, 1) + per_step  # per-step fields hold no particle
+    return {
+        "checkpoints_mb_per_1000": round(checkpoints, 2),
+        "s2m_outcomes_mb_per_1000": round(mb("*-s2m_outcome.npz"), 2),
+        "per_step_fields_mb_per_1000": round(per_step, 2),
+        "checkpoints_and_per_step_mb_per_1000": round(checkpoints + per_step, 2),
+        "checkpoints_and_per_step_mb_per_1000_at_1000_particles": round(at_1000, 2),
+    }
 
 
-def branch_start(rec: recording.Recording, seq, cache_root: Path | None = None,
-                 repeats: int = 3) -> tuple[list[float], dict[int, list[float]]]:
+def branch_start(
+    rec: recording.Recording, seq, cache_root: Path | None = None, repeats: int = 3
+) -> tuple[list[float], dict[int, list[float]]]:
     """Seconds :func:`open_branch` takes at each of the recording's last CHECKPOINT_EVERY steps,
     ``repeats`` times each (the sequence already open): all of them, and by replayed steps."""
     checkpoints = rec.resume_steps("checkpoint")
@@ -83,8 +97,9 @@ def branch_start(rec: recording.Recording, seq, cache_root: Path | None = None,
     return times, by_replay
 
 
-def run(spec, seq, cfg, cache_root: Path | None = None, run_dir: Path | None = None, repeats: int = 3,
-        progress=None) -> dict:
+def run(
+    spec, seq, cfg, cache_root: Path | None = None, run_dir: Path | None = None, repeats: int = 3, progress=None
+) -> dict:
     """Branch start times and payload sizes (module docstring)."""
     with tempfile.TemporaryDirectory(prefix="lidarloc-branch-") as tmp:
         t0 = time.perf_counter()
@@ -109,15 +124,20 @@ def run(spec, seq, cfg, cache_root: Path | None = None, run_dir: Path | None = N
     median = float(np.median(times))
     worst_replay = max(by_replay)
     return {
-        "recorded_steps": rec.n, "particles_mean": round(particles, 1),
+        "recorded_steps": rec.n,
+        "particles_mean": round(particles, 1),
         "record_s": round(record_s, 1) if record_s > 0.5 else None,
         "branch_start_s_median": round(median, 3),
-        "branch_start_s_by_replayed_steps": {str(r): round(float(np.median(v)), 3)
-                                             for r, v in sorted(by_replay.items())},
+        "branch_start_s_by_replayed_steps": {
+            str(r): round(float(np.median(v)), 3) for r, v in sorted(by_replay.items())
+        },
         "branch_start_s_worst_replay_median": round(float(np.median(by_replay[worst_replay])), 3),
-        "branch_start_cold_s": round(cold_s, 3), "target_start_s": TARGET_START_S,
+        "branch_start_cold_s": round(cold_s, 3),
+        "target_start_s": TARGET_START_S,
         **size,
         "budget_mb_per_1000": BUDGET_MB_PER_1000,
         "met": bool(median <= TARGET_START_S and size["checkpoints_and_per_step_mb_per_1000"] <= BUDGET_MB_PER_1000),
-        "repeats": repeats, "load_average_1min": round(load_avg(), 2), "machine": machine(),
+        "repeats": repeats,
+        "load_average_1min": round(load_avg(), 2),
+        "machine": machine(),
     }

@@ -39,8 +39,10 @@ def real_drive(scans: int | None = None) -> SourceSpec | None:
 def require_real_drive(bench: str, scans: int | None = None) -> SourceSpec:
     spec = real_drive(scans)
     if spec is None:
-        raise LidarlocError(f"bench {bench} reads KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} by default, not found "
-                            f"under {data_dir() / 'kitti_raw'} (set ${DATA_ENV}, or choose a source such as --town-seed 0)")
+        raise LidarlocError(
+            f"bench {bench} reads KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} by default, not found "
+            f"under {data_dir() / 'kitti_raw'} (set ${DATA_ENV}, or choose a source such as --town-seed 0)"
+        )
     return spec
 
 
@@ -67,8 +69,11 @@ def source_args(spec: SourceSpec) -> list[str]:
     if spec.kitti_odometry is not None:
         args = ["--kitti-odometry", str(spec.kitti_odometry)] + (["--sequence", spec.sequence] if spec.sequence else [])
     elif spec.kitti_raw is not None:
-        args = ["--kitti-raw", str(spec.kitti_raw)] + (["--date", spec.date] if spec.date else []) \
+        args = (
+            ["--kitti-raw", str(spec.kitti_raw)]
+            + (["--date", spec.date] if spec.date else [])
             + (["--drive", spec.drive] if spec.drive else [])
+        )
     elif spec.bag is not None:
         args = ["--bag", str(spec.bag)] + (["--topic", spec.topic] if spec.topic else [])
     elif spec.scans_dir is not None:
@@ -78,8 +83,13 @@ def source_args(spec: SourceSpec) -> list[str]:
         for flag, path in (("--trajectory", spec.trajectory), ("--calib", spec.calib)):
             if path is not None:
                 args += [flag, str(path)]
-    for flag, value in (("--map", spec.map), ("--gt", spec.gt), ("--gt-times", spec.gt_times),
-                        ("--extrinsic", spec.extrinsic), ("--init", spec.init)):
+    for flag, value in (
+        ("--map", spec.map),
+        ("--gt", spec.gt),
+        ("--gt-times", spec.gt_times),
+        ("--extrinsic", spec.extrinsic),
+        ("--init", spec.init),
+    ):
         if value is not None:
             args += [flag, str(value)]
     return args + (["--scans", str(spec.scans)] if spec.scans is not None else [])
@@ -133,8 +143,8 @@ def pose_error(T: np.ndarray, G: np.ndarray) -> tuple[float, float]:
 def record_run(spec, seq, cfg, out: Path, cache_root: Path | None = None, progress=None) -> Path:
     """Run ``seq`` to its end with a recording into ``out`` (what ``lidarloc run --out`` records);
     ``progress(i, n)`` after each scan."""
-    from ...core.runs import recording
     from ...core.localizer import Localizer
+    from ...core.runs import recording
 
     loc = Localizer(seq, cfg, cache_root)
     try:

@@ -32,7 +32,6 @@ from ...core.config import PRESETS, Config, PFConfig, apply_overrides
 from ...core.geometry import pose_to_xyz_ypr
 from ...core.localizer import Localizer
 from ...core.rules.truth import inside_2sigma
-
 from .common import load_avg, machine
 
 # the filter's settings as the paper preset pins them; every option starts from these, and
@@ -41,13 +40,13 @@ _PAPER_PF = {key: value for key, value in PRESETS["paper"].items() if key.starts
 PAPER_LIKELIHOOD = [f"{key}={value}" for key, value in _PAPER_PF.items()]
 OPTIONS: dict[str, list[str]] = {
     "paper": [],
-    "default": [f"{key}={getattr(PFConfig(), key[len('pf.'):])}" for key in _PAPER_PF],
+    "default": [f"{key}={getattr(PFConfig(), key[len('pf.') :])}" for key in _PAPER_PF],
     "T=10": ["pf.temperature=10"],
     "T=100": ["pf.temperature=100"],
     "per-point mean": ["pf.temperature=0"],
     "unexplained 0.1": ["pf.unexplained_share=0.1"],
 }
-BURN_IN = 5          # scans the start's spread needs to settle
+BURN_IN = 5  # scans the start's spread needs to settle
 INIT_SIGMA_XY = 1.0  # m
 INIT_SIGMA_YAW_DEG = 5.0
 TARGET_CONSISTENCY = 0.85
@@ -80,12 +79,17 @@ def _one_run(seq, cfg: Config, cache_root) -> dict:
             share.append(snap.n_eff_share)
             err.append(snap.error_m)
             inside.append(inside_2sigma(snap.mean_pose[:2, 3] - snap.gt_pose[:2, 3], snap.cov_xyz[:2, :2]))
-    return {"n_eff_share": float(np.median(share)), "error_m": float(np.median(err)),
-            "consistency_2sigma": float(np.mean(inside)), "pf_ms": float(np.median(pf))}
+    return {
+        "n_eff_share": float(np.median(share)),
+        "error_m": float(np.median(err)),
+        "consistency_2sigma": float(np.mean(inside)),
+        "pf_ms": float(np.median(pf)),
+    }
 
 
-def run(spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None = None, cache_root=None,
-        progress=None) -> dict:
+def run(
+    spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None = None, cache_root=None, progress=None
+) -> dict:
     """The study on ``spec`` (``open_seq(spec)`` opens it); ``cfg`` is the base configuration."""
     names = options or list(OPTIONS)
     chosen = {n: OPTIONS[n] if n in OPTIONS else _tempered(n) for n in names}
@@ -105,8 +109,10 @@ def run(spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None =
     for name in names:
         runs = []
         for seed in range(seeds):
-            c = apply_overrides(copy.deepcopy(cfg), ["s2m.enabled=false", "localize.recorded_odometry=true",
-                                                     *PAPER_LIKELIHOOD, *chosen[name]])
+            c = apply_overrides(
+                copy.deepcopy(cfg),
+                ["s2m.enabled=false", "localize.recorded_odometry=true", *PAPER_LIKELIHOOD, *chosen[name]],
+            )
             c.seed = seed
             runs.append(_one_run(seq, c, cache_root))
             done += 1
@@ -115,8 +121,12 @@ def run(spec, open_seq, cfg: Config, seeds: int = 3, options: list[str] | None =
         results[name] = {key: round(float(np.median([r[key] for r in runs])), 4) for key in runs[0]}
         results[name]["set"] = chosen[name]
     return {
-        "options": results, "seeds": seeds, "particles": cfg.pf.n_particles, "scans": len(seq),
+        "options": results,
+        "seeds": seeds,
+        "particles": cfg.pf.n_particles,
+        "scans": len(seq),
         "start": f"around the true first pose, σ {INIT_SIGMA_XY:g} m, {INIT_SIGMA_YAW_DEG:g}°; no S2M",
         "target_consistency_2sigma": TARGET_CONSISTENCY,
-        "load_average_1min": round(load_avg(), 2), "machine": machine(),
+        "load_average_1min": round(load_avg(), 2),
+        "machine": machine(),
     }

@@ -42,11 +42,17 @@ from ...core.errors import LidarlocError
 from ...core.rules.truth import FALSE_FIRE_M
 from ...core.runs.results import make_out_dir, summarize_run, write_json, write_run
 from ...core.sequences.factory import SourceSpec
-
 from ..console import progress_bar
 from .common import real_drive, require_town
-from .localize import _bench_sequence, _numba_threads, _spec_dict, _spec_from, numba_threads_for, prepare_cache, \
-    run_tasks
+from .localize import (
+    _bench_sequence,
+    _numba_threads,
+    _spec_dict,
+    _spec_from,
+    numba_threads_for,
+    prepare_cache,
+    run_tasks,
+)
 
 CASES = ("s2m-at-0", "s2m-at-20", "s2m-at-50", "s2m-at-100", "wrong-place", "kidnap", "moved")
 #: the worlds by default: the lived-in town (changes 0.3, traffic, skew) with each sensor
@@ -81,8 +87,9 @@ class Case:
 
 
 # ------------------------------------------------------------------------------------- one run
-def run_case(spec_d: dict, cfg_d: dict, case: str, seed: int, cache_root: str | None, run_dir: str,
-             numba_threads: int) -> dict:
+def run_case(
+    spec_d: dict, cfg_d: dict, case: str, seed: int, cache_root: str | None, run_dir: str, numba_threads: int
+) -> dict:
     """One seeded run of one case (in a worker process); returns its figures (also written to
     ``run_dir/integrity.json`` beside the run's usual files)."""
     _numba_threads(numba_threads)
@@ -109,8 +116,9 @@ def run_case(spec_d: dict, cfg_d: dict, case: str, seed: int, cache_root: str | 
         figures = case_figures(loc.records, loc.events, at)
     out = Path(run_dir)
     write_run(loc, out, summary)
-    figures.update(case=case, seed=seed, scans=n, disturbance_scan=at, source=summary["source"],
-                   world=summary.get("world"))
+    figures.update(
+        case=case, seed=seed, scans=n, disturbance_scan=at, source=summary["source"], world=summary.get("world")
+    )
     write_json(out / "integrity.json", figures)
     return figures
 
@@ -120,41 +128,54 @@ def case_figures(records: list, events: list, at: int) -> dict:
     ``at`` (see the module docstring); None where the run has no truth."""
     err = {r.scan: r.error_m for r in records}
     if not any(v is not None for v in err.values()):
-        return {"false_fires": None, "wrong_green": None, "noticed": None, "recovery": None, "lost_after": None,
-                "relocalizations": sum(e.kind == "relocalized" for e in events), "spurious_relocalizations": None}
+        return {
+            "false_fires": None,
+            "wrong_green": None,
+            "noticed": None,
+            "recovery": None,
+            "lost_after": None,
+            "relocalizations": sum(e.kind == "relocalized" for e in events),
+            "spurious_relocalizations": None,
+        }
     onsets = [e.scan for e in events if e.kind == "localized"]
     false_fires = sum(1 for k in onsets if err.get(k) is not None and err[k] > FALSE_FIRE_M)
     after = [r for r in records if r.scan >= at]
     wrong_green = sum(1 for r in after if r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)
     right = next((r.scan for r in after if r.localized and r.error_m is not None and r.error_m <= FALSE_FIRE_M), None)
-    honest = next((r.scan for r in after if not (r.localized and r.error_m is not None
-                                                  and r.error_m > FALSE_FIRE_M)), None)
+    honest = next(
+        (r.scan for r in after if not (r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)), None
+    )
     lost = next((e.scan for e in events if e.kind == "loss" and e.scan >= at), None)
     moves = [e.scan for e in events if e.kind == "relocalized"]
     spurious = sum(1 for k in moves if err.get(k - 1) is not None and err[k - 1] <= FALSE_FIRE_M)
     # a run resumed after a kidnap numbers its scans from where the vehicle landed
     first = after[0].scan if after else at
-    return {"false_fires": false_fires, "wrong_green": wrong_green,
-            "noticed": None if honest is None else (honest - first if after else None),
-            "recovery": None if right is None else right - first, "lost_after": None if lost is None else lost - first,
-            "relocalizations": len(moves), "spurious_relocalizations": spurious}
+    return {
+        "false_fires": false_fires,
+        "wrong_green": wrong_green,
+        "noticed": None if honest is None else (honest - first if after else None),
+        "recovery": None if right is None else right - first,
+        "lost_after": None if lost is None else lost - first,
+        "relocalizations": len(moves),
+        "spurious_relocalizations": spurious,
+    }
 
 
 # ------------------------------------------------------------------------------ look-alike start
 def lookalike_init(spec: SourceSpec, cfg: Config, cache_root: Path | None) -> tuple[str, dict]:
     """``--init`` text around a look-alike of the drive's first scan (module docstring), and what
     it is: its distance to the truth and its BEV score against the truth's."""
-    from ...core.matching import m3rsm
     from ...core.geometry import pose_to_xyz_ypr
-    from ...core.matching.s2m import ScanToMapMatcher
     from ...core.maps.world import open_world
+    from ...core.matching import m3rsm
+    from ...core.matching.s2m import ScanToMapMatcher
 
     seq = _bench_sequence(spec, cfg, cache_root)
     world = open_world(seq.map_source, cfg, cache_root, lookup=False)
     prior, pyramid = world.prior_map, world.pyramid
     matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m, cfg.map)
     prep = matcher.prepare(seq.scan(0))
-    bev = np.asarray(prep.road_removed)[:, :2]       # levelled: the truth's attitude is not given away
+    bev = np.asarray(prep.road_removed)[:, :2]  # levelled: the truth's attitude is not given away
     tx, ty, _, tyaw, _, _ = pose_to_xyz_ypr(seq.pose(0))
     truth_score = m3rsm.score_pose(pyramid, bev, tx, ty, tyaw)
     # the best pose of the whole map outside a disc around the truth: branch and bound over
@@ -175,8 +196,11 @@ def lookalike_init(spec: SourceSpec, cfg: Config, cache_root: Path | None) -> tu
     x, y, yaw, score = best.x, best.y, best.yaw, best.score
     origin = np.asarray(prior.origin, float)
     init = f"{x + origin[0]:.2f},{y + origin[1]:.2f},{math.degrees(yaw):.1f},2,10"
-    return init, {"distance_m": float(math.hypot(x - tx, y - ty)), "score": float(score),
-                  "truth_score": float(truth_score)}
+    return init, {
+        "distance_m": float(math.hypot(x - tx, y - ty)),
+        "score": float(score),
+        "truth_score": float(truth_score),
+    }
 
 
 # ------------------------------------------------------------------------------------ the bench
@@ -199,9 +223,21 @@ def sources(town: SourceSpec, sensors: list[str], world: str, real: bool | None)
     return out
 
 
-def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | None, cases: list[str],
-                  sensors: list[str], world: str, runs: int, workers: int, out_dir: Path, real: bool | None = None,
-                  cache_root: Path | None = None, console: Console | None = None, preset: str | None = None) -> dict:
+def run_integrity(
+    town: SourceSpec,
+    config: Path | None,
+    overrides: list[str] | None,
+    cases: list[str],
+    sensors: list[str],
+    world: str,
+    runs: int,
+    workers: int,
+    out_dir: Path,
+    real: bool | None = None,
+    cache_root: Path | None = None,
+    console: Console | None = None,
+    preset: str | None = None,
+) -> dict:
     """Every case in every world, ``runs`` seeds each, into ``out_dir``; returns the summary.
     ``preset``: the named configuration the cases start from (``--preset``; None = the defaults)."""
     console = console or Console(stderr=True)
@@ -222,8 +258,12 @@ def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | 
     done: dict[tuple, dict] = {}
     t0 = time.perf_counter()
     for src in sources(town, sensors, world, real):
-        base = load_config(config, ["localize.recorded_odometry=true", *(overrides or []), *src.overrides],
-                           preset=preset, world=world if src.spec.kind == "town" else None)
+        base = load_config(
+            config,
+            ["localize.recorded_odometry=true", *(overrides or []), *src.overrides],
+            preset=preset,
+            world=world if src.spec.kind == "town" else None,
+        )
         prepare_cache(src.spec, base, cache_root, label=src.name)
         for case in cases:
             spec = src.spec
@@ -231,25 +271,30 @@ def run_integrity(town: SourceSpec, config: Path | None, overrides: list[str] | 
                 init, what = lookalike_init(spec, base, cache_root)
                 lookalikes[src.name] = what
                 spec = replace(spec, init=init)
-            cfg = load_config(config, ["localize.recorded_odometry=true", *(overrides or []), *src.overrides,
-                                       *Case(case).overrides()], preset=preset,
-                              world=world if src.spec.kind == "town" else None)
+            cfg = load_config(
+                config,
+                ["localize.recorded_odometry=true", *(overrides or []), *src.overrides, *Case(case).overrides()],
+                preset=preset,
+                world=world if src.spec.kind == "town" else None,
+            )
             cfg_d = cfg.to_dict()
             cfg_d.pop("seed", None)
             for seed in range(runs):
                 run_dir = out_dir / src.name / case / f"seed_{seed:03d}"
                 kept = run_dir / "integrity.json"
-                if kept.is_file():          # resumed: a finished run is kept
+                if kept.is_file():  # resumed: a finished run is kept
                     done[(src.name, case, seed)] = json.loads(kept.read_text())
                     continue
                 tasks[(src.name, case, seed)] = (_spec_dict(spec), cfg_d, case, seed, cache, str(run_dir), threads)
     with progress_bar(transient=False) as bar:
-        task = bar.add_task(f"integrity: {len(tasks) + len(done)} runs", total=len(tasks) + len(done),
-                            completed=len(done))
+        task = bar.add_task(
+            f"integrity: {len(tasks) + len(done)} runs", total=len(tasks) + len(done), completed=len(done)
+        )
 
         def finished(key, figures):
             done[key] = figures
             bar.advance(task)
+
         run_tasks(run_case, tasks, workers, finished)
     summary = summarize(done, lookalikes, time.perf_counter() - t0)
     write_json(out_dir / "summary.json", summary)
@@ -274,51 +319,88 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
             "wrong_green_scans": _total([r["wrong_green"] for r in runs]),
             "noticed_scans_max": None if any(r["noticed"] is None for r in runs) else max(r["noticed"] for r in runs),
             "recovered": sum(1 for v in recoveries if v is not None),
-            "recovery_scans_median": None if not [v for v in recoveries if v is not None]
+            "recovery_scans_median": None
+            if not [v for v in recoveries if v is not None]
             else float(np.median([v for v in recoveries if v is not None])),
-            "recovery_scans_max": None if any(v is None for v in recoveries) or not recoveries else int(max(recoveries)),
+            "recovery_scans_max": None
+            if any(v is None for v in recoveries) or not recoveries
+            else int(max(recoveries)),
             "said_lost": sum(1 for r in runs if r["lost_after"] is not None),
             "relocalizations": _total([r["relocalizations"] for r in runs]),
             "spurious_relocalizations": _total([r["spurious_relocalizations"] for r in runs]),
-            "per_world": {key[0] + (f" seed {key[2]}" if key[2] else ""): {
-                k: done[key][k] for k in ("false_fires", "wrong_green", "noticed", "recovery", "lost_after", "relocalizations",
-                                          "spurious_relocalizations")} for key in sorted(done) if key[1] == case},
+            "per_world": {
+                key[0] + (f" seed {key[2]}" if key[2] else ""): {
+                    k: done[key][k]
+                    for k in (
+                        "false_fires",
+                        "wrong_green",
+                        "noticed",
+                        "recovery",
+                        "lost_after",
+                        "relocalizations",
+                        "spurious_relocalizations",
+                    )
+                }
+                for key in sorted(done)
+                if key[1] == case
+            },
         }
     joins = [c for c in per_case if c.startswith("s2m-at-")]
     join_recoveries = [v for c in joins for v in [done[k]["recovery"] for k in done if k[1] == c]]
     return {
         "false_fires": _total([c["false_fires"] for c in per_case.values()]),
         "spurious_relocalizations": _total([c["spurious_relocalizations"] for c in per_case.values()]),
-        "recovery_scans_max": None if not join_recoveries or any(v is None for v in join_recoveries)
+        "recovery_scans_max": None
+        if not join_recoveries or any(v is None for v in join_recoveries)
         else int(max(join_recoveries)),
         "recovery_target_scans": RECOVERY_TARGET_SCANS,
         "wrong_green_scans": _total([c["wrong_green_scans"] for c in per_case.values()]),
-        "runs": len(done), "elapsed_s": round(elapsed_s, 1), "lookalikes": lookalikes, "cases": per_case,
+        "runs": len(done),
+        "elapsed_s": round(elapsed_s, 1),
+        "lookalikes": lookalikes,
+        "cases": per_case,
     }
 
 
 def report_markdown(summary: dict) -> str:
     def v(x):
         return "–" if x is None else (f"{x:g}" if isinstance(x, float) else str(x))
-    lines = ["# Integrity: never green while wrong", "",
-             f"{summary['runs']} runs. False fires: {v(summary['false_fires'])}; spurious relocalizations: "
-             f"{v(summary['spurious_relocalizations'])}; the slowest recovery after S2M joined: "
-             f"{v(summary['recovery_scans_max'])} scans (target ≤ {summary['recovery_target_scans']}).", "",
-             "| case | runs | false fires | scans green & wrong | noticed within (scans) | recovered "
-             "| recovery median / max (scans) | said lost | relocalized (spurious) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+
+    lines = [
+        "# Integrity: never green while wrong",
+        "",
+        f"{summary['runs']} runs. False fires: {v(summary['false_fires'])}; spurious relocalizations: "
+        f"{v(summary['spurious_relocalizations'])}; the slowest recovery after S2M joined: "
+        f"{v(summary['recovery_scans_max'])} scans (target ≤ {summary['recovery_target_scans']}).",
+        "",
+        "| case | runs | false fires | scans green & wrong | noticed within (scans) | recovered "
+        "| recovery median / max (scans) | said lost | relocalized (spurious) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, c in summary["cases"].items():
-        lines.append(f"| {name} | {c['runs']} | {v(c['false_fires'])} | {v(c['wrong_green_scans'])} | "
-                     f"{v(c['noticed_scans_max'])} | "
-                     f"{c['recovered']}/{c['runs']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
-                     f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) |")
+        lines.append(
+            f"| {name} | {c['runs']} | {v(c['false_fires'])} | {v(c['wrong_green_scans'])} | "
+            f"{v(c['noticed_scans_max'])} | "
+            f"{c['recovered']}/{c['runs']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
+            f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) |"
+        )
     if summary["lookalikes"]:
-        lines += ["", "Look-alike starts (wrong-place): " + "; ".join(
-            f"{name}: {w['distance_m']:.0f} m from the truth, BEV score {w['score']:.0f} against the truth's "
-            f"{w['truth_score']:.0f}" for name, w in summary["lookalikes"].items())]
-    lines += ["", "- recovery: scans from the disturbance (S2M joining, the start, the kidnap, the move) to the "
-              "first scan localized within 5 m of the truth; max '–': a run never recovered.",
-              "- scans green & wrong: scans called localized more than 5 m from the truth, from the disturbance on.",
-              "- noticed within: the most scans, over runs, from the disturbance until the filter was no longer "
-              "green and wrong (right again, or not claiming to be localized).", ""]
+        lines += [
+            "",
+            "Look-alike starts (wrong-place): "
+            + "; ".join(
+                f"{name}: {w['distance_m']:.0f} m from the truth, BEV score {w['score']:.0f} against the truth's "
+                f"{w['truth_score']:.0f}"
+                for name, w in summary["lookalikes"].items()
+            ),
+        ]
+    lines += [
+        "",
+        "- recovery: scans from the disturbance (S2M joining, the start, the kidnap, the move) to the "
+        "first scan localized within 5 m of the truth; max '–': a run never recovered.",
+        "- scans green & wrong: scans called localized more than 5 m from the truth, from the disturbance on.",
+        "- noticed within: the most scans, over runs, from the disturbance until the filter was no longer "
+        "green and wrong (right again, or not claiming to be localized).",
+        "",
+    ]
     return "\n".join(lines)

@@ -12,7 +12,6 @@ from pathlib import Path
 
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
-
 from .common import real_drive, source_args
 
 
@@ -31,8 +30,12 @@ def default_sources(town: SourceSpec) -> dict[str, SourceSpec]:
 
 def _map_build(args: list[str], cache: Path) -> dict:
     env = dict(os.environ, LIDARLOC_CACHE=str(cache))
-    r = subprocess.run([sys.executable, "-m", "lidarloc.app.cli", "map", "build", "--json", *args],
-                       capture_output=True, text=True, env=env)
+    r = subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", "map", "build", "--json", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     if r.returncode != 0:
         last = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else "map build failed"
         raise LidarlocError(f"bench map: {last.removeprefix('lidarloc: error: ')}")
@@ -48,8 +51,13 @@ def run(sources: dict[str, SourceSpec], config_args: list[str] = ()) -> dict:
         with tempfile.TemporaryDirectory(prefix="lidarloc-bench-map-") as cache:
             build = _map_build(args, Path(cache))
             load = _map_build(args, Path(cache))
-        out[name] = {"scans": build["scans"], "points": build["points"],
-                     "points_road_removed": build["points_road_removed"],
-                     "build_s": build["seconds"], "build_peak_rss_mb": build["peak_rss_mb"],
-                     "load_s": load["seconds"], "load_peak_rss_mb": load["peak_rss_mb"]}
+        out[name] = {
+            "scans": build["scans"],
+            "points": build["points"],
+            "points_road_removed": build["points_road_removed"],
+            "build_s": build["seconds"],
+            "build_peak_rss_mb": build["peak_rss_mb"],
+            "load_s": load["seconds"],
+            "load_peak_rss_mb": load["peak_rss_mb"],
+        }
     return out

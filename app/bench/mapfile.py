@@ -28,7 +28,6 @@ import numpy as np
 from ...core.config import Config
 from ...core.maps.mapfile import CHUNK_POINTS
 from ...core.maps.mapfile_write import write_map_chunks
-
 from ..console import peak_rss_mb
 from .common import load_avg, machine, rss_mb
 
@@ -78,8 +77,9 @@ def town_chunk(i: int, m: int, side: float, buildings: np.ndarray) -> np.ndarray
     px = (rng.integers(0, k, n_pole) + 0.5) * 25.0
     py = (rng.integers(0, k, n_pole) + 0.1) * 25.0
     angle = rng.random(n_pole) * 2 * np.pi
-    poles = np.stack([px + 0.1 * np.cos(angle), py + 0.1 * np.sin(angle),
-                      _terrain(px, py) + rng.random(n_pole) * 6.0], axis=1)
+    poles = np.stack(
+        [px + 0.1 * np.cos(angle), py + 0.1 * np.sin(angle), _terrain(px, py) + rng.random(n_pole) * 6.0], axis=1
+    )
     pts = np.concatenate([ground, walls, poles])
     pts += rng.normal(0.0, 0.02, pts.shape)
     return pts.astype(np.float32)
@@ -118,7 +118,7 @@ class _PeakSampler(threading.Thread):
 def _child(path: str, cache: str, queue) -> None:
     try:
         queue.put(_measure(path, cache))
-    except Exception as exc:     # reported by the parent as one line
+    except Exception as exc:  # reported by the parent as one line
         queue.put({"error": f"{type(exc).__name__}: {exc}".splitlines()[0]})
 
 
@@ -137,13 +137,14 @@ def _measure(path: str, cache: str) -> dict:
     marks = {}
 
     def progress(i, n):
-        if i >= 0.75 * n and "read" not in marks:   # build_prior_map_from_file: reading is 3/4 of the scale
+        if i >= 0.75 * n and "read" not in marks:  # build_prior_map_from_file: reading is 3/4 of the scale
             marks["read"] = time.perf_counter()
             marks["read_peak"] = sampler.take()
 
     t0 = time.perf_counter()
-    prior, map_dir, _ = load_or_build_map(MapFileSource(path), cfg.map, Path(cache), progress=progress,
-                                          road_removal=False)
+    prior, map_dir, _ = load_or_build_map(
+        MapFileSource(path), cfg.map, Path(cache), progress=progress, road_removal=False
+    )
     t1 = time.perf_counter()
     map_peak = sampler.take()
     lookup = load_or_build_lookup(prior, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max).value
@@ -154,12 +155,20 @@ def _measure(path: str, cache: str) -> dict:
     t3 = time.perf_counter()
     sampler.stop()
     return {
-        "read_s": marks["read"] - t0, "voxelize_s": t1 - marks["read"], "lookup_s": t2 - t1,
-        "total_s": t2 - t0, "road_removal_s": t3 - t2,
-        "map_points": int(len(prior.points)), "map_points_road_removed": int(len(road.points_bev)),
-        "lookup_mb": lookup.nbytes / 1e6, "rss_before_mb": rss_before, "read_peak_rss_mb": marks["read_peak"],
-        "map_peak_rss_mb": max(marks["read_peak"], map_peak), "lookup_peak_rss_mb": lookup_peak,
-        "peak_rss_mb": peak_to_lookup, "peak_rss_with_road_removal_mb": peak_rss_mb(),
+        "read_s": marks["read"] - t0,
+        "voxelize_s": t1 - marks["read"],
+        "lookup_s": t2 - t1,
+        "total_s": t2 - t0,
+        "road_removal_s": t3 - t2,
+        "map_points": int(len(prior.points)),
+        "map_points_road_removed": int(len(road.points_bev)),
+        "lookup_mb": lookup.nbytes / 1e6,
+        "rss_before_mb": rss_before,
+        "read_peak_rss_mb": marks["read_peak"],
+        "map_peak_rss_mb": max(marks["read_peak"], map_peak),
+        "lookup_peak_rss_mb": lookup_peak,
+        "peak_rss_mb": peak_to_lookup,
+        "peak_rss_with_road_removal_mb": peak_rss_mb(),
         "origin_m": [float(v) for v in prior.origin],
     }
 
@@ -189,14 +198,18 @@ def run(n_points: int = DEFAULT_POINTS) -> dict:
                 proc.join()
         float32_mb = n_points * 12 / 1e6
         return {
-            "points": n_points, "side_m": round(side, 1), "file_mb": round(path.stat().st_size / 1e6, 1),
-            "write_s": round(write_s, 2), **{k: (round(v, 2) if isinstance(v, float) else v) for k, v in res.items()},
+            "points": n_points,
+            "side_m": round(side, 1),
+            "file_mb": round(path.stat().st_size / 1e6, 1),
+            "write_s": round(write_s, 2),
+            **{k: (round(v, 2) if isinstance(v, float) else v) for k, v in res.items()},
             "points_float32_mb": round(float32_mb, 1),
             "read_peak_over_float32": round(res["read_peak_rss_mb"] / float32_mb, 2),
             "read_increase_over_float32": round((res["read_peak_rss_mb"] - res["rss_before_mb"]) / float32_mb, 2),
             "targets": {"total_s": TARGET_S, "peak_rss_mb": TARGET_PEAK_MB, "read_peak_over_float32": 3.0},
             "meets_targets": bool(res["total_s"] <= TARGET_S and res["peak_rss_mb"] <= TARGET_PEAK_MB),
-            "load_avg_1min": round(load_avg(), 2), "machine": machine(),
+            "load_avg_1min": round(load_avg(), 2),
+            "machine": machine(),
         }
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -37,17 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.maps.bev import load_or_build_pyramid
 from ...core.config import Config
+from ...core.maps.bev import load_or_build_pyramid
 from ...core.maps.mapping import load_or_build_map, range_filter
 from ...core.sequences.factory import SourceSpec
-
 from .common import median, open_source, pose_error, real_drive
 
 SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
-FEATURE_VOXEL = 1.0          # m, the peers' map and scan voxel
-RECOVERED_M = 2.0            # a tracker has recovered from a kidnap once its error stays within this
-KIDNAP_M = 50.0              # how far ahead along the drive the vehicle is moved
+FEATURE_VOXEL = 1.0  # m, the peers' map and scan voxel
+RECOVERED_M = 2.0  # a tracker has recovered from a kidnap once its error stays within this
+KIDNAP_M = 50.0  # how far ahead along the drive the vehicle is moved
 
 
 # ------------------------------------------------------------------------------ global localization
@@ -69,7 +68,8 @@ class FeatureMap:
         pcd = pcd.voxel_down_sample(v)
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100))
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100)
+        )
         return pcd, fpfh
 
     def ransac(self, scan: np.ndarray, seed: int) -> np.ndarray:
@@ -77,16 +77,25 @@ class FeatureMap:
         self.o3d.utility.random.seed(seed)
         src, src_f = self.features(scan)
         res = reg.registration_ransac_based_on_feature_matching(
-            src, self.cloud, src_f, self.fpfh, True, 1.5 * v, reg.TransformationEstimationPointToPoint(False), 3,
+            src,
+            self.cloud,
+            src_f,
+            self.fpfh,
+            True,
+            1.5 * v,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
         return np.asarray(res.transformation)
 
     def fgr(self, scan: np.ndarray) -> np.ndarray:
         reg, v = self.o3d.pipelines.registration, self.voxel
         src, src_f = self.features(scan)
         res = reg.registration_fgr_based_on_feature_matching(
-            src, self.cloud, src_f, self.fpfh, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * v))
+            src, self.cloud, src_f, self.fpfh, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * v)
+        )
         return np.asarray(res.transformation)
 
 
@@ -97,8 +106,9 @@ def _judge(T: np.ndarray, truth: np.ndarray) -> tuple[bool, float, float]:
     return m <= SUCCESS_M and deg <= SUCCESS_DEG, m, deg
 
 
-def global_localization(spec: SourceSpec, cfg: Config, scans: int, cache_root: Path | None = None,
-                        progress=None, peers: bool = True) -> dict:
+def global_localization(
+    spec: SourceSpec, cfg: Config, scans: int, cache_root: Path | None = None, progress=None, peers: bool = True
+) -> dict:
     """M3RSM (+GICP) against FPFH + RANSAC and FGR (``peers``; else M3RSM alone) on ``scans``
     random scans of the source."""
     from ...core.matching import m3rsm
@@ -114,7 +124,7 @@ def global_localization(spec: SourceSpec, cfg: Config, scans: int, cache_root: P
     names = ("m3rsm", "fpfh_ransac", "fgr") if peers else ("m3rsm",)
     rng = np.random.default_rng(cfg.seed)
     idx = [int(k) for k in rng.choice(len(seq), min(scans, len(seq)), replace=False)]
-    warm = matcher.prepare(seq.scan(idx[0]))          # numba's kernels and the bound grids, off the clock
+    warm = matcher.prepare(seq.scan(idx[0]))  # numba's kernels and the bound grids, off the clock
     m3rsm.match_global(pyramid, warm.road_removed[:, :2], cfg.s2m.angle_step)
     rows = []
     for j, k in enumerate(idx):
@@ -133,8 +143,13 @@ def global_localization(spec: SourceSpec, cfg: Config, scans: int, cache_root: P
         rows.append(row)
         if progress is not None:
             progress(j + 1, len(idx))
-    out = {"source": seq.name, "scans": len(rows), "map_points": int(len(prior.points)),
-           "lidarloc_map_build_s": lidarloc_build_s, "rows": rows}
+    out = {
+        "source": seq.name,
+        "scans": len(rows),
+        "map_points": int(len(prior.points)),
+        "lidarloc_map_build_s": lidarloc_build_s,
+        "rows": rows,
+    }
     for name in names:
         out[f"{name}_success"] = float(np.mean([r[f"{name}_success"] for r in rows]))
         out[f"{name}_ms_median"] = median(r[f"{name}_ms"] for r in rows)
@@ -142,9 +157,12 @@ def global_localization(spec: SourceSpec, cfg: Config, scans: int, cache_root: P
     out["m3rsm_accepted"] = float(np.mean([r["m3rsm_accepted"] for r in rows]))
     if peers:
         best = max(("fpfh_ransac", "fgr"), key=lambda n: (out[f"{n}_success"], -out[f"{n}_ms_median"]))
-        out.update(feature_map_points=int(len(features.cloud.points)), feature_map_build_s=features.build_s,
-                   best_peer=best,
-                   time_ratio_best_peer_over_m3rsm=out[f"{best}_ms_median"] / max(out["m3rsm_ms_median"], 1e-9))
+        out.update(
+            feature_map_points=int(len(features.cloud.points)),
+            feature_map_build_s=features.build_s,
+            best_peer=best,
+            time_ratio_best_peer_over_m3rsm=out[f"{best}_ms_median"] / max(out["m3rsm_ms_median"], 1e-9),
+        )
     return out
 
 
@@ -174,14 +192,18 @@ def gicp_tracking(seq, prior, cfg: Config, before: int, kidnap_to: int, after: i
     the scans 0…before−1, then from ``kidnap_to`` on for ``after`` scans."""
     from ...core.matching.gicp import GICPRefiner
 
-    ref = GICPRefiner(prior.points, voxel=cfg.s2m.gicp_voxel, max_corr=cfg.s2m.gicp_max_corr,
-                      target_voxel=max(float(prior.voxel_size), cfg.s2m.gicp_voxel / 2.0))
+    ref = GICPRefiner(
+        prior.points,
+        voxel=cfg.s2m.gicp_voxel,
+        max_corr=cfg.s2m.gicp_max_corr,
+        target_voxel=max(float(prior.voxel_size), cfg.s2m.gicp_voxel / 2.0),
+    )
     ks = list(range(before)) + list(range(kidnap_to, min(kidnap_to + after, len(seq))))
     prev = prev2 = None
     errors, ms, cpu_ms = [], [], []
     for k in ks:
         if prev is None:
-            guess = seq.pose(k)                      # the true initial pose
+            guess = seq.pose(k)  # the true initial pose
         else:
             guess = prev if prev2 is None else prev @ np.linalg.inv(prev2) @ prev
         scan = range_filter(seq.scan(k), cfg.map)
@@ -194,13 +216,19 @@ def gicp_tracking(seq, prior, cfg: Config, before: int, kidnap_to: int, after: i
         errors.append(float(np.linalg.norm(pose[:3, 3] - seq.pose(k)[:3, 3])))
     tracked = np.asarray(errors[:before])
     rec = recovery(errors[before:])
-    return {"rmse_m": float(np.sqrt(np.mean(tracked ** 2))), "ms_median": median(ms[:before]),
-            "cpu_ms_per_scan": float(np.mean(cpu_ms[:before])), "recovered_after_kidnap": rec is not None,
-            "recovery_scans": rec, "error_after_kidnap_end_m": errors[-1] if len(errors) > before else None}
+    return {
+        "rmse_m": float(np.sqrt(np.mean(tracked**2))),
+        "ms_median": median(ms[:before]),
+        "cpu_ms_per_scan": float(np.mean(cpu_ms[:before])),
+        "recovered_after_kidnap": rec is not None,
+        "recovery_scans": rec,
+        "error_after_kidnap_end_m": errors[-1] if len(errors) > before else None,
+    }
 
 
-def lidarloc_tracking(seq, cfg: Config, before: int, kidnap_to: int, after: int, cache_root: Path | None,
-                      progress=None) -> dict:
+def lidarloc_tracking(
+    seq, cfg: Config, before: int, kidnap_to: int, after: int, cache_root: Path | None, progress=None
+) -> dict:
     """lidarloc from a global start over scans 0…before−1, then kidnapped to ``kidnap_to``
     (:meth:`Localizer.kidnap`: the viewer's Kidnap) for ``after`` scans."""
     from ...core.localizer import Localizer
@@ -209,7 +237,7 @@ def lidarloc_tracking(seq, cfg: Config, before: int, kidnap_to: int, after: int,
         return sum(v for v in reading.values() if v is not None)
 
     with Localizer(seq, cfg, cache_root) as loc:
-        loc.wait_ready()                               # the blocks' start-up is not per-scan cost
+        loc.wait_ready()  # the blocks' start-up is not per-scan cost
         cpu_at_loc = None
         first_loc = None
         while loc.k < before and not loc.done:
@@ -226,20 +254,27 @@ def lidarloc_tracking(seq, cfg: Config, before: int, kidnap_to: int, after: int,
             if progress is not None:
                 progress(len(loc.records), before + after)
         recs = list(loc.records)
-    tracked = [r for r in recs[:n_before][first_loc - 1:] if r.error_m is not None] if first_loc else []
+    tracked = [r for r in recs[:n_before][first_loc - 1 :] if r.error_m is not None] if first_loc else []
     err = np.array([r.error_m for r in tracked], float)
     rec = recovery([r.error_m if r.error_m is not None else math.inf for r in recs[n_before:]])
-    return {"localized_at_scan": None if first_loc is None else first_loc - 1,
-            "rmse_m": float(np.sqrt(np.mean(err ** 2))) if err.size else None,
-            "pf_ms_median": median(r.pf_ms for r in recs[:n_before]),
-            "cpu_ms_per_scan": (1000.0 * (cpu_end - cpu_at_loc) / max(n_before - first_loc, 1)
-                                if first_loc is not None and n_before > first_loc else None),
-            "recovered_after_kidnap": rec is not None, "recovery_scans": rec,
-            "error_after_kidnap_end_m": recs[-1].error_m if len(recs) > n_before else None}
+    return {
+        "localized_at_scan": None if first_loc is None else first_loc - 1,
+        "rmse_m": float(np.sqrt(np.mean(err**2))) if err.size else None,
+        "pf_ms_median": median(r.pf_ms for r in recs[:n_before]),
+        "cpu_ms_per_scan": (
+            1000.0 * (cpu_end - cpu_at_loc) / max(n_before - first_loc, 1)
+            if first_loc is not None and n_before > first_loc
+            else None
+        ),
+        "recovered_after_kidnap": rec is not None,
+        "recovery_scans": rec,
+        "error_after_kidnap_end_m": recs[-1].error_m if len(recs) > n_before else None,
+    }
 
 
-def tracking(spec: SourceSpec, cfg: Config, before: int, after: int, cache_root: Path | None = None,
-             progress=None) -> dict:
+def tracking(
+    spec: SourceSpec, cfg: Config, before: int, after: int, cache_root: Path | None = None, progress=None
+) -> dict:
     seq = open_source(spec, cfg, "peers", need_poses=True)
     before = min(before, len(seq) - 2)
     to = kidnap_target(seq, before - 1)
@@ -247,19 +282,37 @@ def tracking(spec: SourceSpec, cfg: Config, before: int, after: int, cache_root:
     g = gicp_tracking(seq, prior, cfg, before, to, after)
     lo = lidarloc_tracking(seq, cfg, before, to, after, cache_root, progress)
     G = np.asarray(seq.poses)
-    return {"source": seq.name, "scans_tracked": before, "kidnap_from_scan": before - 1, "kidnap_to_scan": to,
-            "kidnap_m": float(np.linalg.norm(G[to, :3, 3] - G[before - 1, :3, 3])), "scans_after_kidnap": after,
-            "lidarloc": lo, "gicp": g,
-            "rmse_ratio_lidarloc_over_gicp": (lo["rmse_m"] / g["rmse_m"] if lo["rmse_m"] is not None and g["rmse_m"] > 0
-                                              else None),
-            "cpu_ratio_lidarloc_over_gicp": (lo["cpu_ms_per_scan"] / g["cpu_ms_per_scan"]
-                                             if lo["cpu_ms_per_scan"] is not None else None)}
+    return {
+        "source": seq.name,
+        "scans_tracked": before,
+        "kidnap_from_scan": before - 1,
+        "kidnap_to_scan": to,
+        "kidnap_m": float(np.linalg.norm(G[to, :3, 3] - G[before - 1, :3, 3])),
+        "scans_after_kidnap": after,
+        "lidarloc": lo,
+        "gicp": g,
+        "rmse_ratio_lidarloc_over_gicp": (
+            lo["rmse_m"] / g["rmse_m"] if lo["rmse_m"] is not None and g["rmse_m"] > 0 else None
+        ),
+        "cpu_ratio_lidarloc_over_gicp": (
+            lo["cpu_ms_per_scan"] / g["cpu_ms_per_scan"] if lo["cpu_ms_per_scan"] is not None else None
+        ),
+    }
 
 
 # ------------------------------------------------------------------------------------------ run
-def run(spec: SourceSpec, cfg: Config, global_scans: int = 20, track_scans: int = 250, after_kidnap: int = 150,
-        real: bool | None = None, paper: bool | None = None, paper_scans: int = 300, cache_root: Path | None = None,
-        progress=None) -> dict:
+def run(
+    spec: SourceSpec,
+    cfg: Config,
+    global_scans: int = 20,
+    track_scans: int = 250,
+    after_kidnap: int = 150,
+    real: bool | None = None,
+    paper: bool | None = None,
+    paper_scans: int = 300,
+    cache_root: Path | None = None,
+    progress=None,
+) -> dict:
     """Every part (see the module docstring); ``real``/``paper``: the real drive's global part and
     the KITTI 05 town (default: where their data is present)."""
     from . import peers_paper
@@ -267,9 +320,11 @@ def run(spec: SourceSpec, cfg: Config, global_scans: int = 20, track_scans: int 
     load_start = os.getloadavg()
     t_start = time.perf_counter()
     say = progress or (lambda what, i, n: None)
-    result: dict = {"target_global": "success ≥ the best peer's at ≤ 1/5 of its median time",
-                    "target_tracking": "RMSE within 10 % of GICP tracking at ≤ its CPU per scan",
-                    "target_kidnap": "lidarloc recovers where GICP tracking cannot"}
+    result: dict = {
+        "target_global": "success ≥ the best peer's at ≤ 1/5 of its median time",
+        "target_tracking": "RMSE within 10 % of GICP tracking at ≤ its CPU per scan",
+        "target_kidnap": "lidarloc recovers where GICP tracking cannot",
+    }
     town = global_localization(spec, cfg, global_scans, cache_root, lambda i, n: say("global: town", i, n))
     result["global_town"] = town
     real_spec = real_drive() if real is not False else None
@@ -278,13 +333,14 @@ def run(spec: SourceSpec, cfg: Config, global_scans: int = 20, track_scans: int 
 
         raise LidarlocError("bench peers --real: the real KITTI drive is not in the data directory")
     if real_spec is not None:
-        result["global_real"] = global_localization(real_spec, replace(cfg), global_scans, cache_root,
-                                                    lambda i, n: say("global: real drive", i, n))
-    result["tracking"] = tracking(spec, cfg, track_scans, after_kidnap, cache_root,
-                                  lambda i, n: say("tracking", i, n))
+        result["global_real"] = global_localization(
+            real_spec, replace(cfg), global_scans, cache_root, lambda i, n: say("global: real drive", i, n)
+        )
+    result["tracking"] = tracking(spec, cfg, track_scans, after_kidnap, cache_root, lambda i, n: say("tracking", i, n))
     if paper is not False:
-        part = peers_paper.run(cfg, paper_scans, cache_root, lambda i, n: say("the paper's KITTI 05", i, n),
-                               required=bool(paper))
+        part = peers_paper.run(
+            cfg, paper_scans, cache_root, lambda i, n: say("the paper's KITTI 05", i, n), required=bool(paper)
+        )
         if part is not None:
             result["paper"] = part
     result.update(headline(result))
@@ -305,15 +361,22 @@ def headline(r: dict) -> dict:
         out[f"{name}_success"] = float(np.mean([row[f"{name}_success"] for row in rows]))
         out[f"{name}_ms_median"] = median(row[f"{name}_ms"] for row in rows)
     t = r["tracking"]
-    out.update(lidarloc_tracking_rmse_m=t["lidarloc"]["rmse_m"], gicp_tracking_rmse_m=t["gicp"]["rmse_m"],
-               lidarloc_cpu_ms_per_scan=t["lidarloc"]["cpu_ms_per_scan"], gicp_cpu_ms_per_scan=t["gicp"]["cpu_ms_per_scan"],
-               lidarloc_ms_median=t["lidarloc"]["pf_ms_median"], gicp_ms_median=t["gicp"]["ms_median"],
-               lidarloc_recovered_after_kidnap=t["lidarloc"]["recovered_after_kidnap"],
-               gicp_recovered_after_kidnap=t["gicp"]["recovered_after_kidnap"],
-               lidarloc_recovery_scans=t["lidarloc"]["recovery_scans"], gicp_recovery_scans=t["gicp"]["recovery_scans"])
+    out.update(
+        lidarloc_tracking_rmse_m=t["lidarloc"]["rmse_m"],
+        gicp_tracking_rmse_m=t["gicp"]["rmse_m"],
+        lidarloc_cpu_ms_per_scan=t["lidarloc"]["cpu_ms_per_scan"],
+        gicp_cpu_ms_per_scan=t["gicp"]["cpu_ms_per_scan"],
+        lidarloc_ms_median=t["lidarloc"]["pf_ms_median"],
+        gicp_ms_median=t["gicp"]["ms_median"],
+        lidarloc_recovered_after_kidnap=t["lidarloc"]["recovered_after_kidnap"],
+        gicp_recovered_after_kidnap=t["gicp"]["recovered_after_kidnap"],
+        lidarloc_recovery_scans=t["lidarloc"]["recovery_scans"],
+        gicp_recovery_scans=t["gicp"]["recovery_scans"],
+    )
     best = max(("fpfh_ransac", "fgr"), key=lambda n: (out[f"{n}_success"], -out[f"{n}_ms_median"]))
-    out["global_target_met"] = bool(out["m3rsm_success"] >= out[f"{best}_success"]
-                                    and out["m3rsm_ms_median"] <= out[f"{best}_ms_median"] / 5)
+    out["global_target_met"] = bool(
+        out["m3rsm_success"] >= out[f"{best}_success"] and out["m3rsm_ms_median"] <= out[f"{best}_ms_median"] / 5
+    )
     lr, gr = out["lidarloc_tracking_rmse_m"], out["gicp_tracking_rmse_m"]
     lc, gc = out["lidarloc_cpu_ms_per_scan"], out["gicp_cpu_ms_per_scan"]
     out["tracking_target_met"] = bool(lr is not None and lc is not None and lr <= 1.1 * gr and lc <= gc)

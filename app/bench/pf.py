@@ -37,15 +37,15 @@ import numpy as np
 
 from ...core.config import Config
 from ...core.sequences.factory import SourceSpec
-
 from ..console import peak_rss_mb
 from .common import load_avg, median_ms, open_source, rss_mb
 
 DEG = math.pi / 180.0
 
 
-def synthetic_kitti05_map(size_x: float = 480.0, size_y: float = 430.0, spacing: float = 0.2,
-                          seed: int = 0) -> np.ndarray:
+def synthetic_kitti05_map(
+    size_x: float = 480.0, size_y: float = 430.0, spacing: float = 0.2, seed: int = 0
+) -> np.ndarray:
     """A point cloud the size of KITTI 05's map (≈ 480 × 430 × 40 m): hilly ground sampled over
     the whole box (a pessimistic case: a real drive's map only covers the streets), walls of
     buildings on a block grid and spherical tree crowns. About 8M float32 points."""
@@ -54,7 +54,7 @@ def synthetic_kitti05_map(size_x: float = 480.0, size_y: float = 430.0, spacing:
     def terrain(x, y):
         return 7.0 * np.sin(x / 90.0) * np.cos(y / 70.0) + 0.02 * x
 
-    n = int(size_x * size_y / spacing ** 2)
+    n = int(size_x * size_y / spacing**2)
     gx, gy = rng.random(n) * size_x, rng.random(n) * size_y
     parts = [np.stack([gx, gy, terrain(gx, gy) + rng.normal(0, 0.03, n)], axis=1)]
     for bx in np.arange(10.0, size_x - 30.0, 45.0):
@@ -65,10 +65,12 @@ def synthetic_kitti05_map(size_x: float = 480.0, size_y: float = 430.0, spacing:
             x0, y0 = bx + rng.uniform(0, 5), by + rng.uniform(0, 5)
             z0 = terrain(x0, y0) - 1.0
             perimeter = 2 * (w + d)
-            m = int(perimeter * h / spacing ** 2)
+            m = int(perimeter * h / spacing**2)
             s, z = rng.random(m) * perimeter, z0 + rng.random(m) * h
             x = np.where(s < w, x0 + s, np.where(s < w + d, x0 + w, np.where(s < 2 * w + d, x0 + (s - w - d), x0)))
-            y = np.where(s < w, y0, np.where(s < w + d, y0 + (s - w), np.where(s < 2 * w + d, y0 + d, y0 + (s - 2 * w - d))))
+            y = np.where(
+                s < w, y0, np.where(s < w + d, y0 + (s - w), np.where(s < 2 * w + d, y0 + d, y0 + (s - 2 * w - d)))
+            )
             parts.append(np.stack([x, y, z], axis=1))
     for _ in range(300):
         cx, cy = rng.random() * size_x, rng.random() * size_y
@@ -90,10 +92,19 @@ def _child_build(points_path: str, out_dir: str, resolution: float, d_max: float
     table = LookupTable.build(points, resolution, d_max)
     build_s = time.perf_counter() - t0
     table.save(Path(out_dir))
-    queue.put({"build_s": build_s, "mb": table.nbytes / 1e6, "bricks": table.n_bricks, "cells": list(table.shape),
-               "peak_rss_mb": peak_rss_mb(), "rss_before_build_mb": rss_before, "points": int(len(points)),
-               "extent_m": [float(v) for v in (points.max(axis=0) - points.min(axis=0))],
-               "dense_uint8_mb": float(np.prod(table.shape)) / 1e6})
+    queue.put(
+        {
+            "build_s": build_s,
+            "mb": table.nbytes / 1e6,
+            "bricks": table.n_bricks,
+            "cells": list(table.shape),
+            "peak_rss_mb": peak_rss_mb(),
+            "rss_before_build_mb": rss_before,
+            "points": int(len(points)),
+            "extent_m": [float(v) for v in (points.max(axis=0) - points.min(axis=0))],
+            "dense_uint8_mb": float(np.prod(table.shape)) / 1e6,
+        }
+    )
 
 
 def _child_load(out_dir: str, queue) -> None:
@@ -111,8 +122,10 @@ def measure_lookup(points: np.ndarray, resolution: float = 0.25, d_max: float = 
     try:
         np.save(work / "points.npy", points)
         results = {}
-        for target, args in ((_child_build, (str(work / "points.npy"), str(work / "L"), resolution, d_max)),
-                             (_child_load, (str(work / "L"),))):
+        for target, args in (
+            (_child_build, (str(work / "points.npy"), str(work / "L"), resolution, d_max)),
+            (_child_load, (str(work / "L"),)),
+        ):
             queue = ctx.Queue()
             proc = ctx.Process(target=target, args=(*args, queue))
             proc.start()
@@ -127,23 +140,32 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     """Step times with ``cfg.pf`` on ``n_scans_timed`` scans spread over the sequence of ``spec``
     (against its prior map from the cache), then the lookup-table builds; ``cfg.seed`` seeds the
     filters and the synthetic map."""
-    from ...core.geometry import pose_to_xyz_ypr
     from ...core.filter.likelihood import log_likelihood, log_likelihood_floored
-    from ...core.maps.lookup import load_or_build_lookup
-    from ...core.maps.mapping import load_or_build_map
     from ...core.filter.pf import ParticleFilter
     from ...core.filter.scanprep import prepare_scan
+    from ...core.geometry import pose_to_xyz_ypr
+    from ...core.maps.lookup import load_or_build_lookup
+    from ...core.maps.mapping import load_or_build_map
 
     n_particles, seed, scans = cfg.pf.n_particles, cfg.seed, n_scans_timed
-    out: dict = {"particles": n_particles, "scans": scans, "seed": seed, "cpus": os.cpu_count(),
-                 "load_avg_1m_before": load_avg()}
+    out: dict = {
+        "particles": n_particles,
+        "scans": scans,
+        "seed": seed,
+        "cpus": os.cpu_count(),
+        "load_avg_1m_before": load_avg(),
+    }
     seq = open_source(spec, cfg, "pf", need_poses=True)
     out["source"] = seq.name
     prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map)
     t0 = time.perf_counter()
     lookup, _, cached = load_or_build_lookup(prior, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max)
-    out.update(kitti_map_points=int(len(prior.points)), kitti_lookup_mb=lookup.nbytes / 1e6,
-               kitti_lookup_cached=cached, kitti_lookup_s=time.perf_counter() - t0)
+    out.update(
+        kitti_map_points=int(len(prior.points)),
+        kitti_lookup_mb=lookup.nbytes / 1e6,
+        kitti_lookup_cached=cached,
+        kitti_lookup_s=time.perf_counter() - t0,
+    )
     lo, hi = prior.bounds
 
     idx = np.unique(np.linspace(1, len(seq) - 1, scans).round().astype(int))
@@ -157,8 +179,9 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
     out["scanprep_ms_median"] = median_ms(prep_t)
 
     def make(n, mode):
-        return ParticleFilter(replace(cfg.pf, n_particles=n, init_mode=mode), lookup, lo, hi, seed=seed,
-                              map_points=prior.points)
+        return ParticleFilter(
+            replace(cfg.pf, n_particles=n, init_mode=mode), lookup, lo, hi, seed=seed, map_points=prior.points
+        )
 
     # warm-up: compile every kernel once (cache=True makes later runs load them from disk)
     warm = make(64, "uniform_box")
@@ -224,18 +247,31 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
         points = synthetic_kitti05_map(seed=seed)
         res = measure_lookup(points)
         del points
-        out.update(lookup_build_s=res["build_s"], lookup_mb=res["mb"], lookup_load_s=res["load_s"],
-                   lookup_bricks=res["bricks"], lookup_cells=res["cells"], lookup_map_points=res["points"],
-                   lookup_map_extent_m=res["extent_m"], lookup_build_peak_rss_mb=res["peak_rss_mb"],
-                   lookup_rss_before_build_mb=res["rss_before_build_mb"],
-                   lookup_dense_uint8_mb=res["dense_uint8_mb"], lookup_source="synthetic KITTI-05-sized map")
+        out.update(
+            lookup_build_s=res["build_s"],
+            lookup_mb=res["mb"],
+            lookup_load_s=res["load_s"],
+            lookup_bricks=res["bricks"],
+            lookup_cells=res["cells"],
+            lookup_map_points=res["points"],
+            lookup_map_extent_m=res["extent_m"],
+            lookup_build_peak_rss_mb=res["peak_rss_mb"],
+            lookup_rss_before_build_mb=res["rss_before_build_mb"],
+            lookup_dense_uint8_mb=res["dense_uint8_mb"],
+            lookup_source="synthetic KITTI-05-sized map",
+        )
     if town:
         from ...core.sequences.town import TownSequence
 
-        town_map = load_or_build_map(TownSequence.from_config(cfg.town).map_source, cfg.map).value   # the default town
+        town_map = load_or_build_map(TownSequence.from_config(cfg.town).map_source, cfg.map).value  # the default town
         res = measure_lookup(town_map.points)
-        out.update(town_lookup_build_s=res["build_s"], town_lookup_mb=res["mb"], town_lookup_load_s=res["load_s"],
-                   town_lookup_build_peak_rss_mb=res["peak_rss_mb"], town_map_points=res["points"],
-                   town_map_extent_m=res["extent_m"])
+        out.update(
+            town_lookup_build_s=res["build_s"],
+            town_lookup_mb=res["mb"],
+            town_lookup_load_s=res["load_s"],
+            town_lookup_build_peak_rss_mb=res["peak_rss_mb"],
+            town_map_points=res["points"],
+            town_map_extent_m=res["extent_m"],
+        )
     out["load_avg_1m_after"] = load_avg()
     return out

@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.runs import recording
 from ...core.localizer import Localizer
-
+from ...core.runs import recording
 from .common import load_avg, machine
 
 TARGET_SHARE = 0.05
@@ -75,8 +74,11 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
         total = rec.size_bytes()
         scan_points = sum(f.stat().st_size for f in (folder / "s2m").glob("*.f16"))
         resume = sum(f.stat().st_size for f in (folder / "resume").glob("*") if f.is_file())
-        resume += sum((folder / f"{name}.bin").stat().st_size for name in rec.field_names
-                      if name not in recording.format.FIELDS and name not in ("particles", "log_weights"))
+        resume += sum(
+            (folder / f"{name}.bin").stat().st_size
+            for name in rec.field_names
+            if name not in recording.format.FIELDS and name not in ("particles", "log_weights")
+        )
         open_s = [_open_all(folder) for _ in range(open_repeats)]
     pf_median = float(np.median(pf_ms))
     rec_median = float(np.median(record_ms))
@@ -84,10 +86,13 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
     without_scans = (total - scan_points) / 1e6 * 1000.0 / max(n, 1)
     mean_particles = float(np.mean(particles))
     return {
-        "steps": n, "particles_mean": round(mean_particles, 1),
-        "record_ms_median": round(rec_median, 3), "record_ms_p95": round(float(np.percentile(record_ms, 95)), 3),
+        "steps": n,
+        "particles_mean": round(mean_particles, 1),
+        "record_ms_median": round(rec_median, 3),
+        "record_ms_p95": round(float(np.percentile(record_ms, 95)), 3),
         "pf_ms_median": round(pf_median, 2),
-        "record_share_of_pf": round(rec_median / pf_median, 4), "target_share": TARGET_SHARE,
+        "record_share_of_pf": round(rec_median / pf_median, 4),
+        "target_share": TARGET_SHARE,
         "writer_thread_cpu_ms_per_step": round(writer_cpu_ms, 3),
         "writer_thread_cpu_share_of_pf": round(writer_cpu_ms / pf_median, 4),
         "mb_per_1000_steps": round(per_1000, 1),
@@ -95,9 +100,14 @@ def run(spec, seq, cfg, cache_root: Path | None = None, open_repeats: int = 5, p
         "s2m_scan_points_mb_per_1000_steps": round(scan_points / 1e6 * 1000.0 / max(n, 1), 1),
         "resume_payload_mb_per_1000_steps": round(resume / 1e6 * 1000.0 / max(n, 1), 1),
         "target_mb_per_1000": TARGET_MB_PER_1000,
-        "open_s_median": round(float(np.median(open_s)), 3), "open_s_scaled_to_1000_steps":
-            round(float(np.median(open_s)) * 1000.0 / max(n, 1), 3), "target_open_s": TARGET_OPEN_S,
-        "met": bool(rec_median / pf_median <= TARGET_SHARE and without_scans <= TARGET_MB_PER_1000
-                    and float(np.median(open_s)) * 1000.0 / max(n, 1) <= TARGET_OPEN_S),
-        "load_average_1min": round(load_avg(), 2), "machine": machine(),
+        "open_s_median": round(float(np.median(open_s)), 3),
+        "open_s_scaled_to_1000_steps": round(float(np.median(open_s)) * 1000.0 / max(n, 1), 3),
+        "target_open_s": TARGET_OPEN_S,
+        "met": bool(
+            rec_median / pf_median <= TARGET_SHARE
+            and without_scans <= TARGET_MB_PER_1000
+            and float(np.median(open_s)) * 1000.0 / max(n, 1) <= TARGET_OPEN_S
+        ),
+        "load_average_1min": round(load_avg(), 2),
+        "machine": machine(),
     }

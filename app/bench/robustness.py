@@ -33,11 +33,18 @@ from rich.console import Console
 from ...core.config import TOWN_SENSORS, Config, load_config
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
-
 from ..console import progress_bar
 from .common import DATA_ENV, REAL_DRIVE, REAL_DRIVE_DATE, data_dir, real_drive, require_town
-from .localize import (Plan, check_runs, code_fingerprint, numba_threads_for, prepare_cache, prepare_one, run_one,
-                       run_tasks)
+from .localize import (
+    Plan,
+    check_runs,
+    code_fingerprint,
+    numba_threads_for,
+    prepare_cache,
+    prepare_one,
+    run_one,
+    run_tasks,
+)
 
 # The full matrix (each axis restricted by its option).
 CHANGES = (0.0, 0.3, 0.6)
@@ -51,8 +58,13 @@ CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
     "no-S2M": ("default", ("s2m.enabled=false",)),
 }
 # The entries the matrix sets: --set may not set them (the axis options restrict them instead).
-MATRIX_KEYS = {"town.changes": "--changes", "town.traffic": "--traffic", "town.sensor": "--sensors",
-               "town.skew": "--skew", "s2m.enabled": "--configs"}
+MATRIX_KEYS = {
+    "town.changes": "--changes",
+    "town.traffic": "--traffic",
+    "town.sensor": "--sensors",
+    "town.skew": "--skew",
+    "s2m.enabled": "--configs",
+}
 DEFAULT_SCANS = 300
 # Wall seconds per scan of one worker, per configuration, for the estimate printed before the
 # start (the progress bar's remaining time then follows the real pace): runs of the town's first
@@ -75,8 +87,12 @@ class World:
     skew: bool
 
     def overrides(self) -> list[str]:
-        return [f"town.changes={self.changes:g}", f"town.traffic={str(self.traffic).lower()}",
-                f"town.sensor={self.sensor}", f"town.skew={str(self.skew).lower()}"]
+        return [
+            f"town.changes={self.changes:g}",
+            f"town.traffic={str(self.traffic).lower()}",
+            f"town.sensor={self.sensor}",
+            f"town.skew={str(self.skew).lower()}",
+        ]
 
     @property
     def name(self) -> str:
@@ -124,8 +140,13 @@ class Matrix:
         return cells + ([Cell(None, c) for c in self.configs] if real else [])
 
     def to_dict(self) -> dict:
-        return {"changes": list(self.changes), "traffic": [_onoff(t) for t in self.traffic],
-                "sensors": list(self.sensors), "skew": [_onoff(k) for k in self.skew], "configs": list(self.configs)}
+        return {
+            "changes": list(self.changes),
+            "traffic": [_onoff(t) for t in self.traffic],
+            "sensors": list(self.sensors),
+            "skew": [_onoff(k) for k in self.skew],
+            "configs": list(self.configs),
+        }
 
 
 def _onoff(flag: bool) -> str:
@@ -136,7 +157,7 @@ def _items(text: str, option: str) -> list[str]:
     items = [t.strip() for t in str(text).split(",") if t.strip()]
     if not items:
         raise LidarlocError(f"{option}: give at least one value (comma-separated)")
-    return list(dict.fromkeys(items))         # in the order given, each once
+    return list(dict.fromkeys(items))  # in the order given, each once
 
 
 def _share(item: str) -> float:
@@ -191,16 +212,19 @@ def cell_config(cell: Cell, config: Path | None, overrides: list[str] | None) ->
     """A cell's configuration: its preset, the user's ``--config`` and ``--set``, then the cell's
     own entries (its world, S2M off for no-S2M); with the recorded odometry, as ``lidarloc bench
     localize`` runs (the same numbers, computed once per world)."""
-    return load_config(config, ["localize.recorded_odometry=true", *(overrides or []), *cell.overrides()],
-                       preset=cell.preset)
+    return load_config(
+        config, ["localize.recorded_odometry=true", *(overrides or []), *cell.overrides()], preset=cell.preset
+    )
 
 
 # --------------------------------------------------------------------------------- running
 def estimate_s(plans: dict, worlds_to_prepare: int, scans: int, workers: int) -> float:
     """Rough wall seconds of what is left (the module's constants; ``plans`` by cell name, which
     ends in the configuration's; the real drive's runs, which may be shorter, counted at ``scans``)."""
-    run_s = sum(len(p.todo) * scans * RUN_S_PER_SCAN[next(c for c in CONFIGS if name.endswith("-" + c))]
-                for name, p in plans.items())
+    run_s = sum(
+        len(p.todo) * scans * RUN_S_PER_SCAN[next(c for c in CONFIGS if name.endswith("-" + c))]
+        for name, p in plans.items()
+    )
     return (run_s + worlds_to_prepare * scans * PREPARE_S_PER_SCAN) / workers
 
 
@@ -216,9 +240,19 @@ def format_duration(seconds: float) -> str:
     return f"{hours} h {minutes:02d} min" if hours else f"{minutes} min"
 
 
-def run_robustness(town: SourceSpec, config: Path | None, overrides: list[str] | None, matrix: Matrix, runs: int,
-                   workers: int, out_dir: Path, real: bool | None = None, cache_root: Path | None = None,
-                   console: Console | None = None, record: bool = False) -> dict:
+def run_robustness(
+    town: SourceSpec,
+    config: Path | None,
+    overrides: list[str] | None,
+    matrix: Matrix,
+    runs: int,
+    workers: int,
+    out_dir: Path,
+    real: bool | None = None,
+    cache_root: Path | None = None,
+    console: Console | None = None,
+    record: bool = False,
+) -> dict:
     """Run the ``matrix`` (``runs`` seeds per cell) on the town ``town`` and, with ``real`` (None:
     where its data is present), on the real drive; write the cells' directories and the report
     into ``out_dir``; returns the summary (summary.json)."""
@@ -232,21 +266,36 @@ def run_robustness(town: SourceSpec, config: Path | None, overrides: list[str] |
         town = replace(town, scans=DEFAULT_SCANS)
     real_spec = real_drive(town.scans) if real is not False else None
     if real and real_spec is None:
-        raise LidarlocError(f"--real: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} not found under "
-                            f"{data_dir() / 'kitti_raw'} (set ${DATA_ENV}), or use --no-real")
+        raise LidarlocError(
+            f"--real: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} not found under "
+            f"{data_dir() / 'kitti_raw'} (set ${DATA_ENV}), or use --no-real"
+        )
     cells = matrix.cells(real=real_spec is not None)
     configs = {c.name: cell_config(c, config, overrides) for c in cells}
     fingerprint = code_fingerprint()
     out_dir = Path(out_dir)
-    plans = {c.name: Plan(out_dir / "cells" / c.name, town if c.world is not None else real_spec, configs[c.name],
-                          runs, c.preset, fingerprint, record=record) for c in cells}
+    plans = {
+        c.name: Plan(
+            out_dir / "cells" / c.name,
+            town if c.world is not None else real_spec,
+            configs[c.name],
+            runs,
+            c.preset,
+            fingerprint,
+            record=record,
+        )
+        for c in cells
+    }
     todo_cells = [c for c in cells if plans[c.name].todo]
     worlds = list(dict.fromkeys(c.world for c in todo_cells if c.world is not None))
     total = sum(len(p.todo) for p in plans.values())
-    console.print(f"robustness: {_n(len(cells), 'cell')} × {_n(runs, 'run')} of up to {town.scans} scans "
-                  f"({total} to do, {len(cells) * runs - total} resumed): estimated "
-                  f"{format_duration(estimate_s(plans, len(worlds), town.scans, workers))} on {_n(workers, 'worker')}",
-                  highlight=False, soft_wrap=True)
+    console.print(
+        f"robustness: {_n(len(cells), 'cell')} × {_n(runs, 'run')} of up to {town.scans} scans "
+        f"({total} to do, {len(cells) * runs - total} resumed): estimated "
+        f"{format_duration(estimate_s(plans, len(worlds), town.scans, workers))} on {_n(workers, 'worker')}",
+        highlight=False,
+        soft_wrap=True,
+    )
     if real is None and real_spec is None:
         console.print("robustness: the real KITTI drive was not found: town only", highlight=False, soft_wrap=True)
     cache = str(cache_root) if cache_root else None
@@ -254,23 +303,35 @@ def run_robustness(town: SourceSpec, config: Path | None, overrides: list[str] |
     t0 = time.perf_counter()
     _prepare(todo_cells, plans, worlds, cache_root, cache, workers, threads)
     with progress_bar(transient=False) as bar:
-        task = bar.add_task(f"robustness: {len(cells)} cells", total=len(cells) * runs, completed=len(cells) * runs - total)
-        tasks = {(name, seed): args for name, plan in plans.items() for seed, args in plan.tasks(cache, threads).items()}
+        task = bar.add_task(
+            f"robustness: {len(cells)} cells", total=len(cells) * runs, completed=len(cells) * runs - total
+        )
+        tasks = {
+            (name, seed): args for name, plan in plans.items() for seed, args in plan.tasks(cache, threads).items()
+        }
 
         def done(key, summary):
             name, seed = key
             plan = plans[name]
             plan.summaries[seed] = summary
             if len(plan.summaries) == plan.runs:
-                plan.report(plots=False)          # a finished cell is readable while others run
+                plan.report(plots=False)  # a finished cell is readable while others run
             bar.advance(task)
+
         run_tasks(run_one, tasks, workers, done)
     aggs = {name: plan.report(plots=False) for name, plan in plans.items()}
     return write_cell_table(out_dir, cells, aggs, matrix, town, real_spec, runs, time.perf_counter() - t0)
 
 
-def _prepare(todo_cells: list[Cell], plans: dict, worlds: list[World], cache_root: Path | None, cache: str | None,
-             workers: int, threads: int) -> None:
+def _prepare(
+    todo_cells: list[Cell],
+    plans: dict,
+    worlds: list[World],
+    cache_root: Path | None,
+    cache: str | None,
+    workers: int,
+    threads: int,
+) -> None:
     """Fill the cache for the cells still to run. Here: the shared map, lookup table and pyramid
     (with the first world's scans and odometry) for each configuration, and the real drive's;
     then every other world's scans and odometry in the workers, one task per world."""

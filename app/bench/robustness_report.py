@@ -13,39 +13,82 @@ from ...core.runs.results import write_json
 from ...core.sequences.factory import SourceSpec
 
 # One row per cell. The world columns are empty for the real drive (its world is what it is).
-COLUMNS = ("cell", "source", "changes", "traffic", "sensor", "skew", "config", "runs", "scans",
-           *[f"{k}_{s}" for k in METRIC_KEYS for s in ("median", "success")],
-           "success", "rmse_after_localized_m", "consistency_2sigma", "false_fire_rate", "pf_ms_median",
-           "localized_wrong_scans", "relocalizations", "spurious_relocalizations")
+COLUMNS = (
+    "cell",
+    "source",
+    "changes",
+    "traffic",
+    "sensor",
+    "skew",
+    "config",
+    "runs",
+    "scans",
+    *[f"{k}_{s}" for k in METRIC_KEYS for s in ("median", "success")],
+    "success",
+    "rmse_after_localized_m",
+    "consistency_2sigma",
+    "false_fire_rate",
+    "pf_ms_median",
+    "localized_wrong_scans",
+    "relocalizations",
+    "spurious_relocalizations",
+)
 REAL_LABEL = "real KITTI drive"
 
 
 def cell_row(cell, agg: dict) -> dict:
     """The figures of one cell (``agg``: its bench-localize summary)."""
     w = cell.world
-    row = {"cell": cell.name, "source": "real" if w is None else "town",
-           "changes": None if w is None else w.changes,
-           "traffic": None if w is None else ("on" if w.traffic else "off"),
-           "sensor": None if w is None else w.sensor,
-           "skew": None if w is None else ("on" if w.skew else "off"),
-           "config": cell.config, "runs": agg["runs"], "scans": agg["scans_per_run"]}
+    row = {
+        "cell": cell.name,
+        "source": "real" if w is None else "town",
+        "changes": None if w is None else w.changes,
+        "traffic": None if w is None else ("on" if w.traffic else "off"),
+        "sensor": None if w is None else w.sensor,
+        "skew": None if w is None else ("on" if w.skew else "off"),
+        "config": cell.config,
+        "runs": agg["runs"],
+        "scans": agg["scans_per_run"],
+    }
     for k in METRIC_KEYS:
         row[f"{k}_median"] = agg[k]["median"]
         row[f"{k}_success"] = agg[k]["success"]
-    row.update(success=agg["within_5m_to_end_ratio"], rmse_after_localized_m=agg["rmse_after_localized_m_median"],
-               consistency_2sigma=agg["consistency_2sigma"], false_fire_rate=agg["false_fire_rate"],
-               pf_ms_median=agg["pf_ms_median"], localized_wrong_scans=agg.get("localized_wrong_scans"),
-               relocalizations=agg.get("relocalizations"), spurious_relocalizations=agg.get("spurious_relocalizations"))
+    row.update(
+        success=agg["within_5m_to_end_ratio"],
+        rmse_after_localized_m=agg["rmse_after_localized_m_median"],
+        consistency_2sigma=agg["consistency_2sigma"],
+        false_fire_rate=agg["false_fire_rate"],
+        pf_ms_median=agg["pf_ms_median"],
+        localized_wrong_scans=agg.get("localized_wrong_scans"),
+        relocalizations=agg.get("relocalizations"),
+        spurious_relocalizations=agg.get("spurious_relocalizations"),
+    )
     return row
 
 
-def write_cell_table(out_dir: Path, cells: list, aggs: dict, matrix, town: SourceSpec, real: SourceSpec | None,
-                     runs: int, elapsed_s: float) -> dict:
+def write_cell_table(
+    out_dir: Path,
+    cells: list,
+    aggs: dict,
+    matrix,
+    town: SourceSpec,
+    real: SourceSpec | None,
+    runs: int,
+    elapsed_s: float,
+) -> dict:
     """Write cells.csv, summary.json, report.md and heatmap.png; returns the summary."""
     rows = [cell_row(c, aggs[c.name]) for c in cells]
-    summary = {"source": town.describe(), "real_source": None if real is None else real.describe(),
-               "matrix": matrix.to_dict(), "real": real is not None, "runs": runs, "scans": town.scans,
-               "elapsed_s": round(elapsed_s, 1), "columns": list(COLUMNS), "cells": rows}
+    summary = {
+        "source": town.describe(),
+        "real_source": None if real is None else real.describe(),
+        "matrix": matrix.to_dict(),
+        "real": real is not None,
+        "runs": runs,
+        "scans": town.scans,
+        "elapsed_s": round(elapsed_s, 1),
+        "columns": list(COLUMNS),
+        "cells": rows,
+    }
     out_dir = Path(out_dir)
     with open(out_dir / "cells.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
@@ -94,36 +137,49 @@ def _opt(value) -> str:
 
 def _markdown(summary: dict, rows: list[dict]) -> str:
     real = f" and {summary['real_source']}" if summary["real"] else ""
-    lines = [f"# Robustness: {summary['source']}{real}", "",
-             f"{_n(len(rows), 'cell')} × {_n(summary['runs'], 'run')} (seeds {_seeds(summary['runs'])}) of up to "
-             f"{summary['scans']} scans, replay clock, against the prior map of the town as mapped"
-             + (" (the real drive: the map of its own scans)." if summary["real"] else "."), "",
-             "| changes | traffic | sensor | skew | config | success | RMSE after | A | B | C | D | E "
-             "| 2σ consistency | false fires | wrong & localized | relocalized (spurious) | PF ms |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Robustness: {summary['source']}{real}",
+        "",
+        f"{_n(len(rows), 'cell')} × {_n(summary['runs'], 'run')} (seeds {_seeds(summary['runs'])}) of up to "
+        f"{summary['scans']} scans, replay clock, against the prior map of the town as mapped"
+        + (" (the real drive: the map of its own scans)." if summary["real"] else "."),
+        "",
+        "| changes | traffic | sensor | skew | config | success | RMSE after | A | B | C | D | E "
+        "| 2σ consistency | false fires | wrong & localized | relocalized (spurious) | PF ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        world = ("real drive", "–", "–", "–") if r["source"] == "real" else \
-            (f"{r['changes']:g}", r["traffic"], r["sensor"], r["skew"])
+        world = (
+            ("real drive", "–", "–", "–")
+            if r["source"] == "real"
+            else (f"{r['changes']:g}", r["traffic"], r["sensor"], r["skew"])
+        )
         rmse = "–" if r["rmse_after_localized_m"] is None else f"{r['rmse_after_localized_m']:.2f} m"
-        lines.append(f"| {' | '.join(world)} | {r['config']} | {_pct(r['success'])} | {rmse} | "
-                     + " | ".join(_metric(r, k) for k in METRIC_KEYS)
-                     + f" | {_pct(r['consistency_2sigma'])} | {_pct(r['false_fire_rate'])} | "
-                     f"{_opt(r['localized_wrong_scans'])} | {_opt(r['relocalizations'])} "
-                     f"({_opt(r['spurious_relocalizations'])}) | {_num(r['pf_ms_median'], 1)} |")
-    lines += ["",
-              "- success: share of runs localized and within 5 m of the truth from then to the end of the drive.",
-              "- RMSE after: position RMSE from the rule's first firing on, median over runs.",
-              "- A–E: the paper's metrics in scans, median over runs (share of runs that met it); "
-              "a median of 'fail': most runs never met it.",
-              "- 2σ consistency: share of localized scans with the truth inside the filter's 2σ ellipse, "
-              "median over runs (an honest covariance: ~86%).",
-              "- false fires: share of runs whose localization rule fired more than 5 m from the truth.",
-              "- wrong & localized: scans, over all runs, that the rule called localized more than 5 m from the truth.",
-              "- relocalized (spurious): times, over all runs, the whole-map check moved the filter (of those, "
-              "from an estimate within 5 m of the truth).",
-              "- PF ms: the particle filter's step, median over every scan of every run.",
-              "- Each cell's runs and report: cells/NAME/.", "",
-              "![success and RMSE per cell](heatmap.png)", ""]
+        lines.append(
+            f"| {' | '.join(world)} | {r['config']} | {_pct(r['success'])} | {rmse} | "
+            + " | ".join(_metric(r, k) for k in METRIC_KEYS)
+            + f" | {_pct(r['consistency_2sigma'])} | {_pct(r['false_fire_rate'])} | "
+            f"{_opt(r['localized_wrong_scans'])} | {_opt(r['relocalizations'])} "
+            f"({_opt(r['spurious_relocalizations'])}) | {_num(r['pf_ms_median'], 1)} |"
+        )
+    lines += [
+        "",
+        "- success: share of runs localized and within 5 m of the truth from then to the end of the drive.",
+        "- RMSE after: position RMSE from the rule's first firing on, median over runs.",
+        "- A–E: the paper's metrics in scans, median over runs (share of runs that met it); "
+        "a median of 'fail': most runs never met it.",
+        "- 2σ consistency: share of localized scans with the truth inside the filter's 2σ ellipse, "
+        "median over runs (an honest covariance: ~86%).",
+        "- false fires: share of runs whose localization rule fired more than 5 m from the truth.",
+        "- wrong & localized: scans, over all runs, that the rule called localized more than 5 m from the truth.",
+        "- relocalized (spurious): times, over all runs, the whole-map check moved the filter (of those, "
+        "from an estimate within 5 m of the truth).",
+        "- PF ms: the particle filter's step, median over every scan of every run.",
+        "- Each cell's runs and report: cells/NAME/.",
+        "",
+        "![success and RMSE per cell](heatmap.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -148,17 +204,26 @@ def _heatmap(path: Path, rows: list[dict], configs: list[str]) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, height), sharey=True)
     # the RMSE's colours stop at 5 m, the success bound: beyond it a run has failed anyway
     rmse_top = float(np.clip(np.nanmax(rmse), 0.5, 5.0)) if np.isfinite(rmse).any() else 1.0
-    panels = ((axes[0], success, "success (share of runs)", "RdYlGn", (0.0, 1.0), lambda v: f"{100 * v:.0f}%"),
-              (axes[1], rmse, "RMSE after localization (m)", "viridis_r", (0.0, rmse_top), lambda v: f"{v:.2f}"))
+    panels = (
+        (axes[0], success, "success (share of runs)", "RdYlGn", (0.0, 1.0), lambda v: f"{100 * v:.0f}%"),
+        (axes[1], rmse, "RMSE after localization (m)", "viridis_r", (0.0, rmse_top), lambda v: f"{v:.2f}"),
+    )
     for ax, data, title, cmap, (vmin, vmax), fmt in panels:
         colours = plt.get_cmap(cmap).copy()
-        colours.set_bad("#d0d0d0")            # grey: no value (never localized, or no truth)
+        colours.set_bad("#d0d0d0")  # grey: no value (never localized, or no truth)
         image = ax.imshow(np.ma.masked_invalid(data), cmap=colours, vmin=vmin, vmax=vmax, aspect="auto")
         for (i, j), v in np.ndenumerate(data):
             r, g, b, _ = image.cmap(image.norm(v)) if np.isfinite(v) else (1, 1, 1, 1)
             dark = 0.299 * r + 0.587 * g + 0.114 * b < 0.5
-            ax.text(j, i, "–" if not np.isfinite(v) else fmt(v), ha="center", va="center", fontsize=7,
-                    color="white" if dark else "black")
+            ax.text(
+                j,
+                i,
+                "–" if not np.isfinite(v) else fmt(v),
+                ha="center",
+                va="center",
+                fontsize=7,
+                color="white" if dark else "black",
+            )
         ax.set_xticks(range(len(configs)), configs)
         ax.set_title(title, fontsize=10)
         fig.colorbar(image, ax=ax, fraction=0.05, pad=0.02)

@@ -22,11 +22,10 @@ from ...core.errors import LidarlocError
 from ...core.geometry import inv_pose
 from ...core.odometry.kiss import KISS_CONVERGENCE, kiss_config
 from ...core.sequences.factory import SourceSpec
-
 from .common import open_source, pose_error
 
-DEFAULT_SCANS = 300   # registered when the source options do not say --scans
-MIN_SCANS = 11        # the 10-scan drift windows need at least one window
+DEFAULT_SCANS = 300  # registered when the source options do not say --scans
+MIN_SCANS = 11  # the 10-scan drift windows need at least one window
 
 
 def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
@@ -50,11 +49,17 @@ def measure(scans: list[np.ndarray], G: np.ndarray, convergence: float) -> dict:
     windows = [rel_error(i, i + 10) for i in range(n - 10)]
     path = float(sum(np.linalg.norm(G[i + 1][:3, 3] - G[i][:3, 3]) for i in range(n - 1)))
     end_err, _ = rel_error(0, n - 1)
-    return {"convergence": convergence, "ms_median": float(np.median(ms)), "ms_max": float(np.max(ms)),
-            "ms_max_scan": int(np.argmax(ms)),
-            "step_error_cm_median": 100 * float(np.median(step)), "step_error_cm_p95": 100 * float(np.percentile(step, 95)),
-            "drift_10_pct": 100 * float(np.median([e / max(d, 1e-6) for e, d in windows])) if windows else None,
-            "end_drift_pct": 100 * end_err / max(path, 1e-9), "path_m": path}
+    return {
+        "convergence": convergence,
+        "ms_median": float(np.median(ms)),
+        "ms_max": float(np.max(ms)),
+        "ms_max_scan": int(np.argmax(ms)),
+        "step_error_cm_median": 100 * float(np.median(step)),
+        "step_error_cm_p95": 100 * float(np.percentile(step, 95)),
+        "drift_10_pct": 100 * float(np.median([e / max(d, 1e-6) for e, d in windows])) if windows else None,
+        "end_drift_pct": 100 * end_err / max(path, 1e-9),
+        "path_m": path,
+    }
 
 
 def run(spec: SourceSpec, cfg: Config, convergences: tuple[float, ...] = (1e-4, KISS_CONVERGENCE)) -> dict:
@@ -65,5 +70,9 @@ def run(spec: SourceSpec, cfg: Config, convergences: tuple[float, ...] = (1e-4, 
     seq = open_source(spec, cfg, "rpe", need_poses=True)
     n = min(spec.scans or DEFAULT_SCANS, len(seq))
     points = [np.asarray(seq.scan(k)[:, :3], dtype=np.float64) for k in range(n)]
-    return {"source": seq.name, "scans": n, "localizer_convergence": KISS_CONVERGENCE,
-            "settings": [measure(points, seq.poses[:n], float(c)) for c in convergences]}
+    return {
+        "source": seq.name,
+        "scans": n,
+        "localizer_convergence": KISS_CONVERGENCE,
+        "settings": [measure(points, seq.poses[:n], float(c)) for c in convergences],
+    }

@@ -26,29 +26,30 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.matching import m3rsm
-from ...core.maps.bev import BEVPyramid
 from ...core.config import Config, MapConfig, S2MConfig
 from ...core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr
-from ...core.matching.gicp import GICPRefiner
+from ...core.maps.bev import BEVPyramid
 from ...core.maps.mapping import range_filter
 from ...core.maps.world import open_world
-from ...core.runs.results import world_of
-from ...core.odometry.rpe import RelativePoseEstimator
+from ...core.matching import m3rsm
+from ...core.matching.gicp import GICPRefiner
 from ...core.matching.s2m import ScanToMapMatcher
+from ...core.odometry.rpe import RelativePoseEstimator
+from ...core.runs.results import world_of
 from ...core.sequences.factory import SourceSpec
-
 from .common import median, open_source, pose_error
 
-SUCCESS_RMSE = 1.0   # m, the paper's "within the matching resolution"
+SUCCESS_RMSE = 1.0  # m, the paper's "within the matching resolution"
 
 
 # ------------------------------------------------------------------------------------- helpers
 def rmse_2d(points_xy: np.ndarray, a: tuple, b: tuple) -> float:
     """RMS distance between 2D points placed by pose a = (x, y, yaw) and by pose b."""
+
     def place(p):
         c, s = math.cos(p[2]), math.sin(p[2])
         return points_xy @ np.array([[c, s], [-s, c]]) + [p[0], p[1]]
+
     return float(np.sqrt(((place(a) - place(b)) ** 2).sum(axis=1).mean()))
 
 
@@ -97,18 +98,31 @@ def kiss_icp_drift(seq, n: int = 100) -> dict:
     path = float(sum(np.linalg.norm(G[i + 1][:3, 3] - G[i][:3, 3]) for i in range(n - 1)))
     est = rpe.relative(0, n - 1)
     gt = inv_pose(G[0]) @ G[n - 1]
-    step_err = [np.linalg.norm(rpe.relative(k, k + 1)[:3, 3] - (inv_pose(G[k]) @ G[k + 1])[:3, 3]) for k in range(n - 1)]
+    step_err = [
+        np.linalg.norm(rpe.relative(k, k + 1)[:3, 3] - (inv_pose(G[k]) @ G[k + 1])[:3, 3]) for k in range(n - 1)
+    ]
     step_len = [np.linalg.norm(G[k + 1][:3, 3] - G[k][:3, 3]) for k in range(n - 1)]
     _, rot_deg = pose_error(est, gt)
-    return {"scans": n, "path_m": path,
-            "drift_pct": 100.0 * float(np.linalg.norm(est[:3, 3] - gt[:3, 3])) / max(path, 1e-9),
-            "end_rotation_error_deg": rot_deg,
-            "step_error_pct": 100.0 * float(np.sum(step_err)) / max(float(np.sum(step_len)), 1e-9),
-            "ms_median": median(ms), "gil_hold_ms": hold}
+    return {
+        "scans": n,
+        "path_m": path,
+        "drift_pct": 100.0 * float(np.linalg.norm(est[:3, 3] - gt[:3, 3])) / max(path, 1e-9),
+        "end_rotation_error_deg": rot_deg,
+        "step_error_pct": 100.0 * float(np.sum(step_err)) / max(float(np.sum(step_len)), 1e-9),
+        "ms_median": median(ms),
+        "gil_hold_ms": hold,
+    }
 
 
-def gicp_comparison(seq, prior, cfg: S2MConfig, map_cfg: MapConfig, n: int = 25, seed: int = 0,
-                    variants=(("small_gicp", None), ("small_gicp", "equal"), ("open3d", None))) -> dict:
+def gicp_comparison(
+    seq,
+    prior,
+    cfg: S2MConfig,
+    map_cfg: MapConfig,
+    n: int = 25,
+    seed: int = 0,
+    variants=(("small_gicp", None), ("small_gicp", "equal"), ("open3d", None)),
+) -> dict:
     """small_gicp (prebuilt target) vs open3d (cropped target) from ground truth perturbed by the
     2D lattice error (±d_m/2 in x, y, ±d_θ/2 in yaw): time, error against the ground truth, GIL.
     A variant's second item is the map voxel: None = S2M's choice (gicp_voxel / 2, at least the
@@ -119,31 +133,49 @@ def gicp_comparison(seq, prior, cfg: S2MConfig, map_cfg: MapConfig, n: int = 25,
     for backend, target in variants:
         target_voxel = cfg.gicp_voxel if target == "equal" else max(float(prior.voxel_size), cfg.gicp_voxel / 2.0)
         t0 = time.perf_counter()
-        ref = GICPRefiner(prior.points, voxel=cfg.gicp_voxel, max_corr=cfg.gicp_max_corr, backend=backend,
-                          target_voxel=target_voxel)
+        ref = GICPRefiner(
+            prior.points, voxel=cfg.gicp_voxel, max_corr=cfg.gicp_max_corr, backend=backend, target_voxel=target_voxel
+        )
         build_s = time.perf_counter() - t0
         rows = []
         for k in idx:
             x, y, z, yaw, pitch, roll = pose_to_xyz_ypr(seq.pose(k))
             r = np.random.default_rng(rng.integers(1 << 31))
-            init = pose_matrix(x + r.uniform(-0.5, 0.5) * cfg.match_resolution,
-                               y + r.uniform(-0.5, 0.5) * cfg.match_resolution, z,
-                               yaw + r.uniform(-0.5, 0.5) * cfg.angle_step, pitch, roll)
+            init = pose_matrix(
+                x + r.uniform(-0.5, 0.5) * cfg.match_resolution,
+                y + r.uniform(-0.5, 0.5) * cfg.match_resolution,
+                z,
+                yaw + r.uniform(-0.5, 0.5) * cfg.angle_step,
+                pitch,
+                roll,
+            )
             res = ref.refine(range_filter(seq.scan(k), map_cfg), init)
             rows.append((res.ms,) + pose_error(res.pose, seq.pose(k)))
         rows = np.asarray(rows)
         scan = range_filter(seq.scan(int(idx[len(idx) // 2])), map_cfg)
         init = seq.pose(int(idx[len(idx) // 2]))
         hold = gil_hold_ms(lambda: [ref.refine(scan, init) for _ in range(3)])
-        out[f"{backend}/target{target_voxel:g}"] = {"map_build_s": build_s, "ms_median": float(np.median(rows[:, 0])),
-                        "err_m_median": float(np.median(rows[:, 1])), "err_m_max": float(rows[:, 1].max()),
-                        "err_deg_median": float(np.median(rows[:, 2])), "err_deg_max": float(rows[:, 2].max()),
-                        "gil_hold_ms": hold, "target_points": ref.n_target}
+        out[f"{backend}/target{target_voxel:g}"] = {
+            "map_build_s": build_s,
+            "ms_median": float(np.median(rows[:, 0])),
+            "err_m_median": float(np.median(rows[:, 1])),
+            "err_m_max": float(rows[:, 1].max()),
+            "err_deg_median": float(np.median(rows[:, 2])),
+            "err_deg_max": float(rows[:, 2].max()),
+            "gil_hold_ms": hold,
+            "target_points": ref.n_target,
+        }
     return out
 
 
-def cell_value_study(seq, prior, cfg: S2MConfig, values=("binary", "sat4", "sat8", "sat16", "sat32", "log", "count"),
-                     n: int = 50, seed: int = 0) -> dict:
+def cell_value_study(
+    seq,
+    prior,
+    cfg: S2MConfig,
+    values=("binary", "sat4", "sat8", "sat16", "sat32", "log", "count"),
+    n: int = 50,
+    seed: int = 0,
+) -> dict:
     """Global 2D matching with each BEV cell value: success (RMSE ≤ 1 m), median time."""
     matcher = None
     rng = np.random.default_rng(seed)
@@ -156,20 +188,31 @@ def cell_value_study(seq, prior, cfg: S2MConfig, values=("binary", "sat4", "sat8
     out = {}
     for value in values:
         pyr = BEVPyramid.build(prior.points_bev, cfg.match_resolution, cell_value=value)
-        m3rsm.match_global(pyr, scans[0][1], cfg.angle_step)   # prepare the bound grids off the clock
+        m3rsm.match_global(pyr, scans[0][1], cfg.angle_step)  # prepare the bound grids off the clock
         rm, ms = [], []
         for k, B in scans:
             r = m3rsm.match_global(pyr, B, cfg.angle_step)
             rm.append(rmse_2d(B, (r.x, r.y, r.yaw), _xy_yaw(seq.pose(k))))
             ms.append(r.ms)
-        out[value] = {"success_rate": float(np.mean(np.asarray(rm) <= SUCCESS_RMSE)),
-                      "rmse_median_m": float(np.median(rm)), "ms_median": float(np.median(ms))}
+        out[value] = {
+            "success_rate": float(np.mean(np.asarray(rm) <= SUCCESS_RMSE)),
+            "rmse_median_m": float(np.median(rm)),
+            "ms_median": float(np.median(ms)),
+        }
     return out
 
 
 # ------------------------------------------------------------------------------------------ run
-def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | None = None, compare_gicp: bool = True,
-        cell_study: bool = False, odometry_scans: int = 100, cache_root: Path | None = None) -> dict:
+def run(
+    spec: SourceSpec,
+    config: Config,
+    matches: int = 350,
+    out_dir: Path | None = None,
+    compare_gicp: bool = True,
+    cell_study: bool = False,
+    odometry_scans: int = 100,
+    cache_root: Path | None = None,
+) -> dict:
     """Match ``matches`` random scans of the sequence (``config.seed`` draws them and the local
     search's starts) with ``config.s2m`` against its prior map (``config.map``); ``out_dir``: write
     the result, the per-scan rows and the RMSE histogram there."""
@@ -198,11 +241,18 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
         B = prep.road_removed[:, :2]
         g = matcher.match_global(scan, prepared=prep)
         mr = g.match
-        row = {"scan": k, "prepare_ms": prep.ms, "global_ms": mr.ms, "nodes": mr.nodes_expanded,
-               "points": mr.n_points, "rmse": rmse_2d(B, (mr.x, mr.y, mr.yaw), true2d),
-               "rmse_cells": rmse_2d(m3rsm.scan_cells(B, cfg.match_resolution), (mr.x, mr.y, mr.yaw), true2d),
-               "gicp_ms": g.timings.get("gicp"), "global_accepted": g.accepted,
-               "rmse_gicp": rmse_2d(B, _xy_yaw(g.pose), true2d) if g.accepted else math.inf}
+        row = {
+            "scan": k,
+            "prepare_ms": prep.ms,
+            "global_ms": mr.ms,
+            "nodes": mr.nodes_expanded,
+            "points": mr.n_points,
+            "rmse": rmse_2d(B, (mr.x, mr.y, mr.yaw), true2d),
+            "rmse_cells": rmse_2d(m3rsm.scan_cells(B, cfg.match_resolution), (mr.x, mr.y, mr.yaw), true2d),
+            "gicp_ms": g.timings.get("gicp"),
+            "global_accepted": g.accepted,
+            "rmse_gicp": rmse_2d(B, _xy_yaw(g.pose), true2d) if g.accepted else math.inf,
+        }
         row["gicp_err_m"], row["gicp_err_deg"] = pose_error(g.pose, truth)
         # local: ±25 m, full circle, from a start up to ±10 m and any yaw away from the truth
         r = np.random.default_rng(rng.integers(1 << 31))
@@ -220,11 +270,17 @@ def run(spec: SourceSpec, config: Config, matches: int = 350, out_dir: Path | No
     rm = np.array([r["rmse"] for r in rows])
     rm_gicp = np.array([r["rmse_gicp"] for r in rows])
     result = {
-        "source": seq.name, "scans": n, "seed": seed,
+        "source": seq.name,
+        "scans": n,
+        "seed": seed,
         "world": world_of(seq),
-        "map_points": int(len(prior.points)), "map_points_bev": int(len(prior.points_bev)),
-        "pyramid_shape": list(pyramid.shape), "pyramid_levels": pyramid.n_levels, "cell_value": pyramid.cell_value,
-        "match_resolution_m": cfg.match_resolution, "angle_step_deg": math.degrees(cfg.angle_step),
+        "map_points": int(len(prior.points)),
+        "map_points_bev": int(len(prior.points_bev)),
+        "pyramid_shape": list(pyramid.shape),
+        "pyramid_levels": pyramid.n_levels,
+        "cell_value": pyramid.cell_value,
+        "match_resolution_m": cfg.match_resolution,
+        "angle_step_deg": math.degrees(cfg.angle_step),
         # the paper's experiment: the 2D M3RSM pose
         "success_rate": float(np.mean(rm <= SUCCESS_RMSE)),
         "rmse_median_m": float(np.median(rm)),
@@ -286,12 +342,16 @@ def _histogram(rm: np.ndarray, rm_gicp: np.ndarray, result: dict, path: Path) ->
     axes[0].set_xlabel("RMSE (m)")
     axes[0].set_ylabel("scans")
     bins = np.linspace(0, 2.5, 26)
-    axes[1].hist(np.clip(finite, 0, 2.5), bins=bins, color="tab:blue", alpha=0.7, label="2D match (d_m = 1 m, d_θ = 2.5°)")
-    axes[1].hist(np.clip(rm_gicp[np.isfinite(rm_gicp)], 0, 2.5), bins=bins, color="tab:orange", alpha=0.7,
-                 label="after GICP")
+    axes[1].hist(
+        np.clip(finite, 0, 2.5), bins=bins, color="tab:blue", alpha=0.7, label="2D match (d_m = 1 m, d_θ = 2.5°)"
+    )
+    axes[1].hist(
+        np.clip(rm_gicp[np.isfinite(rm_gicp)], 0, 2.5), bins=bins, color="tab:orange", alpha=0.7, label="after GICP"
+    )
     axes[1].axvline(SUCCESS_RMSE, color="k", ls="--", lw=1)
-    axes[1].set_title(f"zoom [0, 2.5] m — success {100 * result['success_rate']:.0f}% "
-                      f"(GICP {100 * result['success_rate_gicp']:.0f}%)")
+    axes[1].set_title(
+        f"zoom [0, 2.5] m — success {100 * result['success_rate']:.0f}% (GICP {100 * result['success_rate_gicp']:.0f}%)"
+    )
     axes[1].set_xlabel("RMSE (m)")
     axes[1].legend()
     fig.tight_layout()

@@ -25,12 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-
-
 from .common import load_avg, machine, record_run
 
 TARGET_MS = 50.0
-
 
 
 def _wait_quiet(client, quiet_s: float = 0.3, limit_s: float = 20.0) -> None:
@@ -51,8 +48,8 @@ def _time_moves(viewer, steps: np.ndarray) -> tuple[list, list, list]:
     move_ms, scan_ms, plot_ms = [], [], []
     for step in steps:
         t0 = time.perf_counter()
-        tl.slider.value = int(step)          # the callbacks a drag in the browser runs
-        viewer.update_display()              # the step's particles, estimate, S2M match, status
+        tl.slider.value = int(step)  # the callbacks a drag in the browser runs
+        viewer.update_display()  # the step's particles, estimate, S2M match, status
         t1 = time.perf_counter()
         viewer.readouts.update_plots(force=True)
         plot_ms.append((time.perf_counter() - t1) * 1000.0)
@@ -63,12 +60,21 @@ def _time_moves(viewer, steps: np.ndarray) -> tuple[list, list, list]:
             viewer.update_display()
             time.sleep(0.002)
         scan_ms.append((time.perf_counter() - t0) * 1000.0)
-        time.sleep(0.02)                     # a drag reports ~50 positions a second
+        time.sleep(0.02)  # a drag reports ~50 positions a second
     return move_ms, scan_ms, plot_ms
 
 
-def scrub(run_dir: Path | None = None, spec=None, seq=None, cfg=None, cache_root: Path | None = None,
-          moves: int = 200, seed: int = 0, out: Path | None = None, progress=None) -> dict:
+def scrub(
+    run_dir: Path | None = None,
+    spec=None,
+    seq=None,
+    cfg=None,
+    cache_root: Path | None = None,
+    moves: int = 200,
+    seed: int = 0,
+    out: Path | None = None,
+    progress=None,
+) -> dict:
     """Time ``moves`` slider moves over the recorded run ``run_dir`` (else one recorded from ``seq``
     with ``cfg``, see the module docstring)."""
     import viser
@@ -81,8 +87,11 @@ def scrub(run_dir: Path | None = None, spec=None, seq=None, cfg=None, cache_root
         if run_dir is None:
             if seq is None:
                 raise ValueError("scrub() needs a recorded run or a sequence to record")
-            target = out if out is not None else Path(stack.enter_context(
-                tempfile.TemporaryDirectory(prefix="lidarloc-scrub-")))
+            target = (
+                out
+                if out is not None
+                else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="lidarloc-scrub-")))
+            )
             t0 = time.perf_counter()
             run_dir = record_run(spec, seq, cfg, target, cache_root, progress)
             record_s = time.perf_counter() - t0
@@ -100,7 +109,7 @@ def scrub(run_dir: Path | None = None, spec=None, seq=None, cfg=None, cache_root
                 show_runs(viewer, run, context)
                 viewer.update_display(force_plots=True)
                 client = _DrainingClient(server.get_port())
-                _wait_quiet(client)          # the map goes out to the new client first
+                _wait_quiet(client)  # the map goes out to the new client first
                 rng = np.random.default_rng(seed)
                 steps = rng.integers(0, run.n, moves)
                 move_ms, scan_ms, plot_ms = _time_moves(viewer, steps)

@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import LidarlocError
-
 from .common import load_avg, machine
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
@@ -43,17 +42,17 @@ POLL_S = 0.25
 CONFIRM_TIMEOUT_S = 300.0
 
 
-def _first_steps(run_dir: Path | None, t0: float, timeout_s: float, proc) -> dict:
+def first_steps(run_dir: Path | None, t0: float, timeout_s: float, proc) -> dict:
     """Watch a demo's recording until a step is localized or S2M-confirmed (or ``timeout_s`` from
     ``t0``, or the demo ends): when that was, and whether any step until then fired falsely."""
-    from ...core.runs import recording
     from ...core.rules.truth import truth_alarm
+    from ...core.runs import recording
 
     confirmed_s, false_fire, seen = None, False, 0
     while run_dir is not None and time.perf_counter() - t0 < timeout_s and proc.poll() is None:
         try:
             rec = recording.open(run_dir)
-        except LidarlocError:          # not written yet
+        except LidarlocError:  # not written yet
             time.sleep(POLL_S)
             continue
         now = time.perf_counter() - t0
@@ -71,12 +70,15 @@ def _first_steps(run_dir: Path | None, t0: float, timeout_s: float, proc) -> dic
                 confirmed_s = now
                 break
         time.sleep(POLL_S)
-    return {"s2m_confirmed_s": None if confirmed_s is None else round(confirmed_s, 2),
-            "false_fire": bool(false_fire), "steps_watched": seen}
+    return {
+        "s2m_confirmed_s": None if confirmed_s is None else round(confirmed_s, 2),
+        "false_fire": bool(false_fire),
+        "steps_watched": seen,
+    }
 
 
 def _one_start(args: list[str], cache: str, timeout_s: float, watch: bool = False) -> dict:
-    """One start of the demo; with ``watch`` it runs on until S2M confirmed (``_first_steps``)."""
+    """One start of the demo; with ``watch`` it runs on until S2M confirmed (``first_steps``)."""
     cmd = [sys.executable, "-m", "lidarloc.app.cli", *args, "--autoplay", "--port", "0", "--cache", cache]
     env = dict(os.environ, COLUMNS="200")
     t0 = time.perf_counter()
@@ -106,7 +108,7 @@ def _one_start(args: list[str], cache: str, timeout_s: float, watch: bool = Fals
         if watch and ready_s is not None:
             # the pipe is drained meanwhile: a demo that prints must not block on it
             threading.Thread(target=lambda: [None for _ in proc.stdout], daemon=True).start()
-            watched = _first_steps(run_dir, t0, CONFIRM_TIMEOUT_S, proc)
+            watched = first_steps(run_dir, t0, CONFIRM_TIMEOUT_S, proc)
     finally:
         proc.send_signal(signal.SIGINT)
         try:

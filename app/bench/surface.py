@@ -26,12 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from ...core.config import Config
+from ...core.filter.scanprep import prepare_scan
+from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
 from ...core.geometry import pose_to_xyz_ypr
 from ...core.maps.world import open_world
-from ...core.filter.scanprep import prepare_scan
 from ...core.sequences.factory import SourceSpec
-from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel
-
 from .common import load_avg, machine, open_source
 
 TARGET_MS = 150.0
@@ -45,9 +44,10 @@ def run(spec: SourceSpec, cfg: Config, scans: int = 10, repeats: int = 3, cache_
     seq = open_source(spec, cfg, "surface", need_poses=True)
     load_before = load_avg()
     world = open_world(seq.map_source, cfg, cache_root, pyramid=False)
-    prior, lookup = world.prior_map, world.lookup
-    model = LikelihoodModel(lookup, lookup.capped(cfg.pf.d_max), cfg.pf.sigma, cfg.pf.temperature,
-                            cfg.pf.unexplained_share)
+    _prior, lookup = world.prior_map, world.lookup
+    model = LikelihoodModel(
+        lookup, lookup.capped(cfg.pf.d_max), cfg.pf.sigma, cfg.pf.temperature, cfg.pf.unexplained_share
+    )
     picks = np.unique(np.linspace(0, len(seq) - 1, max(1, min(scans, len(seq)))).round().astype(int))
     rng = np.random.default_rng(cfg.seed)
     one, over_yaw, errors, points = [], [], [], []
@@ -58,7 +58,7 @@ def run(spec: SourceSpec, cfg: Config, scans: int = 10, repeats: int = 3, cache_
         pts = prepare_scan(seq.scan(int(k)), cfg.pf, rng_k)
         truth = pose_to_xyz_ypr(seq.pose(int(k)))
         points.append(len(pts))
-        if not warmed:                  # numba compiles (or loads its cache) at the first call
+        if not warmed:  # numba compiles (or loads its cache) at the first call
             model.surface(pts, truth, HALF_WIDTH, CELL)
             warmed = True
         for _ in range(repeats):

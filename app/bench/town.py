@@ -16,7 +16,6 @@ import numpy as np
 from ...core.config import Config
 from ...core.sequences.base import Limited
 from ...core.sequences.factory import SourceSpec, open_sequence
-
 from .common import load_avg, require_town
 
 
@@ -30,7 +29,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 30) -> dict:
     open3d()  # the import itself is not town building
     load_before = load_avg()
     t0, c0 = time.perf_counter(), time.process_time()
-    town = open_sequence(replace(spec, scans=None), cfg)     # the whole town's drive
+    town = open_sequence(replace(spec, scans=None), cfg)  # the whole town's drive
     build_s, build_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     seq = town if spec.scans is None else Limited(town, spec.scans)
 

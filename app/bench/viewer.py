@@ -28,15 +28,15 @@ import numpy as np
 from ...core.geometry import pose_matrix
 from ...core.maps.mapping import PriorMap
 from ...core.snapshot import Event, S2MView, Snapshot
-
 from .common import machine
 
 
 def synthetic_map(rng: np.random.Generator, n: int = 1_000_000, size: float = 400.0) -> PriorMap:
     """A road grid with building walls: flat ground plus vertical façades along the streets."""
     n_ground = n // 3
-    ground = np.stack([rng.uniform(0, size, n_ground), rng.uniform(0, size, n_ground),
-                       rng.normal(0, 0.05, n_ground)], axis=1)
+    ground = np.stack(
+        [rng.uniform(0, size, n_ground), rng.uniform(0, size, n_ground), rng.normal(0, 0.05, n_ground)], axis=1
+    )
     n_wall = n - n_ground
     along = rng.uniform(0, size, n_wall)
     street = rng.integers(0, 8, n_wall) * (size / 8) + rng.choice([-8.0, 8.0], n_wall) + size / 16
@@ -48,8 +48,9 @@ def synthetic_map(rng: np.random.Generator, n: int = 1_000_000, size: float = 40
     return PriorMap(points=pts, points_bev=walls.astype(np.float32), voxel_size=0.2, source="bench")
 
 
-def synthetic_snapshot(rng: np.random.Generator, k: int, n_particles: int, n_scan: int, n_scans: int,
-                       last_s2m: S2MView | None) -> Snapshot:
+def synthetic_snapshot(
+    rng: np.random.Generator, k: int, n_particles: int, n_scan: int, n_scans: int, last_s2m: S2MView | None
+) -> Snapshot:
     t = 0.1 * k
     x, y, yaw = 50 + 8 * t, 50 + 20 * math.sin(t / 10), math.atan2(2 * math.cos(t / 10), 8)
     T = pose_matrix(x, y, 1.73, yaw, 0.0, 0.0)
@@ -64,14 +65,41 @@ def synthetic_snapshot(rng: np.random.Generator, k: int, n_particles: int, n_sca
     scan = np.stack([x + r * np.cos(a), y + r * np.sin(a), rng.uniform(0, 10, n_scan)], axis=1).astype(np.float32)
     s2m = last_s2m
     if k % 3 == 2:
-        s2m = S2MView(started_at=k - 2, landed_at=k, accepted=bool(k % 2), score=150.0, start_score=60.0, pose=T,
-                      scan_world=scan[::4].copy(), region=(x - 25, y - 25, x + 25, y + 25), ms=40.0)
+        s2m = S2MView(
+            started_at=k - 2,
+            landed_at=k,
+            accepted=bool(k % 2),
+            score=150.0,
+            start_score=60.0,
+            pose=T,
+            scan_world=scan[::4].copy(),
+            region=(x - 25, y - 25, x + 25, y + 25),
+            ms=40.0,
+        )
     cov = np.diag([9.0, 9.0, 0.01])
-    return Snapshot(scan_index=k, n_scans=n_scans, timestamp=t, particles=P, weights=w, best_index=int(np.argmax(w)),
-                    mean_pose=T, cov_xyz=cov, std_xyz=np.sqrt(np.diag(cov)), ellipse_xy=(6.0, 6.0, 0.0),
-                    n_eff=float(1 / (w ** 2).sum()), localized=k > 20, localized_since=20 if k > 20 else None,
-                    scan_world=scan, gt_pose=T, error_m=0.3, pf_ms=45.0, s2m=s2m, s2m_running=k % 3 != 2,
-                    s2m_acceptance=0.5, events=(Event(k, "s2m_accepted" if k % 2 else "s2m_rejected"),))
+    return Snapshot(
+        scan_index=k,
+        n_scans=n_scans,
+        timestamp=t,
+        particles=P,
+        weights=w,
+        best_index=int(np.argmax(w)),
+        mean_pose=T,
+        cov_xyz=cov,
+        std_xyz=np.sqrt(np.diag(cov)),
+        ellipse_xy=(6.0, 6.0, 0.0),
+        n_eff=float(1 / (w**2).sum()),
+        localized=k > 20,
+        localized_since=20 if k > 20 else None,
+        scan_world=scan,
+        gt_pose=T,
+        error_m=0.3,
+        pf_ms=45.0,
+        s2m=s2m,
+        s2m_running=k % 3 != 2,
+        s2m_acceptance=0.5,
+        events=(Event(k, "s2m_accepted" if k % 2 else "s2m_rejected"),),
+    )
 
 
 class _DrainingClient:
@@ -83,8 +111,9 @@ class _DrainingClient:
         import viser
         from websockets.sync.client import connect
 
-        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
-                          max_size=None, open_timeout=10)
+        self.ws = connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=10
+        )
         self.bytes = 0
         self._thread = threading.Thread(target=self._drain, daemon=True)
         self._thread.start()
@@ -112,8 +141,8 @@ def _time_updates(viewer, rng, n_updates, n_particles, n_scan) -> tuple[list, li
         t1 = time.perf_counter()
         viewer.readouts.update_plots(force=True)
         plot_ms.append((time.perf_counter() - t1) * 1000.0)
-        time.sleep(0.01)      # 100 Hz at most, like a fast replay; lets the sends go out in between
-    return update_ms[5:], plot_ms      # the first few updates create the nodes
+        time.sleep(0.01)  # 100 Hz at most, like a fast replay; lets the sends go out in between
+    return update_ms[5:], plot_ms  # the first few updates create the nodes
 
 
 def _measure(rng, n_updates: int, n_particles: int, n_scan: int, map_points: int) -> tuple:
@@ -140,8 +169,9 @@ def _measure(rng, n_updates: int, n_particles: int, n_scan: int, map_points: int
     return with_client, bare, plot_ms, received_mb, map_ms
 
 
-def run(n_updates: int = 150, n_particles: int = 1000, n_scan: int = 25_000, map_points: int = 1_000_000,
-        seed: int = 0) -> dict:
+def run(
+    n_updates: int = 150, n_particles: int = 1000, n_scan: int = 25_000, map_points: int = 1_000_000, seed: int = 0
+) -> dict:
     rng = np.random.default_rng(seed)
     # viser prints its banner and "Server stopped" on stdout, which carries only the result
     with contextlib.redirect_stdout(sys.stderr):

@@ -4,16 +4,30 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from ...core.errors import LidarlocError
 from ..bench.common import DATA_ENV, DEFAULT_DATA, REAL_DRIVE, REAL_DRIVE_DATE
 from ..console import emit_json, err, progress_bar, show_result
-from ..options import (OWN_DATA, SOURCE_CHOICE, SOURCE_OPTIONS, CacheOpt, ConfigOpt, JsonOpt, WorldOpt,
-                       PresetOpt, SetOpt, config_from, given, open_source, with_source)
+from ..options import (
+    OWN_DATA,
+    SOURCE_CHOICE,
+    SOURCE_OPTIONS,
+    CacheOpt,
+    ConfigOpt,
+    JsonOpt,
+    PresetOpt,
+    SetOpt,
+    WorldOpt,
+    config_from,
+    given,
+    open_source,
+    with_source,
+)
 from .groups import bench_app
+
 
 def show_bench_result(name: str, result: dict, as_json: bool) -> None:
     if as_json:
@@ -31,7 +45,7 @@ def _real_drive_unless_given(ctx: typer.Context, spec, bench: str):
     return replace(require_real_drive(bench, spec.scans), map=spec.map)
 
 
-SeedOpt = Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")]
+SeedOpt = Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")]
 _MAP_PANEL = "Source (default: the built-in town and the real KITTI drive)"
 _PF_PANEL = f"Source (default: KITTI raw {REAL_DRIVE_DATE} drive {REAL_DRIVE} in ${DATA_ENV} or {DEFAULT_DATA})"
 _VIEWER_PANEL = "Source (none: the inputs are synthetic)"
@@ -41,7 +55,10 @@ _VIEWER_PANEL = "Source (none: the inputs are synthetic)"
 @with_source(exclude=OWN_DATA)
 def bench_town(
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Town generation time and simulated-scan time.
 
@@ -55,16 +72,21 @@ def bench_town(
 @bench_app.command("map")
 @with_source(_MAP_PANEL)
 def bench_map(
-    ctx: typer.Context, as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    ctx: typer.Context,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Prior-map build and cache-load times, default town and the real drive (fresh cache).
 
     With a source option, that source's map only."""
     from ..bench.common import config_args
-    from ..bench.map import default_sources, run as run_bench, source_name
+    from ..bench.map import default_sources, source_name
+    from ..bench.map import run as run_bench
 
-    config_from(config, set_, preset=preset)      # a bad config fails here, not in the first child process
+    config_from(config, set_, preset=preset)  # a bad config fails here, not in the first child process
     sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE + ("map",)) else default_sources(spec)
     show_bench_result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
 
@@ -86,11 +108,16 @@ def bench_mapfile(
 @with_source(_PF_PANEL)
 def bench_bag(
     ctx: typer.Context,
-    total: Annotated[int, typer.Option("--total", min=1, help="Scans in the bag (the source's scans, repeated).")] = 300,
+    total: Annotated[
+        int, typer.Option("--total", min=1, help="Scans in the bag (the source's scans, repeated).")
+    ] = 300,
     storage: Annotated[str, typer.Option("--storage", help="Bag kind: mcap, sqlite3 (ROS 2) or ros1.")] = "mcap",
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times the whole bag is read (median).")] = 3,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Reading scans from a bag: a PointCloud2 bag of the source's scans, written in a temporary
     directory, opened (index) and read scan by scan (decode); target ≥ 200 scans/s.
@@ -107,12 +134,21 @@ def bench_bag(
 @with_source(_PF_PANEL)
 def bench_pf(
     ctx: typer.Context,
-    particles: Annotated[Optional[int], typer.Option("--particles", min=1, help="Particles (default: the config's).")] = None,
+    particles: Annotated[
+        int | None, typer.Option("--particles", min=1, help="Particles (default: the config's).")
+    ] = None,
     seed: SeedOpt = None,
-    big_map: Annotated[bool, typer.Option("--big-map/--no-big-map", help="Time the lookup table of a KITTI-05-sized synthetic map.")] = True,
-    town_lookup: Annotated[bool, typer.Option("--town/--no-town", help="Time the lookup table of the default town's map.")] = True,
+    big_map: Annotated[
+        bool, typer.Option("--big-map/--no-big-map", help="Time the lookup table of a KITTI-05-sized synthetic map.")
+    ] = True,
+    town_lookup: Annotated[
+        bool, typer.Option("--town/--no-town", help="Time the lookup table of the default town's map.")
+    ] = True,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Particle-filter step time and lookup-table cost, against their targets.
 
@@ -131,10 +167,15 @@ def bench_pf(
 def bench_surface(
     ctx: typer.Context,
     samples: Annotated[int, typer.Option("--samples", min=1, help="Scans to time, spread over the sequence.")] = 10,
-    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Surfaces per scan, each around another offset of the truth.")] = 3,
+    repeats: Annotated[
+        int, typer.Option("--repeats", min=1, help="Surfaces per scan, each around another offset of the truth.")
+    ] = 3,
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """The viewer's likelihood surface: time of an 81 × 81 grid (target ≤ 150 ms) and its maximum's error.
 
@@ -158,10 +199,16 @@ def _recorded_unless(run_dir: Path | None, spec, cfg):
 @bench_app.command("record")
 @with_source()
 def bench_record(
-    particles: Annotated[Optional[int], typer.Option("--particles", min=1, help="Particles (default: the config's).")] = None,
+    particles: Annotated[
+        int | None, typer.Option("--particles", min=1, help="Particles (default: the config's).")
+    ] = None,
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """What recording a run costs (≤ 5 % of the PF step, ≤ 60 MB per 1000 scans at 1000
     particles) and how fast it opens again (≤ 3 s for 1000 scans).
@@ -182,12 +229,21 @@ def bench_record(
 @bench_app.command("scrub")
 @with_source()
 def bench_scrub(
-    run_dir: Annotated[Optional[Path], typer.Option("--run", help="A recorded run folder to scrub (default: record the source's scans first).")] = None,
+    run_dir: Annotated[
+        Path | None,
+        typer.Option("--run", help="A recorded run folder to scrub (default: record the source's scans first)."),
+    ] = None,
     moves: Annotated[int, typer.Option("--moves", min=1, help="Slider moves timed.")] = 200,
-    out: Annotated[Optional[Path], typer.Option("--out", help="Keep the run recorded first here (default: a temporary folder).")] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Keep the run recorded first here (default: a temporary folder).")
+    ] = None,
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """The viewer's timeline: the server-side redraw per slider move on a recorded run (target
     ≤ 50 ms median), and until the step's scan is drawn too.
@@ -199,18 +255,32 @@ def bench_scrub(
     spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=None if seq is None else len(seq))
-        result = scrub(run_dir, spec=spec, seq=seq, cfg=cfg, cache_root=cache, moves=moves, out=out,
-                       progress=lambda i, n: bar.update(task, completed=i))
+        result = scrub(
+            run_dir,
+            spec=spec,
+            seq=seq,
+            cfg=cfg,
+            cache_root=cache,
+            moves=moves,
+            out=out,
+            progress=lambda i, n: bar.update(task, completed=i),
+        )
     show_bench_result("scrub", result, as_json)
 
 
 @bench_app.command("branch")
 @with_source()
 def bench_branch(
-    run_dir: Annotated[Optional[Path], typer.Option("--run", help="A recorded run to branch (default: record the source's scans first).")] = None,
+    run_dir: Annotated[
+        Path | None, typer.Option("--run", help="A recorded run to branch (default: record the source's scans first).")
+    ] = None,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times each of the last 10 steps is branched.")] = 3,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """How fast a branch of a recorded run starts (target ≤ 1 s, the sequence open) and what the
     resume data costs per 1000 steps (checkpoints and per-step fields ≤ 10 MB at the run's own
@@ -223,8 +293,15 @@ def bench_branch(
     spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=None if seq is None else len(seq))
-        result = run_bench(spec, seq, cfg, cache_root=cache, run_dir=run_dir, repeats=repeats,
-                           progress=lambda i, n: bar.update(task, completed=i))
+        result = run_bench(
+            spec,
+            seq,
+            cfg,
+            cache_root=cache,
+            run_dir=run_dir,
+            repeats=repeats,
+            progress=lambda i, n: bar.update(task, completed=i),
+        )
     show_bench_result("branch", result, as_json)
 
 
@@ -233,9 +310,19 @@ def bench_branch(
 def bench_filter(
     ctx: typer.Context,
     seeds: Annotated[int, typer.Option("--seeds", min=1, help="Runs per likelihood option (seeds 0…N−1).")] = 3,
-    option: Annotated[Optional[list[str]], typer.Option("--option", help="A likelihood option to study (repeatable), each over the paper's likelihood: paper, default, T=<number>, per-point mean, unexplained 0.1 (default: paper, default, T=10, T=100, per-point mean, unexplained 0.1).")] = None,
+    option: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--option",
+            help="A likelihood option to study (repeatable), each over the paper's likelihood: paper, default, T=<number>, per-point mean, unexplained 0.1 (default: paper, default, T=10, T=100, per-point mean, unexplained 0.1).",
+        ),
+    ] = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Does the filter's uncertainty mean something while it tracks? Each likelihood option started
     around the truth, no S2M: N_eff share, error and 2σ consistency (target ≥ 85 %).
@@ -247,22 +334,38 @@ def bench_filter(
     spec = _real_drive_unless_given(ctx, spec, "filter")
     with progress_bar() as bar:
         task = bar.add_task("filter study", total=None)
-        result = run_bench(spec, lambda s: open_source(s, cfg, err), cfg, seeds=seeds, options=option,
-                           cache_root=cache, progress=lambda i, n: bar.update(task, completed=i, total=n))
+        result = run_bench(
+            spec,
+            lambda s: open_source(s, cfg, err),
+            cfg,
+            seeds=seeds,
+            options=option,
+            cache_root=cache,
+            progress=lambda i, n: bar.update(task, completed=i, total=n),
+        )
     show_bench_result("filter", result, as_json)
 
 
 @bench_app.command("s2m")
 @with_source()
 def bench_s2m(
-    matches: Annotated[int, typer.Option("--matches", min=1, help="Random scans to match (at most all of the source's).")] = 350,
+    matches: Annotated[
+        int, typer.Option("--matches", min=1, help="Random scans to match (at most all of the source's).")
+    ] = 350,
     seed: SeedOpt = None,
-    out: Annotated[Optional[Path], typer.Option("--out", help="Write the result, per-scan rows and RMSE histogram PNG here.")] = None,
-    gicp_comparison: Annotated[bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")] = True,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Write the result, per-scan rows and RMSE histogram PNG here.")
+    ] = None,
+    gicp_comparison: Annotated[
+        bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")
+    ] = True,
     cell_study: Annotated[bool, typer.Option("--cell-study", help="Also match with every BEV cell value.")] = False,
     world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment).
 
@@ -270,16 +373,24 @@ def bench_s2m(
     from ..bench.s2m import run as run_bench
 
     cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
-    show_bench_result("s2m", run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison,
-                             cell_study=cell_study), as_json)
+    show_bench_result(
+        "s2m",
+        run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison, cell_study=cell_study),
+        as_json,
+    )
 
 
 @bench_app.command("rpe")
 @with_source()
 def bench_rpe(
-    convergence: Annotated[Optional[list[float]], typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")] = None,
+    convergence: Annotated[
+        list[float] | None, typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")
+    ] = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """KISS-ICP odometry: registration time and error against the truth per convergence setting.
 
@@ -287,14 +398,20 @@ def bench_rpe(
     from ..bench.rpe import run as run_bench
 
     cfg = config_from(config, set_, preset=preset)
-    show_bench_result("rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json)
+    show_bench_result(
+        "rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json
+    )
 
 
 @bench_app.command("viewer")
 @with_source(_VIEWER_PANEL)
 def bench_viewer(
-    ctx: typer.Context, as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    ctx: typer.Context,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Server-side cost of one display update.
 
@@ -304,8 +421,10 @@ def bench_viewer(
     cfg = config_from(config, set_, preset=preset)
     chosen = given(ctx, SOURCE_OPTIONS)
     if chosen:
-        raise LidarlocError(f"bench viewer times synthetic display updates and reads no sequence; "
-                            f"--{chosen[0].replace('_', '-')} does not apply")
+        raise LidarlocError(
+            f"bench viewer times synthetic display updates and reads no sequence; "
+            f"--{chosen[0].replace('_', '-')} does not apply"
+        )
     show_bench_result("viewer", run_bench(n_particles=cfg.pf.n_particles), as_json)
 
 
@@ -315,7 +434,10 @@ def bench_startup(
     ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts.
 
@@ -335,9 +457,16 @@ def bench_startup(
 @with_source()
 def bench_stop(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
-    delay: Annotated[Optional[list[float]], typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable).")] = None,
+    delay: Annotated[
+        list[float] | None,
+        typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable)."),
+    ] = None,
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s).
 
@@ -347,11 +476,22 @@ def bench_stop(
 
     config_from(config, set_, preset=preset)
     spec = replace(spec, scans=300 if spec.scans is None else spec.scans)
-    show_bench_result("stop", run_bench(source_args(spec) + config_args(config, set_, preset), repeats=repeats,
-                              cache=None if cache is None else str(cache), **({"delays_s": tuple(delay)} if delay else {})),
-            as_json)
+    show_bench_result(
+        "stop",
+        run_bench(
+            source_args(spec) + config_args(config, set_, preset),
+            repeats=repeats,
+            cache=None if cache is None else str(cache),
+            **({"delays_s": tuple(delay)} if delay else {}),
+        ),
+        as_json,
+    )
 
 
-RecordBenchOpt = Annotated[bool, typer.Option("--record", help="Record every run into its folder (runs/seed_NNN/recording: scrub, branch and compare them later).")]
-
-
+RecordBenchOpt = Annotated[
+    bool,
+    typer.Option(
+        "--record",
+        help="Record every run into its folder (runs/seed_NNN/recording: scrub, branch and compare them later).",
+    ),
+]

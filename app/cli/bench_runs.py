@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from ..console import emit_json, err, progress_bar
-from ..options import (OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, WorldOpt,
-                       PresetOpt, SetOpt, config_from, with_source)
+from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, config_from, with_source
+from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 from .groups import bench_app
 
-from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 
 @bench_app.command("localize")
 @with_source()
@@ -21,26 +20,49 @@ def bench_localize(
     workers: Annotated[int, typer.Option("--workers")] = 2,
     out: Annotated[Path, typer.Option("--out")] = Path("out/bench-localize"),
     no_s2m: Annotated[bool, typer.Option("--no-s2m")] = False,
-    live_odometry: Annotated[bool, typer.Option(
-        "--live-odometry", help="Run KISS-ICP in every run instead of replaying its poses, computed once "
-                                "per sequence (the same numbers; only slower).")] = False,
+    live_odometry: Annotated[
+        bool,
+        typer.Option(
+            "--live-odometry",
+            help="Run KISS-ICP in every run instead of replaying its poses, computed once "
+            "per sequence (the same numbers; only slower).",
+        ),
+    ] = False,
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
-    address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster address.")] = None,
+    address: Annotated[str | None, typer.Option("--address", help="Ray cluster address.")] = None,
     record: RecordBenchOpt = False,
     world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section).
 
     On the built-in town the drive is lived-in unless --world kind says otherwise."""
     from ..bench.localize import run_bench
 
-    overrides = ([] if live_odometry else ["localize.recorded_odometry=true"]) + list(set_ or []) \
+    overrides = (
+        ([] if live_odometry else ["localize.recorded_odometry=true"])
+        + list(set_ or [])
         + (["s2m.enabled=false"] if no_s2m else [])
+    )
     cfg = config_from(config, overrides, preset=preset, world=world)
-    summary = run_bench(spec, cfg, runs=runs, workers=workers, out_dir=out, executor=executor, address=address,
-                        cache_root=cache, console=err, preset=preset, record=record)
+    summary = run_bench(
+        spec,
+        cfg,
+        runs=runs,
+        workers=workers,
+        out_dir=out,
+        executor=executor,
+        address=address,
+        cache_root=cache,
+        console=err,
+        preset=preset,
+        record=record,
+    )
     show_bench_result("localize", summary, as_json)
 
 
@@ -52,16 +74,50 @@ _AXES = "Matrix (comma-separated values; each axis restricts the matrix)"
 def bench_robustness(
     runs: Annotated[int, typer.Option("--runs", help="Seeded runs per cell (seeds 0…N−1).")] = 5,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
-    out: Annotated[Path, typer.Option("--out", help="Directory for the cells' runs, report.md, cells.csv, summary.json and heatmap.png.")] = Path("out/bench-robustness"),
-    changes: Annotated[str, typer.Option("--changes", help="Shares of the town's movable objects changed since mapping, in [0, 1].", rich_help_panel=_AXES)] = "0,0.3,0.6",
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out", help="Directory for the cells' runs, report.md, cells.csv, summary.json and heatmap.png."
+        ),
+    ] = Path("out/bench-robustness"),
+    changes: Annotated[
+        str,
+        typer.Option(
+            "--changes",
+            help="Shares of the town's movable objects changed since mapping, in [0, 1].",
+            rich_help_panel=_AXES,
+        ),
+    ] = "0,0.3,0.6",
     traffic: Annotated[str, typer.Option("--traffic", help="Traffic: off, on.", rich_help_panel=_AXES)] = "off,on",
-    sensors: Annotated[str, typer.Option("--sensors", help="Sensors of the localized drive: hdl64e, vlp16, vlp32c, os1-128.", rich_help_panel=_AXES)] = "hdl64e,vlp16,os1-128",
+    sensors: Annotated[
+        str,
+        typer.Option(
+            "--sensors", help="Sensors of the localized drive: hdl64e, vlp16, vlp32c, os1-128.", rich_help_panel=_AXES
+        ),
+    ] = "hdl64e,vlp16,os1-128",
     skew: Annotated[str, typer.Option("--skew", help="Motion skew: off, on.", rich_help_panel=_AXES)] = "off,on",
-    configs: Annotated[str, typer.Option("--configs", help="Configurations: paper (the paper preset), default, no-S2M (default without S2M).", rich_help_panel=_AXES)] = "paper,default,no-S2M",
-    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive, same configurations (default: where its data is present).", rich_help_panel=_AXES)] = None,
+    configs: Annotated[
+        str,
+        typer.Option(
+            "--configs",
+            help="Configurations: paper (the paper preset), default, no-S2M (default without S2M).",
+            rich_help_panel=_AXES,
+        ),
+    ] = "paper,default,no-S2M",
+    real: Annotated[
+        bool | None,
+        typer.Option(
+            "--real/--no-real",
+            help="Also the real KITTI drive, same configurations (default: where its data is present).",
+            rich_help_panel=_AXES,
+        ),
+    ] = None,
     record: RecordBenchOpt = False,
     as_json: JsonOpt = False,
-    spec=None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Localization when the world is not the map: changes × traffic × sensor × skew × configuration.
 
@@ -69,8 +125,19 @@ def bench_robustness(
     from ..bench.robustness import parse_matrix, run_robustness
 
     matrix = parse_matrix(changes, traffic, sensors, skew, configs)
-    summary = run_robustness(spec, config, set_, matrix, runs=runs, workers=workers, out_dir=out,
-                             real=real, cache_root=cache, console=err, record=record)
+    summary = run_robustness(
+        spec,
+        config,
+        set_,
+        matrix,
+        runs=runs,
+        workers=workers,
+        out_dir=out,
+        real=real,
+        cache_root=cache,
+        console=err,
+        record=record,
+    )
     if as_json:
         emit_json(summary)
     else:
@@ -83,22 +150,51 @@ def bench_robustness(
 def bench_integrity(
     runs: Annotated[int, typer.Option("--runs", help="Seeded runs per case and world (seeds 0…N−1).")] = 1,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
-    out: Annotated[Path, typer.Option("--out", help="Directory for the runs, report.md and summary.json.")] = Path("out/bench-integrity"),
-    cases: Annotated[str, typer.Option("--cases", help="Cases: s2m-at-0, s2m-at-20, s2m-at-50, s2m-at-100 (S2M held back until that scan), wrong-place (a start around a look-alike street), kidnap, moved (the particles moved 60 m unannounced).")] = "s2m-at-0,s2m-at-20,s2m-at-50,s2m-at-100,wrong-place,kidnap,moved",
-    sensors: Annotated[str, typer.Option("--sensors", help="Sensors of the town's drive: hdl64e, vlp16, vlp32c, os1-128.")] = "hdl64e,vlp16,os1-128",
-    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the real KITTI drive (default: where its data is present).")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Directory for the runs, report.md and summary.json.")] = Path(
+        "out/bench-integrity"
+    ),
+    cases: Annotated[
+        str,
+        typer.Option(
+            "--cases",
+            help="Cases: s2m-at-0, s2m-at-20, s2m-at-50, s2m-at-100 (S2M held back until that scan), wrong-place (a start around a look-alike street), kidnap, moved (the particles moved 60 m unannounced).",
+        ),
+    ] = "s2m-at-0,s2m-at-20,s2m-at-50,s2m-at-100,wrong-place,kidnap,moved",
+    sensors: Annotated[
+        str, typer.Option("--sensors", help="Sensors of the town's drive: hdl64e, vlp16, vlp32c, os1-128.")
+    ] = "hdl64e,vlp16,os1-128",
+    real: Annotated[
+        bool | None,
+        typer.Option("--real/--no-real", help="Also the real KITTI drive (default: where its data is present)."),
+    ] = None,
     world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Never green while wrong: S2M late, a wrong-place start, a kidnap, an estimate moved unannounced.
 
     Per case: false fires, scans called localized while more than 5 m off, scans to recover (or to say lost), spurious relocalizations. The town's first 300 scans unless --scans says otherwise."""
     from ..bench.integrity import run_integrity
 
-    summary = run_integrity(spec, config, set_, [c.strip() for c in cases.split(",") if c.strip()],
-                            [s.strip() for s in sensors.split(",") if s.strip()], world, runs=runs, workers=workers,
-                            out_dir=out, real=real, cache_root=cache, console=err, preset=preset)
+    summary = run_integrity(
+        spec,
+        config,
+        set_,
+        [c.strip() for c in cases.split(",") if c.strip()],
+        [s.strip() for s in sensors.split(",") if s.strip()],
+        world,
+        runs=runs,
+        workers=workers,
+        out_dir=out,
+        real=real,
+        cache_root=cache,
+        console=err,
+        preset=preset,
+    )
     if as_json:
         emit_json(summary)
     else:
@@ -109,16 +205,43 @@ def bench_integrity(
 @bench_app.command("peers")
 @with_source()
 def bench_peers(
-    global_scans: Annotated[int, typer.Option("--global-scans", min=1, help="Random scans each global method registers against the whole map, per source.")] = 20,
-    track_scans: Annotated[int, typer.Option("--track-scans", min=3, help="Scans tracked from the start before the kidnap.")] = 250,
-    after_kidnap: Annotated[int, typer.Option("--after-kidnap", min=1, help="Scans played after the kidnap (~50 m ahead along the drive).")] = 150,
-    real: Annotated[Optional[bool], typer.Option("--real/--no-real", help="Also the global part on the real KITTI drive (default: where its data is present).")] = None,
-    paper: Annotated[Optional[bool], typer.Option("--paper/--no-paper", help="Also the paper's figures beside a run of the town laid along KITTI 05 (default: where its poses are present).")] = None,
-    paper_scans: Annotated[int, typer.Option("--paper-scans", min=10, help="Scans of the KITTI 05 town the paper's part plays.")] = 300,
+    global_scans: Annotated[
+        int,
+        typer.Option(
+            "--global-scans", min=1, help="Random scans each global method registers against the whole map, per source."
+        ),
+    ] = 20,
+    track_scans: Annotated[
+        int, typer.Option("--track-scans", min=3, help="Scans tracked from the start before the kidnap.")
+    ] = 250,
+    after_kidnap: Annotated[
+        int, typer.Option("--after-kidnap", min=1, help="Scans played after the kidnap (~50 m ahead along the drive).")
+    ] = 150,
+    real: Annotated[
+        bool | None,
+        typer.Option(
+            "--real/--no-real",
+            help="Also the global part on the real KITTI drive (default: where its data is present).",
+        ),
+    ] = None,
+    paper: Annotated[
+        bool | None,
+        typer.Option(
+            "--paper/--no-paper",
+            help="Also the paper's figures beside a run of the town laid along KITTI 05 (default: where its poses are present).",
+        ),
+    ] = None,
+    paper_scans: Annotated[
+        int, typer.Option("--paper-scans", min=10, help="Scans of the KITTI 05 town the paper's part plays.")
+    ] = 300,
     seed: SeedOpt = None,
     world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """lidarloc beside what a user would run instead, same scans, map and machine: global
     localization against open3d's FPFH + RANSAC and FGR, tracking against scan-to-map GICP
@@ -136,6 +259,17 @@ def bench_peers(
             if what not in tasks:
                 tasks[what] = bar.add_task(what, total=n)
             bar.update(tasks[what], completed=i, total=n)
-        result = run_bench(spec, cfg, global_scans=global_scans, track_scans=track_scans, after_kidnap=after_kidnap,
-                           real=real, paper=paper, paper_scans=paper_scans, cache_root=cache, progress=progress)
+
+        result = run_bench(
+            spec,
+            cfg,
+            global_scans=global_scans,
+            track_scans=track_scans,
+            after_kidnap=after_kidnap,
+            real=real,
+            paper=paper,
+            paper_scans=paper_scans,
+            cache_root=cache,
+            progress=progress,
+        )
     show_bench_result("peers", result, as_json)

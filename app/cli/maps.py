@@ -4,23 +4,33 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from ...core.errors import LidarlocError
 from ..console import emit_json, err, peak_rss_mb, progress_bar
-from ..options import (OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, open_source, with_source)
+from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, open_source, with_source
 from .groups import app, map_app
+
 
 @map_app.command("build")
 @with_source()
 def map_build(
-    out: Annotated[Optional[Path], typer.Option(
-        "--out", help="A .pcd or .ply map file to write (the map, and its road-removed layer beside it as "
-                      "NAME_road_removed.pcd/.ply), or a cache directory to build into (default: the cache).")] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="A .pcd or .ply map file to write (the map, and its road-removed layer beside it as "
+            "NAME_road_removed.pcd/.ply), or a cache directory to build into (default: the cache).",
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Build the prior map of a sequence from its scans and ground-truth poses (and cache it).
 
@@ -31,8 +41,10 @@ def map_build(
 
     to_file = out is not None and out.suffix.lower() in WRITE_SUFFIXES
     if out is not None and not to_file and out.suffix:
-        raise LidarlocError(f"{out}: cannot write a map of this type ({out.suffix}); supported: "
-                            f"{', '.join(WRITE_SUFFIXES)} (or a cache directory)")
+        raise LidarlocError(
+            f"{out}: cannot write a map of this type ({out.suffix}); supported: "
+            f"{', '.join(WRITE_SUFFIXES)} (or a cache directory)"
+        )
     cfg = config_from(config, set_, preset=preset)
     # the map of a source is its whole mapping drive (--scans N plays N scans inside it)
     seq = open_source(spec, cfg).map_source
@@ -41,11 +53,18 @@ def map_build(
     t0 = time.perf_counter()
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=len(seq))
-        prior, directory, cached = load_or_build_map(seq, cfg.map, cache if to_file else out,
-                                                     progress=lambda i, n: bar.update(task, completed=i))
-    summary = {"points": int(len(prior.points)), "points_road_removed": int(len(prior.points_bev)),
-               "seconds": round(time.perf_counter() - t0, 3), "peak_rss_mb": round(peak_rss_mb(), 1),
-               "cached": cached, "cache_dir": str(directory), "scans": len(seq)}
+        prior, directory, cached = load_or_build_map(
+            seq, cfg.map, cache if to_file else out, progress=lambda i, n: bar.update(task, completed=i)
+        )
+    summary = {
+        "points": int(len(prior.points)),
+        "points_road_removed": int(len(prior.points_bev)),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+        "cached": cached,
+        "cache_dir": str(directory),
+        "scans": len(seq),
+    }
     if to_file:
         road_removed = road_removed_path(out)
         origin = prior.origin if prior.origin.any() else None
@@ -56,9 +75,13 @@ def map_build(
         emit_json(summary)
     else:
         where = f"{out} and {summary['out_road_removed']}" if to_file else str(directory)
-        err.print(f"map: {summary['points']:,} points, {summary['points_road_removed']:,} after road removal, "
-                  f"{summary['seconds']} s ({'from cache' if cached else 'built'}) → {where}",
-                  markup=False, highlight=False, soft_wrap=True)
+        err.print(
+            f"map: {summary['points']:,} points, {summary['points_road_removed']:,} after road removal, "
+            f"{summary['seconds']} s ({'from cache' if cached else 'built'}) → {where}",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 def road_removed_path(out: Path) -> Path:
@@ -88,9 +111,14 @@ def map_info(
 @map_app.command("export")
 @with_source()
 def map_export(
-    out: Annotated[Path, typer.Option("--out", help="Map file to write: .pcd or .ply (binary, x y z).", show_default=False)],
+    out: Annotated[
+        Path, typer.Option("--out", help="Map file to write: .pcd or .ply (binary, x y z).", show_default=False)
+    ],
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
     cache: CacheOpt = None,
 ):
     """Write a source's prior map (built or from the cache) as a .pcd or .ply file.
@@ -100,15 +128,18 @@ def map_export(
     from ...core.maps.mapfile_write import write_map
     from ...core.maps.mapping import load_or_build_map
 
-    if out.suffix.lower() not in WRITE_SUFFIXES:     # before building a map that cannot be written
-        raise LidarlocError(f"{out}: cannot write a map of this type ({out.suffix or 'no extension'}); "
-                            f"supported: {', '.join(WRITE_SUFFIXES)}")
+    if out.suffix.lower() not in WRITE_SUFFIXES:  # before building a map that cannot be written
+        raise LidarlocError(
+            f"{out}: cannot write a map of this type ({out.suffix or 'no extension'}); "
+            f"supported: {', '.join(WRITE_SUFFIXES)}"
+        )
     cfg = config_from(config, set_, preset=preset)
     seq = open_source(spec, cfg).map_source
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=None)
-        prior = load_or_build_map(seq, cfg.map, cache, progress=lambda i, n: bar.update(task, completed=i, total=n),
-                                  road_removal=False).value
+        prior = load_or_build_map(
+            seq, cfg.map, cache, progress=lambda i, n: bar.update(task, completed=i, total=n), road_removal=False
+        ).value
     origin = prior.origin if prior.origin.any() else None
     write_map(out, prior.points, origin=origin)
     summary = {"points": int(len(prior.points)), "out": str(out), "origin_m": [float(v) for v in prior.origin]}
@@ -125,7 +156,10 @@ def synth(
     out: Annotated[Path, typer.Option("--out", help="Directory to write the KITTI odometry layout into.")],
     sequence_id: Annotated[str, typer.Option("--sequence-id", help="Sequence id to write as.")] = "00",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing exported sequence.")] = False,
-    spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ):
     """Export the built-in town's drive in KITTI odometry layout (velodyne/*.bin, calib, times, poses)."""
     from ...core.sequences.export import export_kitti_odometry
@@ -135,8 +169,9 @@ def synth(
     seq = open_sequence(spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task(f"scans of {seq.name}", total=len(seq))
-        export_kitti_odometry(seq, out, sequence=sequence_id, overwrite=overwrite,
-                              progress=lambda i, n: bar.update(task, completed=i))
+        export_kitti_odometry(
+            seq, out, sequence=sequence_id, overwrite=overwrite, progress=lambda i, n: bar.update(task, completed=i)
+        )
     err.print(f"wrote {len(seq)} scans to {out}/sequences/{sequence_id}")
 
 

@@ -4,29 +4,79 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
 from ...core.errors import LidarlocError
 from ..console import emit_json, err
-from ..options import (SOURCE_OPTIONS, CacheOpt, ConfigOpt, InitOpt, JsonOpt, PresetOpt, ScansOpt, SetOpt, config_from, given, source_spec, with_source)
+from ..options import (
+    SOURCE_OPTIONS,
+    CacheOpt,
+    ConfigOpt,
+    InitOpt,
+    JsonOpt,
+    PresetOpt,
+    ScansOpt,
+    SetOpt,
+    config_from,
+    given,
+    source_spec,
+    with_source,
+)
 from .groups import app
+
 
 @app.command()
 @with_source()
 def run(
     ctx: typer.Context,
-    out: Annotated[Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events, summary and the recording.")],
-    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    clock: Annotated[Optional[str], typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")] = None,
-    no_s2m: Annotated[bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")] = False,
-    no_record: Annotated[bool, typer.Option("--no-record", help="Do not record the run's steps into OUT/recording/ (view --run, --branch, compare and export read it).")] = False,
-    branch: Annotated[Optional[str], typer.Option("--branch", metavar="RUN_DIR:STEP", help="Continue the recorded run in RUN_DIR from the filter's exact state after its step STEP (0-based), with --set changes, into --out; source and configuration come from the recording.")] = None,
-    write_bag: Annotated[Optional[Path], typer.Option("--write-bag", metavar="OUT.mcap", help="Also write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) for RViz2 and Foxglove: estimate, /tf, particles, truth, scan, map, events.")] = None,
-    with_input: Annotated[bool, typer.Option("--with-input", help="With --write-bag on a --bag source: copy the input bag's topics into it too.")] = False,
+    out: Annotated[
+        Path, typer.Option("--out", help="Directory for trajectory, per-scan CSV, events, summary and the recording.")
+    ],
+    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    clock: Annotated[
+        str | None, typer.Option("--clock", help="replay (deterministic) or realtime (default: the config's).")
+    ] = None,
+    no_s2m: Annotated[
+        bool, typer.Option("--no-s2m", help="Disable scan-to-map matching (plain particle filter).")
+    ] = False,
+    no_record: Annotated[
+        bool,
+        typer.Option(
+            "--no-record",
+            help="Do not record the run's steps into OUT/recording/ (view --run, --branch, compare and export read it).",
+        ),
+    ] = False,
+    branch: Annotated[
+        str | None,
+        typer.Option(
+            "--branch",
+            metavar="RUN_DIR:STEP",
+            help="Continue the recorded run in RUN_DIR from the filter's exact state after its step STEP (0-based), with --set changes, into --out; source and configuration come from the recording.",
+        ),
+    ] = None,
+    write_bag: Annotated[
+        Path | None,
+        typer.Option(
+            "--write-bag",
+            metavar="OUT.mcap",
+            help="Also write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) for RViz2 and Foxglove: estimate, /tf, particles, truth, scan, map, events.",
+        ),
+    ] = None,
+    with_input: Annotated[
+        bool,
+        typer.Option(
+            "--with-input", help="With --write-bag on a --bag source: copy the input bag's topics into it too."
+        ),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
-    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    init: InitOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Localize headless over a sequence and write results to --out (recorded: scrub it with view --run)."""
     if write_bag is not None or with_input:
@@ -36,27 +86,33 @@ def run(
             raise LidarlocError("--with-input copies the input bag into the bag --write-bag writes; give --write-bag")
         if no_record:
             raise LidarlocError("--write-bag writes the run's recording as a bag; drop --no-record")
-        bag_target(write_bag)        # a bad name fails now, not after the run
+        bag_target(write_bag)  # a bad name fails now, not after the run
         if with_input and branch is None:
             from ..export_bag import check_input
 
             check_input(spec.bag)
-    overrides = list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
+    overrides = (
+        list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
+    )
     if branch is not None:
         if given(ctx, SOURCE_OPTIONS) or config or preset or init:
-            raise LidarlocError("--branch takes its source and configuration from the recording; give changes with --set")
+            raise LidarlocError(
+                "--branch takes its source and configuration from the recording; give changes with --set"
+            )
         from ..branch import parse_branch, run_branch
 
         run_dir, step = parse_branch(branch)
         overrides += [f"seed={seed}"] if seed is not None else []
-        summary, interrupted = run_branch(run_dir, step, overrides, out, cache_root=cache, console=err,
-                                          record=not no_record)
+        summary, interrupted = run_branch(
+            run_dir, step, overrides, out, cache_root=cache, console=err, record=not no_record
+        )
     else:
         from ..headless import run_headless
 
         cfg = config_from(config, overrides, seed=seed, preset=preset)
-        summary, interrupted = run_headless(replace(spec, init=init), cfg, out, cache_root=cache, console=err,
-                                            preset=preset, record=not no_record)
+        summary, interrupted = run_headless(
+            replace(spec, init=init), cfg, out, cache_root=cache, console=err, preset=preset, record=not no_record
+        )
     if write_bag is not None:
         from ..export_bag import export_bag
 
@@ -70,19 +126,39 @@ def run(
 @app.command()
 @with_source()
 def inspect(
-    scan: Annotated[int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")],
-    out: Annotated[Path, typer.Option("--out", help="Directory for the likelihood surfaces (PNG + .npy), residuals.png and inspect.json.")],
-    seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    best_over_yaw: Annotated[bool, typer.Option("--best-over-yaw", help="Each surface cell: the best of the yaws within ±10° in 2° steps, not the pose's yaw alone.")] = False,
+    scan: Annotated[
+        int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")
+    ],
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out", help="Directory for the likelihood surfaces (PNG + .npy), residuals.png and inspect.json."
+        ),
+    ],
+    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    best_over_yaw: Annotated[
+        bool,
+        typer.Option(
+            "--best-over-yaw",
+            help="Each surface cell: the best of the yaws within ±10° in 2° steps, not the pose's yaw alone.",
+        ),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print inspect.json on stdout too.")] = False,
-    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    init: InitOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
 ):
     """Replay a run to one scan and write why the filter is where it is: the likelihood surface
     around the estimate and around the truth, the scan's residuals to the map, and a JSON summary."""
     from ..inspect import run_inspect
 
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    result = run_inspect(replace(spec, init=init), cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw)
+    result = run_inspect(
+        replace(spec, init=init), cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw
+    )
     if as_json:
         emit_json(result)
 
@@ -90,9 +166,19 @@ def inspect(
 # ------------------------------------------------------------------------------ runs: compare, share
 @app.command("compare")
 def compare(
-    runs: Annotated[list[Path], typer.Argument(help="Two or more run folders (lidarloc run, the viewer, a branch, a benchmark run).")],
-    out: Annotated[Optional[Path], typer.Option("--out", help="Write the overlay plot (trajectories; error, std and N_eff against the step) to this PNG.")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the figures as JSON on stdout instead of the table.")] = False,
+    runs: Annotated[
+        list[Path],
+        typer.Argument(help="Two or more run folders (lidarloc run, the viewer, a branch, a benchmark run)."),
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", help="Write the overlay plot (trajectories; error, std and N_eff against the step) to this PNG."
+        ),
+    ] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the figures as JSON on stdout instead of the table.")
+    ] = False,
 ):
     """The summary figures of two or more runs side by side (A–E, success, RMSE, consistency, false fires, PF latency, scans) and an overlay plot for papers."""
     from ..compare import compare_runs
@@ -103,17 +189,42 @@ def compare(
 @app.command("export")
 def export(
     run: Annotated[Path, typer.Argument(help="A recorded run folder (with recording/).")],
-    out: Annotated[Optional[Path], typer.Option("--out", help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).")] = None,
-    bag: Annotated[Optional[Path], typer.Option("--bag", metavar="OUT.mcap", help="Write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) of standard messages, for RViz2 (ros2 bag play) and Foxglove.")] = None,
-    foxglove: Annotated[Optional[Path], typer.Option("--foxglove", metavar="OUT.mcap", help="Write the run in Foxglove's own schemas, and OUT.layout.json beside it (Foxglove: Layouts → Import from file).")] = None,
-    with_input: Annotated[bool, typer.Option("--with-input", help="With --bag, for a run on a bag: copy the input bag's topics into it too.")] = False,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="NAME: writes NAME.viser and the folder NAME/ (open NAME/index.html in a browser; no server needed).",
+        ),
+    ] = None,
+    bag: Annotated[
+        Path | None,
+        typer.Option(
+            "--bag",
+            metavar="OUT.mcap",
+            help="Write the run as a ROS 2 bag (MCAP; a name without .mcap: a bag folder) of standard messages, for RViz2 (ros2 bag play) and Foxglove.",
+        ),
+    ] = None,
+    foxglove: Annotated[
+        Path | None,
+        typer.Option(
+            "--foxglove",
+            metavar="OUT.mcap",
+            help="Write the run in Foxglove's own schemas, and OUT.layout.json beside it (Foxglove: Layouts → Import from file).",
+        ),
+    ] = None,
+    with_input: Annotated[
+        bool,
+        typer.Option("--with-input", help="With --bag, for a run on a bag: copy the input bag's topics into it too."),
+    ] = False,
     no_scans: Annotated[bool, typer.Option("--no-scans", help="Leave each step's scan out (a smaller file).")] = False,
     as_json: JsonOpt = False,
     cache: CacheOpt = None,
 ):
     """Share a recorded run: a .viser recording of its scene and a static web folder that plays it in any browser from disk (no Python, no server); a ROS 2 bag (--bag); a Foxglove file and layout (--foxglove)."""
     if out is None and bag is None and foxglove is None:
-        raise LidarlocError("export: say what to write: --out NAME (viewer files), --bag OUT.mcap or --foxglove OUT.mcap")
+        raise LidarlocError(
+            "export: say what to write: --out NAME (viewer files), --bag OUT.mcap or --foxglove OUT.mcap"
+        )
     if with_input and bag is None:
         raise LidarlocError("--with-input copies the input bag into the bag --bag writes; give --bag")
     result = {}
@@ -134,63 +245,155 @@ def export(
 
 
 # -------------------------------------------------------------------------------------- viewer
-def _serve(spec, cfg, host, port, cache, open_browser, autoplay=False, record_dir=None, preset=None, record=True,
-           foxglove_port=None):
+def _serve(
+    spec,
+    cfg,
+    host,
+    port,
+    cache,
+    open_browser,
+    autoplay=False,
+    record_dir=None,
+    preset=None,
+    record=True,
+    foxglove_port=None,
+):
     from ..viewer.serve import serve_until_interrupted
 
-    serve_until_interrupted(spec, cfg, host=host, port=port, cache_root=cache, console=err, open_browser=open_browser,
-                            autoplay=autoplay, record_dir=record_dir, preset=preset, record=record,
-                            foxglove_port=foxglove_port)
+    serve_until_interrupted(
+        spec,
+        cfg,
+        host=host,
+        port=port,
+        cache_root=cache,
+        console=err,
+        open_browser=open_browser,
+        autoplay=autoplay,
+        record_dir=record_dir,
+        preset=preset,
+        record=record,
+        foxglove_port=foxglove_port,
+    )
 
 
 HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
 PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
-AutoplayOpt = Annotated[bool, typer.Option(
-    "--autoplay", help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).")]
-RecordDirOpt = Annotated[Optional[Path], typer.Option(
-    "--record-dir", help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
-                         "(default: a new runs/<date-time> folder under the cache directory).")]
-NoRecordViewOpt = Annotated[bool, typer.Option(
-    "--no-record", help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).")]
-FoxglovePortOpt = Annotated[Optional[int], typer.Option(
-    "--foxglove-port", min=0, help="Also stream the live run to Foxglove (Open connection → Foxglove WebSocket "
-                                   "ws://HOST:PORT), in the channels of export --foxglove.")]
-RunOpt = Annotated[Optional[list[Path]], typer.Option(
-    "--run", help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
-                  "source side by side); the map and scans come from the source the run names.")]
+AutoplayOpt = Annotated[
+    bool,
+    typer.Option(
+        "--autoplay",
+        help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).",
+    ),
+]
+RecordDirOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--record-dir",
+        help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
+        "(default: a new runs/<date-time> folder under the cache directory).",
+    ),
+]
+NoRecordViewOpt = Annotated[
+    bool,
+    typer.Option(
+        "--no-record",
+        help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).",
+    ),
+]
+FoxglovePortOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--foxglove-port",
+        min=0,
+        help="Also stream the live run to Foxglove (Open connection → Foxglove WebSocket "
+        "ws://HOST:PORT), in the channels of export --foxglove.",
+    ),
+]
+RunOpt = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--run",
+        help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
+        "source side by side); the map and scans come from the source the run names.",
+    ),
+]
 
 
 @app.command()
-def demo(host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-         scans: ScansOpt = None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
-         open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-         autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
-         foxglove_port: FoxglovePortOpt = None):
+def demo(
+    host: HostOpt = "127.0.0.1",
+    port: PortOpt = 8080,
+    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    scans: ScansOpt = None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+    open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
+    autoplay: AutoplayOpt = False,
+    record_dir: RecordDirOpt = None,
+    no_record: NoRecordViewOpt = False,
+    foxglove_port: FoxglovePortOpt = None,
+):
     """The live demo on the built-in town: browse to the printed URL."""
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(source_spec(town_seed=cfg.town.seed, scans=scans), cfg, host, port, cache, open_browser, autoplay,
-           record_dir=record_dir, preset=preset, record=not no_record, foxglove_port=foxglove_port)
+    _serve(
+        source_spec(town_seed=cfg.town.seed, scans=scans),
+        cfg,
+        host,
+        port,
+        cache,
+        open_browser,
+        autoplay,
+        record_dir=record_dir,
+        preset=preset,
+        record=not no_record,
+        foxglove_port=foxglove_port,
+    )
 
 
 @app.command()
 @with_source()
 def view(
-    host: HostOpt = "127.0.0.1", port: PortOpt = 8080, seed: Annotated[Optional[int], typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    init: InitOpt = None, spec=None, preset: PresetOpt = None, config: ConfigOpt = None, set_: SetOpt = None, cache: CacheOpt = None,
+    host: HostOpt = "127.0.0.1",
+    port: PortOpt = 8080,
+    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
+    init: InitOpt = None,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-    autoplay: AutoplayOpt = False, record_dir: RecordDirOpt = None, no_record: NoRecordViewOpt = False,
-    run: RunOpt = None, foxglove_port: FoxglovePortOpt = None,
+    autoplay: AutoplayOpt = False,
+    record_dir: RecordDirOpt = None,
+    no_record: NoRecordViewOpt = False,
+    run: RunOpt = None,
+    foxglove_port: FoxglovePortOpt = None,
 ):
     """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
     if run:
         from ..viewer.runs import serve_runs
 
         if foxglove_port is not None:
-            raise LidarlocError("--foxglove-port streams a live run; for a recorded run: lidarloc export RUN "
-                                "--foxglove OUT.mcap, and open that file in Foxglove")
+            raise LidarlocError(
+                "--foxglove-port streams a live run; for a recorded run: lidarloc export RUN "
+                "--foxglove OUT.mcap, and open that file in Foxglove"
+            )
 
         serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
         return
     cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(replace(spec, init=init), cfg, host, port, cache, open_browser, autoplay, record_dir=record_dir,
-           preset=preset, record=not no_record, foxglove_port=foxglove_port)
+    _serve(
+        replace(spec, init=init),
+        cfg,
+        host,
+        port,
+        cache,
+        open_browser,
+        autoplay,
+        record_dir=record_dir,
+        preset=preset,
+        record=not no_record,
+        foxglove_port=foxglove_port,
+    )

@@ -16,21 +16,21 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import viser
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
-
 from .camera import TabCameras, start_pose
-from .controls import ParameterControls, ParticleControls, whole_number
+from .controls import ParameterControls, ParticleControls
 from .history import History
-from .keys import add_shortcuts
 from .layers import LayerFolder
 from .panel import build_panel
 from .params import ParamForm
+from .playback import Playback
 from .player import Player
 from .readouts import Readouts
 from .scene import SceneView
@@ -47,12 +47,13 @@ if TYPE_CHECKING:
 STOP_WAIT_S = 5.0
 
 
-class Viewer(ParticleControls, ParameterControls):
+class Viewer(Playback, ParticleControls, ParameterControls):
     """GUI, scene and threads around one Localizer. Use
     :func:`~lidarloc.app.viewer.serve.serve` to start one."""
 
-    def __init__(self, server: viser.ViserServer, *, autoplay: bool | None = None, speed: str = "10",
-                 display_thread: bool = True):
+    def __init__(
+        self, server: viser.ViserServer, *, autoplay: bool | None = None, speed: str = "10", display_thread: bool = True
+    ):
         """``autoplay``: True plays as soon as the localizer is ready, False stays paused, None
         (default) plays once the localizer is ready and a browser tab is open, so the user sees
         the run from its first scan."""
@@ -64,24 +65,34 @@ class Viewer(ParticleControls, ParameterControls):
         self.controls = build_panel(server.gui, speed=speed, layers=self.scene.layers)
         self.readouts = Readouts(self.controls, self.history)
         self.params = ParamForm(self.controls.params, self.controls.q)
-        self.cameras = TabCameras(server, self.scene, lambda: self._latest, self._guarded,
-                                  folder_order=self.controls.particles_folder.order + 0.5)
-        self.cache_root = None          # where a branch finds the map's tables (serve sets it)
-        self.replay_only = ""           # why controls that need a localizer refuse (a recorded run)
+        self.cameras = TabCameras(
+            server,
+            self.scene,
+            lambda: self._latest,
+            self._guarded,
+            folder_order=self.controls.particles_folder.order + 0.5,
+        )
+        self.cache_root = None  # where a branch finds the map's tables (serve sets it)
+        self.replay_only = ""  # why controls that need a localizer refuse (a recorded run)
         self.travel = TimeTravel(self, order=self.controls.message.order + 0.5)
         # the Why views read the localizer, or a recorded run's map and table when there is none
-        self.why = WhyViews(server, self.scene, localizer=lambda: self.localizer or self.travel.context,
-                            drawn=lambda: self._drawn,
-                            guarded=self._guarded, show_message=self.show_message,
-                            folder_order=self.controls.particles_folder.order + 0.25)
+        self.why = WhyViews(
+            server,
+            self.scene,
+            localizer=lambda: self.localizer or self.travel.context,
+            drawn=lambda: self._drawn,
+            guarded=self._guarded,
+            show_message=self.show_message,
+            folder_order=self.controls.particles_folder.order + 0.25,
+        )
         self.owns_localizer = False
-        self.sinks: list = []           # more consumers of each step played (the Foxglove stream)
+        self.sinks: list = []  # more consumers of each step played (the Foxglove stream)
         self._autoplay = autoplay
         self._start_lock = threading.Lock()
-        self._tab_seen = False          # a browser tab has connected (autoplay=None starts then)
+        self._tab_seen = False  # a browser tab has connected (autoplay=None starts then)
         self._auto_started = False
-        self._map_shown = None          # the prior map the scene shows (show_map, before attach)
-        self._acting = threading.local()   # the tab whose GUI action is being handled
+        self._map_shown = None  # the prior map the scene shows (show_map, before attach)
+        self._acting = threading.local()  # the tab whose GUI action is being handled
         self._latest: Snapshot | None = None
         self._drawn: Snapshot | None = None
         self._wake = threading.Event()
@@ -90,16 +101,23 @@ class Viewer(ParticleControls, ParameterControls):
         self._message = ""
         self._last_draw = 0.0
         self._last_update = 0.0
-        self.first_scan_shown = threading.Event()    # set once a processed scan has been drawn
-        self.step_failed: str | None = None          # the newest failed step's message
-        self.alarm = AlarmNotice(lambda text: self.show_message(text, error=True, everyone=True,
-                                                                title="lidarloc: false fire"))
-        self._syncing = False           # set while the viewer itself writes GUI values
+        self.first_scan_shown = threading.Event()  # set once a processed scan has been drawn
+        self.step_failed: str | None = None  # the newest failed step's message
+        self.alarm = AlarmNotice(
+            lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
+        )
+        self._syncing = False  # set while the viewer itself writes GUI values
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
-        self.layers = LayerFolder(self.controls, self.scene, guarded=self._guarded, localizer=lambda: self.localizer,
-                                  quietly=self._quietly, on_toggle=self.travel.set_layer)
+        self.layers = LayerFolder(
+            self.controls,
+            self.scene,
+            guarded=self._guarded,
+            localizer=lambda: self.localizer,
+            quietly=self._quietly,
+            on_toggle=self.travel.set_layer,
+        )
         server.on_client_connect(self._on_connect)
         server.on_client_disconnect(self.cameras.disconnect)
         # Without the display thread (benchmarks) the owner calls update_display() itself.
@@ -118,8 +136,9 @@ class Viewer(ParticleControls, ParameterControls):
         self._acting.client = client
         try:
             if needs_localizer and not self._ready.is_set():
-                raise LidarlocError(self.replay_only or
-                                    "the localizer is still starting (map and tables are being built)")
+                raise LidarlocError(
+                    self.replay_only or "the localizer is still starting (map and tables are being built)"
+                )
             action()
         except LidarlocError as exc:
             self.show_message(f"refused: {exc}", error=True, client=client)
@@ -142,8 +161,9 @@ class Viewer(ParticleControls, ParameterControls):
         finally:
             self._syncing = False
 
-    def show_message(self, text: str, error: bool = False, client=None, everyone: bool = False,
-                     title: str | None = None) -> None:
+    def show_message(
+        self, text: str, error: bool = False, client=None, everyone: bool = False, title: str | None = None
+    ) -> None:
         """A message in the panel (the last one stays there) and as a notification where the
         user looks: to ``client``, else to the tab whose action is being handled, or to every
         open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start).
@@ -156,12 +176,14 @@ class Viewer(ParticleControls, ParameterControls):
         client = client if client is not None else getattr(self._acting, "client", None)
         tabs = [client] if client is not None else (list(self.server.get_clients().values()) if everyone else [])
         if title is None:
-            title = ("lidarloc" if not error else "lidarloc: refused" if text.startswith("refused")
-                     else "lidarloc: error")
+            title = (
+                "lidarloc" if not error else "lidarloc: refused" if text.startswith("refused") else "lidarloc: error"
+            )
         for tab in tabs:
             try:
-                tab.add_notification(title, text, color="red" if error else "blue",
-                                     auto_close_seconds=6.0 if not error else 10.0)
+                tab.add_notification(
+                    title, text, color="red" if error else "blue", auto_close_seconds=6.0 if not error else 10.0
+                )
             except Exception:  # the tab may have closed meanwhile; the panel message stays
                 pass
 
@@ -241,19 +263,30 @@ class Viewer(ParticleControls, ParameterControls):
         speed = self.controls.speed.value
         with self.travel.lock:
             self.travel.started(localizer, **(record or {}))
-            self.player = Player(localizer, self._on_step, self._on_player_error,
-                                 speed=None if speed == "max" else float(speed), clock=live["clock"])
+            self.player = Player(
+                localizer,
+                self._on_step,
+                self._on_player_error,
+                speed=None if speed == "max" else float(speed),
+                clock=live["clock"],
+            )
         self.player.start()
-        for h in (self.controls.play, self.controls.step, self.controls.restart, self.controls.reset,
-                  self.controls.kidnap):
+        for h in (
+            self.controls.play,
+            self.controls.step,
+            self.controls.restart,
+            self.controls.reset,
+            self.controls.kidnap,
+        ):
             h.disabled = False
         self.replay_only = ""
         self.why.attach(localizer)
         self.readouts.built()
         self.publish(localizer.snapshot())
 
-    def switch_to(self, localizer: Localizer, *, head: dict, head_events: list, name: str,
-                  branch_of: dict, first_step: int) -> None:
+    def switch_to(
+        self, localizer: Localizer, *, head: dict, head_events: list, name: str, branch_of: dict, first_step: int
+    ) -> None:
         """Carry on with ``localizer`` (a branch; the viewer owns it and closes it): the old run's
         player stops (and its localizer closes if the viewer built it), the plots and the
         trajectory start from the original's steps ``head`` (:meth:`RecordedRun.series`) and go
@@ -340,7 +373,7 @@ class Viewer(ParticleControls, ParameterControls):
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
         on the scene and status (the per-scan cost)."""
         self.readouts.update_progress(None if self.localizer is None else self.localizer.rebuild_progress)
-        shown = self.travel.shown()       # a recorded step the timeline was moved to
+        shown = self.travel.shown()  # a recorded step the timeline was moved to
         snap = shown if shown is not None else self._latest
         ms = 0.0
         if snap is not None and snap is not self._drawn:
@@ -358,7 +391,7 @@ class Viewer(ParticleControls, ParameterControls):
             ms = (time.perf_counter() - t0) * 1000.0
             self._last_draw = time.perf_counter()
         elif snap is not None:
-            self.readouts.update_status(self.status_markdown(snap))      # play/pause state may have changed
+            self.readouts.update_status(self.status_markdown(snap))  # play/pause state may have changed
         self.travel.after_draw(snap)
         self.readouts.update_plots(force_plots)
         self._sync_play_button()
@@ -370,105 +403,6 @@ class Viewer(ParticleControls, ParameterControls):
 
     def status_markdown(self, snap: Snapshot) -> str:
         return viewer_status(self, snap)
-
-    def _sync_play_button(self) -> None:
-        p, play = self.player, self.controls.play
-        if p is None:
-            if self.replay_only:
-                label = "Pause" if self.travel.replaying else "Play"
-                if play.label != label:
-                    play.label = label
-                    play.icon = viser.Icon.PLAYER_PAUSE if self.travel.replaying else viser.Icon.PLAYER_PLAY
-            return
-        label = "Pause" if p.playing else "Play"
-        if play.label != label:
-            play.label = label
-            play.icon = viser.Icon.PLAYER_PAUSE if p.playing else viser.Icon.PLAYER_PLAY
-        finished = self.localizer.done
-        if play.disabled != finished:
-            play.disabled = finished
-            self.controls.step.disabled = finished
-
-    # ============================================================== Playback folder
-    def _wire_playback(self) -> None:
-        c = self.controls
-        # a recorded run without a localizer plays and steps its timeline (see _toggle_play)
-        c.play.on_click(self._guarded(self._toggle_play, needs_localizer=False))
-        c.step.on_click(self._guarded(self.step_once, needs_localizer=False))
-        c.speed.on_update(self._guarded(self._apply_speed, needs_localizer=False))
-        c.clock.on_update(self._guarded(self._apply_clock))
-        c.restart.on_click(self._guarded(self._restart))
-        self.shortcuts = add_shortcuts(self.server.gui)
-
-    def play(self) -> None:
-        self.travel.to_live()
-        self.player.play()
-        self._wake.set()
-
-    def pause(self) -> None:
-        self.travel.keep_paused()
-        self.player.pause()
-        self._wake.set()
-
-    def _replaying(self) -> bool:
-        """No localizer: a recorded run is on screen (its timeline plays), or the localizer is
-        still being built (refused)."""
-        if self.localizer is not None:
-            return False
-        if not self.replay_only:
-            raise LidarlocError("the localizer is still starting (map and tables are being built)")
-        return True
-
-    def _toggle_play(self) -> None:
-        if self._replaying():
-            self.travel.toggle_replay(self.controls.speed.value)
-            self._wake.set()
-            return
-        if self.player.playing:
-            self.pause()
-        else:
-            if self.localizer.done:
-                raise LidarlocError("end of the sequence: restart to play again")
-            self.play()
-
-    def step_once(self) -> None:
-        if self._replaying():
-            self.travel.stop_replay()
-            self.travel.timeline.forward()
-            return
-        if self.localizer.done:
-            raise LidarlocError("end of the sequence: restart to play again")
-        self.travel.to_live()
-        self.player.step_once()
-        self._wake.set()
-
-    def _apply_speed(self) -> None:
-        v = self.controls.speed.value
-        if self.player is None:          # a recorded run's playback reads it when Play is pressed
-            return
-        self.player.set_speed(None if v == "max" else float(v))
-        self._wake.set()
-
-    def _apply_clock(self) -> None:
-        clock = self.controls.clock.value
-        self.localizer.set_params(clock=clock)
-        self.player.set_clock(clock)
-        self.controls.speed.disabled = clock == "realtime"
-        self.show_message(f"clock: {clock}")
-
-    def _restart(self) -> None:
-        seed = whole_number(self.controls.seed, "seed", 0)
-        with self.travel.lock:
-            self.travel.close()
-            self.localizer.restart(seed=seed)
-            self.travel.started(self.localizer)
-        self.history.clear()
-        self.scene.clear()
-        self.why.clear()
-        self.alarm.clear()
-        self.player.rebase()
-        self.publish(self.localizer.snapshot())
-        self.show_message(f"restarted from scan 0 with seed {seed}")
 
     # ============================================================== shutdown
     def stop(self) -> None:

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import math
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import viser
 
 from ...core.snapshot import Snapshot
-
 from .panel import CameraControls, add_camera_folder
 from .scene import SceneView
 
@@ -30,8 +29,14 @@ class TabCameras:
     ``guarded(action, needs_localizer)`` turns an action into a GUI callback that reports
     failures in the panel."""
 
-    def __init__(self, server: viser.ViserServer, scene: SceneView, latest: Callable[[], Snapshot | None],
-                 guarded: Callable, folder_order: float):
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        scene: SceneView,
+        latest: Callable[[], Snapshot | None],
+        guarded: Callable,
+        folder_order: float,
+    ):
         self.server = server
         self.scene = scene
         self._latest = latest
@@ -142,7 +147,7 @@ class TabCameras:
                 cam = client.camera
                 shift = p - np.asarray(cam.look_at)
                 if np.linalg.norm(shift) > 1e-3:
-                    cam.position = np.asarray(cam.position) + shift   # moves look_at along
+                    cam.position = np.asarray(cam.position) + shift  # moves look_at along
             except (AssertionError, ValueError):  # camera state not reported yet
                 continue
 

@@ -16,14 +16,21 @@ import numpy as np
 
 from ...core.rules.truth import FALSE_FIRE_M
 from ...core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics
-
 from .style import css
 
-ROWS = (("A", "A: scans until localized (sum)"), ("B", "B: scans until the rule"),
-        ("C", "C: … within 5 m for 10"), ("D", "D: … within 5 m for 50"), ("E", "E: … within 2.5 m for 50"),
-        ("rmse_after_localized_m", "RMSE while localized (m)"), ("localized_share", "steps localized"),
-        ("max_error_localized_m", "max error while localized (m)"), ("false_fires", "false fires (> 5 m)"),
-        ("pf_ms_median", "PF latency, median (ms)"), ("scans", "steps compared"))
+ROWS = (
+    ("A", "A: scans until localized (sum)"),
+    ("B", "B: scans until the rule"),
+    ("C", "C: … within 5 m for 10"),
+    ("D", "D: … within 5 m for 50"),
+    ("E", "E: … within 2.5 m for 50"),
+    ("rmse_after_localized_m", "RMSE while localized (m)"),
+    ("localized_share", "steps localized"),
+    ("max_error_localized_m", "max error while localized (m)"),
+    ("false_fires", "false fires (> 5 m)"),
+    ("pf_ms_median", "PF latency, median (ms)"),
+    ("scans", "steps compared"),
+)
 
 
 def window_figures(cols: dict, start: int) -> dict:
@@ -41,13 +48,15 @@ def window_figures(cols: dict, start: int) -> dict:
     pf = np.asarray(cols["pf_ms"], float)[start:]
     pf = pf[np.isfinite(pf)]
     has_truth = bool(np.isfinite(e).any())
-    return {**{k: metrics.get(k) for k in METRIC_KEYS},
-            "rmse_after_localized_m": float(np.sqrt(np.mean(e[known] ** 2))) if known.any() else None,
-            "localized_share": f"{100 * lo.mean():.0f}%" if len(lo) else None,
-            "max_error_localized_m": float(e[known].max()) if known.any() else None,
-            "false_fires": int(np.sum(onset & np.isfinite(e) & (e > FALSE_FIRE_M))) if has_truth else None,
-            "pf_ms_median": float(np.median(pf)) if pf.size else None,
-            "scans": int(len(e))}
+    return {
+        **{k: metrics.get(k) for k in METRIC_KEYS},
+        "rmse_after_localized_m": float(np.sqrt(np.mean(e[known] ** 2))) if known.any() else None,
+        "localized_share": f"{100 * lo.mean():.0f}%" if len(lo) else None,
+        "max_error_localized_m": float(e[known].max()) if known.any() else None,
+        "false_fires": int(np.sum(onset & np.isfinite(e) & (e > FALSE_FIRE_M))) if has_truth else None,
+        "pf_ms_median": float(np.median(pf)) if pf.size else None,
+        "scans": int(len(e)),
+    }
 
 
 def _cell(v) -> str:
@@ -76,10 +85,17 @@ def compare_markdown(primary, reference, labels: tuple[str, str], colours=(None,
     each run's steps from where ``primary`` branched (0 for two separate runs) to its newest."""
     start = int(primary.first_step) if primary.parent is not None else 0
     a, b = primary.columns(), reference.columns()
-    spans = ", ".join(f"{label} {start}…{n - 1}" if n > start else f"{label} none yet"
-                      for label, n in ((labels[0], len(a["error"])), (labels[1], len(b["error"]))))
+    spans = ", ".join(
+        f"{label} {start}…{n - 1}" if n > start else f"{label} none yet"
+        for label, n in ((labels[0], len(a["error"])), (labels[1], len(b["error"])))
+    )
     where = f"after the branch point, steps from {start}" if start else "steps from 0"
     caption = f"<small>{where} ({spans}); A–E count from step 0</small>"
-    return summary_table([(labels[0], window_figures(a, min(start, len(a["error"])))),
-                          (labels[1], window_figures(b, min(start, len(b["error"]))))],
-                         colours=colours, caption=caption)
+    return summary_table(
+        [
+            (labels[0], window_figures(a, min(start, len(a["error"])))),
+            (labels[1], window_figures(b, min(start, len(b["error"])))),
+        ],
+        colours=colours,
+        caption=caption,
+    )

@@ -9,7 +9,6 @@ import math
 import numpy as np
 
 from ...core.errors import LidarlocError
-
 from .ground import clicked_point, dragged_region, pose_on_ground
 from .style import SHIFT
 
@@ -25,28 +24,38 @@ class ParticleControls:
         self.server.scene.on_rect_select(modifier=SHIFT)(self.on_shift_rect)
 
     def reset(self, pose: np.ndarray | None = None, region: tuple | None = None) -> None:
-        with self.travel.lock:      # between two recorded steps, never inside one
+        with self.travel.lock:  # between two recorded steps, never inside one
             self.localizer.reset(pose=pose, region=region)
         if pose is not None or region is not None:
             last = self._latest.scan_index if self._latest is not None else -1
             self.scene.show_reset_area(last, center=None if pose is None else pose[:3, 3], region=region)
         self.publish(self.localizer.snapshot())
-        where = ("globally" if pose is None and region is None else
-                 f"around ({pose[0, 3]:.1f}, {pose[1, 3]:.1f})" if pose is not None else
-                 "in x {:.0f}…{:.0f}, y {:.0f}…{:.0f} m".format(region[0], region[2], region[1], region[3]))
+        where = (
+            "globally"
+            if pose is None and region is None
+            else f"around ({pose[0, 3]:.1f}, {pose[1, 3]:.1f})"
+            if pose is not None
+            else f"in x {region[0]:.0f}…{region[2]:.0f}, y {region[1]:.0f}…{region[3]:.0f} m"
+        )
         self.show_message(f"particles reset {where}")
 
     def on_shift_click(self, event) -> None:
         """Shift+click on the ground: reset the particles around that point."""
+
         def act():
             hit = clicked_point(self.scene.ground, event.ray_origin, event.ray_direction)
             self.reset(pose=pose_on_ground(self.scene.ground, hit[0], hit[1], self.localizer.cfg.pf.sensor_height))
+
         self._guard(event, act)
 
     def on_shift_rect(self, event) -> None:
         """Shift+drag a rectangle on the ground: reset the particles inside it."""
-        self._guard(event, lambda: self.reset(
-            region=dragged_region(self.scene.ground, event.client.camera, event.screen_min, event.screen_max)))
+        self._guard(
+            event,
+            lambda: self.reset(
+                region=dragged_region(self.scene.ground, event.client.camera, event.screen_min, event.screen_max)
+            ),
+        )
 
     def _kidnap(self) -> None:
         skip = whole_number(self.controls.kidnap_skip, "kidnap skip", 1)
@@ -78,7 +87,7 @@ class ParameterControls:
 
     def _mark_pending(self) -> None:
         """The Apply button says how many numbers differ from what the localizer has."""
-        n = len(self.params.changed()) if self.params.applied else 0    # nothing shown yet: nothing changed
+        n = len(self.params.changed()) if self.params.applied else 0  # nothing shown yet: nothing changed
         apply = self.controls.apply
         label = f"Apply {n} change{'s' if n != 1 else ''}" if n else "Apply"
         # one message to the clients: with three, "Apply 1 change" could show while the button
@@ -102,7 +111,7 @@ class ParameterControls:
         if not changed:
             return {}
         si = self.params.to_si(changed)
-        with self.travel.lock:           # set_params validates them all, once, before changing any
+        with self.travel.lock:  # set_params validates them all, once, before changing any
             self.localizer.set_params(**si)
         self.params.accept(changed)
         self._mark_pending()

@@ -15,7 +15,6 @@ import threading
 import numpy as np
 
 from ...core.geometry import inv_pose, transform_points
-
 from ..run_steps import LOCAL_FRAME, MAP_FRAME, display_map, in_map, make_step, stamps_of
 
 
@@ -54,13 +53,18 @@ class FoxgloveLive:
         self._last_s2m = None
         self._lock = threading.Lock()
 
+    @property
+    def counts(self) -> dict:
+        """Messages sent so far per channel (empty before the first step)."""
+        return {} if self._writer is None else dict(self._writer.counts)
+
     def on_step(self, loc, snap) -> None:
         if self.failed:
             return
         try:
             with self._lock:
                 self._send(loc, snap)
-        except Exception as exc:   # noqa: BLE001 - the viewer goes on without the stream
+        except Exception as exc:  # noqa: BLE001 - the viewer goes on without the stream
             self.failed = True
             if self.on_failure is not None:
                 self.on_failure(f"Foxglove stream stopped: {type(exc).__name__}: {exc}")
@@ -69,7 +73,7 @@ class FoxgloveLive:
         from ..export_foxglove import FoxgloveWriter
 
         stamp = int(stamps_of(loc.seq, np.array([snap.scan_index]), np.array([snap.timestamp]))[0])
-        if loc is not self._loc:                    # a new run (a start, a restart): its map again
+        if loc is not self._loc:  # a new run (a start, a restart): its map again
             run = _LiveRun(loc)
             if self._writer is None:
                 self._writer = FoxgloveWriter(self.context, run)
@@ -77,17 +81,39 @@ class FoxgloveLive:
             self._writer.write_map(stamp, 400_000)
             self._loc, self._events, self._last_s2m = loc, 0, None
         events = list(loc.events)
-        new, self._events = events[self._events:], len(events)
+        new, self._events = events[self._events :], len(events)
         s2m = snap.s2m if snap.s2m is not None and snap.s2m is not self._last_s2m else None
         self._last_s2m = snap.s2m
         record = loc.records[-1] if loc.records else None
-        step = make_step(snap.scan_index, snap.scan_index, stamp, self._writer.steps.origin, snap.mean_pose,
-                         snap.gt_pose, snap.particles, snap.weights, snap.cov_xyz, snap.std_xyz, snap.ellipse_xy,
-                         snap.n_eff, snap.n_particles or len(snap.particles), snap.localized,
-                         {"error_m": snap.error_m, "pf_ms": snap.pf_ms, "rpe_ms": snap.rpe_ms,
-                          "s2m_ms": None if record is None else record.s2m_ms}, new, s2m)
-        scan = transform_points(inv_pose(snap.mean_pose), snap.scan_world).astype(np.float32) \
-            if len(snap.scan_world) else None
+        step = make_step(
+            snap.scan_index,
+            snap.scan_index,
+            stamp,
+            self._writer.steps.origin,
+            snap.mean_pose,
+            snap.gt_pose,
+            snap.particles,
+            snap.weights,
+            snap.cov_xyz,
+            snap.std_xyz,
+            snap.ellipse_xy,
+            snap.n_eff,
+            snap.n_particles or len(snap.particles),
+            snap.localized,
+            {
+                "error_m": snap.error_m,
+                "pf_ms": snap.pf_ms,
+                "rpe_ms": snap.rpe_ms,
+                "s2m_ms": None if record is None else record.s2m_ms,
+            },
+            new,
+            s2m,
+        )
+        scan = (
+            transform_points(inv_pose(snap.mean_pose), snap.scan_world).astype(np.float32)
+            if len(snap.scan_world)
+            else None
+        )
         self._writer.write_step(step, scan)
 
     def stop(self) -> None:

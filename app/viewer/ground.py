@@ -42,7 +42,7 @@ class GroundHeight:
         r = int(math.ceil(radius / self.cell))
         i = int((x - self.origin[0]) // self.cell)
         j = int((y - self.origin[1]) // self.cell)
-        cells = self.grid[max(i - r, 0):max(i + r + 1, 0), max(j - r, 0):max(j + r + 1, 0)]
+        cells = self.grid[max(i - r, 0) : max(i + r + 1, 0), max(j - r, 0) : max(j + r + 1, 0)]
         low = cells[np.isfinite(cells)]
         return float(np.median(low)) if low.size else self.z_default
 
@@ -70,7 +70,6 @@ def screen_ray(camera, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:
     d_cam = np.array([(2 * u - 1) * t * camera.aspect, (2 * v - 1) * t, 1.0])
     d = R @ d_cam
     return np.asarray(camera.position, float), d / np.linalg.norm(d)
-
 
 
 def clicked_point(ground: GroundHeight | None, ray_origin, ray_direction) -> np.ndarray:

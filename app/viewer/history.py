@@ -9,15 +9,22 @@ import threading
 import numpy as np
 
 from ...core.snapshot import Event, Snapshot
-
 from .style import EVENTS_SHOWN
 
 #: per-scan float series (NaN where unknown: no ground truth, no KISS-ICP time yet)
-SERIES = ("std", "spread", "error", "along", "cross", "vertical", "heading", "n_eff_share",
-          "pf_ms", "rpe_ms", "s2m_ms")
+SERIES = ("std", "spread", "error", "along", "cross", "vertical", "heading", "n_eff_share", "pf_ms", "rpe_ms", "s2m_ms")
 #: the events the plots mark on the scan axis
-MARKED_EVENTS = ("localized", "false_fire", "false_positive", "loss", "relocalized", "reset", "kidnap",
-                 "s2m_accepted", "s2m_rejected")
+MARKED_EVENTS = (
+    "localized",
+    "false_fire",
+    "false_positive",
+    "loss",
+    "relocalized",
+    "reset",
+    "kidnap",
+    "s2m_accepted",
+    "s2m_rejected",
+)
 
 
 def cloud_spread(particles: np.ndarray) -> float:
@@ -52,7 +59,7 @@ class History:
         self._cap = capacity
         self._alloc(capacity)
         self.events: list[Event] = []
-        self.marks: list[tuple[int, str]] = []     # (scan, kind) of every marked event of the run
+        self.marks: list[tuple[int, str]] = []  # (scan, kind) of every marked event of the run
         self.version = 0
 
     def _alloc(self, cap: int) -> None:
@@ -96,7 +103,7 @@ class History:
             self._merge_events(snap.events)
             if k >= 0:
                 if self.n and self.scan[self.n - 1] == k:
-                    i = self.n - 1          # same scan again (e.g. the snapshot after a reset)
+                    i = self.n - 1  # same scan again (e.g. the snapshot after a reset)
                 else:
                     if self.n == len(self.scan):
                         self._grow()
@@ -131,7 +138,8 @@ class History:
         self.error[i] = np.nan if snap.error_m is None else float(snap.error_m)
         if snap.gt_pose is not None:
             self.along[i], self.cross[i], self.vertical[i], self.heading[i] = error_components(
-                snap.mean_pose, snap.gt_pose)
+                snap.mean_pose, snap.gt_pose
+            )
             self.gt[i] = np.asarray(snap.gt_pose)[:3, 3]
         self.n_eff_share[i] = snap.n_eff_share
         self.pf_ms[i] = float(snap.pf_ms)
@@ -147,7 +155,7 @@ class History:
         events = tuple(events)
         if not events:
             return
-        mine = self.events[-len(events):]
+        mine = self.events[-len(events) :]
         for overlap in range(min(len(mine), len(events)), -1, -1):
             if overlap == 0 or tuple(mine[-overlap:]) == events[:overlap]:
                 break
@@ -159,8 +167,13 @@ class History:
     def arrays(self) -> dict:
         with self._lock:
             n = self.n
-            out = {"epoch": self.epoch, "version": self.version, "scan": self.scan[:n].copy(),
-                   "events": list(self.events[-EVENTS_SHOWN:]), "marks": list(self.marks)}
+            out = {
+                "epoch": self.epoch,
+                "version": self.version,
+                "scan": self.scan[:n].copy(),
+                "events": list(self.events[-EVENTS_SHOWN:]),
+                "marks": list(self.marks),
+            }
             for name in SERIES:
                 out[name] = getattr(self, name)[:n].copy()
             return out

@@ -49,9 +49,11 @@ def shortcuts_html() -> str:
 
     script = _SCRIPT % {"keys": json.dumps(KEY_BUTTONS)}
     handler = script.replace("&", "&amp;").replace('"', "&quot;")
-    return (f'<img alt="" style="display:none" src="data:image/png;base64,AA==" onerror="{handler}">'
-            "<small>Keys: <b>space</b> play / pause · <b>←</b> <b>→</b> one scan back / forward "
-            "(when no field or slider has the focus)</small>")
+    return (
+        f'<img alt="" style="display:none" src="data:image/png;base64,AA==" onerror="{handler}">'
+        "<small>Keys: <b>space</b> play / pause · <b>←</b> <b>→</b> one scan back / forward "
+        "(when no field or slider has the focus)</small>"
+    )
 
 
 def add_shortcuts(gui):

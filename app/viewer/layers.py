@@ -4,7 +4,7 @@ first start they are built in the background while the filter plays)."""
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from .panel import Controls
 from .scene import SceneView
@@ -15,8 +15,16 @@ class LayerFolder:
     writes to controls run no callbacks; ``on_toggle(name, visible)``: other nodes of that layer
     (a second run's) follow a checkbox too."""
 
-    def __init__(self, controls: Controls, scene: SceneView, *, guarded: Callable, localizer: Callable,
-                 quietly: Callable, on_toggle: Callable[[str, bool], None]):
+    def __init__(
+        self,
+        controls: Controls,
+        scene: SceneView,
+        *,
+        guarded: Callable,
+        localizer: Callable,
+        quietly: Callable,
+        on_toggle: Callable[[str, bool], None],
+    ):
         self.c, self.scene = controls, scene
         self._localizer, self._quietly, self._on_toggle = localizer, quietly, on_toggle
         for name, h in controls.layers.items():
@@ -40,7 +48,7 @@ class LayerFolder:
         if pyr is None or not self.c.layers["bev_level"].value:
             return
         top = max(len(pyr.levels) - 1, 0)
-        if level.max != top:      # a rebuilt pyramid (new d_m) has other levels
+        if level.max != top:  # a rebuilt pyramid (new d_m) has other levels
             with self._quietly():
                 level.max = top
                 level.value = min(level.value, top)

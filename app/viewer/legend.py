@@ -4,10 +4,22 @@ uses (:mod:`~lidarloc.app.viewer.style`), and a word on reading the particle wei
 from __future__ import annotations
 
 from .s2m_detail import LEGEND_MARKDOWN as S2M_DETAIL_LEGEND
-from .style import (BEST_COLOR, BEV_COLOR, ELLIPSE_COLOR, EST_COLOR, GT_COLOR, HEIGHT_LUT, PARTICLE_HIGH,
-                    PARTICLE_LOW, RESET_COLOR, S2M_ACCEPTED_COLOR, S2M_REJECTED_COLOR, SCAN_COLOR, css)
-from .why_style import (RESIDUAL_BAD, RESIDUAL_GOOD, RESIDUAL_MID, SELECTED_COLOR, SURFACE_BEST_COLOR,
-                        SURFACE_LUT)
+from .style import (
+    BEST_COLOR,
+    BEV_COLOR,
+    ELLIPSE_COLOR,
+    EST_COLOR,
+    GT_COLOR,
+    HEIGHT_LUT,
+    PARTICLE_HIGH,
+    PARTICLE_LOW,
+    RESET_COLOR,
+    S2M_ACCEPTED_COLOR,
+    S2M_REJECTED_COLOR,
+    SCAN_COLOR,
+    css,
+)
+from .why_style import RESIDUAL_BAD, RESIDUAL_GOOD, RESIDUAL_MID, SELECTED_COLOR, SURFACE_BEST_COLOR, SURFACE_LUT
 
 
 def _swatch(rgb, shape: str = "■") -> str:
@@ -16,8 +28,10 @@ def _swatch(rgb, shape: str = "■") -> str:
 
 def _ramp(colors) -> str:
     stops = ", ".join(css(c) for c in colors)
-    return (f"<span style='display:inline-block;width:4em;height:0.8em;vertical-align:middle;"
-            f"background:linear-gradient(to right, {stops})'></span>")
+    return (
+        f"<span style='display:inline-block;width:4em;height:0.8em;vertical-align:middle;"
+        f"background:linear-gradient(to right, {stops})'></span>"
+    )
 
 
 #: one entry per colour of the scene: (name used by tests, markdown line)
@@ -26,28 +40,42 @@ ENTRIES = (
     ("scan", f"{_swatch(SCAN_COLOR, '●')} current scan, at the estimate"),
     ("estimate", f"{_swatch(EST_COLOR, '▬')} estimate: vehicle, trajectory (red-green-blue axes: x-y-z)"),
     ("truth", f"{_swatch(GT_COLOR, '▬')} ground truth: vehicle, trajectory"),
-    ("particles", f"{_ramp([PARTICLE_LOW.tolist(), PARTICLE_HIGH.tolist()])} particles by log-weight rank "
-                  "(low → high); a longer arrow carries more weight"),
+    (
+        "particles",
+        f"{_ramp([PARTICLE_LOW.tolist(), PARTICLE_HIGH.tolist()])} particles by log-weight rank "
+        "(low → high); a longer arrow carries more weight",
+    ),
     ("best", f"{_swatch(BEST_COLOR, '➜')} best particle (highest weight)"),
     ("ellipse", f"{_swatch(ELLIPSE_COLOR, '◌')} 2σ ellipse of the weighted position"),
-    ("s2m", f"{_swatch(S2M_ACCEPTED_COLOR)} S2M match accepted · {_swatch(S2M_REJECTED_COLOR)} rejected "
-            "(matched scan, search area)"),
+    (
+        "s2m",
+        f"{_swatch(S2M_ACCEPTED_COLOR)} S2M match accepted · {_swatch(S2M_REJECTED_COLOR)} rejected "
+        "(matched scan, search area)",
+    ),
     ("bev", f"{_swatch(BEV_COLOR)} BEV pyramid level (Layers)"),
     ("reset", f"{_swatch(RESET_COLOR, '□')} where particles were just reset (until the next scan)"),
     # the Why folder's views
-    ("residuals", f"{_ramp([RESIDUAL_GOOD.tolist(), RESIDUAL_MID.tolist(), RESIDUAL_BAD.tolist()])} scan residuals "
-                  "(Why): distance to the map, ≤ σ → ≥ d_max"),
-    ("surface", f"{_ramp(SURFACE_LUT[::64].tolist() + [SURFACE_LUT[-1].tolist()])} likelihood surface (Why), "
-                f"low → high; {_swatch(SURFACE_BEST_COLOR, '◯')} its maximum"),
+    (
+        "residuals",
+        f"{_ramp([RESIDUAL_GOOD.tolist(), RESIDUAL_MID.tolist(), RESIDUAL_BAD.tolist()])} scan residuals "
+        "(Why): distance to the map, ≤ σ → ≥ d_max",
+    ),
+    (
+        "surface",
+        f"{_ramp(SURFACE_LUT[::64].tolist() + [SURFACE_LUT[-1].tolist()])} likelihood surface (Why), "
+        f"low → high; {_swatch(SURFACE_BEST_COLOR, '◯')} its maximum",
+    ),
     ("inspected", f"{_swatch(SELECTED_COLOR, '➜')} the inspected particle (Why)"),
     ("s2m_detail", S2M_DETAIL_LEGEND + " (Why › S2M details)"),
 )
 
-N_EFF_HELP = ("**N_eff share** is how many particles effectively carry the weight. Near 0 % the weights "
-              "have collapsed onto one particle: the weighted std and the 2σ ellipse then shrink to "
-              "nothing although the cloud is still spread (its spread is shown beside the std), so "
-              "neither means certainty. Judge the estimate by the inlier share, the error plots and "
-              "the S2M matches instead.")
+N_EFF_HELP = (
+    "**N_eff share** is how many particles effectively carry the weight. Near 0 % the weights "
+    "have collapsed onto one particle: the weighted std and the 2σ ellipse then shrink to "
+    "nothing although the cloud is still spread (its spread is shown beside the std), so "
+    "neither means certainty. Judge the estimate by the inlier share, the error plots and "
+    "the S2M matches instead."
+)
 
 
 def legend_markdown(has_truth: bool = True) -> str:

@@ -13,11 +13,17 @@ from .plots import Plots
 from .scene import Layers
 from .style import GT_NAME, SPEEDS
 
-LAYER_LABELS = (("map", "Map"), ("map_bev", "Map, road removed"), ("particles", "Particles"),
-                ("scan", "Current scan (green)"), ("s2m", "Last S2M match"),
-                ("trajectories", f"Trajectories ({GT_NAME}: truth, orange: estimate)"),
-                ("vehicles", f"Vehicles ({GT_NAME}: truth, orange: estimate)"),
-                ("ellipse", "2σ ellipse"), ("bev_level", "BEV pyramid level"))
+LAYER_LABELS = (
+    ("map", "Map"),
+    ("map_bev", "Map, road removed"),
+    ("particles", "Particles"),
+    ("scan", "Current scan (green)"),
+    ("s2m", "Last S2M match"),
+    ("trajectories", f"Trajectories ({GT_NAME}: truth, orange: estimate)"),
+    ("vehicles", f"Vehicles ({GT_NAME}: truth, orange: estimate)"),
+    ("ellipse", "2σ ellipse"),
+    ("bev_level", "BEV pyramid level"),
+)
 
 
 @dataclass
@@ -42,8 +48,8 @@ class Controls:
     kidnap_skip: object = None
     kidnap: object = None
     # Parameters
-    params: dict = field(default_factory=dict)      # set_params key → number handle
-    q: list = field(default_factory=list)           # 11 number handles, paper units
+    params: dict = field(default_factory=dict)  # set_params key → number handle
+    q: list = field(default_factory=list)  # 11 number handles, paper units
     s2m_enabled: object = None
     apply: object = None
     # Layers
@@ -59,7 +65,7 @@ class Controls:
 class CameraControls:
     """One tab's camera folder."""
 
-    follow: object = None          # "follow the vehicle" checkbox
+    follow: object = None  # "follow the vehicle" checkbox
     top_down: object = None
     fit: object = None
 
@@ -76,18 +82,21 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
 
     with gui.add_folder("Playback"):
         c.play = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
-        c.step = gui.add_button("Step", icon=viser.Icon.PLAYER_TRACK_NEXT, disabled=True,
-                                hint="Pause and process exactly one scan")
-        c.speed = gui.add_dropdown("Speed (scans/s)", SPEEDS, initial_value=speed,
-                                   hint="Replay clock: at most this many scans per second")
+        c.step = gui.add_button(
+            "Step", icon=viser.Icon.PLAYER_TRACK_NEXT, disabled=True, hint="Pause and process exactly one scan"
+        )
+        c.speed = gui.add_dropdown(
+            "Speed (scans/s)", SPEEDS, initial_value=speed, hint="Replay clock: at most this many scans per second"
+        )
         c.clock = gui.add_dropdown(CLOCK.label, ("replay", "realtime"), initial_value="replay", hint=CLOCK.hint)
         c.seed = gui.add_number("Seed", 0, step=1)
         c.restart = gui.add_button("Restart from scan 0", icon=viser.Icon.REFRESH, disabled=True)
     c.particles_folder = gui.add_folder("Particles")
     with c.particles_folder:
         c.reset = gui.add_button("Reset globally", disabled=True, hint="Re-initialise the particles over the whole map")
-        gui.add_markdown("**Shift+click** the ground: reset around that point.  \n"
-                         "**Shift+drag** a rectangle: reset inside it.")
+        gui.add_markdown(
+            "**Shift+click** the ground: reset around that point.  \n**Shift+drag** a rectangle: reset inside it."
+        )
         c.kidnap_skip = gui.add_number("Kidnap skip (scans)", 100, step=1)
         c.kidnap = gui.add_button("Kidnap", disabled=True, hint="Jump the vehicle ahead without telling the filter")
     with gui.add_folder("Parameters", expand_by_default=False):

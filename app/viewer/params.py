@@ -54,9 +54,9 @@ class ParamForm:
     given: which of them changed, and what they are in SI units."""
 
     def __init__(self, fields: dict, q: list):
-        self.fields = fields            # set_params key → number handle, NUMBER_FIELDS order
-        self.q = q                      # 11 number handles
-        self.applied: dict = {}         # key → display value(s) the localizer has
+        self.fields = fields  # set_params key → number handle, NUMBER_FIELDS order
+        self.q = q  # 11 number handles
+        self.applied: dict = {}  # key → display value(s) the localizer has
 
     def show(self, live: dict) -> None:
         """Put the localizer's current values (``Localizer.live_params()``, SI) in the fields;

@@ -17,13 +17,13 @@ import threading
 import time
 import traceback
 from collections import deque
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
-
 from .style import RATE_WINDOW_S
 
 CLOCKS = ("replay", "realtime")
@@ -56,8 +56,15 @@ class Player:
     ``on_error`` with a one-line message when a step fails (playback then pauses, the thread lives on).
     """
 
-    def __init__(self, localizer: Steppable, on_snapshot: Callable[[Snapshot], None],
-                 on_error: Callable[[str], None], *, speed: float | None = 10.0, clock: str = "replay"):
+    def __init__(
+        self,
+        localizer: Steppable,
+        on_snapshot: Callable[[Snapshot], None],
+        on_error: Callable[[str], None],
+        *,
+        speed: float | None = 10.0,
+        clock: str = "replay",
+    ):
         self._loc = localizer
         self._on_snapshot = on_snapshot
         self._on_error = on_error
@@ -66,13 +73,13 @@ class Player:
         self._steps_pending = 0
         self._busy = False
         self._stopping = False
-        self._speed = speed                      # scans per second in replay; None = as fast as possible
+        self._speed = speed  # scans per second in replay; None = as fast as possible
         self._clock = clock
-        self._anchor: tuple[float, float] | None = None   # (wall time, sequence time) realtime pacing starts from
-        self._last_start: float | None = None    # wall time the previous step started (replay pacing)
-        self.steps_done = 0                      # steps completed since start (any reason)
-        self._finished_at: deque[float] = deque(maxlen=256)   # start times of steps finished while playing
-        self._lag: float | None = None           # realtime: how late the newest step started after its scan arrived
+        self._anchor: tuple[float, float] | None = None  # (wall time, sequence time) realtime pacing starts from
+        self._last_start: float | None = None  # wall time the previous step started (replay pacing)
+        self.steps_done = 0  # steps completed since start (any reason)
+        self._finished_at: deque[float] = deque(maxlen=256)  # start times of steps finished while playing
+        self._lag: float | None = None  # realtime: how late the newest step started after its scan arrived
         self._playing_since: float | None = None  # wall time play() was last pressed
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
 

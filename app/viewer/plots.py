@@ -18,17 +18,17 @@ import numpy as np
 import viser.uplot as uplot
 
 from ...core.config import DEG
-
 from .history import MARKED_EVENTS
 from .style import CURSOR_COLOR, PLOT_MAX_POINTS
 
 # events marked on the curves: (label, colour, the event kinds)
-RUN_MARKS = (("localized", "#5be35b", ("localized",)),
-             ("lost / false positive", "#ff5a5a", ("loss", "false_positive")),
-             ("false fire (truth > 5 m)", "#ff2a2a", ("false_fire",)),
-             ("reset / kidnap / relocalized", "#ffffff", ("reset", "kidnap", "relocalized")))
-S2M_MARKS = (("S2M accepted", "#ff3cff", ("s2m_accepted",)),
-             ("S2M rejected", "#969696", ("s2m_rejected",)))
+RUN_MARKS = (
+    ("localized", "#5be35b", ("localized",)),
+    ("lost / false positive", "#ff5a5a", ("loss", "false_positive")),
+    ("false fire (truth > 5 m)", "#ff2a2a", ("false_fire",)),
+    ("reset / kidnap / relocalized", "#ffffff", ("reset", "kidnap", "relocalized")),
+)
+S2M_MARKS = (("S2M accepted", "#ff3cff", ("s2m_accepted",)), ("S2M rejected", "#969696", ("s2m_rejected",)))
 assert {k for _, _, kinds in RUN_MARKS + S2M_MARKS for k in kinds} == set(MARKED_EVENTS)
 
 
@@ -38,35 +38,65 @@ def _line(label: str, color: str, show: bool = True) -> uplot.Series:
 
 def _marks(marks) -> tuple:
     """Points-only series: no line, a dot per event (NaN elsewhere: nothing drawn)."""
-    return tuple(uplot.Series(label=label, stroke=color, width=0, auto=False,
-                              points={"show": True, "size": 8, "fill": color, "stroke": color})
-                 for label, color, _ in marks)
+    return tuple(
+        uplot.Series(
+            label=label,
+            stroke=color,
+            width=0,
+            auto=False,
+            points={"show": True, "size": 8, "fill": color, "stroke": color},
+        )
+        for label, color, _ in marks
+    )
 
 
 @dataclass
 class PlotSpec:
     key: str
     title: str
-    lines: tuple            # (history series, label, colour, scale factor)
-    marks: tuple            # RUN_MARKS, S2M_MARKS or ()
+    lines: tuple  # (history series, label, colour, scale factor)
+    marks: tuple  # RUN_MARKS, S2M_MARKS or ()
     log: bool = False
     needs_truth: bool = False
 
 
 SPECS = (
-    PlotSpec("std", "Position std, cloud spread and error (m)",
-             (("std", "std, weighted", "#ff5a5a", 1.0), ("spread", "cloud spread", "#ffb347", 1.0),
-              ("error", "error to truth", "#e6e6e6", 1.0)), (), log=True),
-    PlotSpec("error", "Error to truth: along, cross-track, vertical (m)",
-             (("along", "along-track", "#5ab4ff", 1.0), ("cross", "cross-track", "#ffb347", 1.0),
-              ("vertical", "vertical", "#b48cff", 1.0)), RUN_MARKS, needs_truth=True),
-    PlotSpec("heading", "Heading error (°)", (("heading", "heading", "#5ab4ff", 1.0 / DEG),), RUN_MARKS,
-             needs_truth=True),
-    PlotSpec("n_eff", "N_eff share of the particles (%)", (("n_eff_share", "N_eff / N", "#5be35b", 100.0),),
-             RUN_MARKS),
-    PlotSpec("latency", "Latency per scan (ms)",
-             (("pf_ms", "PF", "#ff9620", 1.0), ("rpe_ms", "RPE (KISS-ICP)", "#5ab4ff", 1.0),
-              ("s2m_ms", "S2M", "#ff3cff", 1.0)), S2M_MARKS),
+    PlotSpec(
+        "std",
+        "Position std, cloud spread and error (m)",
+        (
+            ("std", "std, weighted", "#ff5a5a", 1.0),
+            ("spread", "cloud spread", "#ffb347", 1.0),
+            ("error", "error to truth", "#e6e6e6", 1.0),
+        ),
+        (),
+        log=True,
+    ),
+    PlotSpec(
+        "error",
+        "Error to truth: along, cross-track, vertical (m)",
+        (
+            ("along", "along-track", "#5ab4ff", 1.0),
+            ("cross", "cross-track", "#ffb347", 1.0),
+            ("vertical", "vertical", "#b48cff", 1.0),
+        ),
+        RUN_MARKS,
+        needs_truth=True,
+    ),
+    PlotSpec(
+        "heading", "Heading error (°)", (("heading", "heading", "#5ab4ff", 1.0 / DEG),), RUN_MARKS, needs_truth=True
+    ),
+    PlotSpec("n_eff", "N_eff share of the particles (%)", (("n_eff_share", "N_eff / N", "#5be35b", 100.0),), RUN_MARKS),
+    PlotSpec(
+        "latency",
+        "Latency per scan (ms)",
+        (
+            ("pf_ms", "PF", "#ff9620", 1.0),
+            ("rpe_ms", "RPE (KISS-ICP)", "#5ab4ff", 1.0),
+            ("s2m_ms", "S2M", "#ff3cff", 1.0),
+        ),
+        S2M_MARKS,
+    ),
 )
 
 
@@ -112,8 +142,13 @@ class Plots:
         for spec in SPECS:
             series = self._series(spec)
             self.handles[spec.key] = gui.add_uplot(
-                (x,) * len(series), series, title=spec.title, scales=_scales(1, spec.log), aspect=1.6,
-                legend=uplot.Legend(live=False))
+                (x,) * len(series),
+                series,
+                title=spec.title,
+                scales=_scales(1, spec.log),
+                aspect=1.6,
+                legend=uplot.Legend(live=False),
+            )
 
     def _series(self, spec: PlotSpec) -> tuple:
         lines = []
@@ -124,10 +159,17 @@ class Plots:
                 lines.append(_line(lbl, c))
         ref = ()
         if self._ref_label is not None:
-            ref = tuple(uplot.Series(label=f"{lbl} ({self._ref_label})", stroke=c, width=1.5, dash=(6.0, 4.0))
-                        for _, lbl, c, _ in self._ref_lines(spec))
-        cursor = uplot.Series(label="scan on the timeline", stroke=CURSOR_COLOR, width=0, auto=False,
-                              points={"show": True, "size": 11, "fill": CURSOR_COLOR, "stroke": "#000000"})
+            ref = tuple(
+                uplot.Series(label=f"{lbl} ({self._ref_label})", stroke=c, width=1.5, dash=(6.0, 4.0))
+                for _, lbl, c, _ in self._ref_lines(spec)
+            )
+        cursor = uplot.Series(
+            label="scan on the timeline",
+            stroke=CURSOR_COLOR,
+            width=0,
+            auto=False,
+            points={"show": True, "size": 11, "fill": CURSOR_COLOR, "stroke": "#000000"},
+        )
         return (uplot.Series(label="scan"),) + tuple(lines) + _marks(spec.marks) + ref + (cursor,)
 
     def _ref_lines(self, spec: PlotSpec) -> tuple:
@@ -176,12 +218,15 @@ class Plots:
             if spec.needs_truth and not self.has_truth:
                 continue
             ys = [self._on(x, scans, h[key], factor, spec.log, h["std"]) for key, _, _, factor in spec.lines]
-            first = ys[-1] if spec.key == "latency" else ys[0]     # S2M marks sit on the S2M curve
+            first = ys[-1] if spec.key == "latency" else ys[0]  # S2M marks sit on the S2M curve
             ys += [mark_series(x, first, h["marks"], kinds) for _, _, kinds in spec.marks]
             if self._ref_label is not None:
                 for key, _, _, factor in self._ref_lines(spec):
-                    ys.append(self._on(x, ref["scan"], ref[key], factor, spec.log, ref["std"]) if ref is not None
-                              else np.full(len(x), np.nan))
+                    ys.append(
+                        self._on(x, ref["scan"], ref[key], factor, spec.log, ref["std"])
+                        if ref is not None
+                        else np.full(len(x), np.nan)
+                    )
             dot = np.full(len(x), np.nan)
             if cursor is not None:
                 i = int(np.clip(np.searchsorted(x, cursor), 0, len(x) - 1))
@@ -190,8 +235,9 @@ class Plots:
             self.handles[spec.key].data = (x, *ys)
 
     @staticmethod
-    def _on(x: np.ndarray, scans: np.ndarray, values: np.ndarray, factor: float, log: bool,
-            std: np.ndarray) -> np.ndarray:
+    def _on(
+        x: np.ndarray, scans: np.ndarray, values: np.ndarray, factor: float, log: bool, std: np.ndarray
+    ) -> np.ndarray:
         """``values`` (one per scan of ``scans``) at the plotted scans ``x`` (NaN where the run has none)."""
         y = np.full(len(x), np.nan)
         if len(scans):

@@ -10,15 +10,18 @@ import numpy as np
 
 from ...core.rules.truth import truth_alarm as core_truth_alarm
 from ...core.snapshot import Snapshot
-
 from .history import History
 from .legend import legend_markdown
 from .panel import Controls
 from .style import COLLAPSED_N_EFF_SHARE, PLOT_INTERVAL, REALTIME_LATE_S, error_markdown, shorten
 
-BUILD_STAGES = {"starting": "Starting the localizer", "map": "Building the prior map",
-                "lookup": "Building the distance lookup table", "pyramid": "Building the BEV pyramid",
-                "ready": "Ready"}
+BUILD_STAGES = {
+    "starting": "Starting the localizer",
+    "map": "Building the prior map",
+    "lookup": "Building the distance lookup table",
+    "pyramid": "Building the BEV pyramid",
+    "ready": "Ready",
+}
 
 
 AMBER_CSS = "#ffb347"
@@ -100,8 +103,11 @@ def _converged_cell(snap: Snapshot, s2m_ready: bool) -> str:
         return "no"
     if snap.localized:
         return "yes"
-    return "yes — PF only, not confirmed by S2M" if snap.awaiting_confirmation or not s2m_ready else \
-        "yes — the localization rule is not met yet"
+    return (
+        "yes — PF only, not confirmed by S2M"
+        if snap.awaiting_confirmation or not s2m_ready
+        else "yes — the localization rule is not met yet"
+    )
 
 
 def _s2m_cell(snap: Snapshot, s2m: tuple[str, str], finished: bool) -> str:
@@ -117,10 +123,21 @@ def _s2m_cell(snap: Snapshot, s2m: tuple[str, str], finished: bool) -> str:
     return f"{s2m_ms} · {100 * snap.s2m_acceptance:.0f}% accepted{running}"
 
 
-def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: list,
-                    min_inlier_share: float | None = None, *, s2m_enabled: bool = True,
-                    rate: float | None = None, lag_s: float | None = None, next_scan: int | None = None,
-                    playing: bool = False, s2m_status: tuple[str, str] | None = None) -> str:
+def status_markdown(
+    snap: Snapshot,
+    state: str,
+    clock: str,
+    speed: str,
+    events: list,
+    min_inlier_share: float | None = None,
+    *,
+    s2m_enabled: bool = True,
+    rate: float | None = None,
+    lag_s: float | None = None,
+    next_scan: int | None = None,
+    playing: bool = False,
+    s2m_status: tuple[str, str] | None = None,
+) -> str:
     """The status table: scan counter, play state, the localizer's verdict, the filter's figures,
     the scan's confidence and the recent events (newest first). ``speed`` is the replay speed set
     (scans/s; None: not shown); a ``state`` "recorded…" (a scan the timeline shows) names no
@@ -158,8 +175,11 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
     lines += _verdict_lines(snap, s2m)
     share = snap.inlier_share
     if snap.localized and share is not None and min_inlier_share is not None and share < min_inlier_share:
-        lines.append(error_markdown(f"⚠ low confidence: {100 * share:.0f}% of the scan fits the map "
-                                    f"(below {100 * min_inlier_share:.0f}%)"))
+        lines.append(
+            error_markdown(
+                f"⚠ low confidence: {100 * share:.0f}% of the scan fits the map (below {100 * min_inlier_share:.0f}%)"
+            )
+        )
     std = np.asarray(snap.std_xyz, float)
     P = np.asarray(snap.particles)
     spread = P[:, :2].std(axis=0) if len(P) > 1 else np.zeros(2)
@@ -168,8 +188,12 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
     n_eff = f"{100 * snap.n_eff_share:.1f}% ({snap.n_eff:.0f} of {n})"
     if snap.scan_index >= 0 and snap.n_eff_share < COLLAPSED_N_EFF_SHARE:
         n_eff += " · collapsed: see Legend"
-    fit = "–" if share is None else f"{100 * share:.0f}%" + (
-        "" if snap.mean_residual_m is None else f" · mean residual {snap.mean_residual_m:.2f} m")
+    fit = (
+        "–"
+        if share is None
+        else f"{100 * share:.0f}%"
+        + ("" if snap.mean_residual_m is None else f" · mean residual {snap.mean_residual_m:.2f} m")
+    )
     rpe = "–" if snap.rpe_ms is None else f"{snap.rpe_ms:.1f} ms/scan"
     lines += [
         "",
@@ -187,8 +211,10 @@ def status_markdown(snap: Snapshot, state: str, clock: str, speed: str, events: 
     ]
     if events:
         lines += ["", "**Recent events**"]
-        lines += [f"- {e.scan}: {e.kind.replace('_', ' ')}" + (f" — {shorten(e.detail, 60)}" if e.detail else "")
-                  for e in reversed(events)]
+        lines += [
+            f"- {e.scan}: {e.kind.replace('_', ' ')}" + (f" — {shorten(e.detail, 60)}" if e.detail else "")
+            for e in reversed(events)
+        ]
     return "\n".join(lines)
 
 
@@ -199,14 +225,14 @@ class Readouts:
     def __init__(self, controls: Controls, history: History):
         self.c = controls
         self.history = history
-        self._stage: str | None = "starting"     # Localizer construction stage, None once built
+        self._stage: str | None = "starting"  # Localizer construction stage, None once built
         self._frac: float | None = None
         self._failed = False
         self._status_text = ""
         self._plot_version = None
         self._last_plot = 0.0
-        self.cursor: int | None = None          # the scan the timeline shows, marked on the plots
-        self.reference: tuple | None = None     # (label, series) of a second run drawn dashed
+        self.cursor: int | None = None  # the scan the timeline shows, marked on the plots
+        self.reference: tuple | None = None  # (label, series) of a second run drawn dashed
 
     # ------------------------------------------------------------------ start-up
     def building(self, stage, frac=None) -> None:

@@ -19,7 +19,6 @@ import numpy as np
 
 from ...core.runs import recording
 from ...core.snapshot import Snapshot
-
 from .history import MARKED_EVENTS, SERIES, cloud_spread, error_components
 
 #: the events the timeline's previous / next event buttons stop at
@@ -35,7 +34,7 @@ class RecordedRun:
     def __init__(self, path, seq=None, *, live: bool = False):
         self._lock = threading.RLock()
         self.seq = seq
-        self.live = live                 # still being recorded: re-open when asked for more
+        self.live = live  # still being recorded: re-open when asked for more
         self._rec = recording.open(path)
         self.path: Path = self._rec.run_dir
         self.meta = self._rec.meta
@@ -99,7 +98,7 @@ class RecordedRun:
     def events(self) -> list[tuple[int, object]]:
         """(step, Event) of every event of the run, the original's before a branch included."""
         with self._lock:
-            if self.live:          # a button asks: the events up to the newest recorded step
+            if self.live:  # a button asks: the events up to the newest recorded step
                 self.refresh()
             own = [(self.first_step + s if s >= 0 else s, e) for s, e in self._rec.events]
             if self.parent is None:
@@ -121,9 +120,11 @@ class RecordedRun:
             n = self.n if upto is None else min(int(upto), self.n)
             own_n = max(n - self.first_step, 0)
             rec = self._rec
-            own = {"error": rec.field("error_m", rec.n)[:own_n].astype(float),
-                   "localized": rec.field("localized", rec.n)[:own_n].astype(bool),
-                   "pf_ms": rec.field("pf_ms", rec.n)[:own_n].astype(float)}
+            own = {
+                "error": rec.field("error_m", rec.n)[:own_n].astype(float),
+                "localized": rec.field("localized", rec.n)[:own_n].astype(bool),
+                "pf_ms": rec.field("pf_ms", rec.n)[:own_n].astype(float),
+            }
             if self.parent is None or self.first_step == 0:
                 return own
             head = self.parent.columns(min(n, self.first_step))
@@ -137,10 +138,13 @@ class RecordedRun:
             n = self.n if upto is None else min(int(upto), self.n)
             if self.parent is not None and self.first_step > 0:
                 head = self.parent.series(min(n, self.first_step))
-                own = _series(self._rec, max(n - self.first_step, 0), self.first_step,
-                              s2m_before=_last_finite(head["s2m_ms"]))
-                out = {k: (np.concatenate([head[k], own[k]]) if isinstance(own[k], np.ndarray) else head[k] + own[k])
-                       for k in own}
+                own = _series(
+                    self._rec, max(n - self.first_step, 0), self.first_step, s2m_before=_last_finite(head["s2m_ms"])
+                )
+                out = {
+                    k: (np.concatenate([head[k], own[k]]) if isinstance(own[k], np.ndarray) else head[k] + own[k])
+                    for k in own
+                }
                 out["marks"] = head["marks"] + own["marks"]
                 return out
             return _series(self._rec, n, 0)
@@ -155,8 +159,15 @@ def _series(rec: recording.Recording, n: int, offset: int, s2m_before: float = n
     """:meth:`RecordedRun.series` of one recording's first ``n`` steps (global steps from ``offset``)."""
     out: dict = {"step": np.arange(offset, offset + n, dtype=np.int64)}
     if n == 0:
-        out.update({"scan": np.zeros(0, np.int64), "est": np.zeros((0, 3), np.float32),
-                    "gt": np.zeros((0, 3), np.float32), "localized": np.zeros(0, bool), "marks": []})
+        out.update(
+            {
+                "scan": np.zeros(0, np.int64),
+                "est": np.zeros((0, 3), np.float32),
+                "gt": np.zeros((0, 3), np.float32),
+                "localized": np.zeros(0, bool),
+                "marks": [],
+            }
+        )
         out.update({name: np.zeros(0) for name in SERIES})
         return out
     scan = rec.field("scan_index", rec.n)[:n]

@@ -15,13 +15,12 @@ from __future__ import annotations
 import datetime as _dt
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from ...core.cache import default_cache_root
 from ...core.errors import LidarlocError
 from ...core.runs.recording import RecordingWriter
-
 from .recorded import RecordedRun
 
 
@@ -47,8 +46,7 @@ class Recorder:
     ``spec``: the source options the localizer's sequence was opened with (the recording names
     them, so that the run can be reopened); ``on_failure(message)``: writing stopped."""
 
-    def __init__(self, root: Path, spec, preset: str | None = None,
-                 on_failure: Callable[[str], None] | None = None):
+    def __init__(self, root: Path, spec, preset: str | None = None, on_failure: Callable[[str], None] | None = None):
         self.root = Path(root)
         self.spec = spec
         self.preset = preset
@@ -56,7 +54,7 @@ class Recorder:
         self._on_failure = on_failure or (lambda message: None)
         self.writer: RecordingWriter | None = None
         self.run: RecordedRun | None = None
-        self.runs: list[Path] = []        # every run folder started, oldest first
+        self.runs: list[Path] = []  # every run folder started, oldest first
         self._t0 = 0.0
         self._loc = None
 
@@ -79,8 +77,9 @@ class Recorder:
         with self.lock:
             self.close(None)
             path = _unique(self.root / name)
-            self.writer = RecordingWriter(path, self.spec, loc.cfg, loc.seq, preset=self.preset,
-                                          branch_of=branch_of, first_step=first_step)
+            self.writer = RecordingWriter(
+                path, self.spec, loc.cfg, loc.seq, preset=self.preset, branch_of=branch_of, first_step=first_step
+            )
             if branch_of is not None:
                 from ...core.runs.branch import continue_recording
 
@@ -128,7 +127,7 @@ class Recorder:
                 summary = self._summary()
             try:
                 w.close(summary)
-            except LidarlocError as exc:     # the writing thread failed after the last step
+            except LidarlocError as exc:  # the writing thread failed after the last step
                 self._on_failure(f"recording stopped: {exc}")
             if summary is not None and self.run is not None:
                 import json

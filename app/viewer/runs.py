@@ -22,10 +22,9 @@ from pathlib import Path
 import viser
 from rich.console import Console
 
-from ...core.runs import recording
 from ...core.config import LIVE_PARAMS
 from ...core.errors import LidarlocError
-
+from ...core.runs import recording
 from .recorded import RecordedRun
 from .recorder import Recorder, default_record_root
 from .serve import ViewerHandle, release_at_exit
@@ -44,7 +43,7 @@ def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> t
         raise recording.RecordingError(f"{rec.path}: the recording has no complete step")
     cfg = rec.config()
     if seq is None:
-        seq = rec.open_sequence()          # checks the source first: one line naming the moved path
+        seq = rec.open_sequence()  # checks the source first: one line naming the moved path
     world = open_world(seq.map_source, cfg, cache_root, pyramid=False, road_removal=False, progress=progress)
     prior_map, lookup = world.prior_map, world.lookup
     use_origin = getattr(seq, "use_map_origin", None)
@@ -54,8 +53,7 @@ def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> t
 
 
 def _same_sequence(a: RecordedRun, b: RecordedRun) -> bool:
-    return (a.meta.get("source") == b.meta.get("source")
-            and a.meta.get("n_source_scans") == b.meta.get("n_source_scans"))
+    return a.meta.get("source") == b.meta.get("source") and a.meta.get("n_source_scans") == b.meta.get("n_source_scans")
 
 
 def show_runs(viewer, run: RecordedRun, context: RunContext, other: RecordedRun | None = None) -> None:
@@ -76,7 +74,7 @@ def show_runs(viewer, run: RecordedRun, context: RunContext, other: RecordedRun 
         v.controls.seed.value = int(cfg.seed)
     v._mark_pending()
     v.controls.play.label, v.controls.play.icon = "Play", viser.Icon.PLAYER_PLAY
-    v.controls.play.disabled = v.controls.step.disabled = False      # they play the timeline
+    v.controls.play.disabled = v.controls.step.disabled = False  # they play the timeline
     v.why.attach(context)
     v.history.load(run.series(), run.events())
     v.readouts.built()
@@ -88,8 +86,14 @@ def show_runs(viewer, run: RecordedRun, context: RunContext, other: RecordedRun 
     v.wake()
 
 
-def open_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: Path | None = None,
-              open_browser: bool = False, record_to: Path | None = None) -> ViewerHandle:
+def open_runs(
+    run_dirs,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    cache_root: Path | None = None,
+    open_browser: bool = False,
+    record_to: Path | None = None,
+) -> ViewerHandle:
     """Start a viewer on one or two recorded runs and return at once (the runs are read first: a
     bad folder or a moved source raises before any server starts)."""
     from .app import Viewer
@@ -106,15 +110,23 @@ def open_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: P
         if other.n == 0:
             raise recording.RecordingError(f"{other.rec.path}: the recording has no complete step")
         if not _same_sequence(run, other):
-            raise LidarlocError(f"{dirs[1]} is a run of another sequence than {dirs[0]} "
-                                f"({other.rec.meta.get('source_description')} vs {run.meta.get('source_description')})")
+            raise LidarlocError(
+                f"{dirs[1]} is a run of another sequence than {dirs[0]} "
+                f"({other.rec.meta.get('source_description')} vs {run.meta.get('source_description')})"
+            )
     server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
     try:
         viewer = Viewer(server, autoplay=False)
         viewer.cache_root = cache_root
         root = record_to if record_to is not None else default_record_root(cache_root)
-        viewer.travel.record_with(Recorder(root, run.rec.source_spec(), run.meta.get("preset"),
-                                           on_failure=lambda m: viewer.show_message(m, error=True, everyone=True)))
+        viewer.travel.record_with(
+            Recorder(
+                root,
+                run.rec.source_spec(),
+                run.meta.get("preset"),
+                on_failure=lambda m: viewer.show_message(m, error=True, everyone=True),
+            )
+        )
         show_runs(viewer, run, context, other)
     except BaseException:
         server.stop()
@@ -127,8 +139,14 @@ def open_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: P
     return handle
 
 
-def serve_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: Path | None = None,
-               open_browser: bool = False, console: Console | None = None) -> None:
+def serve_runs(
+    run_dirs,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    cache_root: Path | None = None,
+    open_browser: bool = False,
+    console: Console | None = None,
+) -> None:
     """``lidarloc view --run DIR [--run DIR2]``: serve recorded runs until Ctrl-C."""
     console = console or Console(stderr=True)
     stop = threading.Event()
@@ -137,8 +155,13 @@ def serve_runs(run_dirs, host: str = "127.0.0.1", port: int = 8080, cache_root: 
         handle = open_runs(run_dirs, host, port, cache_root, open_browser)
         console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
         run = handle.viewer.travel.timeline.run
-        console.print(f"showing {run.n} recorded scans of {run.path}; branches are recorded under "
-                      f"{handle.viewer.travel.recorder.root}", markup=False, highlight=False, soft_wrap=True)
+        console.print(
+            f"showing {run.n} recorded scans of {run.path}; branches are recorded under "
+            f"{handle.viewer.travel.recorder.root}",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
         try:
             stop.wait()
         finally:

@@ -24,20 +24,20 @@ ROOT = "/s2m_detail"
 
 # Hues the rest of the scene does not use (style.py: green scan, magenta / grey S2M scan, cyan
 # best particle, red ellipse and particles, lime truth, orange estimate, yellow BEV, blue map).
-CANDIDATE_COLOR = (150, 100, 255)    # violet: the poses the search scored
-WINNER_COLOR = (225, 210, 255)       # pale violet, drawn bigger: the best of them, the 2D match
-START_COLOR = (255, 105, 180)        # pink: the particle's pose the match started from
-REFINED_COLOR = (110, 255, 215)      # aquamarine: GICP's pose (and the line from the 2D match),
-                                     # ringed where the match was carried forward to
+CANDIDATE_COLOR = (150, 100, 255)  # violet: the poses the search scored
+WINNER_COLOR = (225, 210, 255)  # pale violet, drawn bigger: the best of them, the 2D match
+START_COLOR = (255, 105, 180)  # pink: the particle's pose the match started from
+REFINED_COLOR = (110, 255, 215)  # aquamarine: GICP's pose (and the line from the 2D match),
+# ringed where the match was carried forward to
 
-CANDIDATE_ARROW = 1.5        # m, length of a candidate's arrow …
-CANDIDATE_WIDTH = 0.06       # m, … and its shaft radius
+CANDIDATE_ARROW = 1.5  # m, length of a candidate's arrow …
+CANDIDATE_WIDTH = 0.06  # m, … and its shaft radius
 WINNER_ARROW = 3.0
 WINNER_WIDTH = 0.15
-POSE_ARROW = 2.5             # the start, GICP and carried-forward poses
+POSE_ARROW = 2.5  # the start, GICP and carried-forward poses
 POSE_WIDTH = 0.1
-RING_RADIUS = 1.2            # m, around the carried-forward pose
-LIFT = 0.05                  # m above the plane of the search, so the arrows do not flicker in it
+RING_RADIUS = 1.2  # m, around the carried-forward pose
+LIFT = 0.05  # m above the plane of the search, so the arrows do not flicker in it
 
 
 def _arrows(xy: np.ndarray, yaw: np.ndarray, z, length: float) -> np.ndarray:
@@ -85,8 +85,8 @@ class S2MDetailView:
         self._lock = threading.Lock()
         self._root = None
         self._handles: dict[str, object] = {}
-        self._shown: S2MView | None = None     # the view the scene holds
-        self._pending: S2MView | None = None   # the newest view asked for (drawn once visible)
+        self._shown: S2MView | None = None  # the view the scene holds
+        self._pending: S2MView | None = None  # the newest view asked for (drawn once visible)
         self._visible = True
 
     # ---------------------------------------------------------------------------- public
@@ -127,7 +127,7 @@ class S2MDetailView:
     # ---------------------------------------------------------------------------- drawing
     def _clear_locked(self) -> None:
         if self._root is not None:
-            self._root.remove()          # removes every child with it
+            self._root.remove()  # removes every child with it
         self._root = None
         self._handles = {}
         self._shown = None
@@ -142,11 +142,13 @@ class S2MDetailView:
                 old.remove()
             return
         if width > 0:
-            self._handles[full] = self.scene.add_arrows(full, points, color, shaft_radius=width,
-                                                        head_radius=2.5 * width, head_length=6.0 * width)
+            self._handles[full] = self.scene.add_arrows(
+                full, points, color, shaft_radius=width, head_radius=2.5 * width, head_length=6.0 * width
+            )
         else:
-            self._handles[full] = self.scene.add_line_segments(full, points, color, thickness=2.0,
-                                                               thickness_units="screen")
+            self._handles[full] = self.scene.add_line_segments(
+                full, points, color, thickness=2.0, thickness_units="screen"
+            )
 
     def _build_locked(self, view: S2MView) -> None:
         if self._root is None:
@@ -167,20 +169,46 @@ class S2MDetailView:
             lo, hi = c[1:, 3].min(), c[0, 3]
             t = np.clip((c[1:, 3] - lo) / max(hi - lo, 1e-9), 0.0, 1.0)[:, None]
             others = ((0.45 + 0.55 * t) * np.asarray(CANDIDATE_COLOR, float)).astype(np.uint8)
-        self._put("candidates", _arrows(c[1:, :2], c[1:, 2], plane_z, CANDIDATE_ARROW) if len(c) > 1 else None,
-                  others, CANDIDATE_WIDTH)
-        self._put("winner", _arrows(c[:1, :2], c[:1, 2], plane_z + LIFT, WINNER_ARROW) if len(c) else None,
-                  WINNER_COLOR, WINNER_WIDTH)
-        self._put("start", None if start is None else _arrows(start[:2], start[3], start[2], POSE_ARROW),
-                  START_COLOR, POSE_WIDTH)
-        self._put("refined", None if refined is None else _arrows(refined[:2], refined[3], refined[2], POSE_ARROW),
-                  REFINED_COLOR, POSE_WIDTH)
-        self._put("refine_line", None if refined is None or match is None else
-                  np.array([[match[:3], refined[:3]]], np.float32), REFINED_COLOR)
-        self._put("carried", None if carried is None else _arrows(carried[:2], carried[3], carried[2], POSE_ARROW),
-                  REFINED_COLOR, POSE_WIDTH)
-        self._put("carried_ring", None if carried is None else _ring(carried[0], carried[1], carried[2]).astype(
-            np.float32), REFINED_COLOR)
+        self._put(
+            "candidates",
+            _arrows(c[1:, :2], c[1:, 2], plane_z, CANDIDATE_ARROW) if len(c) > 1 else None,
+            others,
+            CANDIDATE_WIDTH,
+        )
+        self._put(
+            "winner",
+            _arrows(c[:1, :2], c[:1, 2], plane_z + LIFT, WINNER_ARROW) if len(c) else None,
+            WINNER_COLOR,
+            WINNER_WIDTH,
+        )
+        self._put(
+            "start",
+            None if start is None else _arrows(start[:2], start[3], start[2], POSE_ARROW),
+            START_COLOR,
+            POSE_WIDTH,
+        )
+        self._put(
+            "refined",
+            None if refined is None else _arrows(refined[:2], refined[3], refined[2], POSE_ARROW),
+            REFINED_COLOR,
+            POSE_WIDTH,
+        )
+        self._put(
+            "refine_line",
+            None if refined is None or match is None else np.array([[match[:3], refined[:3]]], np.float32),
+            REFINED_COLOR,
+        )
+        self._put(
+            "carried",
+            None if carried is None else _arrows(carried[:2], carried[3], carried[2], POSE_ARROW),
+            REFINED_COLOR,
+            POSE_WIDTH,
+        )
+        self._put(
+            "carried_ring",
+            None if carried is None else _ring(carried[0], carried[1], carried[2]).astype(np.float32),
+            REFINED_COLOR,
+        )
         self._root.visible = self._visible
         self._shown = view
 
@@ -191,10 +219,12 @@ def _swatch(rgb, glyph: str = "➜") -> str:
 
 
 #: What each colour of this view means, for the panel beside the table.
-LEGEND_MARKDOWN = (f"{_swatch(WINNER_COLOR)} best pose of the search (the 2D match) · "
-                   f"{_swatch(CANDIDATE_COLOR)} the next best it scored (dimmer: lower score) · "
-                   f"{_swatch(START_COLOR)} start (the particle) · "
-                   f"{_swatch(REFINED_COLOR)} after GICP, ringed where it was carried forward to")
+LEGEND_MARKDOWN = (
+    f"{_swatch(WINNER_COLOR)} best pose of the search (the 2D match) · "
+    f"{_swatch(CANDIDATE_COLOR)} the next best it scored (dimmer: lower score) · "
+    f"{_swatch(START_COLOR)} start (the particle) · "
+    f"{_swatch(REFINED_COLOR)} after GICP, ringed where it was carried forward to"
+)
 
 
 def _num(v: float, fmt: str = ".0f") -> str:
@@ -222,15 +252,16 @@ def verdict_text(view: S2MView) -> str:
     if not view.accepted:
         return f"**rejected**: {view.reason or 'no reason given'}"
     if view.stage == "refined_start":
-        why = (f"no pose of the search beat the start ({_num(view.start_score)}), the start refined by GICP "
-               f"scored {_num(view.score)}")
+        why = (
+            f"no pose of the search beat the start ({_num(view.start_score)}), the start refined by GICP "
+            f"scored {_num(view.score)}"
+        )
     elif math.isfinite(view.start_score):
         why = f"the 2D match scored {_num(view.score)} > the start's {_num(view.start_score)}"
     else:
         why = f"the best pose of the whole map scored {_num(view.score)}"
     if len(view.gicp_correction) == 2:
-        why += (f"; GICP kept it local ({view.gicp_correction[0]:.2f} m, "
-                f"{math.degrees(view.gicp_correction[1]):.1f}°)")
+        why += f"; GICP kept it local ({view.gicp_correction[0]:.2f} m, {math.degrees(view.gicp_correction[1]):.1f}°)"
     return f"**accepted**: {why}"
 
 
@@ -242,8 +273,11 @@ def s2m_detail_markdown(view: S2MView | None) -> str:
     mode = {"global": "whole map", "local": "around the particle"}.get(view.mode, view.mode or "–")
     c = np.asarray(view.candidates, float).reshape(-1, 4)
     nodes = view.nodes_per_level
-    nodes_text = (" · ".join(f"L{lv} {n}" for lv, n in enumerate(nodes) if n) or "none") + f" (total {sum(nodes)})" \
-        if nodes else "–"
+    nodes_text = (
+        (" · ".join(f"L{lv} {n}" for lv, n in enumerate(nodes) if n) or "none") + f" (total {sum(nodes)})"
+        if nodes
+        else "–"
+    )
     best = " · ".join(_num(s) for s in c[:, 3]) if len(c) else "–"
     start = _xyyaw(view.start_pose)
     match = _xyyaw(view.match_pose)
@@ -251,8 +285,10 @@ def s2m_detail_markdown(view: S2MView | None) -> str:
     if refined is not None:
         moved, turned = (view.gicp_correction + (math.nan, math.nan))[:2]
         source = "the start" if view.stage == "refined_start" else "2D match"
-        gicp = (f"{source} {_pose_text(match)} → {_pose_text(refined)}: moved {_num(moved, '.2f')} m, "
-                f"turned {_num(math.degrees(turned), '.1f')}°")
+        gicp = (
+            f"{source} {_pose_text(match)} → {_pose_text(refined)}: moved {_num(moved, '.2f')} m, "
+            f"turned {_num(math.degrees(turned), '.1f')}°"
+        )
         fitness = "–" if view.gicp_fitness is None else f"{100 * view.gicp_fitness:.0f} %"
     else:
         gicp, fitness = "not run", "–"
@@ -260,9 +296,15 @@ def s2m_detail_markdown(view: S2MView | None) -> str:
         ("scans", f"started {view.started_at} → landed {view.landed_at}, {view.ms:.0f} ms"),
         ("search", f"{mode}, {_num(x1 - x0)} × {_num(y1 - y0)} m from {_pose_text(start)}"),
         ("nodes expanded", nodes_text),
-        ("best scores", f"{best} (start {_num(view.start_score)})" + (
-            f"; only {len(c)} scored at the finest level, the rest pruned higher up"
-            if 0 < len(c) < N_CANDIDATES else "")),
+        (
+            "best scores",
+            f"{best} (start {_num(view.start_score)})"
+            + (
+                f"; only {len(c)} scored at the finest level, the rest pruned higher up"
+                if 0 < len(c) < N_CANDIDATES
+                else ""
+            ),
+        ),
         ("GICP", gicp),
         ("GICP fitness", fitness),
         (f"carried to scan {view.landed_at}", _carried_text(view)),

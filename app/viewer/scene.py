@@ -11,14 +11,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...core.snapshot import Snapshot
-
 from .ground import GroundHeight
 from .history import History
-from .shapes import (ChunkedPolyline, downsample_for_display, log_weight_rank, quat_wxyz_from_matrix,
-                     snapshot_log_weights, vehicle_outline)
-from .style import (BEST_COLOR, BEV_COLOR, DISPLAY_MAX_POINTS, DISPLAY_VOXEL, ELLIPSE_COLOR, EST_COLOR, GT_COLOR,
-                    PARTICLE_ARROW_MAX, PARTICLE_ARROW_MIN, PARTICLE_HIGH, PARTICLE_LOW, RESET_COLOR,
-                    S2M_ACCEPTED_COLOR, S2M_REJECTED_COLOR, SCAN_COLOR, height_colors, shorten)
+from .scene_map import MapLayers
+from .shapes import (
+    ChunkedPolyline,
+    log_weight_rank,
+    quat_wxyz_from_matrix,
+    snapshot_log_weights,
+    vehicle_outline,
+)
+from .style import (
+    BEST_COLOR,
+    DISPLAY_VOXEL,
+    ELLIPSE_COLOR,
+    EST_COLOR,
+    GT_COLOR,
+    PARTICLE_ARROW_MAX,
+    PARTICLE_ARROW_MIN,
+    PARTICLE_HIGH,
+    PARTICLE_LOW,
+    RESET_COLOR,
+    S2M_ACCEPTED_COLOR,
+    S2M_REJECTED_COLOR,
+    SCAN_COLOR,
+    shorten,
+)
 
 
 # --------------------------------------------------------------------------------------- scene
@@ -35,7 +53,7 @@ class Layers:
     ellipse: bool = True
 
 
-class SceneView:
+class SceneView(MapLayers):
     """Every 3D node the viewer shows, on the server-wide scene (shared by all tabs).
 
     The display thread draws while GUI callbacks (layer toggles, BEV level) run on viser's
@@ -65,10 +83,23 @@ class SceneView:
         self.display_voxel = DISPLAY_VOXEL
 
     #: the names :meth:`node` answers to, and the attribute holding each node
-    _NODES = {"map": "_map", "map_bev": "_map_bev", "bev_level": "_bev_image", "particles": "_particles",
-              "particle_dots": "_particle_dots", "best": "_best", "ellipse": "_ellipse", "scan": "_scan",
-              "pose": "_est_frame", "est_vehicle": "_est_vehicle", "gt_vehicle": "_gt_vehicle", "s2m_scan": "_s2m_scan", "s2m_region": "_s2m_box", "s2m_label": "_s2m_label",
-              "reset_area": "_reset_hint"}
+    _NODES = {
+        "map": "_map",
+        "map_bev": "_map_bev",
+        "bev_level": "_bev_image",
+        "particles": "_particles",
+        "particle_dots": "_particle_dots",
+        "best": "_best",
+        "ellipse": "_ellipse",
+        "scan": "_scan",
+        "pose": "_est_frame",
+        "est_vehicle": "_est_vehicle",
+        "gt_vehicle": "_gt_vehicle",
+        "s2m_scan": "_s2m_scan",
+        "s2m_region": "_s2m_box",
+        "s2m_label": "_s2m_label",
+        "reset_area": "_reset_hint",
+    }
 
     def node(self, name: str):
         """The viser handle of one drawn node (``"map"``, ``"particles"``, ``"scan"``, ``"s2m_label"``,
@@ -80,92 +111,22 @@ class SceneView:
         """(pyramid, level) of the BEV level image on the ground; (None, None) before one is shown."""
         return self._pyramid, self._bev_level_shown
 
-    # -------------------------------------------------------------------- static content
-    def set_map(self, prior_map, voxel: float = DISPLAY_VOXEL, max_points: int = DISPLAY_MAX_POINTS) -> None:
-        """The map, down-sampled for display and coloured by height; sent once (static scene state).
-        float32 positions: viser's default float16 is off by ~0.25 m a few hundred metres out."""
-        with self._lock:
-            self._set_map(prior_map, voxel, max_points)
-
-    def _set_map(self, prior_map, voxel: float, max_points: int) -> None:
-        pts, self.display_voxel = downsample_for_display(prior_map.points, max(voxel, prior_map.voxel_size), max_points)
-        self._map = self.scene.add_point_cloud(
-            "/map/full", pts, height_colors(pts[:, 2]), point_size=self.display_voxel * 0.8, precision="float32",
-            point_shape="square", point_shading="flat", visible=self.layers.map)
-        self._max_points = max_points
-        self._map_bev = None
-        if prior_map.points_bev is not None:      # else it is still being built: set_map_bev adds it
-            self._set_map_bev(prior_map.points_bev)
-        self.ground = GroundHeight(pts)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        self.map_center = (lo + hi) / 2.0
-        self.map_center[2] = self.ground.z_default
-        self.map_extent = float(max(hi[0] - lo[0], hi[1] - lo[1], 20.0))
-
-    @property
-    def has_map_bev(self) -> bool:
-        """Whether the road-removed map is drawn (it can arrive after the map: see set_map_bev)."""
-        return self._map_bev is not None
-
-    def set_map_bev(self, points_bev) -> None:
-        """The road-removed map, when it was built after the map was shown (a first start: road
-        removal runs in the background while the filter already plays)."""
-        with self._lock:
-            if self._map_bev is None:
-                self._set_map_bev(points_bev)
-
-    def _set_map_bev(self, points_bev) -> None:
-        bev, _ = downsample_for_display(points_bev, self.display_voxel, self._max_points)
-        self._map_bev = self.scene.add_point_cloud(
-            "/map/road_removed", bev, height_colors(bev[:, 2]), point_size=self.display_voxel * 0.8,
-            precision="float32", point_shape="square", point_shading="flat", visible=self.layers.map_bev)
-
-    def set_pyramid(self, pyramid, level: int) -> None:
-        """Show one BEV pyramid level as a flat image on the ground (cells with map points in
-        yellow, the paper's colour, brighter for larger values; empty cells transparent)."""
-        if pyramid is None:
-            return
-        with self._lock:
-            self._set_pyramid(pyramid, level)
-
-    def _set_pyramid(self, pyramid, level: int) -> None:
-        level = int(np.clip(level, 0, len(pyramid.levels) - 1))
-        if pyramid is self._pyramid and level == self._bev_level_shown:
-            return
-        grid = np.asarray(pyramid.levels[level], np.float32)        # [ix, iy]
-        cell = pyramid.resolution * 2 ** level
-        vmax = float(grid.max()) if grid.size and grid.max() > 0 else 1.0
-        value = np.clip(grid / vmax, 0, 1)
-        # image rows run top (max y) to bottom, columns along +x
-        value = value.T[::-1]
-        rgba = np.zeros(value.shape + (4,), np.uint8)
-        rgba[..., :3] = BEV_COLOR
-        rgba[..., 3] = np.where(value > 0, (90 + 140 * np.sqrt(value)).astype(np.uint8), 0)
-        nx, ny = grid.shape
-        x0, y0 = (float(v) for v in pyramid.origin)
-        w, h = nx * cell, ny * cell
-        z = (self.ground.z_default if self.ground is not None else 0.0) - 0.3
-        if self._bev_image is not None:
-            self._bev_image.remove()
-        # Nearest-neighbour look: upsample small levels so the image filter keeps the cells crisp.
-        rep = max(1, int(np.ceil(256 / max(value.shape))))
-        if rep > 1:
-            rgba = np.repeat(np.repeat(rgba, rep, axis=0), rep, axis=1)
-        self._bev_image = self.scene.add_image(
-            "/map/bev_level", rgba, w, h, format="png", position=(x0 + w / 2, y0 + h / 2, z),
-            cast_shadow=False, receive_shadow=False, visible=self.layers.bev_level)
-        self._pyramid, self._bev_level_shown = pyramid, level
-
     def set_layer(self, name: str, visible: bool) -> None:
         with self._lock:
             self._set_layer(name, visible)
 
     def _set_layer(self, name: str, visible: bool) -> None:
         setattr(self.layers, name, visible)
-        nodes = {"map": [self._map], "map_bev": [self._map_bev], "bev_level": [self._bev_image],
-                 "particles": [self._particles, self._particle_dots, self._best],
-                 "scan": [self._scan, self._est_frame], "s2m": [self._s2m_scan, self._s2m_box, self._s2m_label],
-                 "vehicles": [self._est_vehicle, self._gt_vehicle], "ellipse": [self._ellipse]}.get(name, [])
+        nodes = {
+            "map": [self._map],
+            "map_bev": [self._map_bev],
+            "bev_level": [self._bev_image],
+            "particles": [self._particles, self._particle_dots, self._best],
+            "scan": [self._scan, self._est_frame],
+            "s2m": [self._s2m_scan, self._s2m_box, self._s2m_label],
+            "vehicles": [self._est_vehicle, self._gt_vehicle],
+            "ellipse": [self._ellipse],
+        }.get(name, [])
         for node in nodes:
             if node is not None:
                 # a node with nothing to show (no match yet in this run, no truth) stays hidden
@@ -210,12 +171,19 @@ class SceneView:
                 c = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32)
             else:
                 th = np.linspace(0, 2 * np.pi, 49)[:-1]
-                c = np.stack([center[0] + radius * np.cos(th), center[1] + radius * np.sin(th),
-                              np.full_like(th, center[2] if len(center) > 2 else z)], axis=1).astype(np.float32)
+                c = np.stack(
+                    [
+                        center[0] + radius * np.cos(th),
+                        center[1] + radius * np.sin(th),
+                        np.full_like(th, center[2] if len(center) > 2 else z),
+                    ],
+                    axis=1,
+                ).astype(np.float32)
             segs = np.stack([c, np.roll(c, -1, axis=0)], axis=1)
             if self._reset_hint is None:
-                self._reset_hint = self.scene.add_line_segments("/reset_area", segs, RESET_COLOR, thickness=3.0,
-                                                                thickness_units="screen")
+                self._reset_hint = self.scene.add_line_segments(
+                    "/reset_area", segs, RESET_COLOR, thickness=3.0, thickness_units="screen"
+                )
             else:
                 self._reset_hint.points = segs
                 self._reset_hint.visible = True
@@ -256,16 +224,30 @@ class SceneView:
         c = (PARTICLE_LOW + (PARTICLE_HIGH - PARTICLE_LOW) * rank).astype(np.uint8)
         colors = np.repeat(c[:, None, :], 2, axis=1)
         vis = self.layers.particles
-        self._node("_particles",
-                   lambda v: self.scene.add_line_segments("/particles/headings", segs, colors, thickness=2.0,
-                                                          thickness_units="screen", visible=v),
-                   lambda h: self._set(h, points=segs, colors=colors), vis)
+        self._node(
+            "_particles",
+            lambda v: self.scene.add_line_segments(
+                "/particles/headings", segs, colors, thickness=2.0, thickness_units="screen", visible=v
+            ),
+            lambda h: self._set(h, points=segs, colors=colors),
+            vis,
+        )
         dots_c = c
-        self._node("_particle_dots",
-                   lambda v: self.scene.add_point_cloud("/particles/positions", xyz, dots_c, point_size=0.6,
-                                                        precision="float32", point_shape="circle",
-                                                        point_shading="flat", visible=v),
-                   lambda h: self._set(h, points=xyz, colors=dots_c), vis)
+        self._node(
+            "_particle_dots",
+            lambda v: self.scene.add_point_cloud(
+                "/particles/positions",
+                xyz,
+                dots_c,
+                point_size=0.6,
+                precision="float32",
+                point_shape="circle",
+                point_shading="flat",
+                visible=v,
+            ),
+            lambda h: self._set(h, points=xyz, colors=dots_c),
+            vis,
+        )
         # the highest-weight particle: a big cyan arrow (shaft and two barbs)
         b = int(snap.best_index) if 0 <= snap.best_index < len(P) else int(np.argmax(w))
         p, hd = xyz[b], head[b]
@@ -273,10 +255,14 @@ class SceneView:
         L = 8.0
         t = p + hd * L
         best = np.array([[p, t], [t, t - hd * 2.5 + side * 1.5], [t, t - hd * 2.5 - side * 1.5]], np.float32)
-        self._node("_best",
-                   lambda v: self.scene.add_line_segments("/particles/best", best, BEST_COLOR, thickness=4.0,
-                                                          thickness_units="screen", visible=v),
-                   lambda h: self._set(h, points=best), vis)
+        self._node(
+            "_best",
+            lambda v: self.scene.add_line_segments(
+                "/particles/best", best, BEST_COLOR, thickness=4.0, thickness_units="screen", visible=v
+            ),
+            lambda h: self._set(h, points=best),
+            vis,
+        )
 
     def _draw_ellipse(self, snap: Snapshot) -> None:
         a, bb, ang = (float(v) for v in snap.ellipse_xy)
@@ -287,13 +273,18 @@ class SceneView:
         th = np.linspace(0, 2 * np.pi, n + 1)
         ca, sa = math.cos(ang), math.sin(ang)
         ex, ey = a * np.cos(th), bb * np.sin(th)
-        pts = np.stack([center[0] + ca * ex - sa * ey, center[1] + sa * ex + ca * ey,
-                        np.full_like(th, center[2])], axis=1).astype(np.float32)
-        segs = np.stack([pts[:-1], pts[1:]], axis=1)[::2]     # every other piece: the paper's dotted circle
-        self._node("_ellipse",
-                   lambda v: self.scene.add_line_segments("/estimate/ellipse_2sigma", segs, ELLIPSE_COLOR,
-                                                          thickness=2.5, thickness_units="screen", visible=v),
-                   lambda h: self._set(h, points=segs), self.layers.ellipse)
+        pts = np.stack(
+            [center[0] + ca * ex - sa * ey, center[1] + sa * ex + ca * ey, np.full_like(th, center[2])], axis=1
+        ).astype(np.float32)
+        segs = np.stack([pts[:-1], pts[1:]], axis=1)[::2]  # every other piece: the paper's dotted circle
+        self._node(
+            "_ellipse",
+            lambda v: self.scene.add_line_segments(
+                "/estimate/ellipse_2sigma", segs, ELLIPSE_COLOR, thickness=2.5, thickness_units="screen", visible=v
+            ),
+            lambda h: self._set(h, points=segs),
+            self.layers.ellipse,
+        )
 
     def _draw_scan(self, snap: Snapshot) -> None:
         pts = np.asarray(snap.scan_world, np.float32).reshape(-1, 3)
@@ -302,15 +293,31 @@ class SceneView:
             if self._scan is not None:
                 self._scan.visible = False
         else:
-            self._node("_scan",
-                       lambda v: self.scene.add_point_cloud("/estimate/scan", pts, SCAN_COLOR, point_size=0.25,
-                                                            precision="float32", point_shading="flat", visible=v),
-                       lambda h: self._set(h, points=pts, visible=self.layers.scan), self.layers.scan)
+            self._node(
+                "_scan",
+                lambda v: self.scene.add_point_cloud(
+                    "/estimate/scan",
+                    pts,
+                    SCAN_COLOR,
+                    point_size=0.25,
+                    precision="float32",
+                    point_shading="flat",
+                    visible=v,
+                ),
+                lambda h: self._set(h, points=pts, visible=self.layers.scan),
+                self.layers.scan,
+            )
         if np.isfinite(T).all():
             wxyz, pos = quat_wxyz_from_matrix(T[:3, :3]), T[:3, 3]
             if self._est_frame is None:
-                self._est_frame = self.scene.add_frame("/estimate/pose", wxyz=wxyz, position=pos, axes_length=3.0,
-                                                       axes_radius=0.15, visible=self.layers.scan)
+                self._est_frame = self.scene.add_frame(
+                    "/estimate/pose",
+                    wxyz=wxyz,
+                    position=pos,
+                    axes_length=3.0,
+                    axes_radius=0.15,
+                    visible=self.layers.scan,
+                )
             else:
                 self._est_frame.wxyz, self._est_frame.position = wxyz, pos
 
@@ -336,24 +343,29 @@ class SceneView:
         if len(pts):
             if self._s2m_scan is not None:
                 self._s2m_scan.remove()
-            self._s2m_scan = self.scene.add_point_cloud("/s2m/scan", pts, color, point_size=0.3,
-                                                        precision="float32", point_shading="flat", visible=vis)
+            self._s2m_scan = self.scene.add_point_cloud(
+                "/s2m/scan", pts, color, point_size=0.3, precision="float32", point_shading="flat", visible=vis
+            )
         x0, y0, x1, y1 = (float(v) for v in s.region)
         z = float(np.asarray(s.pose)[2, 3])
         c = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], np.float32)
         box = np.stack([c, np.roll(c, -1, axis=0)], axis=1)
         if self._s2m_box is None:
-            self._s2m_box = self.scene.add_line_segments("/s2m/region", box, color, thickness=2.0,
-                                                         thickness_units="screen", visible=vis)
+            self._s2m_box = self.scene.add_line_segments(
+                "/s2m/region", box, color, thickness=2.0, thickness_units="screen", visible=vis
+            )
         else:
             self._set(self._s2m_box, points=box, colors=np.asarray(color, np.uint8))
             self._show(self._s2m_box, vis)
         verdict = "accepted" if s.accepted else "rejected" + (f" ({shorten(s.reason, 60)})" if s.reason else "")
-        text = (f"S2M: started at scan {s.started_at}, landed at {s.landed_at}\n{verdict}, "
-                f"score {s.score:.0f} (start {s.start_score:.0f}), {s.ms:.0f} ms")
+        text = (
+            f"S2M: started at scan {s.started_at}, landed at {s.landed_at}\n{verdict}, "
+            f"score {s.score:.0f} (start {s.start_score:.0f}), {s.ms:.0f} ms"
+        )
         if self._s2m_label is None:
-            self._s2m_label = self.scene.add_label("/s2m/label", text, position=(x0, y1, z + 2.0),
-                                                   anchor="bottom-left", visible=vis)
+            self._s2m_label = self.scene.add_label(
+                "/s2m/label", text, position=(x0, y1, z + 2.0), anchor="bottom-left", visible=vis
+            )
         else:
             self._s2m_label.text = text
             self._s2m_label.position = (x0, y1, z + 2.0)
@@ -365,18 +377,26 @@ class SceneView:
         T = np.asarray(snap.mean_pose, float)
         if snap.scan_index >= 0 and np.isfinite(T).all():
             segs = vehicle_outline(T)
-            self._node("_est_vehicle",
-                       lambda v: self.scene.add_line_segments("/estimate/vehicle", segs, EST_COLOR, thickness=3.0,
-                                                              thickness_units="screen", visible=v),
-                       lambda h: self._set(h, points=segs), vis)
+            self._node(
+                "_est_vehicle",
+                lambda v: self.scene.add_line_segments(
+                    "/estimate/vehicle", segs, EST_COLOR, thickness=3.0, thickness_units="screen", visible=v
+                ),
+                lambda h: self._set(h, points=segs),
+                vis,
+            )
         G = snap.gt_pose
         self._gt_shown = G is not None and bool(np.isfinite(np.asarray(G, float)).all())
         if self._gt_shown:
             segs = vehicle_outline(np.asarray(G, float))
-            self._node("_gt_vehicle",
-                       lambda v: self.scene.add_line_segments("/truth/vehicle", segs, GT_COLOR, thickness=3.0,
-                                                              thickness_units="screen", visible=v),
-                       lambda h: (self._set(h, points=segs), self._show(h, vis)), vis)
+            self._node(
+                "_gt_vehicle",
+                lambda v: self.scene.add_line_segments(
+                    "/truth/vehicle", segs, GT_COLOR, thickness=3.0, thickness_units="screen", visible=v
+                ),
+                lambda h: (self._set(h, points=segs), self._show(h, vis)),
+                vis,
+            )
         elif self._gt_vehicle is not None:
             self._gt_vehicle.visible = False
 
@@ -405,4 +425,3 @@ class SceneView:
     def _set(handle, **props) -> None:
         for k, v in props.items():
             setattr(handle, k, v)
-

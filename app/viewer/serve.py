@@ -12,19 +12,18 @@ import sys
 import threading
 import traceback
 import webbrowser
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import viser
 from rich.console import Console
 
-from ..console import progress_bar
-from ..options import open_source
 from ...core.config import Config
 from ...core.errors import LidarlocError
 from ...core.localizer import Localizer
 from ...core.sequences.factory import SourceSpec
-
+from ..console import progress_bar
+from ..options import open_source
 from .app import Viewer
 from .recorder import Recorder, default_record_root
 from .style import SPEEDS
@@ -39,7 +38,7 @@ class ViewerHandle:
         self.port = int(server.get_port())
         shown = "localhost" if host in ("0.0.0.0", "::") else host
         self.url = f"http://{shown}:{self.port}"
-        self.foxglove_url: str | None = None     # where the Foxglove stream is (serve's foxglove_port)
+        self.foxglove_url: str | None = None  # where the Foxglove stream is (serve's foxglove_port)
         self._stopped = threading.Event()
 
     @property
@@ -101,10 +100,20 @@ def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> L
     return factory(**kwargs)
 
 
-def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str = "127.0.0.1", port: int = 8080,
-          open_browser: bool = False, *, autoplay: bool | None = None, speed: str = "10",
-          record_to: Path | None = None, spec: SourceSpec | None = None, preset: str | None = None,
-          cache_root: Path | None = None, foxglove_port: int | None = None) -> ViewerHandle:
+def serve(
+    localizer_or_factory: Localizer | Callable[..., Localizer],
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    open_browser: bool = False,
+    *,
+    autoplay: bool | None = None,
+    speed: str = "10",
+    record_to: Path | None = None,
+    spec: SourceSpec | None = None,
+    preset: str | None = None,
+    cache_root: Path | None = None,
+    foxglove_port: int | None = None,
+) -> ViewerHandle:
     """Start the viewer and return at once.
 
     ``localizer_or_factory``: a ready Localizer (the caller keeps ownership and closes it), or a
@@ -133,13 +142,24 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
         viewer.cache_root = cache_root
         if spec is not None:
             root = record_to if record_to is not None else default_record_root(cache_root)
-            viewer.travel.record_with(Recorder(root, spec, preset, on_failure=lambda message: viewer.show_message(
-                message, error=True, everyone=True)))
+            viewer.travel.record_with(
+                Recorder(
+                    root,
+                    spec,
+                    preset,
+                    on_failure=lambda message: viewer.show_message(message, error=True, everyone=True),
+                )
+            )
         if foxglove_port is not None:
             from .foxglove_live import FoxgloveLive
 
-            viewer.sinks.append(FoxgloveLive(host, foxglove_port, on_failure=lambda message: viewer.show_message(
-                message, error=True, everyone=True)))
+            viewer.sinks.append(
+                FoxgloveLive(
+                    host,
+                    foxglove_port,
+                    on_failure=lambda message: viewer.show_message(message, error=True, everyone=True),
+                )
+            )
     except BaseException:
         for sink in viewer.sinks if viewer is not None else []:
             sink.stop()
@@ -159,7 +179,7 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
             try:
                 loc = _call_factory(factory, viewer.build_progress, viewer.show_map)
                 viewer.owns_localizer = True
-                if viewer.stopping:      # stopped while building: nobody will show it
+                if viewer.stopping:  # stopped while building: nobody will show it
                     loc.close()
                     return
                 viewer.attach(loc)
@@ -168,6 +188,7 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
             except Exception as exc:
                 traceback.print_exc(file=sys.stderr)
                 viewer.startup_failed(f"{type(exc).__name__}: {exc}")
+
         threading.Thread(target=build, name="lidarloc-build", daemon=True).start()
     handle = ViewerHandle(viewer, server, host)
     handle.foxglove_url = next((sink.url for sink in viewer.sinks if hasattr(sink, "url")), None)
@@ -176,15 +197,25 @@ def serve(localizer_or_factory: Localizer | Callable[..., Localizer], host: str 
     return handle
 
 
-def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int, cache_root: Path | None,
-                            console: Console, open_browser: bool = False, autoplay: bool = False,
-                            record_dir: Path | None = None, preset: str | None = None, record: bool = True,
-                            foxglove_port: int | None = None) -> None:
+def serve_until_interrupted(
+    spec: SourceSpec,
+    cfg: Config,
+    host: str,
+    port: int,
+    cache_root: Path | None,
+    console: Console,
+    open_browser: bool = False,
+    autoplay: bool = False,
+    record_dir: Path | None = None,
+    preset: str | None = None,
+    record: bool = True,
+    foxglove_port: int | None = None,
+) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
     ``runs/<date-time>`` folder under the cache root), which is printed; with ``record`` False
     nothing is (``--no-record``: the timeline and Branch from here are then off)."""
-    seq = open_source(spec, cfg, console)   # bad paths fail here, before any server starts
+    seq = open_source(spec, cfg, console)  # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
     ready = threading.Event()
@@ -195,10 +226,11 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
             bar.update(task, description=f"preparing {stage}", completed=100 * float(frac))
             if progress is not None:
                 progress(stage, frac)
+
         try:
             # S2M's tables follow in the background on a first start: playback begins sooner
             return Localizer(seq, cfg, cache_root, progress=report, on_map=on_map, defer_s2m=True)
-        except BaseException as exc:   # the page shows it too; the console gets one line
+        except BaseException as exc:  # the page shows it too; the console gets one line
             failure.append(exc)
             raise
         finally:
@@ -210,19 +242,34 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         root = None if not record else record_dir if record_dir is not None else default_record_root(cache_root)
-        handle = serve(factory, host=host, port=port, open_browser=open_browser, autoplay=True if autoplay else None,
-                       record_to=root, spec=spec if record else None, preset=preset, cache_root=cache_root,
-                       foxglove_port=foxglove_port)
+        handle = serve(
+            factory,
+            host=host,
+            port=port,
+            open_browser=open_browser,
+            autoplay=True if autoplay else None,
+            record_to=root,
+            spec=spec if record else None,
+            preset=preset,
+            cache_root=cache_root,
+            foxglove_port=foxglove_port,
+        )
     except BaseException:
         signal.signal(signal.SIGINT, previous)
         raise
     console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
     if handle.foxglove_url is not None:
-        console.print(f"Foxglove: open connection → Foxglove WebSocket {handle.foxglove_url}", markup=False,
-                      highlight=False)
-    console.print(f"recording into {root} (open a run later with lidarloc view --run {root}/run)" if root is not None
-                  else "not recording (--no-record): the timeline and Branch from here are off",
-                  markup=False, highlight=False, soft_wrap=True)
+        console.print(
+            f"Foxglove: open connection → Foxglove WebSocket {handle.foxglove_url}", markup=False, highlight=False
+        )
+    console.print(
+        f"recording into {root} (open a run later with lidarloc view --run {root}/run)"
+        if root is not None
+        else "not recording (--no-record): the timeline and Branch from here are off",
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
+    )
     try:
         with bar:
             while not ready.wait(0.2) and not stop.is_set():
@@ -235,14 +282,21 @@ def serve_until_interrupted(spec: SourceSpec, cfg: Config, host: str, port: int,
             # "playing" once the first scan is on the page, not merely once playback was told to start
             while not stop.is_set() and not handle.viewer.first_scan_shown.wait(0.2):
                 failed = handle.viewer.step_failed
-                if failed:      # playback paused on it: say so instead of waiting for a scan that will not come
-                    console.print(f"the first scan failed: {failed}; the page says so (restart or step there)",
-                                  markup=False, highlight=False, soft_wrap=True)
+                if failed:  # playback paused on it: say so instead of waiting for a scan that will not come
+                    console.print(
+                        f"the first scan failed: {failed}; the page says so (restart or step there)",
+                        markup=False,
+                        highlight=False,
+                        soft_wrap=True,
+                    )
                     break
         if not stop.is_set() and not failed:
-            console.print("ready: playing; use the page's controls to pause, step and tune" if autoplay else
-                          "ready: playback starts when a browser tab is open; use the page's controls to pause, "
-                          "step and tune")
+            console.print(
+                "ready: playing; use the page's controls to pause, step and tune"
+                if autoplay
+                else "ready: playback starts when a browser tab is open; use the page's controls to pause, "
+                "step and tune"
+            )
         stop.wait()
     finally:
         signal.signal(signal.SIGINT, previous)

@@ -10,12 +10,12 @@ import viser
 
 from ...core.maps.mapping import VoxelAccumulator
 from ...core.snapshot import Snapshot
-
 from .style import DISPLAY_MAX_POINTS, DISPLAY_VOXEL, TRAJ_CHUNK, VEHICLE_LENGTH, VEHICLE_WIDTH
 
 
-def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
-                           max_points: int = DISPLAY_MAX_POINTS) -> tuple[np.ndarray, float]:
+def downsample_for_display(
+    points: np.ndarray, voxel: float = DISPLAY_VOXEL, max_points: int = DISPLAY_MAX_POINTS
+) -> tuple[np.ndarray, float]:
     """One centroid per voxel, the voxel grown by 1.5× until at most ``max_points`` remain.
     Returns (points float32, voxel used)."""
     if len(points) == 0:
@@ -27,7 +27,6 @@ def downsample_for_display(points: np.ndarray, voxel: float = DISPLAY_VOXEL,
         if len(out) <= max_points:
             return out, voxel
         voxel *= 1.5
-
 
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -79,7 +78,6 @@ def vehicle_outline(T: np.ndarray) -> np.ndarray:
     return np.concatenate([segs, np.c_[axle, np.full(2, T[2, 3])][None]]).astype(np.float32)
 
 
-
 class ChunkedPolyline:
     """A growing polyline sent in chunks: a finished chunk is sent once and left alone, only the
     last one is updated, so the per-scan cost does not grow with the length of the drive."""
@@ -112,29 +110,36 @@ class ChunkedPolyline:
         if n < 2:
             self._clear()
             return
-        last = (n - 2) // TRAJ_CHUNK                  # chunk of the newest segment
+        last = (n - 2) // TRAJ_CHUNK  # chunk of the newest segment
         while len(self.handles) > last + 1:
             self.handles.pop().remove()
-        first = max(len(self.handles) - 1, 0)         # the open chunk: finished ones stay as sent
+        first = max(len(self.handles) - 1, 0)  # the open chunk: finished ones stay as sent
         for c in range(first, last + 1):
             lo, hi = c * TRAJ_CHUNK, min((c + 1) * TRAJ_CHUNK, n - 1)
             segs = self._segments(pts, connected, lo, hi)
-            if segs is None:   # nothing connected here (e.g. no ground truth): a zero-length stand-in
-                segs = np.repeat(np.nan_to_num(pts[lo:lo + 1]).astype(np.float32)[:, None], 2, axis=1)
+            if segs is None:  # nothing connected here (e.g. no ground truth): a zero-length stand-in
+                segs = np.repeat(np.nan_to_num(pts[lo : lo + 1]).astype(np.float32)[:, None], 2, axis=1)
             if c < len(self.handles):
                 self.handles[c].points = segs
             else:
-                self.handles.append(self.scene.add_line_segments(
-                    f"{self.name}/c{c}", segs, self.color, thickness=self.thickness, thickness_units="screen",
-                    visible=self.visible))
+                self.handles.append(
+                    self.scene.add_line_segments(
+                        f"{self.name}/c{c}",
+                        segs,
+                        self.color,
+                        thickness=self.thickness,
+                        thickness_units="screen",
+                        visible=self.visible,
+                    )
+                )
 
     @staticmethod
     def _segments(pts, connected, lo, hi):
         """Segments between points lo…hi (inclusive) that are connected and finite, or None."""
         if hi <= lo:
             return None
-        a, b = pts[lo:hi], pts[lo + 1: hi + 1]
-        keep = connected[lo + 1: hi + 1] & np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+        a, b = pts[lo:hi], pts[lo + 1 : hi + 1]
+        keep = connected[lo + 1 : hi + 1] & np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
         if not keep.any():
             return None
         return np.stack([a[keep], b[keep]], axis=1).astype(np.float32)

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import sys
 import traceback
-from typing import Callable
+from collections.abc import Callable
 
 from ...core.snapshot import Snapshot
-
 from .readouts import status_markdown, truth_alarm
 from .style import EVENTS_SHOWN
 
@@ -28,7 +27,7 @@ def _ask(localizer, name: str):
 
 
 def play_state(player, localizer) -> str:
-    """"playing", "paused", "finished", … or, while a step is blocked on a block, what it waits
+    """ "playing", "paused", "finished", … or, while a step is blocked on a block, what it waits
     for and for how long (``Localizer.waiting()``): a silent "playing" there looked like a hang."""
     if player is None:
         return "starting"
@@ -62,13 +61,20 @@ def viewer_status(v, snap: Snapshot) -> str:
     # the next scan is named only when the shown snapshot is the localizer's newest: a display
     # that is a scan behind the player is no skipped scan
     newest = loc is not None and not recorded and snap is loc.snapshot()
-    return status_markdown(snap, state, clock, v.controls.speed.value, events, min_inlier_share=floor,
-                           s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
-                           rate=None if p is None or recorded else p.achieved_rate(),
-                           lag_s=None if p is None or recorded else p.lag_s,
-                           next_scan=loc.k if newest else None,
-                           playing=p is not None and not recorded and p.playing,
-                           s2m_status=tuple(live_s2m) if live_s2m else None)
+    return status_markdown(
+        snap,
+        state,
+        clock,
+        v.controls.speed.value,
+        events,
+        min_inlier_share=floor,
+        s2m_enabled=True if loc is None else bool(loc.cfg.s2m.enabled),
+        rate=None if p is None or recorded else p.achieved_rate(),
+        lag_s=None if p is None or recorded else p.lag_s,
+        next_scan=loc.k if newest else None,
+        playing=p is not None and not recorded and p.playing,
+        s2m_status=tuple(live_s2m) if live_s2m else None,
+    )
 
 
 class AlarmNotice:
@@ -77,7 +83,7 @@ class AlarmNotice:
 
     def __init__(self, notify: Callable[[str], None]):
         self._notify = notify
-        self._onset: int | None = None       # localized_since (or scan) of the alarm notified
+        self._onset: int | None = None  # localized_since (or scan) of the alarm notified
 
     def check(self, snap: Snapshot, live: bool) -> None:
         if not live:

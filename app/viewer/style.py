@@ -9,7 +9,7 @@ import numpy as np
 # height ramp of the map avoids pure green and red so neither gets lost in the map.
 SCAN_COLOR = (40, 255, 40)
 S2M_ACCEPTED_COLOR = (255, 60, 255)
-S2M_REJECTED_COLOR = (150, 150, 150)     # grey: discarded (and unlike the BEV yellow)
+S2M_REJECTED_COLOR = (150, 150, 150)  # grey: discarded (and unlike the BEV yellow)
 BEST_COLOR = (0, 230, 255)
 ELLIPSE_COLOR = (255, 70, 70)
 # the truth, its trajectory and its vehicle: lime, far from every colour of the map's ramp (white
@@ -17,36 +17,36 @@ ELLIPSE_COLOR = (255, 70, 70)
 GT_COLOR = (170, 255, 0)
 GT_NAME = "lime"
 EST_COLOR = (255, 150, 30)
-PARTICLE_LOW = np.array([110, 30, 40], np.float32)     # lowest log-weight rank
-PARTICLE_HIGH = np.array([255, 70, 50], np.float32)    # highest log-weight rank
+PARTICLE_LOW = np.array([110, 30, 40], np.float32)  # lowest log-weight rank
+PARTICLE_HIGH = np.array([255, 70, 50], np.float32)  # highest log-weight rank
 BEV_COLOR = (255, 225, 90)
 RESET_COLOR = (255, 255, 255)
 # the second run on screen (a branch's original, or view --run's second run): a blue the scene
 # uses nowhere else, its particles darker
 REF_COLOR = (80, 170, 255)
 REF_PARTICLE_COLOR = (60, 120, 230)
-CURSOR_COLOR = "#ffe14d"                 # the plots' marker of the scan on the timeline
-ERROR_CSS = "#ff6b6b"                    # refusals and failures in the panel
+CURSOR_COLOR = "#ffe14d"  # the plots' marker of the scan on the timeline
+ERROR_CSS = "#ff6b6b"  # refusals and failures in the panel
 
-DISPLAY_VOXEL = 0.5          # m, first try for the displayed map's voxel size …
-DISPLAY_MAX_POINTS = 1_500_000   # … grown until the map fits in this many points
-MIN_DRAW_INTERVAL = 1 / 30   # s, the display refreshes at most this often
-PLOT_INTERVAL = 0.5          # s, the plots at most this often (they resend whole series)
-PLOT_MAX_POINTS = 1500       # longer series are decimated for the plots
-TRAJ_CHUNK = 256             # points per trajectory chunk (finished chunks are never re-sent)
+DISPLAY_VOXEL = 0.5  # m, first try for the displayed map's voxel size …
+DISPLAY_MAX_POINTS = 1_500_000  # … grown until the map fits in this many points
+MIN_DRAW_INTERVAL = 1 / 30  # s, the display refreshes at most this often
+PLOT_INTERVAL = 0.5  # s, the plots at most this often (they resend whole series)
+PLOT_MAX_POINTS = 1500  # longer series are decimated for the plots
+TRAJ_CHUNK = 256  # points per trajectory chunk (finished chunks are never re-sent)
 EVENTS_SHOWN = 6
-REALTIME_LATE_S = 0.1        # s behind the sensor clock from which the status warns (a late scan)
-RATE_WINDOW_S = 3.0          # s of recent steps the achieved scans/s is measured over
+REALTIME_LATE_S = 0.1  # s behind the sensor clock from which the status warns (a late scan)
+RATE_WINDOW_S = 3.0  # s of recent steps the achieved scans/s is measured over
 COLLAPSED_N_EFF_SHARE = 0.01  # N_eff / N below this: the help line on weight collapse shows
 
 # particles: the arrow length grows with the particle's weight relative to the heaviest one
-PARTICLE_ARROW_MIN = 1.0     # m, weight ≈ 0
-PARTICLE_ARROW_MAX = 6.0     # m, the heaviest particle
-VEHICLE_LENGTH = 4.5         # m, the footprint drawn for the estimate and the truth
+PARTICLE_ARROW_MIN = 1.0  # m, weight ≈ 0
+PARTICLE_ARROW_MAX = 6.0  # m, the heaviest particle
+VEHICLE_LENGTH = 4.5  # m, the footprint drawn for the estimate and the truth
 VEHICLE_WIDTH = 1.8
 
-SPEEDS = ("1", "2", "5", "10", "20", "50", "max")        # scans per second in replay
-SHIFT = "shift"              # the modifier of the scene's pointer picks (reset the particles)
+SPEEDS = ("1", "2", "5", "10", "20", "50", "max")  # scans per second in replay
+SHIFT = "shift"  # the modifier of the scene's pointer picks (reset the particles)
 
 
 def _height_lut() -> np.ndarray:

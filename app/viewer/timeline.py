@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
-from typing import Callable
 
 import numpy as np
 
 from ...core.errors import LidarlocError
-
 from .recorded import RecordedRun
 
 PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE = "◀ event", "◀", "▶", "event ▶", "Live"
@@ -31,26 +30,43 @@ _RUN_EVENTS = ("localized", "false_fire", "false_positive", "loss", "relocalized
 _S2M_EVENTS = ("s2m_accepted", "s2m_rejected")
 #: the event buttons' filter: its choices and the event kinds each stops at. S2M verdicts come
 #: every few scans, so the default leaves them out: "event ▶" then goes to what changed the run.
-EVENT_FILTERS = {"all but S2M": _RUN_EVENTS, "localized": ("localized",), "false fire": ("false_fire",),
-                 "loss": ("loss", "false_positive"), "relocalized": ("relocalized",), "kidnap": ("kidnap",),
-                 "reset": ("reset",), "S2M": _S2M_EVENTS, "all": _RUN_EVENTS + _S2M_EVENTS}
+EVENT_FILTERS = {
+    "all but S2M": _RUN_EVENTS,
+    "localized": ("localized",),
+    "false fire": ("false_fire",),
+    "loss": ("loss", "false_positive"),
+    "relocalized": ("relocalized",),
+    "kidnap": ("kidnap",),
+    "reset": ("reset",),
+    "S2M": _S2M_EVENTS,
+    "all": _RUN_EVENTS + _S2M_EVENTS,
+}
 DEFAULT_FILTER = "all but S2M"
 EVENTS_LISTED = 12
-LIST_INTERVAL_S = 1.0       # the list follows a growing recording at most this often (it reads its events)
+LIST_INTERVAL_S = 1.0  # the list follows a growing recording at most this often (it reads its events)
 
-HELP = ("Drag to any processed scan: the scene, the status, the Why views and the plots' cursor show "
-        "that scan as it was recorded (playback pauses). ◀ ▶ step one scan (▶ at the newest one processes "
-        "one more; keys ← →, and space plays and pauses); *event* jumps to the previous or next event of "
-        "the kind chosen under **Events** (localized, false fire, loss, relocalized, kidnap, reset, S2M "
-        "verdicts); **Live** goes back to the newest scan and plays on if it was playing.")
+HELP = (
+    "Drag to any processed scan: the scene, the status, the Why views and the plots' cursor show "
+    "that scan as it was recorded (playback pauses). ◀ ▶ step one scan (▶ at the newest one processes "
+    "one more; keys ← →, and space plays and pauses); *event* jumps to the previous or next event of "
+    "the kind chosen under **Events** (localized, false fire, loss, relocalized, kidnap, reset, S2M "
+    "verdicts); **Live** goes back to the newest scan and plays on if it was playing."
+)
 
 
 class Timeline:
     """The Timeline folder and the step on screen. ``on_move(step)`` is called on the GUI thread
     after the user moved to ``step`` (None: back to live); it must stay cheap."""
 
-    def __init__(self, gui, *, guarded: Callable, on_move: Callable[[int | None], None], order: float | None = None,
-                 on_forward_live: Callable[[], None] | None = None):
+    def __init__(
+        self,
+        gui,
+        *,
+        guarded: Callable,
+        on_move: Callable[[int | None], None],
+        order: float | None = None,
+        on_forward_live: Callable[[], None] | None = None,
+    ):
         """``on_forward_live``: ▶ pressed while live at the newest step (the viewer processes one
         more scan)."""
         self._on_move = on_move
@@ -59,23 +75,31 @@ class Timeline:
         self._own = threading.local()
         self._lock = threading.Lock()
         self.run: RecordedRun | None = None
-        self.step: int | None = None     # the step on screen; None: live
-        self.live_available = True       # False for a finished recording (view --run): no live run
+        self.step: int | None = None  # the step on screen; None: live
+        self.live_available = True  # False for a finished recording (view --run): no live run
         self._n = 0
         self._listed_at = 0.0
         with gui.add_folder("Timeline", order=order):
             self.where = gui.add_markdown("No recording yet")
             # over the steps (the processed scans in order: a kidnap skips scans, not steps)
-            self.slider = gui.add_slider("Step", 0, 1, 1, 0, disabled=True,
-                                         hint="Drag to a processed scan (pauses playback)")
+            self.slider = gui.add_slider(
+                "Step", 0, 1, 1, 0, disabled=True, hint="Drag to a processed scan (pauses playback)"
+            )
             # actions: the button group's callback names the button pressed; tests call the methods
             self.buttons = gui.add_button_group("Go to", BUTTONS)
-            self.kinds = gui.add_dropdown("Events", tuple(EVENT_FILTERS), initial_value=DEFAULT_FILTER,
-                                          hint="Which events ◀ event and event ▶ stop at")
+            self.kinds = gui.add_dropdown(
+                "Events",
+                tuple(EVENT_FILTERS),
+                initial_value=DEFAULT_FILTER,
+                hint="Which events ◀ event and event ▶ stop at",
+            )
             self.event_list = gui.add_markdown("")
-            self.branch = gui.add_button("Branch from here", disabled=True,
-                                         hint="Continue from this scan's exact filter state with the parameters "
-                                              "in the Parameters folder (changed or not); recorded in its own folder")
+            self.branch = gui.add_button(
+                "Branch from here",
+                disabled=True,
+                hint="Continue from this scan's exact filter state with the parameters "
+                "in the Parameters folder (changed or not); recorded in its own folder",
+            )
             self.recording_text = gui.add_markdown("")
             gui.add_markdown(f"<small>{HELP}</small>")
         self.slider.on_update(self._slider_moved)
@@ -154,8 +178,13 @@ class Timeline:
         self._guarded(lambda: self.go(int(self.slider.value)), needs_localizer=False)(event)
 
     def _button(self) -> None:
-        {PREV_EVENT: self.prev_event, BACK: self.back, FORWARD: self.forward,
-         NEXT_EVENT: self.next_event, LIVE: self.live}[self.buttons.value]()
+        {
+            PREV_EVENT: self.prev_event,
+            BACK: self.back,
+            FORWARD: self.forward,
+            NEXT_EVENT: self.next_event,
+            LIVE: self.live,
+        }[self.buttons.value]()
 
     def _require(self) -> RecordedRun:
         if self.run is None or self._n == 0:
@@ -243,4 +272,3 @@ class Timeline:
             self.step = None
         self.sync()
         self._on_move(None)
-

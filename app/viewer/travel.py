@@ -23,7 +23,6 @@ import numpy as np
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
-
 from .compare import compare_markdown
 from .recorded import RecordedRun
 from .recorder import Recorder
@@ -32,7 +31,7 @@ from .style import REF_COLOR, REF_PARTICLE_COLOR
 from .timeline import Timeline
 from .why_worker import LatestOnly
 
-COMPARE_INTERVAL_S = 0.5    # the Compare table follows a growing run at most this often
+COMPARE_INTERVAL_S = 0.5  # the Compare table follows a growing run at most this often
 
 
 @dataclass
@@ -60,7 +59,7 @@ class TimeTravel:
     def __init__(self, viewer, order: float):
         self.v = viewer
         self.recorder: Recorder | None = None
-        self.context: RunContext | None = None        # a recorded run's map and table (no localizer)
+        self.context: RunContext | None = None  # a recorded run's map and table (no localizer)
         self.reference: RecordedRun | None = None
         self.reference_label = ""
         self.primary_label = ""
@@ -72,16 +71,17 @@ class TimeTravel:
         self._no_recorder_lock = threading.RLock()
         # scrubbing: the scans of recorded steps are recomputed here, the newest asked for only
         self._scans = LatestOnly("lidarloc-scrub")
-        self._full: tuple | None = None        # ((run id, step), snapshot with its scan)
+        self._full: tuple | None = None  # ((run id, step), snapshot with its scan)
         self._pending: tuple | None = None
-        self._replay: threading.Thread | None = None     # plays a recorded run's timeline
+        self._replay: threading.Thread | None = None  # plays a recorded run's timeline
         self._replay_stop = threading.Event()
         self.branching = False
-        self._resume_on_live = False       # scrubbing paused live playback: Live plays on
-        self._compared = (-1, 0.0)         # (steps, when) the Compare table was last computed for
+        self._resume_on_live = False  # scrubbing paused live playback: Live plays on
+        self._compared = (-1, 0.0)  # (steps, when) the Compare table was last computed for
         gui = viewer.server.gui
-        self.timeline = Timeline(gui, guarded=viewer._guarded, on_move=self._moved, order=order,
-                                 on_forward_live=lambda: viewer.step_once())
+        self.timeline = Timeline(
+            gui, guarded=viewer._guarded, on_move=self._moved, order=order, on_forward_live=lambda: viewer.step_once()
+        )
         self.timeline.branch.on_click(viewer._guarded(self.branch_from_here, needs_localizer=False))
         with gui.add_folder("Compare", order=order + 0.01, expand_by_default=True, visible=False) as folder:
             self.compare_folder = folder
@@ -101,8 +101,10 @@ class TimeTravel:
         """``loc`` starts a run (attached, restarted, branched): record it and put it on the slider."""
         rec = self.recorder
         if rec is None:
-            self.timeline.recording_text.content = ("<small>not recorded: the timeline and branches need a viewer "
-                                                    "started with its source options (`lidarloc demo`, `view`)</small>")
+            self.timeline.recording_text.content = (
+                "<small>not recorded: the timeline and branches need a viewer "
+                "started with its source options (`lidarloc demo`, `view`)</small>"
+            )
             self.timeline.set_run(None)
             return
         try:
@@ -147,7 +149,7 @@ class TimeTravel:
             if p is not None and loc is not None and not loc.done:
                 p.play()
         if threading.current_thread() is not self._replay:
-            self._replay_stop.set()          # a drag pauses a recorded run's playback too
+            self._replay_stop.set()  # a drag pauses a recorded run's playback too
         self.v.wake()
 
     def keep_paused(self) -> None:
@@ -175,9 +177,12 @@ class TimeTravel:
         quick = run.figures(step)
         if run.seq is not None and self._pending != key:
             self._pending = key
-            self._scans.submit("scan", lambda: run.snapshot(step), done=lambda snap: self._scan_ready(key, snap),
-                               failed=lambda message: self.v.show_message(f"scan of step {step}: {message}",
-                                                                          error=True))
+            self._scans.submit(
+                "scan",
+                lambda: run.snapshot(step),
+                done=lambda snap: self._scan_ready(key, snap),
+                failed=lambda message: self.v.show_message(f"scan of step {step}: {message}", error=True),
+            )
         return quick
 
     def _scan_ready(self, key: tuple, snap: Snapshot) -> None:
@@ -202,8 +207,12 @@ class TimeTravel:
             if n != tl.n:
                 tl.sync(n)
         self._draw_reference(tl.current() if tl.run is not None and tl.n else None, cut=tl.step is not None)
-        if self.reference is not None and tl.run is not None and tl.n != self._compared[0] \
-                and time.monotonic() - self._compared[1] >= COMPARE_INTERVAL_S:
+        if (
+            self.reference is not None
+            and tl.run is not None
+            and tl.n != self._compared[0]
+            and time.monotonic() - self._compared[1] >= COMPARE_INTERVAL_S
+        ):
             self.update_compare_table()
         self.v.readouts.cursor = snap.scan_index if (snap is not None and tl.step is not None) else None
 
@@ -222,11 +231,12 @@ class TimeTravel:
         if tl.run is None or tl.n == 0:
             raise LidarlocError("nothing recorded to play")
         if tl.current() >= tl.n - 1:
-            tl.go(0)                         # played to the end: from the start again
+            tl.go(0)  # played to the end: from the start again
         self._replay_stop = threading.Event()
         interval = 1.0 / (30.0 if speed == "max" else float(speed))
-        self._replay = threading.Thread(target=self._replay_loop, args=(self._replay_stop, interval),
-                                        name="lidarloc-replay", daemon=True)
+        self._replay = threading.Thread(
+            target=self._replay_loop, args=(self._replay_stop, interval), name="lidarloc-replay", daemon=True
+        )
         self._replay.start()
 
     def stop_replay(self) -> None:
@@ -268,6 +278,10 @@ class TimeTravel:
         self.compare_folder.visible = True
         self.update_compare_table()
 
+    def reference_node(self, name: str):
+        """The second run's scene handle ``name`` ("particles", "vehicle", …), or None."""
+        return self._ref_nodes.get(name)
+
     def set_layer(self, name: str, visible: bool) -> None:
         """A Layers checkbox: the second run's nodes of that layer follow it."""
         node = {"particles": self._ref_nodes.get("particles"), "vehicles": self._ref_nodes.get("vehicle")}.get(name)
@@ -284,8 +298,12 @@ class TimeTravel:
         if ref is None or prim is None:
             return
         self._compared = (prim.n, time.monotonic())
-        text = compare_markdown(prim, ref, (self.primary_label or "this run", self.reference_label or "other run"),
-                                colours=(None, REF_COLOR))
+        text = compare_markdown(
+            prim,
+            ref,
+            (self.primary_label or "this run", self.reference_label or "other run"),
+            colours=(None, REF_COLOR),
+        )
         if self.compare_text.content != text:
             self.compare_text.content = text
 
@@ -315,8 +333,15 @@ class TimeTravel:
         dots = self._ref_nodes.get("particles")
         if dots is None:
             self._ref_nodes["particles"] = scene.add_point_cloud(
-                "/reference/particles", xyz, REF_PARTICLE_COLOR, point_size=0.6, precision="float32",
-                point_shape="circle", point_shading="flat", visible=layers.particles)
+                "/reference/particles",
+                xyz,
+                REF_PARTICLE_COLOR,
+                point_size=0.6,
+                precision="float32",
+                point_shape="circle",
+                point_shading="flat",
+                visible=layers.particles,
+            )
         else:
             dots.points = xyz
             dots.visible = layers.particles
@@ -325,8 +350,13 @@ class TimeTravel:
             veh = self._ref_nodes.get("vehicle")
             if veh is None:
                 self._ref_nodes["vehicle"] = scene.add_line_segments(
-                    "/reference/vehicle", segs, REF_COLOR, thickness=3.0, thickness_units="screen",
-                    visible=layers.vehicles)
+                    "/reference/vehicle",
+                    segs,
+                    REF_COLOR,
+                    thickness=3.0,
+                    thickness_units="screen",
+                    visible=layers.vehicles,
+                )
             else:
                 veh.points = segs
                 veh.visible = layers.vehicles
@@ -349,11 +379,15 @@ class TimeTravel:
         overrides = v.params.to_si(changed) if changed else {}
         scan = run.scan_of(step)
         self.branching = True
-        v.show_message(f"branching after scan {scan}" + (f" with {v.params.names(changed)}" if changed else
-                                                           " (no parameter changed)") + "…")
+        v.show_message(
+            f"branching after scan {scan}"
+            + (f" with {v.params.names(changed)}" if changed else " (no parameter changed)")
+            + "…"
+        )
         client = getattr(v._acting, "client", None)
-        threading.Thread(target=self._branch, args=(run, step, scan, overrides, changed, client),
-                         name="lidarloc-branch", daemon=True).start()
+        threading.Thread(
+            target=self._branch, args=(run, step, scan, overrides, changed, client), name="lidarloc-branch", daemon=True
+        ).start()
 
     def _branch(self, run: RecordedRun, step: int, scan: int, overrides: dict, changed: dict, client) -> None:
         v = self.v
@@ -375,17 +409,24 @@ class TimeTravel:
             original = run
             rec, j = run._locate(step)
             branch_of = {"run": str(rec.run_dir), "step": int(j)}
-            v.switch_to(loc, head=original.series(step + 1), head_events=[(s, e) for s, e in original.events()
-                                                                         if s <= step],
-                        name=f"branch-scan-{scan}", branch_of=branch_of, first_step=step + 1)
+            v.switch_to(
+                loc,
+                head=original.series(step + 1),
+                head_events=[(s, e) for s, e in original.events() if s <= step],
+                name=f"branch-scan-{scan}",
+                branch_of=branch_of,
+                first_step=step + 1,
+            )
             if changed:
                 v.params.accept(changed)
                 v._mark_pending()
             label = f"original ({Path(original.path).name})"
             self.set_reference(_reopened(original), label=label, primary_label=f"branch after scan {scan}")
             where = self.recorder.run_dir if self.recorder is not None and self.recorder.run_dir else None
-            v.show_message(f"branched after scan {scan}: press Play to continue"
-                           + (f"; recording into {where}" if where else ""), client=client)
+            v.show_message(
+                f"branched after scan {scan}: press Play to continue" + (f"; recording into {where}" if where else ""),
+                client=client,
+            )
         finally:
             self.branching = False
 
@@ -403,6 +444,8 @@ def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
     try:
         from ...core.runs.branch import open_branch
     except ImportError:
-        raise LidarlocError("branching is not available in this installation (lidarloc.core.runs.branch missing)") from None
+        raise LidarlocError(
+            "branching is not available in this installation (lidarloc.core.runs.branch missing)"
+        ) from None
     rec, j = run._locate(step)
     return open_branch(rec, j, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

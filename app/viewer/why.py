@@ -19,11 +19,11 @@ from __future__ import annotations
 import sys
 import threading
 import traceback
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ...core.errors import LidarlocError
 from ...core.filter.surface import LikelihoodModel
-
 from .s2m_detail import S2MDetailView, s2m_detail_markdown
 from .why_particle import ParticleInspector, particle_report, pick_particle
 from .why_residuals import AT_CHOICES, AT_ESTIMATE, AT_PARTICLE, ResidualView
@@ -35,17 +35,26 @@ if TYPE_CHECKING:
 
     from ...core.localizer import Localizer
     from ...core.snapshot import Snapshot
-
     from .scene import SceneView
 
-S2M_HELP = ("The last match: its search area, the best candidates the branch and bound scored, the "
-            "GICP refinement and why it was accepted or rejected.")
+S2M_HELP = (
+    "The last match: its search area, the best candidates the branch and bound scored, the "
+    "GICP refinement and why it was accepted or rejected."
+)
 
 
 class WhyViews:
-    def __init__(self, server: viser.ViserServer, scene: SceneView, *,
-                 localizer: Callable[[], Localizer | None], drawn: Callable[[], Snapshot | None],
-                 guarded: Callable, show_message: Callable, folder_order: float):
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        scene: SceneView,
+        *,
+        localizer: Callable[[], Localizer | None],
+        drawn: Callable[[], Snapshot | None],
+        guarded: Callable,
+        show_message: Callable,
+        folder_order: float,
+    ):
         self.server = server
         self.scene = scene
         self._localizer = localizer
@@ -55,7 +64,7 @@ class WhyViews:
         self._folder_order = folder_order
         self._lock = threading.Lock()
         self._s2m_shown = None
-        self._surface_scan: int | None = None     # the scan of the surface drawn or being computed
+        self._surface_scan: int | None = None  # the scan of the surface drawn or being computed
         self.worker = LatestOnly("lidarloc-why")
         gui = server.gui
         with gui.add_folder("Why", order=folder_order, expand_by_default=False):
@@ -66,8 +75,9 @@ class WhyViews:
             with gui.add_folder("Inspect a particle"):
                 self.particle = ParticleInspector(server.scene, gui)
             with gui.add_folder("S2M match"):
-                self.s2m_enabled = gui.add_checkbox("S2M details", False,
-                                                    hint="The last scan-to-map match's candidates and refinement")
+                self.s2m_enabled = gui.add_checkbox(
+                    "S2M details", False, hint="The last scan-to-map match's candidates and refinement"
+                )
                 self.s2m_text = gui.add_markdown("", visible=False)
                 gui.add_markdown(f"<small>{S2M_HELP}</small>")
         self.s2m = S2MDetailView(server.scene)
@@ -77,7 +87,7 @@ class WhyViews:
     def attach(self, localizer: Localizer) -> None:
         """A localizer is ready (called once, before playback starts)."""
         if not localizer.seq.has_poses:
-            self.residuals.at.options = AT_CHOICES[:2]     # no truth to place the scan at
+            self.residuals.at.options = AT_CHOICES[:2]  # no truth to place the scan at
 
     def on_draw(self, snap: Snapshot, recorded: bool = False) -> None:
         """The display thread has just drawn ``snap`` (keep this cheap: heavy work goes to a thread);
@@ -105,7 +115,7 @@ class WhyViews:
         """The run restarted: nothing of the old run may stay in the scene or the panel."""
         self.worker.cancel()
         self.particle.clear()
-        self.residuals.at.value = AT_ESTIMATE      # the inspected particle is gone
+        self.residuals.at.value = AT_ESTIMATE  # the inspected particle is gone
         self.residuals.clear()
         self.surface.clear()
         self._surface_scan = None
@@ -142,8 +152,10 @@ class WhyViews:
                 self._show_message(f"refused: {exc}", error=True, client=getattr(event, "client", None))
             except Exception as exc:  # keep the server alive and say what went wrong
                 traceback.print_exc(file=sys.stderr)
-                self._show_message(f"internal error: {type(exc).__name__}: {exc}", error=True,
-                                   client=getattr(event, "client", None))
+                self._show_message(
+                    f"internal error: {type(exc).__name__}: {exc}", error=True, client=getattr(event, "client", None)
+                )
+
         return callback
 
     def on_click(self, event) -> None:
@@ -172,8 +184,9 @@ class WhyViews:
 
     def redraw_residuals(self) -> None:
         snap = self._drawn()
-        self.residuals.show(snap if snap is not None and self._current(snap) else None, self._model(),
-                            self.particle.pose)
+        self.residuals.show(
+            snap if snap is not None and self._current(snap) else None, self._model(), self.particle.pose
+        )
 
     # ------------------------------------------------------------------ likelihood surface
     def request_surface(self) -> None:
@@ -188,7 +201,7 @@ class WhyViews:
         if self.surface.every_scan.value and self._model() is not None:
             try:
                 self.request_surface()
-            except LidarlocError:       # no scan yet: the next one will have its surface
+            except LidarlocError:  # no scan yet: the next one will have its surface
                 pass
 
     def _submit_surface(self, snap: Snapshot, model: LikelihoodModel) -> None:
@@ -196,9 +209,13 @@ class WhyViews:
         ground = self.scene.ground
         self._surface_scan = snap.scan_index
         self.surface.busy(snap.scan_index)
-        self.worker.submit("surface", lambda: compute_surface(snap, model, over_yaw),
-                           done=lambda surf: self.surface.draw(surf, snap, ground),
-                           failed=self._surface_failed, superseded_ok=True)
+        self.worker.submit(
+            "surface",
+            lambda: compute_surface(snap, model, over_yaw),
+            done=lambda surf: self.surface.draw(surf, snap, ground),
+            failed=self._surface_failed,
+            superseded_ok=True,
+        )
 
     def _surface_failed(self, message: str) -> None:
         self.surface.failed(message)
@@ -231,8 +248,12 @@ class WhyViews:
     def _submit_report(self, snap: Snapshot, j: int, model: LikelihoodModel) -> None:
         loc = self._localizer()
         origin = (0.0, 0.0, 0.0) if loc is None else tuple(loc.prior_map.origin)
-        self.worker.submit("particle", lambda: particle_report(snap, j, model, origin), done=self.particle.show,
-                           failed=self.particle.failed)
+        self.worker.submit(
+            "particle",
+            lambda: particle_report(snap, j, model, origin),
+            done=self.particle.show,
+            failed=self.particle.failed,
+        )
 
     # ------------------------------------------------------------------ S2M details
     def _toggle_s2m(self) -> None:

@@ -18,18 +18,17 @@ import numpy as np
 
 from ...core.config import ANGULAR_STATE, STATE_NAMES
 from ...core.errors import LidarlocError
+from ...core.filter.surface import LikelihoodModel
 from ...core.geometry import pose_matrix, wrap_angle
 from ...core.snapshot import Snapshot
-from ...core.filter.surface import LikelihoodModel
-
 from .params import q_units
 from .why_style import SELECTED_COLOR
 from .why_surface import scan_in_sensor_frame
 
 HELP = "Click near a particle in the scene to inspect it (shift+click still resets)."
-PICK_MIN_M = 2.0          # a click this close to a particle picks it, however far the camera …
-PICK_ANGLE = 0.03         # … or within this share of the distance to the camera (~1.7°)
-HEADING_M_PER_RAD = 2.0   # following a pick: 1 rad of heading counts as 2 m of distance
+PICK_MIN_M = 2.0  # a click this close to a particle picks it, however far the camera …
+PICK_ANGLE = 0.03  # … or within this share of the distance to the camera (~1.7°)
+HEADING_M_PER_RAD = 2.0  # following a pick: 1 rad of heading counts as 2 m of distance
 
 
 def pick_particle(particles: np.ndarray, ray_origin, ray_direction) -> int:
@@ -44,7 +43,7 @@ def pick_particle(particles: np.ndarray, ray_origin, ray_direction) -> int:
     rel = P - o
     along = rel @ d
     off = np.linalg.norm(rel - along[:, None] * d, axis=1)
-    off[along <= 0] = np.inf                     # behind the camera
+    off[along <= 0] = np.inf  # behind the camera
     reach = np.maximum(PICK_MIN_M, PICK_ANGLE * along)
     j = int(np.argmin(np.where(off <= reach, off, np.inf)))
     if not off[j] <= reach[j]:
@@ -64,15 +63,15 @@ def follow_particle(particles: np.ndarray, state: np.ndarray) -> int:
 class ParticleReport:
     index: int
     scan_index: int
-    state: np.ndarray            # (11,) SI
+    state: np.ndarray  # (11,) SI
     weight: float
     best_weight: float
-    log_likelihood: float        # for the snapshot's scan, the filter's kernel
+    log_likelihood: float  # for the snapshot's scan, the filter's kernel
     best_log_likelihood: float
-    rank: int                    # 1 = the highest log-likelihood (ties share a rank)
+    rank: int  # 1 = the highest log-likelihood (ties share a rank)
     n: int
-    copies: int                  # particles with exactly this state (resampling copies), itself included
-    origin: tuple = (0.0, 0.0, 0.0)   # the map file's origin: x, y, z are shown in the map's own frame
+    copies: int  # particles with exactly this state (resampling copies), itself included
+    origin: tuple = (0.0, 0.0, 0.0)  # the map file's origin: x, y, z are shown in the map's own frame
 
 
 def particle_report(snap: Snapshot, j: int, model: LikelihoodModel, origin=(0.0, 0.0, 0.0)) -> ParticleReport:
@@ -87,10 +86,19 @@ def particle_report(snap: Snapshot, j: int, model: LikelihoodModel, origin=(0.0,
     w = np.asarray(snap.weights, float)
     rank = int(np.sum(ll > ll[j])) + 1
     copies = int(np.sum(np.all(P == P[j], axis=1)))
-    return ParticleReport(index=j, scan_index=snap.scan_index, state=P[j].copy(), weight=float(w[j]),
-                          best_weight=float(w.max()), log_likelihood=float(ll[j]),
-                          best_log_likelihood=float(ll.max()), rank=rank, n=len(P), copies=copies,
-                          origin=tuple(float(v) for v in origin))
+    return ParticleReport(
+        index=j,
+        scan_index=snap.scan_index,
+        state=P[j].copy(),
+        weight=float(w[j]),
+        best_weight=float(w.max()),
+        log_likelihood=float(ll[j]),
+        best_log_likelihood=float(ll.max()),
+        rank=rank,
+        n=len(P),
+        copies=copies,
+        origin=tuple(float(v) for v in origin),
+    )
 
 
 def particle_markdown(r: ParticleReport) -> str:
@@ -98,17 +106,22 @@ def particle_markdown(r: ParticleReport) -> str:
     units = q_units()
     rows = []
     shift = np.zeros(len(r.state))
-    shift[:3] = r.origin                  # positions in the map file's own coordinates
+    shift[:3] = r.origin  # positions in the map file's own coordinates
     for name, unit, angular, v in zip(STATE_NAMES, units, ANGULAR_STATE, r.state + shift):
         shown = math.degrees(v) if angular else v
         rows.append(f"| {name} | {shown:.3f} {unit} |")
     gap = r.log_likelihood - r.best_log_likelihood
-    copies = (f"  \n{r.copies} of the {r.n} particles are copies of it (resampling duplicates the heavy ones)"
-              if r.copies > 1 else "")
-    return (f"**particle {r.index}** of {r.n} at scan {r.scan_index}: rank **{r.rank}** by log-likelihood  \n"
-            f"log-likelihood {r.log_likelihood:,.1f} ({gap:,.1f} from the best)  \n"
-            f"weight {r.weight:.3g} (heaviest {r.best_weight:.3g}){copies}\n\n"
-            "| state | value |\n|---|---|\n" + "\n".join(rows))
+    copies = (
+        f"  \n{r.copies} of the {r.n} particles are copies of it (resampling duplicates the heavy ones)"
+        if r.copies > 1
+        else ""
+    )
+    return (
+        f"**particle {r.index}** of {r.n} at scan {r.scan_index}: rank **{r.rank}** by log-likelihood  \n"
+        f"log-likelihood {r.log_likelihood:,.1f} ({gap:,.1f} from the best)  \n"
+        f"weight {r.weight:.3g} (heaviest {r.best_weight:.3g}){copies}\n\n"
+        "| state | value |\n|---|---|\n" + "\n".join(rows)
+    )
 
 
 def _marker(state: np.ndarray) -> np.ndarray:
@@ -131,7 +144,7 @@ class ParticleInspector:
         self.scene = scene
         self._lock = threading.Lock()
         self._marker = None
-        self.index: int | None = None        # in the snapshot it was last resolved for
+        self.index: int | None = None  # in the snapshot it was last resolved for
         self.state: np.ndarray | None = None
         self.follow_best = False
         self.report: ParticleReport | None = None
@@ -140,6 +153,11 @@ class ParticleInspector:
         gui.add_markdown(f"<small>{HELP}</small>")
 
     @property
+    @property
+    def marker(self):
+        """Its scene handle, or None while nothing is drawn."""
+        return self._marker
+
     def selected(self) -> bool:
         return self.state is not None
 
@@ -183,8 +201,9 @@ class ParticleInspector:
     def _draw_marker(self) -> None:
         segs = _marker(self.state)
         if self._marker is None:
-            self._marker = self.scene.add_line_segments("/why/inspected_particle", segs, SELECTED_COLOR, thickness=4.0,
-                                                        thickness_units="screen")
+            self._marker = self.scene.add_line_segments(
+                "/why/inspected_particle", segs, SELECTED_COLOR, thickness=4.0, thickness_units="screen"
+            )
         else:
             self._marker.points = segs
             self._marker.visible = True

@@ -12,16 +12,16 @@ import threading
 import numpy as np
 
 from ...core.filter.residuals import Residuals, move_scan, scan_residuals
-from ...core.snapshot import Snapshot
 from ...core.filter.surface import LikelihoodModel
-
+from ...core.snapshot import Snapshot
 from .why_style import RESIDUAL_LUT, colour_bar_html, residual_colors
 
 AT_ESTIMATE, AT_PARTICLE, AT_TRUTH = "estimate", "inspected particle", "truth"
 AT_CHOICES = (AT_ESTIMATE, AT_PARTICLE, AT_TRUTH)
-HELP = ("Red clusters: things the map does not have (cars, changes). Red everywhere: a wrong pose, "
-        "or d_max / σ too small.")
-POINT_SIZE = 0.32        # a little larger than the green scan's 0.25 m, so it covers it
+HELP = (
+    "Red clusters: things the map does not have (cars, changes). Red everywhere: a wrong pose, or d_max / σ too small."
+)
+POINT_SIZE = 0.32  # a little larger than the green scan's 0.25 m, so it covers it
 
 
 def residual_markdown(res: Residuals | None, where: str, note: str = "") -> str:
@@ -30,8 +30,10 @@ def residual_markdown(res: Residuals | None, where: str, note: str = "") -> str:
         return note or "*off*"
     n = len(res.distance)
     med = float(np.median(res.distance))
-    return (f"at the {where}: **{res.share_beyond:.1%}** of {n:,} points beyond d_max ({res.d_max:.1f} m), "
-            f"median distance {med:.2f} m" + (f"  \n{note}" if note else ""))
+    return (
+        f"at the {where}: **{res.share_beyond:.1%}** of {n:,} points beyond d_max ({res.d_max:.1f} m), "
+        f"median distance {med:.2f} m" + (f"  \n{note}" if note else "")
+    )
 
 
 class ResidualView:
@@ -42,12 +44,18 @@ class ResidualView:
         self._lock = threading.Lock()
         self._cloud = None
         self.last: Residuals | None = None
-        self.enabled = gui.add_checkbox("Show residuals", False,
-                                        hint="Colour the current scan by its distance to the map")
+        self.enabled = gui.add_checkbox(
+            "Show residuals", False, hint="Colour the current scan by its distance to the map"
+        )
         self.at = gui.add_dropdown("Residuals at", AT_CHOICES, initial_value=AT_ESTIMATE)
         self.bar = gui.add_html(colour_bar_html(RESIDUAL_LUT, "≤ σ", "≥ d_max"), visible=False)
         self.readout = gui.add_markdown("*off*")
         gui.add_markdown(f"<small>{HELP}</small>")
+
+    @property
+    def cloud(self):
+        """Its scene handle, or None while nothing is drawn."""
+        return self._cloud
 
     def show(self, snap: Snapshot | None, model: LikelihoodModel | None, particle_pose: np.ndarray | None) -> None:
         """Draw the residuals of ``snap``'s scan at the chosen pose (hide them when off)."""
@@ -70,8 +78,14 @@ class ResidualView:
             colors = residual_colors(res.distance, model.sigma, res.d_max)
             self.last = res
             if self._cloud is None:
-                self._cloud = self.scene.add_point_cloud("/why/residuals", res.points, colors, point_size=POINT_SIZE,
-                                                         precision="float32", point_shading="flat")
+                self._cloud = self.scene.add_point_cloud(
+                    "/why/residuals",
+                    res.points,
+                    colors,
+                    point_size=POINT_SIZE,
+                    precision="float32",
+                    point_shading="flat",
+                )
             else:
                 self._cloud.points, self._cloud.colors = res.points, colors
                 self._cloud.visible = True

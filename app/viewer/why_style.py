@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-RESIDUAL_GOOD = np.array([40, 220, 70], np.float32)     # ≤ σ: the map explains the point
-RESIDUAL_MID = np.array([250, 215, 40], np.float32)     # half way between σ and d_max
-RESIDUAL_BAD = np.array([240, 40, 40], np.float32)      # ≥ d_max: nothing in the map near it
-SELECTED_COLOR = (40, 120, 255)                          # the inspected particle: saturated blue, unlike the
-                                                         # map's pale blues and the warm colours around the estimate
-SURFACE_BEST_COLOR = (255, 60, 255)                      # the surface's maximum
-SURFACE_ALPHA = 215                                      # the ground stays faintly visible under it
+RESIDUAL_GOOD = np.array([40, 220, 70], np.float32)  # ≤ σ: the map explains the point
+RESIDUAL_MID = np.array([250, 215, 40], np.float32)  # half way between σ and d_max
+RESIDUAL_BAD = np.array([240, 40, 40], np.float32)  # ≥ d_max: nothing in the map near it
+SELECTED_COLOR = (40, 120, 255)  # the inspected particle: saturated blue, unlike the
+# map's pale blues and the warm colours around the estimate
+SURFACE_BEST_COLOR = (255, 60, 255)  # the surface's maximum
+SURFACE_ALPHA = 215  # the ground stays faintly visible under it
 
 # perceptually ordered dark → bright (viridis' stops): the brightest cell is the likeliest
 _SURFACE_STOPS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float32)
@@ -34,10 +34,10 @@ def residual_fraction(distance: np.ndarray, sigma: float, d_max: float) -> np.nd
     """Where each distance sits on the ramp: 0 at ≤ σ, 1 at ≥ d_max, linear between."""
     d = np.asarray(distance, np.float64)
     lo, hi = float(sigma), float(d_max)
-    if hi <= lo:                     # σ ≥ d_max: every point below the cap is as good as it gets
+    if hi <= lo:  # σ ≥ d_max: every point below the cap is as good as it gets
         return (d >= np.float32(hi)).astype(np.float64)
     t = np.clip((d - lo) / (hi - lo), 0.0, 1.0)
-    t[d >= np.float32(hi)] = 1.0      # distances are float32, capped at float32(d_max)
+    t[d >= np.float32(hi)] = 1.0  # distances are float32, capped at float32(d_max)
     return t
 
 
@@ -77,7 +77,9 @@ def _css(rgb) -> str:
 def colour_bar_html(lut: np.ndarray, left: str, right: str) -> str:
     """A horizontal colour bar of ``lut`` with a label under each end, for the panel."""
     stops = ", ".join(_css(lut[i]) for i in np.linspace(0, 255, 9).astype(int))
-    return ("<div style='font-size:0.8em;margin:2px 0 4px 0'>"
-            f"<div style='height:10px;border-radius:3px;background:linear-gradient(to right, {stops})'></div>"
-            f"<div style='display:flex;justify-content:space-between'><span>{left}</span><span>{right}</span></div>"
-            "</div>")
+    return (
+        "<div style='font-size:0.8em;margin:2px 0 4px 0'>"
+        f"<div style='height:10px;border-radius:3px;background:linear-gradient(to right, {stops})'></div>"
+        f"<div style='display:flex;justify-content:space-between'><span>{left}</span><span>{right}</span></div>"
+        "</div>"
+    )

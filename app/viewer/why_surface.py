@@ -20,32 +20,41 @@ import threading
 
 import numpy as np
 
+from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
 from ...core.geometry import inv_pose, pose_to_xyz_ypr, transform_points
 from ...core.snapshot import Snapshot
-from ...core.filter.surface import CELL, HALF_WIDTH, YAW_STEP, YAW_WINDOW, LikelihoodModel, Surface
-
 from .style import EST_COLOR, GT_COLOR, GT_NAME
 from .why_style import SURFACE_BEST_COLOR, SURFACE_LUT, colour_bar_html, surface_rgba, surface_scale
 
-HELP = ("Bright = likely. One bright spot: the scan pins the pose down. A long bright band along the "
-        "road: the scan is ambiguous along it. Several spots: places that look alike.")
-SENSOR_ABOVE_GROUND = 1.73      # m, where the image goes when the map has no ground under the pose
-LIFT = 0.6                      # m above the road, clear of its points' squares and kerbs
-MARK_ABOVE = 0.4                # m above the higher of the estimate and the truth (the vehicles' outlines)
-MARK_SIZE = 1.5                 # m, the smallest half-size of a mark: visible around a 4.5 m vehicle
+HELP = (
+    "Bright = likely. One bright spot: the scan pins the pose down. A long bright band along the "
+    "road: the scan is ambiguous along it. Several spots: places that look alike."
+)
+SENSOR_ABOVE_GROUND = 1.73  # m, where the image goes when the map has no ground under the pose
+LIFT = 0.6  # m above the road, clear of its points' squares and kerbs
+MARK_ABOVE = 0.4  # m above the higher of the estimate and the truth (the vehicles' outlines)
+MARK_SIZE = 1.5  # m, the smallest half-size of a mark: visible around a 4.5 m vehicle
 
 
 def scan_in_sensor_frame(snap: Snapshot) -> np.ndarray:
     """The snapshot's prepared scan back in the sensor frame (it is stored at the estimate)."""
-    return transform_points(inv_pose(np.asarray(snap.mean_pose, float)),
-                            np.asarray(snap.scan_world, np.float32).reshape(-1, 3))
+    return transform_points(
+        inv_pose(np.asarray(snap.mean_pose, float)), np.asarray(snap.scan_world, np.float32).reshape(-1, 3)
+    )
 
 
 def compute_surface(snap: Snapshot, model: LikelihoodModel, best_over_yaw: bool) -> Surface:
     """The surface around ``snap``'s estimate (the work the worker thread does, on that thread
     alone)."""
-    return model.surface(scan_in_sensor_frame(snap), pose_to_xyz_ypr(np.asarray(snap.mean_pose, float)),
-                         HALF_WIDTH, CELL, YAW_WINDOW if best_over_yaw else 0.0, YAW_STEP, parallel=False)
+    return model.surface(
+        scan_in_sensor_frame(snap),
+        pose_to_xyz_ypr(np.asarray(snap.mean_pose, float)),
+        HALF_WIDTH,
+        CELL,
+        YAW_WINDOW if best_over_yaw else 0.0,
+        YAW_STEP,
+        parallel=False,
+    )
 
 
 def image_height(surface: Surface, ground) -> float:
@@ -72,16 +81,23 @@ def surface_markdown(surface: Surface, snap: Snapshot) -> str:
     best = surface.argmax_xy
     est = np.asarray(snap.mean_pose, float)[:2, 3]
     n = len(surface.xs)
-    yaws = ("one yaw" if surface.yaw_window == 0 else
-            f"best of ±{math.degrees(surface.yaw_window):.0f}° in {math.degrees(YAW_STEP):.0f}° steps")
-    lines = [f"scan {snap.scan_index}: maximum at ({best[0]:.1f}, {best[1]:.1f}), "
-             f"**{np.linalg.norm(best - est):.1f} m** from the estimate"]
+    yaws = (
+        "one yaw"
+        if surface.yaw_window == 0
+        else f"best of ±{math.degrees(surface.yaw_window):.0f}° in {math.degrees(YAW_STEP):.0f}° steps"
+    )
+    lines = [
+        f"scan {snap.scan_index}: maximum at ({best[0]:.1f}, {best[1]:.1f}), "
+        f"**{np.linalg.norm(best - est):.1f} m** from the estimate"
+    ]
     if snap.gt_pose is not None:
         gt = np.asarray(snap.gt_pose, float)[:2, 3]
         x0, y0, x1, y1 = surface.extent
         outside = "" if x0 <= gt[0] <= x1 and y0 <= gt[1] <= y1 else " (outside the grid)"
-        lines.append(f"truth **{np.linalg.norm(best - gt):.1f} m** from the maximum, "
-                     f"{np.linalg.norm(est - gt):.1f} m from the estimate{outside}")
+        lines.append(
+            f"truth **{np.linalg.norm(best - gt):.1f} m** from the maximum, "
+            f"{np.linalg.norm(est - gt):.1f} m from the estimate{outside}"
+        )
     if surface.yaw_window > 0:
         turn = math.degrees(surface.yaw[surface.argmax] - surface.center[3])
         lines.append(f"best yaw there: {turn:+.0f}° from the estimate's")
@@ -108,16 +124,31 @@ class SurfaceView:
         self._image = self._marks = None
         self.last: Surface | None = None
         self.last_snapshot: Snapshot | None = None
-        self.button = gui.add_button("Likelihood surface here",
-                                     hint=f"The scan's log-likelihood on ±{HALF_WIDTH:g} m around the estimate")
+        self.button = gui.add_button(
+            "Likelihood surface here", hint=f"The scan's log-likelihood on ±{HALF_WIDTH:g} m around the estimate"
+        )
         self.every_scan = gui.add_checkbox("Surface on every scan", False)
-        self.over_yaw = gui.add_checkbox(f"Best over yaw (±{math.degrees(YAW_WINDOW):.0f}°)", False,
-                                         hint=f"Each cell: the best of the yaws every {math.degrees(YAW_STEP):.0f}° "
-                                              f"within ±{math.degrees(YAW_WINDOW):.0f}° of the estimate's (slower)")
+        self.over_yaw = gui.add_checkbox(
+            f"Best over yaw (±{math.degrees(YAW_WINDOW):.0f}°)",
+            False,
+            hint=f"Each cell: the best of the yaws every {math.degrees(YAW_STEP):.0f}° "
+            f"within ±{math.degrees(YAW_WINDOW):.0f}° of the estimate's (slower)",
+        )
         self.bar = gui.add_html("", visible=False)
         self.readout = gui.add_markdown("")
-        gui.add_markdown(f"<small>{HELP} {GT_NAME.capitalize()} ×: truth, orange ×: estimate, magenta ring: "
-                         "maximum.</small>")
+        gui.add_markdown(
+            f"<small>{HELP} {GT_NAME.capitalize()} ×: truth, orange ×: estimate, magenta ring: maximum.</small>"
+        )
+
+    @property
+    def image(self):
+        """The surface's image on the ground (its scene handle), or None while none is drawn."""
+        return self._image
+
+    @property
+    def marks(self):
+        """The truth, estimate and maximum marks (their scene handle), or None."""
+        return self._marks
 
     def draw(self, surface: Surface, snap: Snapshot, ground) -> None:
         """Show a finished surface (any thread). ``ground``: the scene's
@@ -134,9 +165,16 @@ class SurfaceView:
             w, h = x1 - x0, y1 - y0
             if self._image is not None:
                 self._image.remove()
-            self._image = self.scene.add_image("/why/surface", rgba, w, h, format="png",
-                                               position=((x0 + x1) / 2, (y0 + y1) / 2, z),
-                                               cast_shadow=False, receive_shadow=False)
+            self._image = self.scene.add_image(
+                "/why/surface",
+                rgba,
+                w,
+                h,
+                format="png",
+                position=((x0 + x1) / 2, (y0 + y1) / 2, z),
+                cast_shadow=False,
+                receive_shadow=False,
+            )
             r = max(surface.cell, MARK_SIZE)
             segs, colors = [], []
             est = np.asarray(snap.mean_pose, float)[:2, 3]
@@ -152,8 +190,9 @@ class SurfaceView:
             segs, colors = np.concatenate(segs), np.concatenate(colors)
             if self._marks is not None:
                 self._marks.remove()
-            self._marks = self.scene.add_line_segments("/why/surface_marks", segs, colors, thickness=4.0,
-                                                       thickness_units="screen")
+            self._marks = self.scene.add_line_segments(
+                "/why/surface_marks", segs, colors, thickness=4.0, thickness_units="screen"
+            )
             lo, hi = surface_scale(surface.ll)
             self.bar.content = colour_bar_html(SURFACE_LUT, f"≤ max − {hi - lo:,.0f} nats", f"max {hi:,.0f}")
             self.bar.visible = True

@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 import threading
 import traceback
-from typing import Callable
+from collections.abc import Callable
 
 from ...core.errors import LidarlocError
 
@@ -22,17 +22,23 @@ from ...core.errors import LidarlocError
 class LatestOnly:
     def __init__(self, name: str = "lidarloc-why"):
         self._cv = threading.Condition()
-        self._deliver = threading.RLock()      # done() may cancel (a restart from a callback)
+        self._deliver = threading.RLock()  # done() may cancel (a restart from a callback)
         self._pending: dict[str, tuple] = {}
         self._ticket: dict[str, int] = {}
-        self._epoch: dict[str, int] = {}           # bumped by cancel: no result from before it counts
+        self._epoch: dict[str, int] = {}  # bumped by cancel: no result from before it counts
         self._running: str | None = None
         self._stopped = False
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
-    def submit(self, kind: str, work: Callable[[], object], done: Callable[[object], None],
-               failed: Callable[[str], None], superseded_ok: bool = False) -> None:
+    def submit(
+        self,
+        kind: str,
+        work: Callable[[], object],
+        done: Callable[[object], None],
+        failed: Callable[[str], None],
+        superseded_ok: bool = False,
+    ) -> None:
         """Run ``work()`` on the thread, then ``done(result)`` if no newer job of ``kind`` came in
         (with ``superseded_ok``: unless ``cancel`` was called); ``failed(message)`` if it raised."""
         with self._cv:
@@ -40,7 +46,7 @@ class LatestOnly:
                 return
             ticket = self._ticket.get(kind, 0) + 1
             self._ticket[kind] = ticket
-            self._pending.pop(kind, None)          # re-inserted last: kinds take turns
+            self._pending.pop(kind, None)  # re-inserted last: kinds take turns
             self._pending[kind] = (ticket, self._epoch.get(kind, 0), superseded_ok, work, done, failed)
             self._cv.notify()
 
@@ -82,18 +88,18 @@ class LatestOnly:
                     result, error = work(), None
                 except LidarlocError as exc:
                     result, error = None, str(exc)
-                except Exception as exc:   # keep the thread alive and say what went wrong
+                except Exception as exc:  # keep the thread alive and say what went wrong
                     traceback.print_exc(file=sys.stderr)
                     result, error = None, f"internal error: {type(exc).__name__}: {exc}"
                 with self._deliver:
                     with self._cv:
                         current = not self._stopped and (
-                            self._ticket.get(kind) == ticket
-                            or (superseded_ok and self._epoch.get(kind, 0) == epoch))
+                            self._ticket.get(kind) == ticket or (superseded_ok and self._epoch.get(kind, 0) == epoch)
+                        )
                     if current:
                         try:
                             done(result) if error is None else failed(error)
-                        except Exception:   # a failed drawing must not end the thread
+                        except Exception:  # a failed drawing must not end the thread
                             traceback.print_exc(file=sys.stderr)
             finally:
                 with self._cv:

@@ -12,9 +12,40 @@
 
 from .live import LIVE_PARAMS, LiveParam, check_live_changes
 from .loading import PRESETS, WORLDS, apply_overrides, apply_preset, apply_world, load_config, update_from_dict
-from .schema import (ANGULAR_STATE, DEG, PAPER_Q_STD, STATE_NAMES, TOWN_SENSORS, Config, LocalizeConfig, MapConfig,
-                     PFConfig, S2MConfig, TownConfig)
+from .schema import (
+    ANGULAR_STATE,
+    DEG,
+    PAPER_Q_STD,
+    STATE_NAMES,
+    TOWN_SENSORS,
+    Config,
+    LocalizeConfig,
+    MapConfig,
+    PFConfig,
+    S2MConfig,
+    TownConfig,
+)
 
-__all__ = ["ANGULAR_STATE", "DEG", "LIVE_PARAMS", "PAPER_Q_STD", "PRESETS", "STATE_NAMES", "TOWN_SENSORS", "WORLDS",
-           "Config", "LiveParam", "LocalizeConfig", "MapConfig", "PFConfig", "S2MConfig", "TownConfig",
-           "apply_overrides", "apply_preset", "apply_world", "check_live_changes", "load_config", "update_from_dict"]
+__all__ = [
+    "ANGULAR_STATE",
+    "DEG",
+    "LIVE_PARAMS",
+    "PAPER_Q_STD",
+    "PRESETS",
+    "STATE_NAMES",
+    "TOWN_SENSORS",
+    "WORLDS",
+    "Config",
+    "LiveParam",
+    "LocalizeConfig",
+    "MapConfig",
+    "PFConfig",
+    "S2MConfig",
+    "TownConfig",
+    "apply_overrides",
+    "apply_preset",
+    "apply_world",
+    "check_live_changes",
+    "load_config",
+    "update_from_dict",
+]

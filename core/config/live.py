@@ -7,8 +7,9 @@ from __future__ import annotations
 import copy
 import math
 import numbers
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import LidarlocError
 from .schema import DEG, STATE_NAMES, Config
@@ -19,17 +20,17 @@ class LiveParam:
     """A parameter the running localizer accepts (``Localizer.set_params``), with what a GUI
     needs to show it."""
 
-    key: str            # keyword of Localizer.set_params
-    section: str        # Config section holding the value ("pf", "s2m", "localize")
-    attr: str           # attribute in that section
-    label: str          # display label incl. display unit, e.g. "d_max (m)", "d_θ (deg)"
-    unit: str           # display unit: "m", "deg", "", ...
+    key: str  # keyword of Localizer.set_params
+    section: str  # Config section holding the value ("pf", "s2m", "localize")
+    attr: str  # attribute in that section
+    label: str  # display label incl. display unit, e.g. "d_max (m)", "d_θ (deg)"
+    unit: str  # display unit: "m", "deg", "", ...
     scale: float = 1.0  # display value = SI value / scale (DEG shows radians as degrees)
     step: float = 0.01
     integer: bool = False
     hint: str = ""
-    rule: str = ""      # human-readable validity rule, e.g. "> 0", used in error messages
-    limit: Callable[[Any], bool] = lambda v: True   # the localizer's own limit, what ``rule`` says (SI)
+    rule: str = ""  # human-readable validity rule, e.g. "> 0", used in error messages
+    limit: Callable[[Any], bool] = lambda v: True  # the localizer's own limit, what ``rule`` says (SI)
     # What the localizer does when the value changes, beyond storing it in the configuration (the
     # name of one of its reactions; "" = nothing: the value is read where it is used):
     # "lookup" (a larger d_max than the table's rebuilds it; the filter's cap follows), "filter"
@@ -48,36 +49,136 @@ class LiveParam:
         return float(value)
 
 
-LIVE_PARAMS: dict[str, LiveParam] = {p.key: p for p in (
-    LiveParam("d_max", "pf", "d_max", "d_max (m)", "m", rule="> 0", limit=lambda v: v > 0, effect="lookup",
-              hint="Distance cap of the likelihood (a larger one than the built table rebuilds it in the background)"),
-    LiveParam("sigma", "pf", "sigma", "σ (m)", "m", rule="> 0", limit=lambda v: v > 0, effect="filter",
-              hint="Likelihood scale"),
-    LiveParam("n_particles", "pf", "n_particles", "N particles", "", step=1, integer=True,
-              rule="a whole number in 1..200000", limit=lambda v: 1 <= v <= 200_000, effect="particles"),
-    LiveParam("scan_voxel", "pf", "scan_voxel", "scan voxel (m)", "m", rule="in 0.05..10", limit=lambda v: 0.05 <= v <= 10,
-              hint="Random point per voxel of each scan"),
-    LiveParam("region_x", "s2m", "region_x", "L_x (m)", "m", step=0.5, rule="> 0", limit=lambda v: v > 0,
-              hint="S2M local search half-width in x"),
-    LiveParam("region_y", "s2m", "region_y", "L_y (m)", "m", step=0.5, rule="> 0", limit=lambda v: v > 0,
-              hint="S2M local search half-width in y"),
-    LiveParam("match_resolution", "s2m", "match_resolution", "d_m (m)", "m", step=0.1, rule="in 0.1..10",
-              limit=lambda v: 0.1 <= v <= 10, effect="pyramid",
-              hint="S2M match resolution (rebuilds the BEV pyramid)"),
-    LiveParam("angle_step", "s2m", "angle_step", "d_θ (deg)", "deg", scale=DEG, step=0.1, rule="in (0, 180]",
-              limit=lambda v: 0 < v <= math.pi,
-              hint="S2M angular resolution"),
-    # per-entry units and degrees: see STATE_NAMES and ANGULAR_STATE
-    LiveParam("q_std", "pf", "q_std", "Process noise Q (std)", "", step=0.001,
-              rule="11 entries, each finite and ≥ 0", effect="filter",
-              limit=lambda v: len(v) == 11 and all(math.isfinite(q) and q >= 0 for q in v),
-              hint="Standard deviations of the 11-state process noise (angles in degrees)"),
-    LiveParam("s2m_enabled", "s2m", "enabled", "S2M enabled", "", rule="on or off", effect="s2m_switch",
-              hint="Scan-to-map matching on/off (applies at once)"),
-    LiveParam("clock", "localize", "clock", "Clock", "", rule="replay or realtime",
-              limit=lambda v: v in ("replay", "realtime"), effect="clock",
-              hint="replay: deterministic; realtime: S2M lands when it finishes, playback at the sequence's timestamps"),
-)}
+LIVE_PARAMS: dict[str, LiveParam] = {
+    p.key: p
+    for p in (
+        LiveParam(
+            "d_max",
+            "pf",
+            "d_max",
+            "d_max (m)",
+            "m",
+            rule="> 0",
+            limit=lambda v: v > 0,
+            effect="lookup",
+            hint="Distance cap of the likelihood (a larger one than the built table rebuilds it in the background)",
+        ),
+        LiveParam(
+            "sigma",
+            "pf",
+            "sigma",
+            "σ (m)",
+            "m",
+            rule="> 0",
+            limit=lambda v: v > 0,
+            effect="filter",
+            hint="Likelihood scale",
+        ),
+        LiveParam(
+            "n_particles",
+            "pf",
+            "n_particles",
+            "N particles",
+            "",
+            step=1,
+            integer=True,
+            rule="a whole number in 1..200000",
+            limit=lambda v: 1 <= v <= 200_000,
+            effect="particles",
+        ),
+        LiveParam(
+            "scan_voxel",
+            "pf",
+            "scan_voxel",
+            "scan voxel (m)",
+            "m",
+            rule="in 0.05..10",
+            limit=lambda v: 0.05 <= v <= 10,
+            hint="Random point per voxel of each scan",
+        ),
+        LiveParam(
+            "region_x",
+            "s2m",
+            "region_x",
+            "L_x (m)",
+            "m",
+            step=0.5,
+            rule="> 0",
+            limit=lambda v: v > 0,
+            hint="S2M local search half-width in x",
+        ),
+        LiveParam(
+            "region_y",
+            "s2m",
+            "region_y",
+            "L_y (m)",
+            "m",
+            step=0.5,
+            rule="> 0",
+            limit=lambda v: v > 0,
+            hint="S2M local search half-width in y",
+        ),
+        LiveParam(
+            "match_resolution",
+            "s2m",
+            "match_resolution",
+            "d_m (m)",
+            "m",
+            step=0.1,
+            rule="in 0.1..10",
+            limit=lambda v: 0.1 <= v <= 10,
+            effect="pyramid",
+            hint="S2M match resolution (rebuilds the BEV pyramid)",
+        ),
+        LiveParam(
+            "angle_step",
+            "s2m",
+            "angle_step",
+            "d_θ (deg)",
+            "deg",
+            scale=DEG,
+            step=0.1,
+            rule="in (0, 180]",
+            limit=lambda v: 0 < v <= math.pi,
+            hint="S2M angular resolution",
+        ),
+        # per-entry units and degrees: see STATE_NAMES and ANGULAR_STATE
+        LiveParam(
+            "q_std",
+            "pf",
+            "q_std",
+            "Process noise Q (std)",
+            "",
+            step=0.001,
+            rule="11 entries, each finite and ≥ 0",
+            effect="filter",
+            limit=lambda v: len(v) == 11 and all(math.isfinite(q) and q >= 0 for q in v),
+            hint="Standard deviations of the 11-state process noise (angles in degrees)",
+        ),
+        LiveParam(
+            "s2m_enabled",
+            "s2m",
+            "enabled",
+            "S2M enabled",
+            "",
+            rule="on or off",
+            effect="s2m_switch",
+            hint="Scan-to-map matching on/off (applies at once)",
+        ),
+        LiveParam(
+            "clock",
+            "localize",
+            "clock",
+            "Clock",
+            "",
+            rule="replay or realtime",
+            limit=lambda v: v in ("replay", "realtime"),
+            effect="clock",
+            hint="replay: deterministic; realtime: S2M lands when it finishes, playback at the sequence's timestamps",
+        ),
+    )
+}
+
 
 def _is_number(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)

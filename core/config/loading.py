@@ -11,6 +11,7 @@ from typing import Any
 from ..errors import LidarlocError
 from .schema import Config
 
+
 def _coerce(current: Any, raw: Any, key: str) -> Any:
     """Convert a raw (string or parsed) value to the type of the current value."""
     try:
@@ -74,12 +75,18 @@ def apply_overrides(cfg: Config, overrides: list[str] | None) -> Config:
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "paper": {
-        "pf.temperature": 1.0, "pf.unexplained_share": 0.0, "pf.max_points": 0, "pf.max_elevation": math.pi / 2,
+        "pf.temperature": 1.0,
+        "pf.unexplained_share": 0.0,
+        "pf.max_points": 0,
+        "pf.max_elevation": math.pi / 2,
         "pf.dynamic_rejection": False,
         "pf.kld": False,
-        "s2m.global_until_localized": False, "s2m.reject_if_weight_drops": True,
-        "s2m.refine_unbeaten_start": False, "localize.deskew": False,
-        "localize.require_s2m_confirmation": False, "s2m.global_check_interval": 0,
+        "s2m.global_until_localized": False,
+        "s2m.reject_if_weight_drops": True,
+        "s2m.refine_unbeaten_start": False,
+        "localize.deskew": False,
+        "localize.require_s2m_confirmation": False,
+        "s2m.global_check_interval": 0,
         "localize.lost_after_scans": 0,
     },
 }
@@ -111,8 +118,12 @@ def apply_preset(cfg: Config, name: str | None) -> Config:
     return _apply_named(cfg, name, PRESETS, "preset")
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None,
-                preset: str | None = None, world: str | None = None) -> Config:
+def load_config(
+    path: str | Path | None = None,
+    overrides: list[str] | None = None,
+    preset: str | None = None,
+    world: str | None = None,
+) -> Config:
     """Defaults, then a preset (if named), then a town world (if named), then a YAML/TOML file
     (if given), then ``section.key=value`` overrides; validated."""
     cfg = apply_world(apply_preset(Config(), preset), world)
@@ -124,7 +135,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             text = path.read_text()
             if path.suffix.lower() == ".toml":
                 try:
-                    import tomllib
+                    import tomllib  # pyright: ignore[reportMissingImports]  (Python ≥ 3.11)
                 except ModuleNotFoundError:  # Python 3.10
                     import tomli as tomllib  # type: ignore[no-redef]
                 data = tomllib.loads(text)

@@ -69,11 +69,15 @@ def _cell(text: str) -> str:
 
 def markdown() -> str:
     cfg = Config()
-    lines = ["# Configuration reference", "",
-             "Every entry of lidarloc's configuration, its default and what it means. Set entries with",
-             "`--set section.key=value`, a YAML/TOML file (`--config`), or a named `--preset` / `--world`",
-             "(applied first). Units are metres, seconds and radians (angles are listed with their degrees).",
-             "This page is generated from `core/config/schema.py` (`python -m lidarloc.core.config.reference`).", ""]
+    lines = [
+        "# Configuration reference",
+        "",
+        "Every entry of lidarloc's configuration, its default and what it means. Set entries with",
+        "`--set section.key=value`, a YAML/TOML file (`--config`), or a named `--preset` / `--world`",
+        "(applied first). Units are metres, seconds and radians (angles are listed with their degrees).",
+        "This page is generated from `core/config/schema.py` (`python -m lidarloc.core.config.reference`).",
+        "",
+    ]
     for name in SECTIONS:
         section = getattr(cfg, name)
         cls = type(section)
@@ -81,8 +85,8 @@ def markdown() -> str:
         lines += [f"## `{name}`", "", doc.replace("\n", " "), "", "| key | default | meaning |", "|---|---|---|"]
         notes = _comments(cls)
         for f in dataclasses.fields(section):
-            note = notes.get(f.name, '')
-            angle = note.startswith('rad') or note.endswith(' rad') or ', rad' in note
+            note = notes.get(f.name, "")
+            angle = note.startswith("rad") or note.endswith(" rad") or ", rad" in note
             lines.append(f"| `{name}.{f.name}` | {_cell(_value(getattr(section, f.name), angle))} | {_cell(note)} |")
         lines.append("")
     lines += ["## Presets (`--preset`)", ""]
@@ -93,13 +97,24 @@ def markdown() -> str:
     for world, entries in WORLDS.items():
         body = ", ".join(f"`{k}={_value(v)}`" for k, v in entries.items()) or "the town as it was mapped"
         lines.append(f"- `{world}`: {body}")
-    lines += ["", "## Live parameters", "",
-              "What the viewer's Parameters folder (and `Localizer.set_params`) may change during a run.", "",
-              "| name | entry | rule | what changes with it |", "|---|---|---|---|"]
-    effects = {"": "read where it is used", "lookup": "a larger d_max rebuilds the lookup table in the background",
-               "filter": "the particle filter takes it from the next scan", "particles": "the particle count; the match in flight is dropped",
-               "s2m_switch": "off drops the match in flight", "pyramid": "the BEV pyramid is rebuilt in the background",
-               "clock": "real time gets an S2M process at normal priority"}
+    lines += [
+        "",
+        "## Live parameters",
+        "",
+        "What the viewer's Parameters folder (and `Localizer.set_params`) may change during a run.",
+        "",
+        "| name | entry | rule | what changes with it |",
+        "|---|---|---|---|",
+    ]
+    effects = {
+        "": "read where it is used",
+        "lookup": "a larger d_max rebuilds the lookup table in the background",
+        "filter": "the particle filter takes it from the next scan",
+        "particles": "the particle count; the match in flight is dropped",
+        "s2m_switch": "off drops the match in flight",
+        "pyramid": "the BEV pyramid is rebuilt in the background",
+        "clock": "real time gets an S2M process at normal priority",
+    }
     for key, p in LIVE_PARAMS.items():
         lines.append(f"| `{key}` | `{p.section}.{p.attr}` | {_cell(p.rule)} | {effects.get(p.effect, p.effect)} |")
     return "\n".join(lines) + "\n"

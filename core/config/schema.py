@@ -19,10 +19,16 @@ DEG = math.pi / 180.0
 # (0.05°)², (0.05°)², (0.02°)², 0.001²] for [x, y, z, yaw, pitch, roll, v, yaw_rate,
 # pitch_rate, roll_rate, a]. Stored as standard deviations (square roots of the diagonal), SI units.
 PAPER_Q_STD = (
-    0.5, 0.5, 0.1,
-    5.0 * DEG, 2.0 * DEG, 0.1 * DEG,
+    0.5,
+    0.5,
     0.1,
-    0.05 * DEG, 0.05 * DEG, 0.02 * DEG,
+    5.0 * DEG,
+    2.0 * DEG,
+    0.1 * DEG,
+    0.1,
+    0.05 * DEG,
+    0.05 * DEG,
+    0.02 * DEG,
     0.001,
 )
 STATE_NAMES = ("x", "y", "z", "yaw", "pitch", "roll", "v", "yaw_rate", "pitch_rate", "roll_rate", "a")
@@ -34,35 +40,35 @@ ANGULAR_STATE = (False, False, False, True, True, True, False, True, True, True,
 class MapConfig:
     """Prior-map building (paper: the map is assembled from the drive's own scans and poses)."""
 
-    voxel_size: float = 0.2            # m, voxel grid of the global 3D map
-    road_normal_z: float = 0.75        # |n_z| above this = flat surface, removed for the BEV map
-    normal_radius: float = 0.6         # m, neighbourhood radius for normal estimation
-    normal_max_nn: int = 30            # at most this many neighbours for a normal
-    scan_max_range: float = 80.0       # m, map points farther from the sensor are noisier; dropped
-    scan_min_range: float = 2.5        # m, the car's own body
+    voxel_size: float = 0.2  # m, voxel grid of the global 3D map
+    road_normal_z: float = 0.75  # |n_z| above this = flat surface, removed for the BEV map
+    normal_radius: float = 0.6  # m, neighbourhood radius for normal estimation
+    normal_max_nn: int = 30  # at most this many neighbours for a normal
+    scan_max_range: float = 80.0  # m, map points farther from the sensor are noisier; dropped
+    scan_min_range: float = 2.5  # m, the car's own body
 
 
 @dataclass
 class PFConfig:
     """Particle filter (paper: Particle filtering, Dynamic model, Sensor model, Simulation)."""
 
-    n_particles: int = 1000            # particles (with KLD-sampling: the most it keeps)
-    scan_voxel: float = 0.5            # m, random-point-per-voxel down-sampling of each scan
-    d_max: float = 5.0                 # m, distance cap of the likelihood
-    sigma: float = 0.5                 # m, likelihood scale
-    lookup_resolution: float = 0.25    # m, δ of the nearest-distance lookup table
-    q_std: tuple = PAPER_Q_STD         # process-noise standard deviations, SI units, see PAPER_Q_STD
-    dt: float = 0.1                    # s, used when a sequence has no timestamps
-    v_max: float = 15.0                # m/s, initial speeds are uniform in [0, v_max]
-    init_yaw: float = math.pi          # rad, initial yaw uniform in ±init_yaw
-    init_pitch: float = 30.0 * DEG     # rad
-    init_roll: float = 10.0 * DEG      # rad
-    init_rate_std: float = 0.1         # rad/s, initial angular rates ~ N(0, 0.1²)
+    n_particles: int = 1000  # particles (with KLD-sampling: the most it keeps)
+    scan_voxel: float = 0.5  # m, random-point-per-voxel down-sampling of each scan
+    d_max: float = 5.0  # m, distance cap of the likelihood
+    sigma: float = 0.5  # m, likelihood scale
+    lookup_resolution: float = 0.25  # m, δ of the nearest-distance lookup table
+    q_std: tuple = PAPER_Q_STD  # process-noise standard deviations, SI units, see PAPER_Q_STD
+    dt: float = 0.1  # s, used when a sequence has no timestamps
+    v_max: float = 15.0  # m/s, initial speeds are uniform in [0, v_max]
+    init_yaw: float = math.pi  # rad, initial yaw uniform in ±init_yaw
+    init_pitch: float = 30.0 * DEG  # rad
+    init_roll: float = 10.0 * DEG  # rad
+    init_rate_std: float = 0.1  # rad/s, initial angular rates ~ N(0, 0.1²)
     # "uniform_box": the paper's init, positions uniform in the map's 3D bounding box.
     # "map_support": x, y only where the map has points, z = local ground + sensor height.
     init_mode: str = "uniform_box"
-    sensor_height: float = 1.73        # m, KITTI's Velodyne above the road
-    resample_threshold: float = 0.5    # resample when N_eff < threshold · N
+    sensor_height: float = 1.73  # m, KITTI's Velodyne above the road
+    resample_threshold: float = 0.5  # resample when N_eff < threshold · N
     # Likelihood shape and cost. The paper's log-likelihood is −Σ min(d², d_max²)/σ² over the
     # scan's points: summed over 12–15k points it separates particles by hundreds of nats, so the
     # weights collapse to one particle (N_eff ≈ 1), the std is ≈ 0 from the first scans, the 2σ
@@ -77,10 +83,12 @@ class PFConfig:
     # 2σ ellipse holds the truth in ~100 % of localized scans instead of ~0 %. Tempered, every
     # particle's sum runs to the end (none falls below the weight floor); max_points and
     # KLD-sampling pay that back: the PF step is ~8 ms instead of ~23 ms on the real drive.
-    temperature: float = 1000.0        # the log-likelihood is divided by T (tempering); 1 = paper;
-                                       # 0 = T is the number of points weighed (a per-point mean)
-    unexplained_share: float = 0.1     # per-point mixture with an "unexplained point" term, as the
-                                       # beam model's z_rand: p = (1−z)·exp(−min(d²,d_max²)/σ²) + z; 0 = paper
+    # the log-likelihood is divided by T (tempering); 1 = paper; 0 = T is the number of points
+    # weighed (a per-point mean)
+    temperature: float = 1000.0
+    # per-point mixture with an "unexplained point" term, as the beam model's z_rand: p =
+    # (1−z)·exp(−min(d²,d_max²)/σ²) + z; 0 = paper
+    unexplained_share: float = 0.1
     # Weigh at most this many points of each prepared scan: an evenly spread subset (every
     # ~M/N-th point in a golden-ratio order) whose sum is scaled by M/N, so the log-likelihood
     # keeps the whole scan's scale (an unbiased estimate of it; all particles share the subset).
@@ -97,38 +105,38 @@ class PFConfig:
     # pull for the tempered likelihood without an unexplained share; the default likelihood's
     # unexplained share removes it already, and adding the cap to it did not help (one lived-in
     # VLP-16 run: 1.09 m with it, 0.40 m without). π/2 = every point (the paper).
-    max_elevation: float = math.pi / 2    # rad
+    max_elevation: float = math.pi / 2  # rad
     # Dynamic points: scan points that stay farther than dynamic_distance from the map, at the
     # estimate, over dynamic_scans consecutive scans are left out of the likelihood.
     dynamic_rejection: bool = False
-    dynamic_distance: float = 1.0      # m
-    dynamic_scans: int = 2             # scans in a row a point must stay far to be left out
+    dynamic_distance: float = 1.0  # m
+    dynamic_scans: int = 2  # scans in a row a point must stay far to be left out
     # Adaptive particle count by KLD-sampling (Fox 2003): after each resampling, as many particles
     # as the KLD bound asks for the occupied (x, y, yaw) bins, within [kld_min, n_particles]: all
     # of them while spread, a few hundred once converged. kld_min 400 rather than 100: with the
     # ~200 particles the bound asks for, the RMSE on the real drive grew by ~0.02 m (5 runs).
     kld: bool = True
-    kld_epsilon: float = 0.05          # KL-divergence bound ε
-    kld_z: float = 2.326               # upper (1 − δ) quantile of N(0, 1); 2.326 = δ 0.01
-    kld_bin_xy: float = 1.0            # m, bin size in x and y
-    kld_bin_yaw: float = 10.0 * DEG    # rad, bin size in yaw
-    kld_min: int = 400                 # fewest particles KLD-sampling keeps
+    kld_epsilon: float = 0.05  # KL-divergence bound ε
+    kld_z: float = 2.326  # upper (1 − δ) quantile of N(0, 1); 2.326 = δ 0.01
+    kld_bin_xy: float = 1.0  # m, bin size in x and y
+    kld_bin_yaw: float = 10.0 * DEG  # rad, bin size in yaw
+    kld_min: int = 400  # fewest particles KLD-sampling keeps
 
 
 @dataclass
 class S2MConfig:
     """Scan-to-map matching (M3RSM on the bird's-eye view, then GICP in 3D)."""
 
-    enabled: bool = True               # scan-to-map matching on or off
-    match_resolution: float = 1.0      # m, d_m: cell size of pyramid level L0
-    angle_step: float = 2.5 * DEG      # rad, d_θ
-    region_x: float = 25.0             # m, L_x: local search half-width in x
-    region_y: float = 25.0             # m, L_y: local search half-width in y
-    yaw_window: float = math.pi        # rad, local search yaw half-window (π = full circle)
-    binary_cells: bool = False         # L0 holds point counts (False) or occupancy (True)
-    gicp_max_corr: float = 2.0         # m, GICP correspondence distance
-    gicp_voxel: float = 0.5            # m
-    n_s2m: int = 2                     # scans between S2M start and landing in replay clock
+    enabled: bool = True  # scan-to-map matching on or off
+    match_resolution: float = 1.0  # m, d_m: cell size of pyramid level L0
+    angle_step: float = 2.5 * DEG  # rad, d_θ
+    region_x: float = 25.0  # m, L_x: local search half-width in x
+    region_y: float = 25.0  # m, L_y: local search half-width in y
+    yaw_window: float = math.pi  # rad, local search yaw half-window (π = full circle)
+    binary_cells: bool = False  # L0 holds point counts (False) or occupancy (True)
+    gicp_max_corr: float = 2.0  # m, GICP correspondence distance
+    gicp_voxel: float = 0.5  # m
+    n_s2m: int = 2  # scans between S2M start and landing in replay clock
     # Until the localization rule is met, search the whole map instead of ± (L_x, L_y) around the
     # best particle (the paper's "full map" mode of its S2M section; M3RSM's branch and bound
     # makes it ~0.2 s here). After localization the paper's local region applies. False = the
@@ -169,23 +177,23 @@ class S2MConfig:
 class LocalizeConfig:
     """Localization / false-positive / loss rules (paper: Simulation)."""
 
-    std_threshold: float = 10.0        # m, per-axis position std below this counts as converged
-    min_consecutive: int = 10          # scans the std must stay below the threshold
-    min_moved: float = 10.0            # m moved (from RPE) over that window …
-    min_turned: float = 30.0 * DEG     # … or rad turned
-    loss_std: float = 50.0             # m, after localization a larger std is a loss
-    clock: str = "replay"              # "replay" (deterministic) or "realtime"
-    rpe_process: bool = True           # run KISS-ICP in a child process (it holds the GIL)
-    s2m_process: bool = True           # run RS + S2M (M3RSM, GICP) in a child process (GICP holds the GIL)
+    std_threshold: float = 10.0  # m, per-axis position std below this counts as converged
+    min_consecutive: int = 10  # scans the std must stay below the threshold
+    min_moved: float = 10.0  # m moved (from RPE) over that window …
+    min_turned: float = 30.0 * DEG  # … or rad turned
+    loss_std: float = 50.0  # m, after localization a larger std is a loss
+    clock: str = "replay"  # "replay" (deterministic) or "realtime"
+    rpe_process: bool = True  # run KISS-ICP in a child process (it holds the GIL)
+    s2m_process: bool = True  # run RS + S2M (M3RSM, GICP) in a child process (GICP holds the GIL)
     # Replay only: read the RPE's KISS-ICP poses from a per-sequence cache computed once (the same
     # numbers bit for bit: the odometry does not depend on the seed). ``bench localize`` uses it
     # so that 50 runs do not repeat the same odometry 50 times.
     recorded_odometry: bool = False
     # Tracking mode (optional): once localized, fewer particles and a smaller S2M region; a
     # false positive, a loss or a reset goes back to the full filter.
-    tracking: bool = False             # tracking mode once localized (see below)
-    tracking_particles: int = 300      # particles in tracking mode
-    tracking_region: float = 10.0      # m, S2M search half-width in x and y while tracking
+    tracking: bool = False  # tracking mode once localized (see below)
+    tracking_particles: int = 300  # particles in tracking mode
+    tracking_region: float = 10.0  # m, S2M search half-width in x and y while tracking
     # Confidence ("is it lost?"): an event when, while localized, the share of scan points within
     # d_max of the map at the estimate falls below this.
     min_inlier_share: float = 0.5
@@ -195,8 +203,8 @@ class LocalizeConfig:
     # off) the filter may converge, but it says "PF only, unconfirmed", never "localized". False =
     # the paper's rule (the PF alone can fire it).
     require_s2m_confirmation: bool = True
-    confirm_distance: float = 5.0      # m, the metrics' own "within 5 m"
-    confirm_yaw: float = 15.0 * DEG    # rad
+    confirm_distance: float = 5.0  # m, the metrics' own "within 5 m"
+    confirm_yaw: float = 15.0 * DEG  # rad
     # Loss detection beyond the paper's std rule: while localized, a scan fitting the map poorly
     # (inlier share below min_inlier_share) for this many scans in a row, with no whole-map match
     # agreeing with the estimate meanwhile, is a loss (re-initialise). 0 = only the std rule.
@@ -215,16 +223,17 @@ class TownConfig:
     below change only the world and the sensor of the drive being localized."""
 
     seed: int = 0
-    size: float = 400.0                # m, side of the square town
-    n_scans: int = 1200                # scans in the default drive (10 Hz)
+    size: float = 400.0  # m, side of the square town
+    n_scans: int = 1200  # scans in the default drive (10 Hz)
     rate_hz: float = 10.0
-    changes: float = 0.0               # share of movable objects (parked cars, bins, signs) moved,
-                                       # removed or added, and of vegetation grown or cut, since mapping
-    traffic: bool = False              # moving cars, cyclists and pedestrians (never in the map)
-    sensor: str = "hdl64e"             # hdl64e | vlp16 | vlp32c | os1-128
-    mount_height: float = 1.73         # m, sensor above the road
-    skew: bool = False                 # each scan swept over 1/rate_hz while moving (not de-skewed)
-    route: int = 1                     # 1 = the mapping drive's route; 2 = another drive, same streets
+    # share of movable objects (parked cars, bins, signs) moved, removed or added, and of
+    # vegetation grown or cut, since mapping
+    changes: float = 0.0
+    traffic: bool = False  # moving cars, cyclists and pedestrians (never in the map)
+    sensor: str = "hdl64e"  # hdl64e | vlp16 | vlp32c | os1-128
+    mount_height: float = 1.73  # m, sensor above the road
+    skew: bool = False  # each scan swept over 1/rate_hz while moving (not de-skewed)
+    route: int = 1  # 1 = the mapping drive's route; 2 = another drive, same streets
 
 
 TOWN_SENSORS = ("hdl64e", "vlp16", "vlp32c", "os1-128")
@@ -239,7 +248,7 @@ class Config:
     town: TownConfig = field(default_factory=TownConfig)
     seed: int = 0
 
-    def validate(self) -> "Config":
+    def validate(self) -> Config:
         """Raise LidarlocError on an impossible parameter; returns self for chaining."""
         checks = [
             (self.pf.n_particles >= 1, "pf.n_particles must be ≥ 1"),
@@ -250,8 +259,10 @@ class Config:
             (len(self.pf.q_std) == 11, "pf.q_std must have 11 entries"),
             (all(q >= 0 and math.isfinite(q) for q in self.pf.q_std), "pf.q_std entries must be finite and ≥ 0"),
             (0 < self.pf.resample_threshold <= 1, "pf.resample_threshold must be in (0, 1]"),
-            (self.pf.temperature == 0 or self.pf.temperature >= 1,
-             "pf.temperature must be ≥ 1 (1 = the paper's likelihood) or 0 (per-point mean)"),
+            (
+                self.pf.temperature == 0 or self.pf.temperature >= 1,
+                "pf.temperature must be ≥ 1 (1 = the paper's likelihood) or 0 (per-point mean)",
+            ),
             (0 <= self.pf.unexplained_share < 1, "pf.unexplained_share must be in [0, 1)"),
             (self.pf.max_points >= 0, "pf.max_points must be ≥ 0 (0 = every point)"),
             (self.pf.max_elevation > -math.pi / 2, "pf.max_elevation must be > −π/2 rad (π/2 = every point)"),
@@ -286,8 +297,10 @@ class Config:
             (self.localize.min_consecutive >= 1, "localize.min_consecutive must be ≥ 1"),
             (self.localize.clock in ("replay", "realtime"), "localize.clock must be replay or realtime"),
             (self.localize.tracking_particles >= 1, "localize.tracking_particles must be ≥ 1"),
-            (not (self.localize.recorded_odometry and self.localize.clock == "realtime"),
-             "localize.recorded_odometry needs the replay clock (real time must pay for its odometry)"),
+            (
+                not (self.localize.recorded_odometry and self.localize.clock == "realtime"),
+                "localize.recorded_odometry needs the replay clock (real time must pay for its odometry)",
+            ),
             (self.localize.tracking_region > 0, "localize.tracking_region must be > 0"),
             (self.town.n_scans >= 1, "town.n_scans must be ≥ 1"),
             (self.town.size >= 100, "town.size must be ≥ 100 m"),
@@ -304,4 +317,3 @@ class Config:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
-

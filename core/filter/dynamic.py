@@ -47,12 +47,13 @@ from ..geometry import as_points
 from ..maps.lookup import MISS_CODE, LookupTable, lookup_code
 from ..maps.voxelhash import hash_slot, voxel_key
 
-CELL = 1.0            # m, world-frame cell of the far-point history
-MAX_FAR_SHARE = 0.1   # above this share of far points, the pose is suspect: reject nothing
-MAX_SPREAD = 2.0      # m, the filter applies rejection only while its x/y std is below this
+CELL = 1.0  # m, world-frame cell of the far-point history
+MAX_FAR_SHARE = 0.1  # above this share of far points, the pose is suspect: reject nothing
+MAX_SPREAD = 2.0  # m, the filter applies rejection only while its x/y std is below this
 
-_NEIGHBOUR_STEPS = np.array([(dx << 42) + (dy << 21) + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1)
-                             for dz in (-1, 0, 1)], dtype=np.int64)   # key offsets of the 27 cells
+_NEIGHBOUR_STEPS = np.array(
+    [(dx << 42) + (dy << 21) + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], dtype=np.int64
+)  # key offsets of the 27 cells
 
 
 @nb.njit(inline="always", nogil=True, cache=True)
@@ -69,8 +70,9 @@ def _find(keys, counts, key, mask):
 
 
 @nb.njit(nogil=True, cache=True)
-def _far_counts(pts, pose, origin, inv_res, brick_index, bricks, far_code, inv_cell, prev_keys, prev_counts,
-                steps, table_bits):
+def _far_counts(
+    pts, pose, origin, inv_res, brick_index, bricks, far_code, inv_cell, prev_keys, prev_counts, steps, table_bits
+):
     """For (M, 3) sensor-frame points at ``pose`` (x, y, z, yaw, pitch, roll): per point, the
     number of consecutive scans its cell has been far (0 for a point near the map), and the new
     table of far cells (keys, counts). A point is far when its lookup code exceeds ``far_code``."""
@@ -137,17 +139,20 @@ class DynamicPointFilter:
         """Forget every far cell (the next scan's far points start at 1)."""
         self._keys = np.zeros(0, np.int64)
         self._counts = np.zeros(0, np.int32)
-        self.n_far = 0          # far points of the last scan
-        self.n_rejected = 0     # points the last scan left out
-        self.suspect = False    # whether the last scan had too many far points to trust the pose
+        self.n_far = 0  # far points of the last scan
+        self.n_rejected = 0  # points the last scan left out
+        self.suspect = False  # whether the last scan had too many far points to trust the pose
 
     def set_lookup(self, lookup: LookupTable) -> None:
         self.lookup = lookup
 
     def checkpoint(self) -> dict[str, np.ndarray]:
         """The far-cell history and the last scan's counts, as arrays (see :meth:`restore`)."""
-        return {"keys": self._keys.copy(), "counts": self._counts.copy(),
-                "stats": np.array([self.n_far, self.n_rejected, int(self.suspect)], np.int64)}
+        return {
+            "keys": self._keys.copy(),
+            "counts": self._counts.copy(),
+            "stats": np.array([self.n_far, self.n_rejected, int(self.suspect)], np.int64),
+        }
 
     def restore(self, data: dict[str, np.ndarray]) -> None:
         self._keys = np.array(data["keys"], dtype=np.int64)
@@ -176,9 +181,20 @@ class DynamicPointFilter:
         # far: code·step > distance; a miss (≥ the built d_max) is always far
         far_code = min(int(math.floor(self.distance / lk.step)), MISS_CODE - 1)
         bits = max(10, int(2 * m - 1).bit_length())
-        per_point, keys, counts = _far_counts(pts, pose, lk.origin, lk.inv_res, lk.brick_index, lk.bricks,
-                                              far_code, 1.0 / CELL, self._keys, self._counts,
-                                              _NEIGHBOUR_STEPS, bits)
+        per_point, keys, counts = _far_counts(
+            pts,
+            pose,
+            lk.origin,
+            lk.inv_res,
+            lk.brick_index,
+            lk.bricks,
+            far_code,
+            1.0 / CELL,
+            self._keys,
+            self._counts,
+            _NEIGHBOUR_STEPS,
+            bits,
+        )
         n_far = int(np.count_nonzero(per_point))
         if n_far > MAX_FAR_SHARE * m:
             self.reset()

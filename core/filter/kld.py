@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import LidarlocError
 from ..geometry import wrap_angle
 
-_FIELD = 1 << 20    # bin indices are packed as three 21-bit fields (±1M bins per axis)
+_FIELD = 1 << 20  # bin indices are packed as three 21-bit fields (±1M bins per axis)
 
 
 def kld_bound(k, epsilon: float, z: float) -> np.ndarray:
@@ -81,7 +81,7 @@ def kld_count(keys: np.ndarray, epsilon: float, z: float, n_min: int, n_max: int
     keys = keys[:m]
     first = np.zeros(m, np.int64)
     first[np.unique(keys, return_index=True)[1]] = 1
-    k_seen = np.cumsum(first)                             # bins among the first i + 1 draws
+    k_seen = np.cumsum(first)  # bins among the first i + 1 draws
     need = np.maximum(np.ceil(kld_bound(k_seen, epsilon, z)), n_min)
     ok = np.flatnonzero(np.arange(1, m + 1) >= need)
     n = int(ok[0]) + 1 if ok.size else n_max

@@ -69,13 +69,21 @@ def _rotation_zyx(yaw, pitch, roll):
     cy, sy = math.cos(yaw), math.sin(yaw)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cr, sr = math.cos(roll), math.sin(roll)
-    return (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
-            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
-            -sp, cp * sr, cp * cr)
+    return (
+        cy * cp,
+        cy * sp * sr - sy * cr,
+        cy * sp * cr + sy * sr,
+        sy * cp,
+        sy * sp * sr + cy * cr,
+        sy * sp * cr - cy * sr,
+        -sp,
+        cp * sr,
+        cp * cr,
+    )
 
 
-_CHUNK = 64    # scan points per inner block of the likelihood kernel
-BRICK_CELL_BITS = BRICK_CELLS.bit_length() - 1    # a slot's cells start at slot << 9
+_CHUNK = 64  # scan points per inner block of the likelihood kernel
+BRICK_CELL_BITS = BRICK_CELLS.bit_length() - 1  # a slot's cells start at slot << 9
 
 
 def _make_costs_kernel(parallel: bool):
@@ -85,8 +93,9 @@ def _make_costs_kernel(parallel: bool):
     name and line plus its closure's contents, so the two twins get separate cache entries."""
     setup = (_CHUNK, parallel)
 
-    def costs_until(states, pts, n_points, limit, origin, inv_res, nbx, nby, nbz, slot_of_brick, cells,
-                    sq_cost, cost, complete):
+    def costs_until(
+        states, pts, n_points, limit, origin, inv_res, nbx, nby, nbz, slot_of_brick, cells, sq_cost, cost, complete
+    ):
         """Σ sq_cost over the first ``n_points`` points of ``pts`` ((3, M) float32, one row per
         axis) per particle, stopping early once the sum exceeds limit[i] (then complete[i] is False
         and cost[i] is the partial sum so far). The table arrays are LookupTable.flat_kernel_args.
@@ -107,7 +116,7 @@ def _make_costs_kernel(parallel: bool):
         The limit is checked once per block, so a particle may read up to _CHUNK − 1 points past it.
         Each particle's sum runs in a fixed order in one thread: thread count never changes it."""
         chunk = setup[0]
-        outside = nbx * nby * nbz            # index of the sentinel entry of slot_of_brick
+        outside = nbx * nby * nbz  # index of the sentinel entry of slot_of_brick
         ir = np.float32(inv_res)
         xs, ys, zs = pts[0], pts[1], pts[2]
         for i in nb.prange(states.shape[0]):
@@ -135,10 +144,23 @@ def _make_costs_kernel(parallel: bool):
                     bx, by, bz = ix >> BRICK_SHIFT, iy >> BRICK_SHIFT, iz >> BRICK_SHIFT
                     # fx ≥ 0 rejects (−1, 0), which truncates to 0; bx ≥ 0 rejects ±inf and values
                     # beyond int32, which convert to INT_MIN on x86; NaN fails every comparison
-                    inside = ((fx >= 0) & (fy >= 0) & (fz >= 0) & (bx >= 0) & (by >= 0) & (bz >= 0)
-                              & (bx < nbx) & (by < nby) & (bz < nbz))
+                    inside = (
+                        (fx >= 0)
+                        & (fy >= 0)
+                        & (fz >= 0)
+                        & (bx >= 0)
+                        & (by >= 0)
+                        & (bz >= 0)
+                        & (bx < nbx)
+                        & (by < nby)
+                        & (bz < nbz)
+                    )
                     brick_at[q] = (bx * nby + by) * nbz + bz if inside else outside
-                    cell_at[q] = ((ix & BRICK_MASK) << (2 * BRICK_SHIFT)) | ((iy & BRICK_MASK) << BRICK_SHIFT) | (iz & BRICK_MASK)
+                    cell_at[q] = (
+                        ((ix & BRICK_MASK) << (2 * BRICK_SHIFT))
+                        | ((iy & BRICK_MASK) << BRICK_SHIFT)
+                        | (iz & BRICK_MASK)
+                    )
                 block = 0.0
                 for q in range(m):
                     block += sq_cost[cells[(np.int64(slot_of_brick[brick_at[q]]) << BRICK_CELL_BITS) | cell_at[q]]]
@@ -189,7 +211,7 @@ def squared_cost_table(lookup: LookupTable, d_max: float, sigma: float) -> np.nd
     return d * d / (sigma * sigma)
 
 
-PER_POINT = 0.0   # temperature value meaning "T = the number of scan points" (the per-point mean)
+PER_POINT = 0.0  # temperature value meaning "T = the number of scan points" (the per-point mean)
 
 
 def check_shape(temperature: float, unexplained_share: float) -> tuple[float, float]:
@@ -219,8 +241,14 @@ def subset_for(n_points: int, max_points: int) -> np.ndarray | None:
     return np.sort(scrambled_order(n_points)[:max_points])
 
 
-def cost_table(lookup: LookupTable, d_max: float, sigma: float, temperature: float = 1.0,
-               unexplained_share: float = 0.0, point_weight: float = 1.0) -> np.ndarray:
+def cost_table(
+    lookup: LookupTable,
+    d_max: float,
+    sigma: float,
+    temperature: float = 1.0,
+    unexplained_share: float = 0.0,
+    point_weight: float = 1.0,
+) -> np.ndarray:
     """The per-point cost (minus the log-likelihood contribution, nats) of each of the 256
     distance codes: −log((1 − z)·exp(−min(d², d_max²)/σ²) + z) · w / T. ``temperature`` here is
     the effective T (see :func:`effective_temperature`), ≥ 1; ``point_weight`` w ≥ 1 is how many
@@ -243,9 +271,16 @@ def cost_table(lookup: LookupTable, d_max: float, sigma: float, temperature: flo
     return table
 
 
-def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float,
-                   sigma: float, temperature: float = 1.0, unexplained_share: float = 0.0,
-                   point_weight: float = 1.0) -> np.ndarray:
+def log_likelihood(
+    states: np.ndarray,
+    scan: np.ndarray,
+    lookup: LookupTable,
+    d_max: float,
+    sigma: float,
+    temperature: float = 1.0,
+    unexplained_share: float = 0.0,
+    point_weight: float = 1.0,
+) -> np.ndarray:
     """(N,) float64 log-likelihoods of (N, ≥6) particle states for a prepared (M, 3) scan.
 
     ``d_max`` above the table's built value is capped at it (the table knows nothing beyond).
@@ -267,8 +302,14 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     if n == 0 or len(pts) == 0:
         return np.zeros(n, np.float64)
     pts_by_axis = np.ascontiguousarray(pts[:, :3].T, dtype=np.float32)
-    costs = cost_table(lookup, lookup.capped(d_max), sigma,
-                       effective_temperature(temperature, len(pts)), unexplained_share, point_weight)
+    costs = cost_table(
+        lookup,
+        lookup.capped(d_max),
+        sigma,
+        effective_temperature(temperature, len(pts)),
+        unexplained_share,
+        point_weight,
+    )
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
     # the floored filter's kernel with no limit: the same sums in the same order
@@ -277,12 +318,21 @@ def log_likelihood(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_
     return -cost
 
 
-FLOOR_MARGIN = 800.0   # > 745: e^−margin is 0.0 in float64
+FLOOR_MARGIN = 800.0  # > 745: e^−margin is 0.0 in float64
 
 
-def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupTable, d_max: float, sigma: float,
-                           prior_log_w: np.ndarray, margin: float = FLOOR_MARGIN, temperature: float = 1.0,
-                           unexplained_share: float = 0.0, point_weight: float = 1.0) -> np.ndarray:
+def log_likelihood_floored(
+    states: np.ndarray,
+    scan: np.ndarray,
+    lookup: LookupTable,
+    d_max: float,
+    sigma: float,
+    prior_log_w: np.ndarray,
+    margin: float = FLOOR_MARGIN,
+    temperature: float = 1.0,
+    unexplained_share: float = 0.0,
+    point_weight: float = 1.0,
+) -> np.ndarray:
     """Log-likelihoods as :func:`log_likelihood`, except that where prior_log_w + ll would end
     more than ``margin`` below the best particle's, ll is raised to put it exactly at that floor
     (see the module docstring). Returns (N,) float64.
@@ -301,9 +351,10 @@ def log_likelihood_floored(states: np.ndarray, scan: np.ndarray, lookup: LookupT
     m = len(pts)
     if n == 0 or m == 0:
         return np.zeros(n, np.float64)
-    pts = np.ascontiguousarray(pts[scrambled_order(m), :3].T, dtype=np.float32)   # (3, m)
-    costs = cost_table(lookup, lookup.capped(d_max), sigma, effective_temperature(temperature, m),
-                       unexplained_share, point_weight)
+    pts = np.ascontiguousarray(pts[scrambled_order(m), :3].T, dtype=np.float32)  # (3, m)
+    costs = cost_table(
+        lookup, lookup.capped(d_max), sigma, effective_temperature(temperature, m), unexplained_share, point_weight
+    )
     args = (*lookup.flat_kernel_args, costs)
     cost = np.empty(n, np.float64)
     complete = np.empty(n, np.bool_)
@@ -341,8 +392,15 @@ def _residual_sums(pose, pts, origin, inv_res, brick_index, bricks, step, d_max)
     total = 0.0
     for j in range(pts.shape[0]):
         px, py, pz = np.float64(pts[j, 0]), np.float64(pts[j, 1]), np.float64(pts[j, 2])
-        code = lookup_code(r00 * px + r01 * py + r02 * pz + tx, r10 * px + r11 * py + r12 * pz + ty,
-                           r20 * px + r21 * py + r22 * pz + tz, origin, inv_res, brick_index, bricks)
+        code = lookup_code(
+            r00 * px + r01 * py + r02 * pz + tx,
+            r10 * px + r11 * py + r12 * pz + ty,
+            r20 * px + r21 * py + r22 * pz + tz,
+            origin,
+            inv_res,
+            brick_index,
+            bricks,
+        )
         if code != MISS_CODE:
             d = code * step
             if d < d_max:
@@ -371,6 +429,14 @@ def residual_stats(pose_xyzypr, scan_points: np.ndarray, lookup: LookupTable, d_
     if len(pts) == 0:
         return 0.0, math.nan
     pts = np.ascontiguousarray(pts[:, :3], dtype=np.float32)
-    n_in, total = _residual_sums(np.ascontiguousarray(pose[:6]), pts, lookup.origin, lookup.inv_res,
-                                 lookup.brick_index, lookup.bricks, lookup.step, lookup.capped(d_max))
+    n_in, total = _residual_sums(
+        np.ascontiguousarray(pose[:6]),
+        pts,
+        lookup.origin,
+        lookup.inv_res,
+        lookup.brick_index,
+        lookup.bricks,
+        lookup.step,
+        lookup.capped(d_max),
+    )
     return n_in / len(pts), (total / n_in if n_in else math.nan)

@@ -54,38 +54,30 @@ paper's, bit for bit; the defaults in core/config.py turn the likelihood options
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from ..config import PFConfig
 from ..errors import LidarlocError
-from ..geometry import as_points, pose_matrix, pose_to_xyz_ypr, wrap_angle
-from .dynamic import MAX_SPREAD, DynamicPointFilter
-from .kld import bin_keys, kld_count
-from .likelihood import (check_shape, effective_temperature, log_likelihood, log_likelihood_floored, scrambled_order,
-                         subset_for)
+from ..geometry import as_points, pose_to_xyz_ypr, wrap_angle
 from ..maps.lookup import LookupTable
+from .dynamic import MAX_SPREAD, DynamicPointFilter
+from .estimate import Estimate, weighted_estimate
+from .kld import bin_keys, kld_count
+from .likelihood import (
+    check_shape,
+    effective_temperature,
+    log_likelihood,
+    log_likelihood_floored,
+    scrambled_order,
+    subset_for,
+)
 from .motion import N_STATE, propagate
 from .support import SupportGrid, support_for
 
 MAP_SUPPORT_PITCH_ROLL_STD = 2.0 * math.pi / 180.0
 DEFAULT_POSE_STD = (1.0, 1.0, 0.2, 5.0 * math.pi / 180.0, 1.0 * math.pi / 180.0, 1.0 * math.pi / 180.0)
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """The filter's summary after an update (weights as they were when it was computed)."""
-
-    state: np.ndarray          # (11,) weighted mean; circular mean for yaw, pitch, roll
-    pose: np.ndarray           # 4×4 of the mean state (world ← LiDAR)
-    cov_xyz: np.ndarray        # (3, 3) weighted covariance of x, y, z
-    std_xyz: np.ndarray        # (3,) per-axis position std (√diag cov_xyz)
-    ellipse_xy: tuple          # 2σ x-y ellipse: (semi-major, semi-minor, angle of major axis, rad)
-    state_std: np.ndarray      # (11,) per-entry weighted std (circular std for the angles)
-    n_eff: float               # 1 / Σ w²
-    best_index: int            # particle with the highest weight
-    resampled: bool = False    # set by step(): whether this step resampled afterwards
 
 
 def systematic_resample(weights: np.ndarray, n_out: int, rng: np.random.Generator) -> np.ndarray:
@@ -102,8 +94,16 @@ class ParticleFilter:
     """The paper's particle filter. ``states`` (N, 11) and ``log_weights`` (N,) are public;
     ``weights`` are the normalised exp(log_weights)."""
 
-    def __init__(self, cfg: PFConfig, lookup: LookupTable, bounds_min, bounds_max, seed: int = 0,
-                 support: SupportGrid | None = None, map_points: np.ndarray | None = None):
+    def __init__(
+        self,
+        cfg: PFConfig,
+        lookup: LookupTable,
+        bounds_min,
+        bounds_max,
+        seed: int = 0,
+        support: SupportGrid | None = None,
+        map_points: np.ndarray | None = None,
+    ):
         self.cfg = cfg
         self.lookup = lookup
         self.bounds_min = np.asarray(bounds_min, dtype=np.float64).reshape(3)
@@ -112,29 +112,35 @@ class ParticleFilter:
             raise LidarlocError("particle filter: bounds_max must be ≥ bounds_min")
         self.rng = np.random.default_rng(seed)
         self._support = support
-        self._map_points = map_points       # turned into a SupportGrid on first map_support init
+        self._map_points = map_points  # turned into a SupportGrid on first map_support init
         self.set_d_max(cfg.d_max)
         self.set_sigma(cfg.sigma)
         self.set_q_std(cfg.q_std)
         self.n = int(cfg.n_particles)
         if self.n < 1:
             raise LidarlocError("particle filter: n_particles must be ≥ 1")
-        self.n_max = self.n          # the count a fresh cloud gets, and KLD-sampling's ceiling
+        self.n_max = self.n  # the count a fresh cloud gets, and KLD-sampling's ceiling
         self.states = np.zeros((self.n, N_STATE))
         self.log_weights = np.full(self.n, -math.log(self.n))
-        self.log_likelihoods = np.zeros(self.n)   # of the last update, per particle
-        self._scan: np.ndarray | None = None      # the points the last update weighed with
-        self._scan_input = None                   # the array update() was given (see reweight)
-        self._temperature = 1.0                   # effective T of the last update
-        self._point_weight = 1.0                  # scan points each weighed point stood for
-        self.protected_index: int | None = None   # where the last resampling put the protected particle
-        self.kld_bins: int | None = None          # occupied bins at the last KLD resampling
+        self.log_likelihoods = np.zeros(self.n)  # of the last update, per particle
+        self._scan: np.ndarray | None = None  # the points the last update weighed with
+        self._scan_input = None  # the array update() was given (see reweight)
+        self._temperature = 1.0  # effective T of the last update
+        self._point_weight = 1.0  # scan points each weighed point stood for
+        self.protected_index: int | None = None  # where the last resampling put the protected particle
+        self.kld_bins: int | None = None  # occupied bins at the last KLD resampling
         check_shape(cfg.temperature, cfg.unexplained_share)
-        self.dynamic = (DynamicPointFilter(lookup, cfg.dynamic_distance, cfg.dynamic_scans)
-                        if cfg.dynamic_rejection else None)
+        self.dynamic = (
+            DynamicPointFilter(lookup, cfg.dynamic_distance, cfg.dynamic_scans) if cfg.dynamic_rejection else None
+        )
         self.initialize()
 
     # ------------------------------------------------------------------------ parameters
+    @property
+    def weighed_points(self) -> np.ndarray | None:
+        """The points the last update weighed (after the point budget and dynamic rejection)."""
+        return self._scan
+
     @property
     def d_max(self) -> float:
         return self._d_max
@@ -186,7 +192,9 @@ class ParticleFilter:
             self._support = support_for(self._map_points)
         return self._support
 
-    def initialize(self, region=None, pose: np.ndarray | None = None, pose_std=None, speed: float | None = None) -> None:
+    def initialize(
+        self, region=None, pose: np.ndarray | None = None, pose_std=None, speed: float | None = None
+    ) -> None:
         """(Re)draw all particles with uniform weights.
 
         - default: globally, per ``cfg.init_mode``;
@@ -242,7 +250,7 @@ class ParticleFilter:
         self.log_likelihoods = np.zeros(n)
         self.protected_index = None
         if self.dynamic is not None:
-            self.dynamic.reset()     # the far cells were judged at an estimate now discarded
+            self.dynamic.reset()  # the far cells were judged at an estimate now discarded
 
     # ------------------------------------------------------------------------ filtering
     def predict(self, dt: float) -> None:
@@ -258,9 +266,17 @@ class ParticleFilter:
             self._scan = self._reject_dynamic(self._scan)
         cfg = self.cfg
         self._weigh(self._scan)
-        ll = log_likelihood_floored(self.states, self._scan, self.lookup, self._d_max, self._sigma, self.log_weights,
-                                    temperature=self._temperature, unexplained_share=cfg.unexplained_share,
-                                    point_weight=self._point_weight)
+        ll = log_likelihood_floored(
+            self.states,
+            self._scan,
+            self.lookup,
+            self._d_max,
+            self._sigma,
+            self.log_weights,
+            temperature=self._temperature,
+            unexplained_share=cfg.unexplained_share,
+            point_weight=self._point_weight,
+        )
         self.log_likelihoods = ll
         self.log_weights = self.log_weights + ll
         self._normalise()
@@ -324,8 +340,13 @@ class ParticleFilter:
             n_max = self.n_max
             # a random order makes every prefix of the systematic draw a fair sample (module docstring)
             idx = systematic_resample(self.weights, n_max, self.rng)[self.rng.permutation(n_max)]
-            n_new, self.kld_bins = kld_count(bin_keys(self.states[idx], cfg.kld_bin_xy, cfg.kld_bin_yaw),
-                                             cfg.kld_epsilon, cfg.kld_z, cfg.kld_min, n_max)
+            n_new, self.kld_bins = kld_count(
+                bin_keys(self.states[idx], cfg.kld_bin_xy, cfg.kld_bin_yaw),
+                cfg.kld_epsilon,
+                cfg.kld_z,
+                cfg.kld_min,
+                n_max,
+            )
             idx = idx[:n_new]
         else:
             idx = systematic_resample(self.weights, self.n, self.rng)
@@ -372,9 +393,18 @@ class ParticleFilter:
         j = int(j)
         # same point order as update() sums in, so that ll_new − ll_old has no rounding offset
         pts = self._scan[scrambled_order(len(self._scan))]
-        ll = float(log_likelihood(self.states[j:j + 1], pts, self.lookup, self._d_max, self._sigma,
-                                  temperature=self._temperature, unexplained_share=self.cfg.unexplained_share,
-                                  point_weight=self._point_weight)[0])
+        ll = float(
+            log_likelihood(
+                self.states[j : j + 1],
+                pts,
+                self.lookup,
+                self._d_max,
+                self._sigma,
+                temperature=self._temperature,
+                unexplained_share=self.cfg.unexplained_share,
+                point_weight=self._point_weight,
+            )[0]
+        )
         self.log_weights[j] += ll - self.log_likelihoods[j]
         self.log_likelihoods[j] = ll
         self._normalise()
@@ -382,28 +412,8 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------------ output
     def estimate(self) -> Estimate:
-        w = self.weights
-        s = self.states
-        mean = w @ s
-        angles = s[:, 3:6]
-        c, si = w @ np.cos(angles), w @ np.sin(angles)
-        mean[3:6] = np.arctan2(si, c)
-        resultant = np.clip(np.hypot(c, si), 1e-300, 1.0)
-        d = s - mean
-        var = w @ (d * d)
-        state_std = np.sqrt(np.maximum(var, 0.0))
-        state_std[3:6] = np.sqrt(-2.0 * np.log(resultant))     # circular std
-        dp = d[:, :3]
-        cov = (dp * w[:, None]).T @ dp
-        cov = 0.5 * (cov + cov.T)
-        evals, evecs = np.linalg.eigh(cov[:2, :2])
-        evals = np.maximum(evals, 0.0)
-        major = evecs[:, 1]
-        ellipse = (2.0 * math.sqrt(evals[1]), 2.0 * math.sqrt(evals[0]), float(math.atan2(major[1], major[0])))
-        pose = pose_matrix(*mean[:6])
-        return Estimate(state=mean, pose=pose, cov_xyz=cov, std_xyz=np.sqrt(np.maximum(np.diag(cov), 0.0)),
-                        ellipse_xy=ellipse, state_std=state_std, n_eff=float(1.0 / np.dot(w, w)),
-                        best_index=int(np.argmax(self.log_weights)))
+        """The weighted summary of the particles as they are now (see :func:`.estimate.weighted_estimate`)."""
+        return weighted_estimate(self.states, self.weights, self.log_weights)
 
     # ------------------------------------------------------------------------ resuming
     def checkpoint(self) -> dict[str, np.ndarray]:
@@ -412,11 +422,22 @@ class ParticleFilter:
         lookup table continues bit for bit as this one would."""
         import json
 
-        out = {"states": self.states.copy(), "log_weights": self.log_weights.copy(),
-               "log_likelihoods": self.log_likelihoods.copy(),
-               "meta": np.array(json.dumps({
-                   "n": int(self.n), "n_max": int(self.n_max), "rng": self.rng.bit_generator.state,
-                   "protected_index": self.protected_index, "kld_bins": self.kld_bins}))}
+        out = {
+            "states": self.states.copy(),
+            "log_weights": self.log_weights.copy(),
+            "log_likelihoods": self.log_likelihoods.copy(),
+            "meta": np.array(
+                json.dumps(
+                    {
+                        "n": int(self.n),
+                        "n_max": int(self.n_max),
+                        "rng": self.rng.bit_generator.state,
+                        "protected_index": self.protected_index,
+                        "kld_bins": self.kld_bins,
+                    }
+                )
+            ),
+        }
         if self.dynamic is not None:
             out.update({f"dynamic_{k}": v for k, v in self.dynamic.checkpoint().items()})
         return out
@@ -439,8 +460,8 @@ class ParticleFilter:
         self._scan = self._scan_input = None
         if self.dynamic is not None:
             if "dynamic_keys" in data:
-                self.dynamic.restore({k[len("dynamic_"):]: v for k, v in data.items() if k.startswith("dynamic_")})
-            else:               # recorded without dynamic-point rejection
+                self.dynamic.restore({k[len("dynamic_") :]: v for k, v in data.items() if k.startswith("dynamic_")})
+            else:  # recorded without dynamic-point rejection
                 self.dynamic.reset()
 
     def step(self, scan: np.ndarray, dt: float, protect: int | None = None) -> Estimate:

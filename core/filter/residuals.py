@@ -43,9 +43,9 @@ def move_scan(points_world: np.ndarray, from_pose, to_pose) -> np.ndarray:
 class Residuals:
     """One scan's residuals at one pose."""
 
-    points: np.ndarray       # (M, 3) float32 world points of the scan at the pose
-    distance: np.ndarray     # (M,) float32 lookup distance to the map (m), capped at d_max
-    d_max: float             # m, the cap used
+    points: np.ndarray  # (M, 3) float32 world points of the scan at the pose
+    distance: np.ndarray  # (M,) float32 lookup distance to the map (m), capped at d_max
+    d_max: float  # m, the cap used
 
     @property
     def share_beyond(self) -> float:

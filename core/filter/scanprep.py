@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import LidarlocError
 from ..maps.voxelhash import hash_slot, mix64, voxel_key
 
+
 @nb.njit(nogil=True, cache=True)
 def _mix(z):
     """splitmix64: a well-spread 64-bit hash of z (the golden-ratio step, then the finaliser)."""
@@ -82,8 +83,9 @@ def _random_point_per_voxel(pts, inv_voxel, seed, table_bits, max_rise):
 _FIRST_TABLE_BITS = 15
 
 
-def voxel_downsample_random(points: np.ndarray, voxel: float, rng_or_seed=0,
-                            max_elevation: float = math.pi / 2) -> np.ndarray:
+def voxel_downsample_random(
+    points: np.ndarray, voxel: float, rng_or_seed=0, max_elevation: float = math.pi / 2
+) -> np.ndarray:
     """One random point of ``points`` (N, ≥3) per ``voxel``-sized cube, as float32 (M, 3).
 
     ``rng_or_seed`` is a ``np.random.Generator`` (advanced by one draw) or an integer seed; the

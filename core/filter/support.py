@@ -16,19 +16,19 @@ class SupportGrid:
     """Where the map has points, on a 2-D grid, with a ground height per occupied cell."""
 
     cell: float
-    origin: np.ndarray         # (2,) x, y of cell (0, 0)'s corner
-    cells: np.ndarray          # (K, 2) int64 occupied cell indices
-    ground_z: np.ndarray       # (K,) low percentile of the map's z in each cell
+    origin: np.ndarray  # (2,) x, y of cell (0, 0)'s corner
+    cells: np.ndarray  # (K, 2) int64 occupied cell indices
+    ground_z: np.ndarray  # (K,) low percentile of the map's z in each cell
 
     @classmethod
-    def from_points(cls, points: np.ndarray, cell: float = 2.0, ground_percentile: float = 5.0) -> "SupportGrid":
+    def from_points(cls, points: np.ndarray, cell: float = 2.0, ground_percentile: float = 5.0) -> SupportGrid:
         pts = np.asarray(points)[:, :3].astype(np.float64)
         if len(pts) == 0:
             raise LidarlocError("map_support init needs a non-empty map")
         origin = pts[:, :2].min(axis=0)
         ij = np.floor((pts[:, :2] - origin) / cell).astype(np.int64)
         key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
-        order = np.lexsort((pts[:, 2], key))              # by cell, then by z inside the cell
+        order = np.lexsort((pts[:, 2], key))  # by cell, then by z inside the cell
         key_sorted = key[order]
         starts = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
         counts = np.diff(np.r_[starts, len(key_sorted)])
@@ -71,6 +71,6 @@ def support_for(points: np.ndarray) -> SupportGrid:
         del _CACHE[k]
     try:
         _CACHE[key] = (weakref.ref(points), grid)
-    except TypeError:      # not weak-referenceable (e.g. a list): just don't cache
+    except TypeError:  # not weak-referenceable (e.g. a list): just don't cache
         pass
     return grid

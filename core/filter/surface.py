@@ -41,14 +41,14 @@ import numpy as np
 
 from ..errors import LidarlocError
 from ..geometry import as_points
-from .likelihood import _rotation_zyx, check_shape, cost_table, effective_temperature, log_likelihood
 from ..maps.lookup import BRICK_MASK, BRICK_SHIFT, LookupTable
+from .likelihood import _rotation_zyx, check_shape, cost_table, effective_temperature, log_likelihood
 
-HALF_WIDTH = 20.0                   # m, the grid reaches this far from the pose in x and y
-CELL = 0.5                          # m, grid cell
-YAW_STEP = 2.0 * math.pi / 180.0    # rad, yaw step of the best-over-yaw surface
+HALF_WIDTH = 20.0  # m, the grid reaches this far from the pose in x and y
+CELL = 0.5  # m, grid cell
+YAW_STEP = 2.0 * math.pi / 180.0  # rad, yaw step of the best-over-yaw surface
 YAW_WINDOW = 10.0 * math.pi / 180.0  # rad, ± around the pose's yaw when the best over yaw is asked for
-MAX_CELLS = 1_000_000               # a grid beyond this is a typing error, not a view
+MAX_CELLS = 1_000_000  # a grid beyond this is a typing error, not a view
 
 
 @nb.njit(nogil=True, cache=True)
@@ -124,15 +124,15 @@ class Surface:
     """A likelihood surface: ``ll[i, k]`` is the log-likelihood (nats) of the sensor at
     (``xs[i]``, ``ys[k]``), ``yaw[i, k]`` the yaw it was taken at (the best one, over a window)."""
 
-    xs: np.ndarray          # (nx,) cell centres, world x (m)
-    ys: np.ndarray          # (ny,) cell centres, world y (m)
-    ll: np.ndarray          # (nx, ny) float64 log-likelihood
-    yaw: np.ndarray         # (nx, ny) rad
-    center: np.ndarray      # (6,) x, y, z, yaw, pitch, roll the grid is centred on
-    cell: float             # m
-    yaw_window: float       # rad, 0: the centre's yaw only
+    xs: np.ndarray  # (nx,) cell centres, world x (m)
+    ys: np.ndarray  # (ny,) cell centres, world y (m)
+    ll: np.ndarray  # (nx, ny) float64 log-likelihood
+    yaw: np.ndarray  # (nx, ny) rad
+    center: np.ndarray  # (6,) x, y, z, yaw, pitch, roll the grid is centred on
+    cell: float  # m
+    yaw_window: float  # rad, 0: the centre's yaw only
     n_points: int
-    ms: float               # wall time of the computation
+    ms: float  # wall time of the computation
 
     @property
     def argmax(self) -> tuple[int, int]:
@@ -157,9 +157,9 @@ class LikelihoodModel:
     """The particle filter's likelihood with one set of options (see the module docstring)."""
 
     lookup: LookupTable
-    d_max: float                 # m, the effective cap (≤ the table's built d_max)
-    sigma: float                 # m
-    temperature: float = 1.0     # as PFConfig.temperature (0: per point)
+    d_max: float  # m, the effective cap (≤ the table's built d_max)
+    sigma: float  # m
+    temperature: float = 1.0  # as PFConfig.temperature (0: per point)
     unexplained_share: float = 0.0
 
     def __post_init__(self):
@@ -168,25 +168,50 @@ class LikelihoodModel:
             raise LidarlocError(f"d_max and sigma must be > 0, got {self.d_max}, {self.sigma}")
 
     @classmethod
-    def of(cls, localizer) -> "LikelihoodModel":
+    def of(cls, localizer) -> LikelihoodModel:
         """The options a localizer's filter weighs the next scan with."""
         pf = localizer.cfg.pf
-        return cls(localizer.lookup, float(localizer.effective_d_max), float(pf.sigma), float(pf.temperature),
-                   float(pf.unexplained_share))
+        return cls(
+            localizer.lookup,
+            float(localizer.effective_d_max),
+            float(pf.sigma),
+            float(pf.temperature),
+            float(pf.unexplained_share),
+        )
 
     def costs(self, n_points: int) -> np.ndarray:
         """The 256-entry per-point cost table for a scan of ``n_points`` points."""
-        return cost_table(self.lookup, self.lookup.capped(self.d_max), self.sigma,
-                          effective_temperature(self.temperature, n_points), self.unexplained_share)
+        return cost_table(
+            self.lookup,
+            self.lookup.capped(self.d_max),
+            self.sigma,
+            effective_temperature(self.temperature, n_points),
+            self.unexplained_share,
+        )
 
     def log_likelihood(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(N,) log-likelihoods of (N, ≥6) states for (M, ≥3) sensor-frame points: the
         filter's kernel, summed in full."""
-        return log_likelihood(states, points, self.lookup, self.d_max, self.sigma,
-                              temperature=self.temperature, unexplained_share=self.unexplained_share)
+        return log_likelihood(
+            states,
+            points,
+            self.lookup,
+            self.d_max,
+            self.sigma,
+            temperature=self.temperature,
+            unexplained_share=self.unexplained_share,
+        )
 
-    def surface(self, points: np.ndarray, center, half_width: float = HALF_WIDTH, cell: float = CELL,
-                yaw_window: float = 0.0, yaw_step: float = YAW_STEP, parallel: bool = True) -> Surface:
+    def surface(
+        self,
+        points: np.ndarray,
+        center,
+        half_width: float = HALF_WIDTH,
+        cell: float = CELL,
+        yaw_window: float = 0.0,
+        yaw_step: float = YAW_STEP,
+        parallel: bool = True,
+    ) -> Surface:
         """The log-likelihood of ``points`` ((M, ≥3), sensor frame) on an x–y grid around
         ``center`` (x, y, z, yaw, pitch, roll): cells of ``cell`` metres out to ±``half_width``
         (rounded to whole cells, the centre on a cell centre), at the centre's yaw, or the best
@@ -208,7 +233,7 @@ class LikelihoodModel:
         if not (yaw_window >= 0 and yaw_step > 0 and math.isfinite(yaw_window)):
             raise LidarlocError(f"yaw window must be ≥ 0 and yaw step > 0 (got {yaw_window}, {yaw_step})")
         pts = as_points(points)
-        pts = np.ascontiguousarray(pts[:, :3].T, dtype=np.float32)     # (3, M), as the filter reads them
+        pts = np.ascontiguousarray(pts[:, :3].T, dtype=np.float32)  # (3, M), as the filter reads them
         m = pts.shape[1]
         t0 = time.perf_counter()
         offsets = (np.arange(n) - n_half) * cell
@@ -235,5 +260,6 @@ class LikelihoodModel:
             best[better] = out[better]
             best_yaw[better] = yaw
         ms = (time.perf_counter() - t0) * 1000.0
-        return Surface(xs=xs, ys=ys, ll=best, yaw=best_yaw, center=c, cell=cell, yaw_window=n_yaw * yaw_step,
-                       n_points=m, ms=ms)
+        return Surface(
+            xs=xs, ys=ys, ll=best, yaw=best_yaw, center=c, cell=cell, yaw_window=n_yaw * yaw_step, n_points=m, ms=ms
+        )

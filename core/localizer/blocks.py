@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import LidarlocError
 from ..rules.integrity import fits_clearly_better
 
+
 class BlockError(LidarlocError):
     """A localizer block (thread) raised; the run stops with this one-line message."""
 
@@ -46,11 +47,13 @@ class BlocksMixin:
 
     def _wait(self, future: Future, block: str, k: int, what: str | None = None):
         if not future.done():
-            self._waiting = (what or (f"KISS-ICP's registration of scan {k}" if block == "RPE" else block),
-                             time.monotonic())
+            self._waiting = (
+                what or (f"KISS-ICP's registration of scan {k}" if block == "RPE" else block),
+                time.monotonic(),
+            )
         try:
             while not future.done():
-                if self._interrupt.is_set():     # step() refuses further steps until restart()
+                if self._interrupt.is_set():  # step() refuses further steps until restart()
                     raise Interrupted(f"interrupted at scan {k} while waiting for {block}")
                 wait_futures([future], timeout=INTERRUPT_POLL_S)
         finally:
@@ -66,8 +69,9 @@ class BlocksMixin:
             self._failed = f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}"
             raise BlockError(self._failed) from exc
 
-    def _reinitialize(self, region=None, pose=None, k: int | None = None, why: str = "re-initialised",
-                      speed: float | None = None) -> None:
+    def _reinitialize(
+        self, region=None, pose=None, k: int | None = None, why: str = "re-initialised", speed: float | None = None
+    ) -> None:
         """Spread the particles again (globally, in a region or around a pose), leaving tracking
         mode: the full particle count comes back."""
         self.controls += 1
@@ -83,14 +87,16 @@ class BlocksMixin:
         """Whether the scan fits the map clearly better in 3D at ``pose`` than at the estimate
         (:func:`~lidarloc.core.rules.integrity.fits_clearly_better`), and both fits in words: the
         second test a whole-map check's far pose must pass to move the filter."""
-        from ..geometry import pose_to_xyz_ypr
         from ..filter.likelihood import residual_stats
+        from ..geometry import pose_to_xyz_ypr
 
         d_max = self.effective_d_max
         here = residual_stats(self.pf.estimate().state[:6], prepared, self.lookup, d_max)
         there = residual_stats(pose_to_xyz_ypr(pose), prepared, self.lookup, d_max)
-        words = (f"in 3D mean residual {there[1]:.2f} m against the estimate's {here[1]:.2f} m, inlier share "
-                 f"{there[0]:.2f} against {here[0]:.2f}")
+        words = (
+            f"in 3D mean residual {there[1]:.2f} m against the estimate's {here[1]:.2f} m, inlier share "
+            f"{there[0]:.2f} against {here[0]:.2f}"
+        )
         return fits_clearly_better(there, here), words
 
     def _relocalize(self, k: int, verdict) -> None:
@@ -98,8 +104,12 @@ class BlocksMixin:
         the particles start again around it, and the rule must fire again (with S2M's word)
         before the filter says localized (see :mod:`lidarloc.core.rules.integrity`)."""
         self._event(k, "relocalized", f"from the estimate to {verdict.describe()}")
-        self._reinitialize(pose=verdict.pose, k=k, why="re-localized by the whole-map check",
-                           speed=self.odometry.rpe.speed(k) if self.odometry.rpe is not None else None)
+        self._reinitialize(
+            pose=verdict.pose,
+            k=k,
+            why="re-localized by the whole-map check",
+            speed=self.odometry.rpe.speed(k) if self.odometry.rpe is not None else None,
+        )
         self.rules.reset()
         self.integrity.reset()
 

@@ -12,6 +12,7 @@ import numpy as np
 from ..config import LIVE_PARAMS, check_live_changes
 from ..errors import LidarlocError
 
+
 class ControlsMixin:
     """The user's controls (see the module docstring). A part of :class:`~lidarloc.core.localizer.Localizer`."""
 
@@ -27,7 +28,11 @@ class ControlsMixin:
             self.rules.reset()
             self.integrity.reset()
             self.controls += 1
-            where = "globally" if pose is None and region is None else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
+            where = (
+                "globally"
+                if pose is None and region is None
+                else ("around a pose" if pose is not None else f"in {tuple(round(v, 1) for v in region)}")
+            )
             self._event(self.k - 1, "reset", f"particles re-initialised {where}")
             # A paused viewer shows the new particles at once; the last scan stays as it was.
             prev = self._snapshot
@@ -48,7 +53,7 @@ class ControlsMixin:
             self.k = target
             self.odometry.restart(origin=target)
             self._prev_t = None
-            self.rules.reset()   # the odometry restarts: a window must not span the jump
+            self.rules.reset()  # the odometry restarts: a window must not span the jump
             self.integrity.reset()
             self._refresh_snapshot()
             return target
@@ -64,7 +69,9 @@ class ControlsMixin:
             self.s2m.cancel(self.k - 1, "particles moved")
             self.pf.states[:, 0] += float(dx)
             self.pf.states[:, 1] += float(dy)
-            self._event(self.k - 1, "kidnap", f"particles moved {float(np.hypot(dx, dy)):.0f} m; the filter was not told")
+            self._event(
+                self.k - 1, "kidnap", f"particles moved {float(np.hypot(dx, dy)):.0f} m; the filter was not told"
+            )
             self._refresh_snapshot()
 
     def set_params(self, **params) -> None:
@@ -96,7 +103,7 @@ class ControlsMixin:
         self.pf.set_q_std(self.cfg.pf.q_std)
 
     def _after_particles(self, before: int) -> None:
-        self.s2m.cancel(self.k - 1, "particle count changed")   # particle indices change
+        self.s2m.cancel(self.k - 1, "particle count changed")  # particle indices change
         self.pf.set_n_particles(self.cfg.pf.n_particles)
 
     def _after_s2m_switch(self, before: bool) -> None:

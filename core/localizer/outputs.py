@@ -13,6 +13,7 @@ from ..rules.checks import truth_outside_map
 from ..rules.truth import inside_2sigma, truth_alarm
 from ..snapshot import Event, Snapshot
 
+
 class OutputsMixin:
     """Snapshots, events and the per-scan checks (see the module docstring). A part of :class:`~lidarloc.core.localizer.Localizer`."""
 
@@ -30,11 +31,18 @@ class OutputsMixin:
         """A control changed the state between scans (kidnap, S2M off): the snapshot says so at
         once — a paused viewer shows it without waiting for the next scan."""
         status, status_detail = self.s2m_status()
-        self._snapshot = replace(self._snapshot, events=tuple(self.events[-50:]), localized=self.rules.localized,
-                                 localized_since=self.rules.localized_since, s2m_running=self.s2m.job is not None,
-                                 s2m_pending=self.s2m_pending, s2m_status=status, s2m_status_detail=status_detail,
-                                 awaiting_confirmation=False,
-                                 truth_alarm=truth_alarm(self.rules.localized, self._snapshot.error_m))
+        self._snapshot = replace(
+            self._snapshot,
+            events=tuple(self.events[-50:]),
+            localized=self.rules.localized,
+            localized_since=self.rules.localized_since,
+            s2m_running=self.s2m.job is not None,
+            s2m_pending=self.s2m_pending,
+            s2m_status=status,
+            s2m_status_detail=status_detail,
+            awaiting_confirmation=False,
+            truth_alarm=truth_alarm(self.rules.localized, self._snapshot.error_m),
+        )
 
     def _event(self, k: int, kind: str, detail: str = "") -> None:
         self.events.append(Event(int(k), kind, detail))
@@ -63,14 +71,21 @@ class OutputsMixin:
         from ..filter.likelihood import residual_stats
 
         share, residual = residual_stats(est.state[:6], prepared, self.lookup, self.effective_d_max)
-        share, residual = float(share), (float(residual) if np.isfinite(residual) else None)   # None: no inlier
+        share, residual = float(share), (float(residual) if np.isfinite(residual) else None)  # None: no inlier
         why = self._confidence.update(self.rules.localized, share, residual, self.cfg.localize.min_inlier_share)
         if why is not None:
             self._event(k, "confidence_low", why)
         return share, residual
 
-    def _make_snapshot(self, k: int, prepared, pf_ms: float, est, n_weighed: int | None = None,
-                       fit: tuple[float, float | None] | None = None) -> Snapshot:
+    def _make_snapshot(
+        self,
+        k: int,
+        prepared,
+        pf_ms: float,
+        est,
+        n_weighed: int | None = None,
+        fit: tuple[float, float | None] | None = None,
+    ) -> Snapshot:
         """The snapshot after scan k (-1: none yet). ``n_weighed``: the particles the estimate
         ``est`` was computed from; ``fit``: :meth:`_scan_fit`'s (inlier share, mean residual)."""
         if est is None:
@@ -82,24 +97,46 @@ class OutputsMixin:
         inside = None if gt is None else inside_2sigma(mean_T[:2, 3] - gt[:2, 3], est.cov_xyz[:2, :2])
         share, residual = (None, None) if fit is None else fit
         status, status_detail = self.s2m_status(max(k, 0))
-        scan_world = (np.zeros((0, 3), np.float32) if prepared is None
-                      else transform_points(mean_T, prepared).astype(np.float32))
+        scan_world = (
+            np.zeros((0, 3), np.float32) if prepared is None else transform_points(mean_T, prepared).astype(np.float32)
+        )
         return Snapshot(
-            scan_index=k, n_scans=self.n_scans, timestamp=self.seq.timestamp(k) if k >= 0 else 0.0,
-            particles=self.pf.states.copy(), weights=self.pf.weights.copy(), log_weights=self.pf.log_weights.copy(),
+            scan_index=k,
+            n_scans=self.n_scans,
+            timestamp=self.seq.timestamp(k) if k >= 0 else 0.0,
+            particles=self.pf.states.copy(),
+            weights=self.pf.weights.copy(),
+            log_weights=self.pf.log_weights.copy(),
             best_index=int(est.best_index),
-            mean_pose=mean_T, cov_xyz=est.cov_xyz, std_xyz=est.std_xyz, ellipse_xy=tuple(est.ellipse_xy),
-            n_eff=float(est.n_eff), localized=self.rules.localized, localized_since=self.rules.localized_since,
-            scan_world=scan_world, gt_pose=gt, error_m=err, pf_ms=pf_ms, rpe_ms=self.odometry.last_ms,
-            s2m=self.s2m.last, s2m_running=self.s2m.job is not None, s2m_acceptance=self.s2m.acceptance,
+            mean_pose=mean_T,
+            cov_xyz=est.cov_xyz,
+            std_xyz=est.std_xyz,
+            ellipse_xy=tuple(est.ellipse_xy),
+            n_eff=float(est.n_eff),
+            localized=self.rules.localized,
+            localized_since=self.rules.localized_since,
+            scan_world=scan_world,
+            gt_pose=gt,
+            error_m=err,
+            pf_ms=pf_ms,
+            rpe_ms=self.odometry.last_ms,
+            s2m=self.s2m.last,
+            s2m_running=self.s2m.job is not None,
+            s2m_acceptance=self.s2m.acceptance,
             s2m_pending=self.s2m_pending,
             n_particles=int(n_weighed if n_weighed is not None else len(self.pf.states)),
             converged=bool(np.all(est.std_xyz < self.cfg.localize.std_threshold)),
-            inlier_share=share, mean_residual_m=residual, inside_2sigma=inside,
-            events=tuple(self.events[-50:]), done=self.k >= self.n_scans,
-            s2m_status=status, s2m_status_detail=status_detail,
+            inlier_share=share,
+            mean_residual_m=residual,
+            inside_2sigma=inside,
+            events=tuple(self.events[-50:]),
+            done=self.k >= self.n_scans,
+            s2m_status=status,
+            s2m_status_detail=status_detail,
             awaiting_confirmation=bool(self.rules.awaiting_confirmation and not self.rules.localized),
-            confirmed_at=self.integrity.confirmed_at, truth_alarm=truth_alarm(self.rules.localized, err))
+            confirmed_at=self.integrity.confirmed_at,
+            truth_alarm=truth_alarm(self.rules.localized, err),
+        )
 
     def _truth_check(self, k: int, est) -> None:
         """A ``false_fire`` event when the rule says localized while the truth is farther than
@@ -111,5 +148,7 @@ class OutputsMixin:
         alarm = truth_alarm(self.rules.localized, err)
         if alarm is not None and not self._alarm_on:
             onset = self.rules.localized_since == k
-            self._event(k, "false_fire", alarm + ("" if onset else f" (localized since scan {self.rules.localized_since})"))
+            self._event(
+                k, "false_fire", alarm + ("" if onset else f" (localized since scan {self.rules.localized_since})")
+            )
         self._alarm_on = alarm is not None

@@ -78,22 +78,22 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from ..rules.checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map
-from ..rules.integrity import Integrity
 from ..config import Config
 from ..errors import LidarlocError
+from ..filter.scanprep import prepare_scan, voxel_downsample_random
 from ..maps.world import open_world
+from ..matching.pending import S2MNotReady, in_daemon_thread
 from ..odometry.feed import OdometryFeed
 from ..odometry.rpe import load_or_build_odometry
+from ..rules.checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map
+from ..rules.integrity import Integrity
 from ..rules.paper import LocalizationRules
-from ..matching.pending import S2MNotReady, in_daemon_thread
-from ..filter.scanprep import prepare_scan, voxel_downsample_random
 from ..snapshot import Event, ScanRecord, Snapshot
 from ..worker_process import WorkerProxy
 from .blocks import BlockError, BlocksMixin, Interrupted
@@ -104,10 +104,17 @@ from .tables import TablesMixin
 
 
 class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixin):
-    def __init__(self, seq, cfg: Config, cache_root: Path | None = None,
-                 progress: Callable[[str, float], None] | None = None,
-                 on_map: Callable[[object], None] | None = None, defer_s2m: bool = False,
-                 known_odometry: dict | None = None, lazy_s2m: bool = False):
+    def __init__(
+        self,
+        seq,
+        cfg: Config,
+        cache_root: Path | None = None,
+        progress: Callable[[str, float], None] | None = None,
+        on_map: Callable[[object], None] | None = None,
+        defer_s2m: bool = False,
+        known_odometry: dict | None = None,
+        lazy_s2m: bool = False,
+    ):
         from ..filter.pf import ParticleFilter
 
         self.seq, self.cfg = seq, cfg
@@ -127,15 +134,22 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         # ``defer_s2m``: what only S2M needs (road removal, BEV pyramid, its process) is built in
         # the background after construction, and S2M joins at the first scan after it is ready —
         # a scan that depends on timing, so only for a viewer's first start on an empty cache.
-        self.world = open_world(seq.map_source, cfg, cache_root, road_removal=not defer_s2m,
-                                progress=self._progress, on_map=lambda prior: self._map_ready(prior, on_map))
+        self.world = open_world(
+            seq.map_source,
+            cfg,
+            cache_root,
+            road_removal=not defer_s2m,
+            progress=self._progress,
+            on_map=lambda prior: self._map_ready(prior, on_map),
+        )
         self.prior_map, self.map_dir = self.world.prior_map, self.world.map_dir
         self.lookup, self.pyramid = self.world.lookup, self.world.pyramid
         recorded_odometry = None
         if cfg.localize.recorded_odometry:
             self._progress("odometry", 0.0)
             recorded_odometry = load_or_build_odometry(
-                seq, self.odometry_cache_dir, progress=lambda f: self._progress("odometry", f)).value
+                seq, self.odometry_cache_dir, progress=lambda f: self._progress("odometry", f)
+            ).value
         self._PF = ParticleFilter
         # one LiDAR sweep lasts one scan interval (a spinning sensor reports a scan per turn)
         gaps = np.diff(np.asarray(seq.timestamps, dtype=np.float64))
@@ -151,9 +165,9 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self._pending_lookup: Future | None = None
         self._pending_pyramid: Future | None = None
         self._closed = False
-        self._interrupt = threading.Event()   # set by interrupt(): a waiting step gives up
-        self._waiting: tuple[str, float] | None = None   # what a step waits for, since when
-        self._failed: str | None = None      # a block's failure: steps refuse until restart()
+        self._interrupt = threading.Event()  # set by interrupt(): a waiting step gives up
+        self._waiting: tuple[str, float] | None = None  # what a step waits for, since when
+        self._failed: str | None = None  # a block's failure: steps refuse until restart()
         self.odometry = OdometryFeed(cfg, recorded_odometry, self._rpe_pool, wait=self._wait)
         self.odometry.process = early_rpe
         self.odometry.known = known_odometry
@@ -162,11 +176,11 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         # each: see core/runs/resume.py); events before this index belong to an earlier recording
         self.controls = 0
         self.recorded_events_base = 0
-        self._controls_checkpointed: int | None = None   # controls count at the last checkpoint
-        self.branch_of: dict | None = None     # {"run", "step"} of a branch (core/runs/branch.py)
-        self._lazy_s2m = lazy_s2m             # the S2M matcher starts when first needed
+        self._controls_checkpointed: int | None = None  # controls count at the last checkpoint
+        self.branch_of: dict | None = None  # {"run", "step"} of a branch (core/runs/branch.py)
+        self._lazy_s2m = lazy_s2m  # the S2M matcher starts when first needed
         self._pending_s2m: Future | None = None
-        self._road_removal = None            # its child process while it runs (defer_s2m)
+        self._road_removal = None  # its child process while it runs (defer_s2m)
         if self.pyramid is not None:
             self.s2m = self._s2m_scheduler()
         else:
@@ -183,8 +197,9 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         use_origin = getattr(self.seq, "use_map_origin", None)
         if use_origin is not None:
             use_origin(prior_map.origin)
-        self._init_pose = initial_pose_on_map(getattr(self.seq, "initial_guess", None), prior_map,
-                                              self.cfg.pf.sensor_height)
+        self._init_pose = initial_pose_on_map(
+            getattr(self.seq, "initial_guess", None), prior_map, self.cfg.pf.sensor_height
+        )
         if on_map is not None:
             on_map(prior_map)
 
@@ -202,8 +217,14 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self.odometry.used_plan = None
             if getattr(self.s2m, "recorded", None) is not None:
                 self.s2m.recorded.timing_until = -1
-            self.pf = self._PF(self.cfg.pf, self.lookup, self._bounds[0], self._bounds[1], seed=self.cfg.seed,
-                               map_points=self.prior_map.points)
+            self.pf = self._PF(
+                self.cfg.pf,
+                self.lookup,
+                self._bounds[0],
+                self._bounds[1],
+                seed=self.cfg.seed,
+                map_points=self.prior_map.points,
+            )
             if self._init_pose is None:
                 self.pf.initialize()
             else:
@@ -211,10 +232,10 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self.odometry.restart(origin=0)
             self.rules = LocalizationRules(self.cfg.localize)
             self.integrity = Integrity(self.cfg)
-            self._alarm_on = False          # the truth alarm is raised (see _truth_check)
+            self._alarm_on = False  # the truth alarm is raised (see _truth_check)
             self._failed = None
-            self.k = 0                      # index of the next scan to process
-            self.steps = 0                  # scans processed since the start (kidnap skips don't count)
+            self.k = 0  # index of the next scan to process
+            self.steps = 0  # scans processed since the start (kidnap skips don't count)
             self.events: list[Event] = []
             self.records: list[ScanRecord] = []
             self.est_trajectory: list[np.ndarray] = []
@@ -223,8 +244,12 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self._frame_check = ScanFrameCheck()
             if self._init_pose is not None:
                 g = self.seq.initial_guess
-                self._event(-1, "initial_guess", f"particles around x {g.x:.2f} m, y {g.y:.2f} m, yaw "
-                            f"{np.degrees(g.yaw):.1f}° (σ {g.sigma_xy:g} m, {np.degrees(g.sigma_yaw):g}°)")
+                self._event(
+                    -1,
+                    "initial_guess",
+                    f"particles around x {g.x:.2f} m, y {g.y:.2f} m, yaw "
+                    f"{np.degrees(g.yaw):.1f}° (σ {g.sigma_xy:g} m, {np.degrees(g.sigma_yaw):g}°)",
+                )
             self._check_truth_frame()
             self._snapshot: Snapshot | None = None
             self._snapshot = self._make_snapshot(-1, None, 0.0, None)
@@ -242,14 +267,14 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self._interrupt.set()
 
     def close(self) -> None:
-        self._interrupt.set()            # a step in progress gives up instead of holding the lock
+        self._interrupt.set()  # a step in progress gives up instead of holding the lock
         self._closed = True
         if self._road_removal is not None:
             self._road_removal.kill()
         with self._lock:
             self.s2m.cancel(self.k - 1, "localizer closed")
         pools = (self._rpe_pool, self._s2m_pool, self._rebuild_pool)
-        for pool in pools:               # queued work is dropped …
+        for pool in pools:  # queued work is dropped …
             pool.shutdown(wait=False, cancel_futures=True)
         # … and the children close before the threads are joined: a match or registration in
         # flight is only thrown away, so a busy child is killed rather than waited for (a
@@ -294,11 +319,12 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
 
             usage = resource.getrusage(resource.RUSAGE_SELF)
             main = usage.ru_utime + usage.ru_stime
-        except ImportError:          # not a Unix
+        except ImportError:  # not a Unix
             main = None
 
         def child(worker):
             return worker.cpu_seconds() if isinstance(worker, WorkerProxy) else None
+
         return {"main": main, "rpe": child(self.odometry.process), "s2m": child(self.s2m.matcher)}
 
     def __enter__(self):
@@ -316,15 +342,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         """Whether ``close()`` was called: the localizer steps no more."""
         return self._closed
 
-
-
-
-
     # ------------------------------------------------------------------------ controls
-
-
-
-
 
     @property
     def odometry_cache_dir(self) -> Path:
@@ -338,9 +356,6 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         """The likelihood's distance cap: the configured d_max, clamped to the one the lookup
         table was built for (a larger one is being rebuilt in the background meanwhile)."""
         return self.lookup.capped(self.cfg.pf.d_max)
-
-
-
 
     # ------------------------------------------------------------------------ one scan
     def step(self) -> Snapshot:
@@ -396,7 +411,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         est = self.pf.estimate()
         n_weighed = self.pf.n
         pf_s += time.perf_counter() - t1
-        self._check_scan_frame(k, est, prepared)    # before resampling: best_index names a particle
+        self._check_scan_frame(k, est, prepared)  # before resampling: best_index names a particle
 
         if self.s2m_status(k)[0] == "ready" and k == self.cfg.s2m.join_at_scan > 0:
             self._event(k, "s2m_ready", f"held back until scan {k} (s2m.join_at_scan)")
@@ -427,7 +442,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             n_weighed = self.pf.n
         else:
             entering_tracking = outcome.event == "localized" and self.cfg.localize.tracking
-            if entering_tracking:    # resamples down: est.best_index no longer names a particle
+            if entering_tracking:  # resamples down: est.best_index no longer names a particle
                 self._enter_tracking(k)
             # S2M starts from the highest-weight particle of this posterior; that slot is
             # then protected through every resampling until the match lands.
@@ -465,22 +480,6 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
 
     # ------------------------------------------------------------------------ blocks
 
-
-
-
-
-
-
     # ------------------------------------------------------------------------ background rebuilds
 
-
-
-
-
-
     # ------------------------------------------------------------------------ outputs
-
-
-
-
-

@@ -60,11 +60,17 @@ class StateMixin:
             s2m_state, s2m_arrays = self.s2m.checkpoint()
             s2m_state["pending"] = bool(self.s2m_pending) or bool(s2m_state["pending"])
             state = {
-                "k": self.k, "steps": self.steps, "prev_t": self._prev_t,
+                "k": self.k,
+                "steps": self.steps,
+                "prev_t": self._prev_t,
                 "n_events": len(self.events) - self.recorded_events_base,
-                "rules": self.rules.state(), "integrity": self.integrity.state(), "alarm_on": bool(self._alarm_on),
-                "confidence_armed": self._confidence.armed, "frame_best_share": float(self._frame_check.best_share),
-                "s2m": s2m_state, "config": self.cfg.to_dict(),
+                "rules": self.rules.state(),
+                "integrity": self.integrity.state(),
+                "alarm_on": bool(self._alarm_on),
+                "confidence_armed": self._confidence.armed,
+                "frame_best_share": float(self._frame_check.best_share),
+                "s2m": s2m_state,
+                "config": self.cfg.to_dict(),
             }
             out = {"state": np.array(json.dumps(state)), **s2m_arrays}
             out.update({f"pf_{k}": v for k, v in self.pf.checkpoint().items()})
@@ -82,7 +88,7 @@ class StateMixin:
             self.rules.load(state["rules"])
             self._confidence.armed = bool(state["confidence_armed"])
             self._frame_check.best_share = float(state["frame_best_share"])
-            self.integrity.load(state.get("integrity", {}))    # absent in recordings made before the checks
+            self.integrity.load(state.get("integrity", {}))  # absent in recordings made before the checks
             self._alarm_on = bool(state.get("alarm_on", False))
             self.k, self.steps, self._prev_t = int(state["k"]), int(state["steps"]), state["prev_t"]
             self.odometry.catch_up(self.k, self.seq.scan, self.seq.timestamp)

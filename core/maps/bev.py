@@ -86,9 +86,9 @@ def max_pool2(grid: np.ndarray) -> np.ndarray:
 
 @dataclass
 class BEVPyramid:
-    resolution: float                  # d_m, metres per L0 cell
-    origin: np.ndarray                 # (2,) world x, y of the lower corner of L0 cell (0, 0)
-    levels: list                       # [L0, L1, …], float32 (nx_l, ny_l)
+    resolution: float  # d_m, metres per L0 cell
+    origin: np.ndarray  # (2,) world x, y of the lower corner of L0 cell (0, 0)
+    levels: list  # [L0, L1, …], float32 (nx_l, ny_l)
     cell_value: str = DEFAULT_CELL_VALUE
     meta: dict = field(default_factory=dict)
     # What a matcher derives from the levels, built on first use and kept with them (M3RSM's
@@ -111,8 +111,9 @@ class BEVPyramid:
         return float(x0), float(y0), float(x0 + nx * self.resolution), float(y0 + ny * self.resolution)
 
     @classmethod
-    def build(cls, xy: np.ndarray, resolution: float, binary: bool = False,
-              cell_value: str | None = None) -> "BEVPyramid":
+    def build(
+        cls, xy: np.ndarray, resolution: float, binary: bool = False, cell_value: str | None = None
+    ) -> BEVPyramid:
         """Pyramid of the map points ``xy`` (N, ≥2), world frame. ``binary`` (S2MConfig.binary_cells)
         forces occupancy; otherwise ``cell_value`` (default :data:`DEFAULT_CELL_VALUE`)."""
         if resolution <= 0:
@@ -131,20 +132,31 @@ class BEVPyramid:
         while levels[-1].size > _MAX_TOP_CELLS:
             levels.append(max_pool2(levels[-1]))
         origin = lo.astype(np.float64) * resolution
-        return cls(resolution=float(resolution), origin=origin, levels=levels, cell_value=cell_value,
-                   meta={"map_points": int(len(xy)), "occupied_cells": int((counts > 0).sum())})
+        return cls(
+            resolution=float(resolution),
+            origin=origin,
+            levels=levels,
+            cell_value=cell_value,
+            meta={"map_points": int(len(xy)), "occupied_cells": int((counts > 0).sum())},
+        )
 
     # ---------------------------------------------------------------------------- persistence
     def save(self, directory: Path) -> None:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         np.savez(directory / "levels.npz", **{f"L{i}": lv for i, lv in enumerate(self.levels)})
-        info = {"format": _PYRAMID_FORMAT, "resolution": self.resolution, "origin": self.origin.tolist(),
-                "cell_value": self.cell_value, "n_levels": self.n_levels, "meta": self.meta}
+        info = {
+            "format": _PYRAMID_FORMAT,
+            "resolution": self.resolution,
+            "origin": self.origin.tolist(),
+            "cell_value": self.cell_value,
+            "n_levels": self.n_levels,
+            "meta": self.meta,
+        }
         (directory / "pyramid.json").write_text(json.dumps(info, indent=2))
 
     @classmethod
-    def load(cls, directory: Path) -> "BEVPyramid":
+    def load(cls, directory: Path) -> BEVPyramid:
         directory = Path(directory)
         try:
             info = json.loads((directory / "pyramid.json").read_text())
@@ -154,8 +166,13 @@ class BEVPyramid:
                 levels = [np.ascontiguousarray(data[f"L{i}"], dtype=np.float32) for i in range(info["n_levels"])]
         except (OSError, ValueError, KeyError) as exc:
             raise LidarlocError(f"{directory}: unreadable BEV pyramid ({exc})") from None
-        return cls(resolution=float(info["resolution"]), origin=np.asarray(info["origin"], dtype=np.float64),
-                   levels=levels, cell_value=info["cell_value"], meta=info.get("meta", {}))
+        return cls(
+            resolution=float(info["resolution"]),
+            origin=np.asarray(info["origin"], dtype=np.float64),
+            levels=levels,
+            cell_value=info["cell_value"],
+            meta=info.get("meta", {}),
+        )
 
 
 def pyramid_cache_name(s2m_cfg: S2MConfig, cell_value: str | None = None) -> str:
@@ -163,8 +180,9 @@ def pyramid_cache_name(s2m_cfg: S2MConfig, cell_value: str | None = None) -> str
     return f"bev-d{s2m_cfg.match_resolution:g}-{value}"
 
 
-def load_or_build_pyramid(prior_map, map_cache_dir: Path | None, s2m_cfg: S2MConfig,
-                          cell_value: str | None = None) -> Cached[BEVPyramid]:
+def load_or_build_pyramid(
+    prior_map, map_cache_dir: Path | None, s2m_cfg: S2MConfig, cell_value: str | None = None
+) -> Cached[BEVPyramid]:
     """The BEV pyramid of ``prior_map.points_bev``, cached in a subdirectory of the map's cache
     directory (keyed by resolution and cell value). With ``map_cache_dir=None`` it is built, not
     cached (the result's directory is then None)."""

@@ -3,12 +3,12 @@
 import numba as nb
 import numpy as np
 
-MISS_CODE = 255             # quantised "≥ d_max_built"
-MAX_CODE = 254              # largest code for a stored distance
-BRICK = 8                   # cells per brick side
-BRICK_SHIFT = 3             # log2(BRICK): cell index >> BRICK_SHIFT = brick index
-BRICK_MASK = 7              # BRICK − 1: cell index & BRICK_MASK = cell within its brick
-BRICK_CELLS = BRICK ** 3
+MISS_CODE = 255  # quantised "≥ d_max_built"
+MAX_CODE = 254  # largest code for a stored distance
+BRICK = 8  # cells per brick side
+BRICK_SHIFT = 3  # log2(BRICK): cell index >> BRICK_SHIFT = brick index
+BRICK_MASK = 7  # BRICK − 1: cell index & BRICK_MASK = cell within its brick
+BRICK_CELLS = BRICK**3
 
 
 @nb.njit(nogil=True, cache=True)

@@ -32,19 +32,20 @@ from __future__ import annotations
 import functools
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
 
 import numba as nb
 import numpy as np
 
 from .bricks import BRICK, BRICK_CELLS, MAX_CODE, MISS_CODE, extract_bricks
+from .tiling import bucket_points, point_cells
 
-_TILE = 192                 # x-y cells per build tile (multiple of BRICK)
-_INF = np.int32(1 << 30)    # "no map point in reach" in the transform's squared cell distances
-_MARGIN = 4                 # cells around a tile's core included in the refinement sweeps
-_SWEEP_PAIRS = 1            # forward + backward propagation sweeps
-_REFINE_RADIUS = 1          # cells around the nearest occupied cell searched for real points
+_TILE = 192  # x-y cells per build tile (multiple of BRICK)
+_INF = np.int32(1 << 30)  # "no map point in reach" in the transform's squared cell distances
+_MARGIN = 4  # cells around a tile's core included in the refinement sweeps
+_SWEEP_PAIRS = 1  # forward + backward propagation sweeps
+_REFINE_RADIUS = 1  # cells around the nearest occupied cell searched for real points
 
 
 @nb.njit(nogil=True, cache=True)
@@ -352,59 +353,16 @@ def _tile_codes(pts, lo_cell, sx, sy, sz, core_x0, core_y0, out, out_z0, origin,
     rx0, rx1 = max(core_x0 - _MARGIN, 0), min(core_x0 + out.shape[0] + _MARGIN, sx)
     ry0, ry1 = max(core_y0 - _MARGIN, 0), min(core_y0 + out.shape[1] + _MARGIN, sy)
     g, feat = _edt(start, sx, sy, sz, reach_cells * reach_cells, ry0, ry1)
-    bd = _refine(g, feat, sorted_pts, start, lo_cell, sx, sy, sz, rx0, rx1, ry0, ry1, origin, res, d_max,
-                 _REFINE_RADIUS)
+    bd = _refine(
+        g, feat, sorted_pts, start, lo_cell, sx, sy, sz, rx0, rx1, ry0, ry1, origin, res, d_max, _REFINE_RADIUS
+    )
     _sweeps(feat, bd, sorted_pts, lo_cell, sx, sy, sz, rx0, rx1, ry0, ry1, origin, res, _SWEEP_PAIRS)
     _emit(bd, sy, sz, core_x0, core_y0, out, out_z0, d_max, step)
 
 
-@nb.njit(nogil=True, cache=True)
-def _cells(pts, lo, res, shape):
-    """int32 cell index of every point (clamped into the grid)."""
-    out = np.empty((pts.shape[0], 3), np.int32)
-    for i in range(pts.shape[0]):
-        for a in range(3):
-            c = np.int64(math.floor((np.float64(pts[i, a]) - lo[a]) / res))
-            out[i, a] = min(max(c, 0), shape[a] - 1)
-    return out
-
-
-@nb.njit(nogil=True, cache=True)
-def _tile_range(c, pad, tile, nt):
-    return max((c - pad) // tile, 0), min((c + pad) // tile, nt - 1)
-
-
-@nb.njit(nogil=True, cache=True)
-def _bucket_points(cells, tile, pad, ntx, nty):
-    """Indices of the points each tile needs (its own and those within ``pad`` cells of it),
-    as CSR (offsets over tiles, flat index list). A point reaches at most 2×2 tiles."""
-    n = cells.shape[0]
-    offsets = np.zeros(ntx * nty + 1, np.int64)
-    for i in range(n):
-        tx0, tx1 = _tile_range(cells[i, 0], pad, tile, ntx)
-        ty0, ty1 = _tile_range(cells[i, 1], pad, tile, nty)
-        for tx in range(tx0, tx1 + 1):
-            for ty in range(ty0, ty1 + 1):
-                offsets[tx * nty + ty + 1] += 1
-    for t in range(ntx * nty):
-        offsets[t + 1] += offsets[t]
-    flat = np.empty(offsets[ntx * nty], np.int32)
-    fill = offsets[:-1].copy()
-    for i in range(n):
-        tx0, tx1 = _tile_range(cells[i, 0], pad, tile, ntx)
-        ty0, ty1 = _tile_range(cells[i, 1], pad, tile, nty)
-        for tx in range(tx0, tx1 + 1):
-            for ty in range(ty0, ty1 + 1):
-                t = tx * nty + ty
-                flat[fill[t]] = i
-                fill[t] += 1
-    return offsets, flat
-
-
-
-
-def _tile_bricks(t: int, *, pts, cells, offsets, flat, shape, reach: int, nz8: int, lo, resolution: float,
-             d_max: float, step: float):
+def _tile_bricks(
+    t: int, *, pts, cells, offsets, flat, shape, reach: int, nz8: int, lo, resolution: float, d_max: float, step: float
+):
     """The bricks of build tile ``t`` (see :func:`build_bricks`): (brick coords, brick data) or None."""
     a, b = offsets[t], offsets[t + 1]
     if a == b:
@@ -423,42 +381,74 @@ def _tile_bricks(t: int, *, pts, cells, offsets, flat, shape, reach: int, nz8: i
     pz0 = int(tile_cells[:, 2].min()) - reach
     pz1 = int(tile_cells[:, 2].max()) + reach + 1
     # Core block rounded up to whole bricks; cells beyond the box stay misses.
-    codes = np.full(((cx + BRICK - 1) // BRICK * BRICK, (cy + BRICK - 1) // BRICK * BRICK, nz8),
-                    MISS_CODE, np.uint8)
+    codes = np.full(((cx + BRICK - 1) // BRICK * BRICK, (cy + BRICK - 1) // BRICK * BRICK, nz8), MISS_CODE, np.uint8)
     lo_cell = np.array([px0, py0, pz0], np.int64)
-    _tile_codes(tile_pts, lo_cell, px1 - px0, py1 - py0, pz1 - pz0, x0 - px0, y0 - py0,
-                codes[:cx, :cy], pz0, lo, resolution, d_max, step, reach)
+    _tile_codes(
+        tile_pts,
+        lo_cell,
+        px1 - px0,
+        py1 - py0,
+        pz1 - pz0,
+        x0 - px0,
+        y0 - py0,
+        codes[:cx, :cy],
+        pz0,
+        lo,
+        resolution,
+        d_max,
+        step,
+        reach,
+    )
     coords, data = extract_bricks(codes)
     coords[:, 0] += x0 // BRICK
     coords[:, 1] += y0 // BRICK
     return coords, data
 
 
-
-def build_bricks(pts: np.ndarray, lo: np.ndarray, shape: np.ndarray, resolution: float, d_max: float,
-                 progress: Callable[[float], None] | None = None,
-                 threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def build_bricks(
+    pts: np.ndarray,
+    lo: np.ndarray,
+    shape: np.ndarray,
+    resolution: float,
+    d_max: float,
+    progress: Callable[[float], None] | None = None,
+    threads: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The table's (brick_index, bricks) for (N, 3) map points ``pts`` over a grid of ``shape``
     cells of ``resolution`` starting at ``lo`` (see the module docstring); tiles in parallel on
     ``threads`` threads (default: the CPUs this process may use). ``progress(fraction)`` is
     called after each tile."""
     nbx, nby, nbz = (int(s) for s in (shape + BRICK - 1) // BRICK)
-    cells = _cells(pts, lo, resolution, shape)
+    cells = point_cells(pts, lo, resolution, shape)
     # Margin: a core node is stored only if d < d_max, so its nearest point is within d_max,
     # i.e. within ceil(d_max/δ) + 1 cells; the transform's snapping adds up to √3/2 cell.
     reach = int(math.ceil(d_max / resolution)) + 2
     ntx = (int(shape[0]) + _TILE - 1) // _TILE
     nty = (int(shape[1]) + _TILE - 1) // _TILE
-    offsets, flat = _bucket_points(cells, _TILE, reach, ntx, nty)
+    offsets, flat = bucket_points(cells, _TILE, reach, ntx, nty)
     step = d_max / MAX_CODE
     nz8 = nbz * BRICK
 
-    do_tile = functools.partial(_tile_bricks, pts=pts, cells=cells, offsets=offsets, flat=flat, shape=shape,
-                                reach=reach, nz8=nz8, lo=lo, resolution=resolution, d_max=d_max, step=step)
+    do_tile = functools.partial(
+        _tile_bricks,
+        pts=pts,
+        cells=cells,
+        offsets=offsets,
+        flat=flat,
+        shape=shape,
+        reach=reach,
+        nz8=nz8,
+        lo=lo,
+        resolution=resolution,
+        d_max=d_max,
+        step=step,
+    )
 
     n_tiles = ntx * nty
     results = []
-    threads = threads or max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    threads = threads or max(
+        1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    )
     done = 0
     with ThreadPoolExecutor(threads, thread_name_prefix="lidarloc-lookup") as pool:
         for res in pool.map(do_tile, range(n_tiles)):
@@ -467,17 +457,17 @@ def build_bricks(pts: np.ndarray, lo: np.ndarray, shape: np.ndarray, resolution:
             done += 1
             if progress is not None:
                 progress(done / n_tiles)
-    del do_tile, cells, flat, offsets, pts   # the per-tile inputs are not needed for the assembly
+    del do_tile, cells, flat, offsets, pts  # the per-tile inputs are not needed for the assembly
     n_bricks = sum(len(r[0]) for r in results)
     bricks = np.empty((n_bricks + 1, BRICK_CELLS), np.uint8)
-    bricks[0] = MISS_CODE                       # slot 0: the shared all-miss brick
+    bricks[0] = MISS_CODE  # slot 0: the shared all-miss brick
     brick_index = np.zeros((nbx, nby, nbz), np.int32)
     slot = 1
     results.reverse()
-    while results:                              # free each tile's copy as soon as it is placed
+    while results:  # free each tile's copy as soon as it is placed
         coords, data = results.pop()
         k = len(coords)
-        bricks[slot:slot + k] = data
+        bricks[slot : slot + k] = data
         brick_index[coords[:, 0], coords[:, 1], coords[:, 2]] = np.arange(slot, slot + k, dtype=np.int32)
         slot += k
     return brick_index, bricks

@@ -51,8 +51,8 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numba as nb
 import numpy as np
@@ -87,15 +87,22 @@ def lookup_code(x, y, z, origin, inv_res, brick_index, bricks):
     if bx >= brick_index.shape[0] or by >= brick_index.shape[1] or bz >= brick_index.shape[2]:
         return MISS_CODE
     slot = brick_index[bx, by, bz]
-    cell = (((ix & BRICK_MASK) << 6) | ((iy & BRICK_MASK) << 3) | (iz & BRICK_MASK))
+    cell = ((ix & BRICK_MASK) << 6) | ((iy & BRICK_MASK) << 3) | (iz & BRICK_MASK)
     return np.int64(bricks[slot, cell])
 
 
 @nb.njit(nogil=True, cache=True, parallel=True, fastmath=True)
 def _query(points, origin, inv_res, step, d_max, brick_index, bricks, out):
     for i in nb.prange(points.shape[0]):
-        code = lookup_code(np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2]),
-                           origin, inv_res, brick_index, bricks)
+        code = lookup_code(
+            np.float64(points[i, 0]),
+            np.float64(points[i, 1]),
+            np.float64(points[i, 2]),
+            origin,
+            inv_res,
+            brick_index,
+            bricks,
+        )
         out[i] = min(np.float32(code * step), np.float32(d_max))
 
 
@@ -103,15 +110,16 @@ def _query(points, origin, inv_res, step, d_max, brick_index, bricks, out):
 class LookupTable:
     """Block-sparse quantised nearest-map-point distances over the map's bounding box."""
 
-    def __init__(self, origin, resolution: float, d_max_built: float, shape, brick_index: np.ndarray,
-                 bricks: np.ndarray):
+    def __init__(
+        self, origin, resolution: float, d_max_built: float, shape, brick_index: np.ndarray, bricks: np.ndarray
+    ):
         self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
         self.resolution = float(resolution)
         self.d_max_built = float(d_max_built)
-        self.shape = tuple(int(s) for s in shape)        # cells per axis
+        self.shape = tuple(int(s) for s in shape)  # cells per axis
         self.brick_index = np.ascontiguousarray(brick_index, dtype=np.int32)
         self.bricks = np.ascontiguousarray(bricks, dtype=np.uint8)
-        self.step = self.d_max_built / MAX_CODE         # metres per code
+        self.step = self.d_max_built / MAX_CODE  # metres per code
         self.inv_res = 1.0 / self.resolution
         self._flat_args: tuple | None = None
 
@@ -145,8 +153,10 @@ class LookupTable:
         return self._flat_args
 
     def __repr__(self) -> str:
-        return (f"LookupTable(δ={self.resolution} m, d_max_built={self.d_max_built} m, cells={self.shape}, "
-                f"bricks={self.n_bricks}, {self.nbytes / 1e6:.1f} MB)")
+        return (
+            f"LookupTable(δ={self.resolution} m, d_max_built={self.d_max_built} m, cells={self.shape}, "
+            f"bricks={self.n_bricks}, {self.nbytes / 1e6:.1f} MB)"
+        )
 
     # -------------------------------------------------------------------------- reading
     def capped(self, d_max: float) -> float:
@@ -171,8 +181,14 @@ class LookupTable:
 
     # -------------------------------------------------------------------------- building
     @classmethod
-    def build(cls, points: np.ndarray, resolution: float, d_max: float,
-              progress: Callable[[float], None] | None = None, threads: int | None = None) -> "LookupTable":
+    def build(
+        cls,
+        points: np.ndarray,
+        resolution: float,
+        d_max: float,
+        progress: Callable[[float], None] | None = None,
+        threads: int | None = None,
+    ) -> LookupTable:
         """Build from (N, ≥3) map points. ``progress(fraction)`` is called after each tile."""
         resolution, d_max = float(resolution), float(d_max)
         if not (resolution > 0 and math.isfinite(resolution)):
@@ -194,7 +210,7 @@ class LookupTable:
         # the paper, ground returns a few cm below the map's lowest point would read d_max.)
         lo = pts.min(axis=0).astype(np.float64) - d_max
         hi = pts.max(axis=0).astype(np.float64) + d_max
-        shape = (np.floor((hi - lo) / resolution).astype(np.int64) + 1)
+        shape = np.floor((hi - lo) / resolution).astype(np.int64) + 1
         brick_index, bricks = build_bricks(pts, lo, shape, resolution, d_max, progress, threads)
         return cls(lo, resolution, d_max, shape, brick_index, bricks)
 
@@ -204,13 +220,19 @@ class LookupTable:
         directory.mkdir(parents=True, exist_ok=True)
         np.save(directory / "brick_index.npy", self.brick_index)
         np.save(directory / "bricks.npy", self.bricks)
-        meta = {"version": _FORMAT_VERSION, "origin": self.origin.tolist(), "resolution": self.resolution,
-                "d_max_built": self.d_max_built, "shape": list(self.shape), "bricks": self.n_bricks,
-                "nbytes": self.nbytes}
+        meta = {
+            "version": _FORMAT_VERSION,
+            "origin": self.origin.tolist(),
+            "resolution": self.resolution,
+            "d_max_built": self.d_max_built,
+            "shape": list(self.shape),
+            "bricks": self.n_bricks,
+            "nbytes": self.nbytes,
+        }
         (directory / "lookup.json").write_text(json.dumps(meta, indent=2))
 
     @classmethod
-    def load(cls, directory: Path) -> "LookupTable":
+    def load(cls, directory: Path) -> LookupTable:
         directory = Path(directory)
         try:
             meta = json.loads((directory / "lookup.json").read_text())
@@ -224,10 +246,15 @@ class LookupTable:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise DataError(f"{directory}: unreadable lookup table ({type(exc).__name__}: {exc})") from None
         nb_expected = tuple((s + BRICK - 1) // BRICK for s in table.shape)
-        if (table.brick_index.shape != nb_expected or table.bricks.ndim != 2
-                or table.bricks.shape[1] != BRICK_CELLS or len(table.bricks) == 0
-                or (table.brick_index.size and (table.brick_index.min() < 0
-                                                or table.brick_index.max() >= len(table.bricks)))):
+        if (
+            table.brick_index.shape != nb_expected
+            or table.bricks.ndim != 2
+            or table.bricks.shape[1] != BRICK_CELLS
+            or len(table.bricks) == 0
+            or (
+                table.brick_index.size and (table.brick_index.min() < 0 or table.brick_index.max() >= len(table.bricks))
+            )
+        ):
             raise DataError(f"{directory}: corrupt lookup table (inconsistent array shapes)")
         return table
 
@@ -236,8 +263,9 @@ def _cache_name(resolution: float, d_max: float) -> str:
     return f"lookup-r{resolution:.6g}-d{d_max:.6g}"
 
 
-def load_or_build_lookup(prior_map, map_cache_dir: Path, resolution: float, d_max: float,
-                         progress: Callable[[float], None] | None = None) -> Cached[LookupTable]:
+def load_or_build_lookup(
+    prior_map, map_cache_dir: Path, resolution: float, d_max: float, progress: Callable[[float], None] | None = None
+) -> Cached[LookupTable]:
     """The lookup table of ``prior_map`` from ``map_cache_dir/lookup-r<δ>-d<d_max>``, or built and
     cached there atomically. A cached table of the same δ built for a larger d_max is reused
     (reads clamp at the caller's d_max); the result names the directory it came from."""

@@ -3,16 +3,15 @@ point spacing, which says whether the voxel and lookup resolution suit it."""
 
 from __future__ import annotations
 
-
 import numpy as np
-
 
 #: Formats read by :func:`read_map` and written by :func:`write_map`.
 from .mapfile import CHUNK_POINTS, MapCloud
 
 
-def point_spacing(points: np.ndarray, rng: np.random.Generator | None = None, tiles: int = 8,
-                  half: float = 2.0) -> float | None:
+def point_spacing(
+    points: np.ndarray, rng: np.random.Generator | None = None, tiles: int = 8, half: float = 2.0
+) -> float | None:
     """Median nearest-neighbour spacing (m) of a cloud, measured on a sample: every point within
     ``half`` m (∞-norm) of ``tiles`` random points is gathered and the nearest neighbours of
     those in the inner half of each tile are looked up among them (a k-d tree over a large
@@ -25,7 +24,7 @@ def point_spacing(points: np.ndarray, rng: np.random.Generator | None = None, ti
     centres = points[rng.integers(0, len(points), tiles)].astype(np.float64)
     masks = []
     for i in range(0, len(points), CHUNK_POINTS):
-        chunk = points[i:i + CHUNK_POINTS]
+        chunk = points[i : i + CHUNK_POINTS]
         near = np.zeros(len(chunk), bool)
         for c in centres:
             near |= (np.abs(chunk - c) <= half).all(axis=1)
@@ -39,7 +38,6 @@ def point_spacing(points: np.ndarray, rng: np.random.Generator | None = None, ti
     d, _ = cKDTree(local).query(local[inner], k=2)
     d = d[:, 1][np.isfinite(d[:, 1])]
     return float(np.median(d)) if len(d) else None
-
 
 
 def describe_map(cloud: MapCloud, rng: np.random.Generator | None = None) -> dict:
@@ -69,7 +67,9 @@ def map_info_lines(info: dict) -> list[str]:
     lines = [f"{info['file']}: {info['points']:,} points" + (f" ({dropped:,} not finite, dropped)" if dropped else "")]
     for axis, lo, hi, size in zip("xyz", info["extent_min_m"], info["extent_max_m"], info["size_m"]):
         lines.append(f"  {axis}: {lo:.3f} … {hi:.3f} m ({size:.3f} m)")
-    lines.append("  origin: " + ", ".join(f"{v:.3f}" for v in info["origin_m"]) + " m (the local frame's, in the file's)")
+    lines.append(
+        "  origin: " + ", ".join(f"{v:.3f}" for v in info["origin_m"]) + " m (the local frame's, in the file's)"
+    )
     density = "—" if info["points_per_m2"] is None else f"{info['points_per_m2']:.1f} points/m² over the x-y box"
     spacing = "—" if info["median_spacing_m"] is None else f"{info['median_spacing_m']:.3f} m"
     lines.append(f"  density: {density}; median nearest-neighbour spacing {spacing}")

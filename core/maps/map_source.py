@@ -20,8 +20,8 @@ origin`` (float64) is what to add to a map-frame position to report it in the fi
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from ..errors import DataError
 from .mapfile import READ_SUFFIXES, MapCloud, read_map
@@ -34,8 +34,10 @@ class MapFileSource:
     def __init__(self, path):
         self.path = Path(path).expanduser().resolve()
         if self.path.suffix.lower() not in READ_SUFFIXES:
-            raise DataError(f"{path}: cannot read a map of this type ({self.path.suffix or 'no extension'}); "
-                            f"supported: {', '.join(READ_SUFFIXES)}")
+            raise DataError(
+                f"{path}: cannot read a map of this type ({self.path.suffix or 'no extension'}); "
+                f"supported: {', '.join(READ_SUFFIXES)}"
+            )
         if not self.path.is_file():
             raise DataError(f"{path}: no such map file")
 
@@ -44,7 +46,7 @@ class MapFileSource:
         return self.path.name
 
     @property
-    def map_source(self) -> "MapFileSource":
+    def map_source(self) -> MapFileSource:
         return self
 
     def identity(self) -> str:

@@ -30,9 +30,9 @@ counted; a map with no finite point is an error. Only x, y, z are read; other fi
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -54,16 +54,18 @@ _MAX_HEADER = 1 << 16
 class MapCloud:
     """A map file's finite points in the local frame: world = ``points`` + ``origin``."""
 
-    points: np.ndarray          # (N, 3) float32, local frame
-    origin: np.ndarray          # (3,) float64, the local frame's origin in the file's frame
+    points: np.ndarray  # (N, 3) float32, local frame
+    origin: np.ndarray  # (3,) float64, the local frame's origin in the file's frame
     path: Path
-    n_read: int                 # points in the file
-    n_dropped_nonfinite: int    # of which not finite (dropped)
+    n_read: int  # points in the file
+    n_dropped_nonfinite: int  # of which not finite (dropped)
 
     def world_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Min and max per axis in the file's frame (float64)."""
-        return (self.points.min(axis=0).astype(np.float64) + self.origin,
-                self.points.max(axis=0).astype(np.float64) + self.origin)
+        return (
+            self.points.min(axis=0).astype(np.float64) + self.origin,
+            self.points.max(axis=0).astype(np.float64) + self.origin,
+        )
 
 
 def choose_origin(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -75,8 +77,9 @@ def choose_origin(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _unsupported(path: Path, verb: str, suffixes) -> DataError:
-    return DataError(f"{path}: cannot {verb} a map of this type ({path.suffix or 'no extension'}); "
-                     f"supported: {', '.join(suffixes)}")
+    return DataError(
+        f"{path}: cannot {verb} a map of this type ({path.suffix or 'no extension'}); supported: {', '.join(suffixes)}"
+    )
 
 
 # ------------------------------------------------------------------------------------ reading
@@ -88,8 +91,7 @@ class _Chunks:
         self.n, self.iterate, self.bounds = n, iterate, bounds
 
 
-def read_map(path, progress: Callable[[int, int], None] | None = None,
-             chunk_points: int = CHUNK_POINTS) -> MapCloud:
+def read_map(path, progress: Callable[[int, int], None] | None = None, chunk_points: int = CHUNK_POINTS) -> MapCloud:
     """The map in ``path`` (format from the extension, see :data:`READ_SUFFIXES`) as a
     :class:`MapCloud`. ``progress(done, total)`` is called after each chunk (in points, over
     every pass). Raises :class:`DataError` with one line naming the file on any bad input."""
@@ -116,8 +118,9 @@ def read_map(path, progress: Callable[[int, int], None] | None = None,
     except OSError as exc:
         raise DataError(f"{path}: cannot read the map ({exc.strerror or exc})") from None
     except Exception as exc:  # a parser's own error on a corrupt file: one line, not a traceback
-        raise DataError(f"{path}: cannot read the map, corrupt or truncated ({type(exc).__name__}: {exc})"
-                        .splitlines()[0]) from None
+        raise DataError(
+            f"{path}: cannot read the map, corrupt or truncated ({type(exc).__name__}: {exc})".splitlines()[0]
+        ) from None
 
 
 def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
@@ -147,7 +150,7 @@ def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
             raise DataError(f"{path}: more points than its header says ({source.n:,})")
         good = xyz[np.isfinite(xyz).all(axis=1)]
         good -= origin
-        out[k:k + len(good)] = good
+        out[k : k + len(good)] = good
         k += len(good)
         done += len(xyz)
         if progress is not None:
@@ -176,7 +179,9 @@ def _binary_chunks(path: Path, offset: int, n: int, dtype: np.dtype, names, chun
     need = offset + n * dtype.itemsize
     size = path.stat().st_size
     if size < need:
-        raise DataError(f"{path}: truncated: the header says {n:,} points ({need:,} bytes), the file has {size:,} bytes")
+        raise DataError(
+            f"{path}: truncated: the header says {n:,} points ({need:,} bytes), the file has {size:,} bytes"
+        )
 
     def iterate():
         buf = np.empty(min(chunk_points, max(n, 1)), dtype=dtype)
@@ -186,7 +191,7 @@ def _binary_chunks(path: Path, offset: int, n: int, dtype: np.dtype, names, chun
             left = n
             while left > 0:
                 m = min(left, len(buf))
-                got = f.readinto(memoryview(raw)[:m * dtype.itemsize])
+                got = f.readinto(memoryview(raw)[: m * dtype.itemsize])
                 if got != m * dtype.itemsize:
                     raise DataError(f"{path}: truncated while reading")
                 yield _from_records(buf[:m], names) if names else np.asarray(buf[:m, :3], dtype=np.float64)
@@ -244,11 +249,19 @@ def _pcd_chunks(path: Path, chunk_points: int):
     if data != "binary":
         return _open3d_cloud(path, n)
     try:
-        dtype = np.dtype({"names": _unique(lower),
-                          "formats": [(f"<{_PCD_TYPES[t.upper()]}{s}", (c,)) if c > 1 else f"<{_PCD_TYPES[t.upper()]}{s}"
-                                      for t, s, c in zip(types, sizes, counts)]})
+        dtype = np.dtype(
+            {
+                "names": _unique(lower),
+                "formats": [
+                    (f"<{_PCD_TYPES[t.upper()]}{s}", (c,)) if c > 1 else f"<{_PCD_TYPES[t.upper()]}{s}"
+                    for t, s, c in zip(types, sizes, counts)
+                ],
+            }
+        )
     except (KeyError, TypeError):
-        raise DataError(f"{path}: not a valid PCD file (field types {' '.join(types)}, sizes {' '.join(map(str, sizes))})") from None
+        raise DataError(
+            f"{path}: not a valid PCD file (field types {' '.join(types)}, sizes {' '.join(map(str, sizes))})"
+        ) from None
     return _binary_chunks(path, offset, n, dtype, ("x", "y", "z"), chunk_points)
 
 
@@ -261,9 +274,24 @@ def _unique(names: list[str]) -> list[str]:
     return out
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 
 
 def _ply_chunks(path: Path, chunk_points: int):
@@ -336,8 +364,10 @@ def _open3d_cloud(path: Path, n_expected: int) -> _Chunks:
         cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
     pts = np.asarray(cloud.points)
     if len(pts) == 0:
-        raise DataError(f"{path}: cannot read the map (corrupt, or a layout open3d does not read); "
-                        f"the header says {n_expected:,} points")
+        raise DataError(
+            f"{path}: cannot read the map (corrupt, or a layout open3d does not read); "
+            f"the header says {n_expected:,} points"
+        )
     return _Chunks(len(pts), lambda: iter([pts]))
 
 
@@ -354,8 +384,9 @@ def _las_chunks(path: Path, chunk_points: int) -> _Chunks:
     if n == 0:
         raise DataError(f"{path}: the LAS file holds no points")
     # the header's bounds choose the origin (one pass); a writer that left them unset costs a pass
-    bounds = (lo, hi) if np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all() \
-        and (hi > lo).any() else None
+    bounds = (
+        (lo, hi) if np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all() and (hi > lo).any() else None
+    )
 
     def iterate():
         with laspy.open(path) as reader:
@@ -372,8 +403,10 @@ def _numpy_chunks(path: Path, chunk_points: int) -> _Chunks:
         with open(path, "rb") as f:
             try:
                 version = np.lib.format.read_magic(f)
-                read_header = {(1, 0): np.lib.format.read_array_header_1_0,
-                               (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                read_header = {
+                    (1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0,
+                }.get(version)
                 shape, fortran, dtype = read_header(f) if read_header else ((), True, np.dtype(object))
             except ValueError as exc:
                 raise DataError(f"{path}: not a valid .npy file ({exc})".splitlines()[0]) from None
@@ -390,14 +423,16 @@ def _numpy_chunks(path: Path, chunk_points: int) -> _Chunks:
             elif len(keys) == 1:
                 key = keys[0]
             else:
-                raise DataError(f"{path}: no array named 'points' and {len(keys)} arrays "
-                                f"({', '.join(keys) or 'none'}): name the map's array 'points'")
+                raise DataError(
+                    f"{path}: no array named 'points' and {len(keys)} arrays "
+                    f"({', '.join(keys) or 'none'}): name the map's array 'points'"
+                )
             arr = npz[key]
     if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
         raise DataError(f"{path}: expected an (N, ≥3) numeric array of points, got shape {arr.shape} {arr.dtype}")
 
     def iterate():
         for i in range(0, len(arr), chunk_points):
-            yield np.asarray(arr[i:i + chunk_points, :3], dtype=np.float64)
+            yield np.asarray(arr[i : i + chunk_points, :3], dtype=np.float64)
 
     return _Chunks(len(arr), iterate)

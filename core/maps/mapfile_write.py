@@ -3,8 +3,8 @@ Open3D and RViz read), in one go or in chunks, with the map's float64 origin add
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -33,7 +33,7 @@ def write_map(path, points: np.ndarray, origin=None) -> None:
 
     def chunks():
         for i in range(0, len(points), CHUNK_POINTS):
-            c = np.asarray(points[i:i + CHUNK_POINTS, :3], dtype=np.float64 if origin is not None else dtype)
+            c = np.asarray(points[i : i + CHUNK_POINTS, :3], dtype=np.float64 if origin is not None else dtype)
             yield c + origin if origin is not None else c
 
     write_map_chunks(path, len(points), chunks(), dtype)
@@ -71,12 +71,16 @@ def write_map_chunks(path, n_points: int, chunks: Iterable[np.ndarray], dtype=np
 
 def _pcd_header(n: int, dtype: np.dtype) -> str:
     size = dtype.itemsize
-    return ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
-            f"SIZE {size} {size} {size}\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
-            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n")
+    return (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
+        f"SIZE {size} {size} {size}\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+    )
 
 
 def _ply_header(n: int, dtype: np.dtype) -> str:
     kind = "float" if dtype == np.float32 else "double"
-    return (f"ply\nformat binary_little_endian 1.0\ncomment lidarloc map\nelement vertex {n}\n"
-            f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n")
+    return (
+        f"ply\nformat binary_little_endian 1.0\ncomment lidarloc map\nelement vertex {n}\n"
+        f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n"
+    )

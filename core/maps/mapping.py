@@ -16,10 +16,10 @@ import json
 import os
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numba as nb
 import numpy as np
@@ -123,9 +123,16 @@ class VoxelAccumulator:
         # float in float32
         limit = scan.dtype.type
         self._reserve(len(scan))
-        self.size += _insert_scan(self.keys, self.acc, scan, np.ascontiguousarray(pose[:3, :3]),
-                                  np.ascontiguousarray(pose[:3, 3]), limit(float(min_range) ** 2),
-                                  limit(float(max_range) ** 2), 1.0 / self.voxel_size)
+        self.size += _insert_scan(
+            self.keys,
+            self.acc,
+            scan,
+            np.ascontiguousarray(pose[:3, :3]),
+            np.ascontiguousarray(pose[:3, 3]),
+            limit(float(min_range) ** 2),
+            limit(float(max_range) ** 2),
+            1.0 / self.voxel_size,
+        )
 
     def _grow(self):
         used = self.keys != _EMPTY
@@ -157,8 +164,9 @@ def range_filter(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
     return points[(r2 >= cfg.scan_min_range**2) & (r2 <= cfg.scan_max_range**2)]
 
 
-def flat_surface_mask(points: np.ndarray, cfg: MapConfig,
-                      progress: Callable[[float], None] | None = None) -> np.ndarray:
+def flat_surface_mask(
+    points: np.ndarray, cfg: MapConfig, progress: Callable[[float], None] | None = None
+) -> np.ndarray:
     """True where a point lies on a flat (road-like) surface: |normal_z| > cfg.road_normal_z.
 
     The paper removes points "with z-coordinate of its normal greater than 0.75"; normals from PCA
@@ -207,10 +215,10 @@ def remove_flat(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
 
 @dataclass
 class PriorMap:
-    points: np.ndarray        # (N, 3) float32, world frame (= first LiDAR pose)
-    points_bev: np.ndarray | None   # (M, 3) float32, flat surfaces removed (for the bird's-eye
-                              # view); None while road removal is still to be done (see
-                              # ``load_or_build_map(road_removal=False)``)
+    points: np.ndarray  # (N, 3) float32, world frame (= first LiDAR pose)
+    points_bev: np.ndarray | None  # (M, 3) float32, flat surfaces removed (for the bird's-eye
+    # view); None while road removal is still to be done (see
+    # ``load_or_build_map(road_removal=False)``)
     voxel_size: float
     source: str = ""
     # float64 (3,): the map's frame in the frame of the file it came from (file = points + origin);
@@ -227,7 +235,7 @@ class PriorMap:
             np.save(directory / BEV_FILE, self.points_bev)
 
     @classmethod
-    def load(cls, directory: Path, meta: dict) -> "PriorMap":
+    def load(cls, directory: Path, meta: dict) -> PriorMap:
         bev = directory / BEV_FILE
         return cls(
             points=np.load(directory / "map_points.npy"),
@@ -243,8 +251,9 @@ class PriorMap:
 BEV_FILE = "map_points_bev.npy"
 
 
-def build_prior_map(seq, cfg: MapConfig, progress: Callable[[int, int], None] | None = None,
-                    road_removal: bool = True) -> PriorMap:
+def build_prior_map(
+    seq, cfg: MapConfig, progress: Callable[[int, int], None] | None = None, road_removal: bool = True
+) -> PriorMap:
     """Fuse every scan of ``seq`` with its ground-truth pose into a voxel map, then remove flats
     (unless ``road_removal`` is False: then ``points_bev`` is None, see :func:`remove_road`).
     A :class:`~lidarloc.core.maps.map_source.MapFileSource` is voxelized instead (see
@@ -288,8 +297,9 @@ def _is_map_file(source) -> bool:
 FILE_CHUNK_POINTS = 1 << 20
 
 
-def build_prior_map_from_file(source, cfg: MapConfig, progress: Callable[[int, int], None] | None = None,
-                              road_removal: bool = True) -> PriorMap:
+def build_prior_map_from_file(
+    source, cfg: MapConfig, progress: Callable[[int, int], None] | None = None, road_removal: bool = True
+) -> PriorMap:
     """The voxel map of a map file's points (one centroid per occupied ``cfg.voxel_size`` voxel,
     in the file's local frame), then road removal as for a drive. ``progress(i, n)`` counts
     reading and voxelizing together."""
@@ -304,21 +314,25 @@ def build_prior_map_from_file(source, cfg: MapConfig, progress: Callable[[int, i
     acc = VoxelAccumulator(cfg.voxel_size)
     n = len(cloud.points)
     for i in range(0, n, FILE_CHUNK_POINTS):
-        acc.add(cloud.points[i:i + FILE_CHUNK_POINTS])
+        acc.add(cloud.points[i : i + FILE_CHUNK_POINTS])
         if progress is not None:
             progress(int(scale * (0.75 + 0.25 * min(i + FILE_CHUNK_POINTS, n) / n)), scale)
     origin, name = cloud.origin, source.name
-    del cloud                       # the file's points: only the voxel map stays
-    prior = PriorMap(points=acc.points(), points_bev=None, voxel_size=cfg.voxel_size, source=name,
-                     origin=origin)
+    del cloud  # the file's points: only the voxel map stays
+    prior = PriorMap(points=acc.points(), points_bev=None, voxel_size=cfg.voxel_size, source=name, origin=origin)
     return remove_road(prior, cfg) if road_removal else prior
 
 
 def remove_road(prior: PriorMap, cfg: MapConfig, progress: Callable[[float], None] | None = None) -> PriorMap:
     """``prior`` with its road-removed copy (the points not on a flat surface) filled in."""
     bev = prior.points[~flat_surface_mask(prior.points, cfg, progress)]
-    return PriorMap(points=prior.points, points_bev=bev.astype(np.float32), voxel_size=prior.voxel_size,
-                    source=prior.source, origin=prior.origin)
+    return PriorMap(
+        points=prior.points,
+        points_bev=bev.astype(np.float32),
+        voxel_size=prior.voxel_size,
+        source=prior.source,
+        origin=prior.origin,
+    )
 
 
 # ------------------------------------------------------------------------------------- cache
@@ -330,9 +344,13 @@ def map_cache_dir(seq, cfg: MapConfig, cache_root: Path | None = None) -> Path:
     return Path(cache_root or default_cache_root()) / f"map-{key}"
 
 
-def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
-                      progress: Callable[[int, int], None] | None = None,
-                      road_removal: bool = True) -> Cached[PriorMap]:
+def load_or_build_map(
+    seq,
+    cfg: MapConfig,
+    cache_root: Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    road_removal: bool = True,
+) -> Cached[PriorMap]:
     """The prior map of ``seq`` from the cache, or built and cached (in its own directory under
     ``cache_root``, default :func:`~lidarloc.core.cache.default_cache_root`).
 
@@ -354,12 +372,17 @@ def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
             return Cached(prior, directory, True)
     t0 = time.perf_counter()
     prior = build_prior_map(seq, cfg, progress, road_removal=road_removal)
-    meta = {"source": seq.name, "identity": seq.identity(), "scans": 0 if _is_map_file(seq) else len(seq),
-            "map": asdict(cfg), "points": int(len(prior.points)),
-            "points_road_removed": None if prior.points_bev is None else int(len(prior.points_bev)),
-            "build_seconds": time.perf_counter() - t0}
+    meta = {
+        "source": seq.name,
+        "identity": seq.identity(),
+        "scans": 0 if _is_map_file(seq) else len(seq),
+        "map": asdict(cfg),
+        "points": int(len(prior.points)),
+        "points_road_removed": None if prior.points_bev is None else int(len(prior.points_bev)),
+        "build_seconds": time.perf_counter() - t0,
+    }
     if _is_map_file(seq):
-        meta["origin"] = [float(v) for v in prior.origin]     # repr-exact: json keeps every float64 digit
+        meta["origin"] = [float(v) for v in prior.origin]  # repr-exact: json keeps every float64 digit
 
     def write(tmp: Path):
         prior.save(tmp)
@@ -372,8 +395,9 @@ def load_or_build_map(seq, cfg: MapConfig, cache_root: Path | None = None,
     return Cached(prior, directory, False)
 
 
-def load_or_build_road_removed(prior: PriorMap, directory: Path, cfg: MapConfig,
-                               progress: Callable[[float], None] | None = None) -> PriorMap:
+def load_or_build_road_removed(
+    prior: PriorMap, directory: Path, cfg: MapConfig, progress: Callable[[float], None] | None = None
+) -> PriorMap:
     """``prior`` with its road-removed copy: from the map's cache ``directory`` if there, else
     computed and added to it (the file appears whole or not at all: written aside, then renamed)."""
     if prior.points_bev is not None:
@@ -381,8 +405,13 @@ def load_or_build_road_removed(prior: PriorMap, directory: Path, cfg: MapConfig,
     path = directory / BEV_FILE
     if path.is_file():
         try:
-            return PriorMap(points=prior.points, points_bev=np.load(path), voxel_size=prior.voxel_size,
-                            source=prior.source, origin=prior.origin)
+            return PriorMap(
+                points=prior.points,
+                points_bev=np.load(path),
+                voxel_size=prior.voxel_size,
+                source=prior.source,
+                origin=prior.origin,
+            )
         except (OSError, ValueError):
             pass  # unreadable: compute it again below
     done = remove_road(prior, cfg, progress)

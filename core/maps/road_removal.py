@@ -34,10 +34,20 @@ class RoadRemovalProcess:
 
     def __init__(self, map_dir: Path, cfg: MapConfig, nice: int = 0):
         self.progress = 0.0
-        self._err = tempfile.TemporaryFile()      # a file, not a pipe: a chatty child never blocks
+        self._err = tempfile.TemporaryFile()  # a file, not a pipe: a chatty child never blocks
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "lidarloc.core.maps.road_removal", str(map_dir), json.dumps(asdict(cfg)), str(int(nice))],
-            stdout=subprocess.PIPE, stderr=self._err, start_new_session=True)
+            [
+                sys.executable,
+                "-m",
+                "lidarloc.core.maps.road_removal",
+                str(map_dir),
+                json.dumps(asdict(cfg)),
+                str(int(nice)),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=self._err,
+            start_new_session=True,
+        )
         self._reader = threading.Thread(target=self._read_progress, name="lidarloc-road-removal-progress", daemon=True)
         self._reader.start()
 
@@ -66,8 +76,8 @@ class RoadRemovalProcess:
 
 
 def main(argv: list[str]) -> int:
-    from .mapping import PriorMap, load_or_build_road_removed
     from ..worker_process import lower_priority
+    from .mapping import PriorMap, load_or_build_road_removed
 
     map_dir, cfg_json, nice = Path(argv[0]), argv[1], int(argv[2])
     lower_priority(nice)
@@ -75,6 +85,7 @@ def main(argv: list[str]) -> int:
 
     def report(fraction: float) -> None:
         print(f"progress {fraction:.3f}", flush=True)
+
     load_or_build_road_removed(PriorMap.load(map_dir, meta), map_dir, MapConfig(**json.loads(cfg_json)), report)
     return 0
 

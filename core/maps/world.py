@@ -9,9 +9,9 @@ the benchmarks all open their world here.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -44,10 +44,17 @@ class World:
         return np.asarray(lo, float), np.asarray(hi, float)
 
 
-def open_world(map_source, cfg: Config, cache_root: Path | None = None, *, lookup: bool = True,
-               pyramid: bool = True, road_removal: bool = True,
-               progress: Callable[[str, float], None] | None = None,
-               on_map: Callable[[PriorMap], None] | None = None) -> World:
+def open_world(
+    map_source,
+    cfg: Config,
+    cache_root: Path | None = None,
+    *,
+    lookup: bool = True,
+    pyramid: bool = True,
+    road_removal: bool = True,
+    progress: Callable[[str, float], None] | None = None,
+    on_map: Callable[[PriorMap], None] | None = None,
+) -> World:
     """The world of ``map_source`` with ``cfg``'s map, lookup and S2M settings.
 
     ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
@@ -55,15 +62,17 @@ def open_world(map_source, cfg: Config, cache_root: Path | None = None, *, looku
     ``progress(stage, fraction)`` reports "map", "lookup" and "pyramid"; ``on_map(prior_map)`` is
     called as soon as the map is there, before its tables (a viewer shows it meanwhile)."""
     report = progress or (lambda stage, fraction: None)
-    prior_map, map_dir, _ = load_or_build_map(map_source, cfg.map, cache_root,
-                                              progress=lambda i, n: report("map", i / n), road_removal=road_removal)
+    prior_map, map_dir, _ = load_or_build_map(
+        map_source, cfg.map, cache_root, progress=lambda i, n: report("map", i / n), road_removal=road_removal
+    )
     if on_map is not None:
         on_map(prior_map)
     world = World(prior_map, map_dir)
     if lookup:
         report("lookup", 0.0)
-        world.lookup = load_or_build_lookup(prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max,
-                                            progress=lambda f: report("lookup", f)).value
+        world.lookup = load_or_build_lookup(
+            prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max, progress=lambda f: report("lookup", f)
+        ).value
     if pyramid and prior_map.points_bev is not None:
         report("pyramid", 0.0)
         world.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg.s2m).value

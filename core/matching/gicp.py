@@ -49,33 +49,48 @@ from ..errors import LidarlocError
 
 @dataclass(frozen=True)
 class GICPResult:
-    pose: np.ndarray        # 4×4 refined world ← LiDAR
+    pose: np.ndarray  # 4×4 refined world ← LiDAR
     converged: bool
     iterations: int
-    inlier_ratio: float     # source points with a correspondence within max_corr at the end
+    inlier_ratio: float  # source points with a correspondence within max_corr at the end
     ms: float
-    correction_m: float     # |translation change| from the initial guess
-    correction_rad: float   # rotation angle of the change from the initial guess
+    correction_m: float  # |translation change| from the initial guess
+    correction_rad: float  # rotation angle of the change from the initial guess
 
 
 def _rot_angle(R: np.ndarray) -> float:
     return float(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def _result(init: np.ndarray, pose: np.ndarray, converged: bool, iterations: int, inlier_ratio: float,
-            t0: float) -> GICPResult:
+def _result(
+    init: np.ndarray, pose: np.ndarray, converged: bool, iterations: int, inlier_ratio: float, t0: float
+) -> GICPResult:
     delta = np.linalg.inv(init) @ pose
-    return GICPResult(pose=pose, converged=bool(converged), iterations=int(iterations),
-                      inlier_ratio=float(inlier_ratio), ms=(time.perf_counter() - t0) * 1e3,
-                      correction_m=float(np.linalg.norm(delta[:3, 3])), correction_rad=_rot_angle(delta[:3, :3]))
+    return GICPResult(
+        pose=pose,
+        converged=bool(converged),
+        iterations=int(iterations),
+        inlier_ratio=float(inlier_ratio),
+        ms=(time.perf_counter() - t0) * 1e3,
+        correction_m=float(np.linalg.norm(delta[:3, 3])),
+        correction_rad=_rot_angle(delta[:3, :3]),
+    )
 
 
 class GICPRefiner:
     """GICP of scans against one prior map, small_gicp backend (the default) or open3d."""
 
-    def __init__(self, map_points: np.ndarray, voxel: float = 0.5, max_corr: float = 2.0,
-                 num_neighbors: int = 20, max_iterations: int = 30, backend: str = "small_gicp",
-                 crop_radius: float = 90.0, target_voxel: float | None = None):
+    def __init__(
+        self,
+        map_points: np.ndarray,
+        voxel: float = 0.5,
+        max_corr: float = 2.0,
+        num_neighbors: int = 20,
+        max_iterations: int = 30,
+        backend: str = "small_gicp",
+        crop_radius: float = 90.0,
+        target_voxel: float | None = None,
+    ):
         """``voxel``: scan (source) down-sampling; ``target_voxel``: map down-sampling, default
         voxel / 2 (a target as coarse as the scan biased small_gicp by 0.2–0.4 m on part of the
         KITTI drive, see the module docstring)."""
@@ -97,7 +112,8 @@ class GICPRefiner:
 
             self._sg = small_gicp
             self._target, self._tree = small_gicp.preprocess_points(
-                pts, downsampling_resolution=self.target_voxel, num_neighbors=self.num_neighbors, num_threads=1)
+                pts, downsampling_resolution=self.target_voxel, num_neighbors=self.num_neighbors, num_threads=1
+            )
             self.n_target = int(self._target.size())
         else:
             from ..o3d import open3d
@@ -119,14 +135,23 @@ class GICPRefiner:
         if len(pts) < 10:
             return _result(init, init.copy(), False, 0, 0.0, t0)
         if self.backend == "small_gicp":
-            src, _ = self._sg.preprocess_points(pts, downsampling_resolution=self.voxel,
-                                                num_neighbors=self.num_neighbors, num_threads=1)
-            res = self._sg.align(self._target, src, self._tree, init, registration_type="GICP",
-                                 max_correspondence_distance=self.max_corr, num_threads=1,
-                                 max_iterations=self.max_iterations)
+            src, _ = self._sg.preprocess_points(
+                pts, downsampling_resolution=self.voxel, num_neighbors=self.num_neighbors, num_threads=1
+            )
+            res = self._sg.align(
+                self._target,
+                src,
+                self._tree,
+                init,
+                registration_type="GICP",
+                max_correspondence_distance=self.max_corr,
+                num_threads=1,
+                max_iterations=self.max_iterations,
+            )
             n_src = max(int(src.size()), 1)
-            return _result(init, np.array(res.T_target_source), res.converged, res.iterations,
-                           res.num_inliers / n_src, t0)
+            return _result(
+                init, np.array(res.T_target_source), res.converged, res.iterations, res.num_inliers / n_src, t0
+            )
         o3d = self._o3d
         reg = o3d.pipelines.registration
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(self.voxel)
@@ -135,7 +160,8 @@ class GICPRefiner:
         r = np.array([self.crop_radius, self.crop_radius, self.crop_radius])
         target = self._target.crop(o3d.geometry.AxisAlignedBoundingBox(c - r, c + r))
         crit = reg.ICPConvergenceCriteria(max_iteration=self.max_iterations)
-        res = reg.registration_generalized_icp(src, target, self.max_corr, init,
-                                               reg.TransformationEstimationForGeneralizedICP(), crit)
+        res = reg.registration_generalized_icp(
+            src, target, self.max_corr, init, reg.TransformationEstimationForGeneralizedICP(), crit
+        )
         # open3d does not report convergence; fitness is its inlier ratio
         return _result(init, np.array(res.transformation), True, self.max_iterations, res.fitness, t0)

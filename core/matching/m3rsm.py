@@ -54,8 +54,8 @@ from dataclasses import dataclass, field
 import numba as nb
 import numpy as np
 
-from ..maps.bev import BEVPyramid
 from ..errors import LidarlocError
+from ..maps.bev import BEVPyramid
 
 #: Levels 1..DENSE_UPTO use the dense (stride-1 pooled) bound, coarser levels the strided one.
 DENSE_UPTO = 3
@@ -65,22 +65,22 @@ N_CANDIDATES = 10
 
 @dataclass(frozen=True)
 class MatchResult:
-    x: float               # world x of the sensor at the optimum (m)
+    x: float  # world x of the sensor at the optimum (m)
     y: float
-    yaw: float             # rad, wrapped to [-π, π)
-    score: float           # L0 score of the optimum, Σ_j L0(cell of point j)
-    nodes_expanded: int    # heap pops that were split into quadrants
-    ms: float              # wall time of the search (including per-angle preparation)
-    n_points: int = 0      # scan cells matched (after down-sampling to d_m)
-    region: tuple = ()     # (x_min, y_min, x_max, y_max) of the sensor positions searched
+    yaw: float  # rad, wrapped to [-π, π)
+    score: float  # L0 score of the optimum, Σ_j L0(cell of point j)
+    nodes_expanded: int  # heap pops that were split into quadrants
+    ms: float  # wall time of the search (including per-angle preparation)
+    n_points: int = 0  # scan cells matched (after down-sampling to d_m)
+    region: tuple = ()  # (x_min, y_min, x_max, y_max) of the sensor positions searched
     n_angles: int = 0
     # (K, 4) x, y, yaw, score of the best level-0 poses the search scored, best first (at most
     # ``keep_candidates``); the first is the optimum when there is one. Branch and bound scores
     # only the leaves of blocks it did not prune, so the others are the best it *saw*, not the
     # search space's runners-up; the exhaustive search sees them all.
     candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)), compare=False)
-    nodes_per_level: tuple = ()   # nodes expanded per pyramid level (index = level); sums to
-                                  # nodes_expanded (the exhaustive search: all at level 0)
+    nodes_per_level: tuple = ()  # nodes expanded per pyramid level (index = level); sums to
+    # nodes_expanded (the exhaustive search: all at level 0)
 
 
 # ------------------------------------------------------------------------------------ scan side
@@ -141,7 +141,7 @@ def _angle_cells(B, cos_a, sin_a, ax, ay, inv_d):
 
 
 @nb.njit(cache=True, nogil=True)
-def _score_l0(L0, cxr, cyr, kx, ky):
+def score_l0(L0, cxr, cyr, kx, ky):
     """Exact score at L0 of one angle (cells cxr, cyr at k = 0) shifted by (kx, ky) cells."""
     nx, ny = L0.shape
     s = 0.0
@@ -154,7 +154,7 @@ def _score_l0(L0, cxr, cyr, kx, ky):
 
 
 @nb.njit(cache=True, nogil=True)
-def _level_entries(cx, cy, first, top):
+def level_entries(cx, cy, first, top):
     """Per level l = first..top and angle r, the merged entries (X, Y, code, weight): X = c >> l,
     code = straddles_x + 2·straddles_y (straddles: c is not a multiple of 2^l, so the 2^l cells
     from c span two level-l cells), weight = number of points merged.
@@ -252,7 +252,7 @@ def _level_entries(cx, cy, first, top):
 
 
 @nb.njit(cache=True, nogil=True)
-def _bound(G, gnx, gny, goff, l, ex, ey, ec, ew, a, b, mx, my):
+def bound(G, gnx, gny, goff, l, ex, ey, ec, ew, a, b, mx, my):
     """Upper bound of level l for block (mx·2^l, my·2^l): Σ w · G_l[code][X + mx, Y + my]. The bound
     grid G_l[code] is padded by one cell on the low side (index X + 1), since a straddling entry
     at X = −1 still sees cell 0."""
@@ -270,7 +270,7 @@ def _bound(G, gnx, gny, goff, l, ex, ey, ec, ew, a, b, mx, my):
 
 
 @nb.njit(cache=True, nogil=True)
-def _bound_dense(S, snx, sny, soff, l, cxr, cyr, kx, ky):
+def bound_dense(S, snx, sny, soff, l, cxr, cyr, kx, ky):
     """Tight bound of level l for block (kx, ky): Σ_j S_l[c_j + k], S_l[x, y] = max of L0 over
     [x, x + 2^l) × [y, y + 2^l), stored with a low-side pad of 2^l − 1 cells."""
     pad = (np.int64(1) << l) - 1
@@ -382,8 +382,32 @@ def _keep_best(ts, tr, tx, ty, m, s, r, kx, ky):
 
 
 @nb.njit(cache=True, nogil=True)
-def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
-                      kx_lo, kx_hi, ky_lo, ky_hi, best_in, keep):
+def _branch_and_bound(
+    L0,
+    G,
+    gnx,
+    gny,
+    goff,
+    S,
+    snx,
+    sny,
+    soff,
+    dense_upto,
+    cx,
+    cy,
+    ex,
+    ey,
+    ec,
+    ew,
+    eoff,
+    top,
+    kx_lo,
+    kx_hi,
+    ky_lo,
+    ky_hi,
+    best_in,
+    keep,
+):
     """Best-first search over angles r and lattice translations k ∈ [kx_lo, kx_hi] × [ky_lo, ky_hi].
     Returns (best score, r, kx, ky, nodes expanded, nodes expanded per level, the ``keep`` best
     leaves scored as (scores, r, kx, ky, count)). ``best_in`` is a score to beat (−1 for none):
@@ -409,7 +433,7 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
     hy = np.empty(cap, np.int64)
     n = 0
     step = np.int64(1) << top
-    x_start = (kx_lo >> top) << top   # aligned root tiling (floor to a multiple of 2^top)
+    x_start = (kx_lo >> top) << top  # aligned root tiling (floor to a multiple of 2^top)
     y_start = (ky_lo >> top) << top
     for r in range(R):
         kx = x_start
@@ -418,17 +442,18 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
             while ky <= ky_hi:
                 if top == 0:
                     if kx >= kx_lo and ky >= ky_lo:
-                        s = _score_l0(L0, cx[r], cy[r], kx, ky)
+                        s = score_l0(L0, cx[r], cy[r], kx, ky)
                         if keep > 0 and (m < keep or s > ts[keep - 1]):
                             m = _keep_best(ts, tr, tx, ty, m, s, r, kx, ky)
                         if s > best:
                             best, best_r, best_kx, best_ky = s, r, kx, ky
                 else:
                     if top <= dense_upto:
-                        s = _bound_dense(S, snx, sny, soff, top, cx[r], cy[r], kx, ky)
+                        s = bound_dense(S, snx, sny, soff, top, cx[r], cy[r], kx, ky)
                     else:
-                        s = _bound(G, gnx, gny, goff, top, ex, ey, ec, ew, eoff[top, r], eoff[top, r + 1],
-                                   kx >> top, ky >> top)
+                        s = bound(
+                            G, gnx, gny, goff, top, ex, ey, ec, ew, eoff[top, r], eoff[top, r + 1], kx >> top, ky >> top
+                        )
                     if s > best:
                         hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, s, top, r, kx, ky)
                 ky += step
@@ -441,7 +466,7 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
         ky = hy[0]
         n = _heap_pop(hs, hl, hr, hx, hy, n)
         if s <= best:
-            break   # no block left can hold a better translation than the best leaf found
+            break  # no block left can hold a better translation than the best leaf found
         nodes += 1
         per_level[l] += 1
         h = l - 1
@@ -450,19 +475,18 @@ def _branch_and_bound(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, 
             ckx = kx + (q & 1) * half
             cky = ky + (q >> 1) * half
             if ckx > kx_hi or cky > ky_hi or ckx + half - 1 < kx_lo or cky + half - 1 < ky_lo:
-                continue   # quadrant entirely outside the search region
+                continue  # quadrant entirely outside the search region
             if h == 0:
-                cs = _score_l0(L0, cx[r], cy[r], ckx, cky)
+                cs = score_l0(L0, cx[r], cy[r], ckx, cky)
                 if keep > 0 and (m < keep or cs > ts[keep - 1]):
                     m = _keep_best(ts, tr, tx, ty, m, cs, r, ckx, cky)
                 if cs > best:
                     best, best_r, best_kx, best_ky = cs, r, ckx, cky
             else:
                 if h <= dense_upto:
-                    cs = _bound_dense(S, snx, sny, soff, h, cx[r], cy[r], ckx, cky)
+                    cs = bound_dense(S, snx, sny, soff, h, cx[r], cy[r], ckx, cky)
                 else:
-                    cs = _bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1],
-                                ckx >> h, cky >> h)
+                    cs = bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1], ckx >> h, cky >> h)
                 if cs > best:
                     hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
     return best, best_r, best_kx, best_ky, nodes, per_level, ts, tr, tx, ty, m
@@ -484,7 +508,7 @@ def _exhaustive(L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi, keep):
     for r in range(cx.shape[0]):
         for kx in range(kx_lo, kx_hi + 1):
             for ky in range(ky_lo, ky_hi + 1):
-                s = _score_l0(L0, cx[r], cy[r], kx, ky)
+                s = score_l0(L0, cx[r], cy[r], kx, ky)
                 if keep > 0 and (m < keep or s > ts[keep - 1]):
                     m = _keep_best(ts, tr, tx, ty, m, s, r, kx, ky)
                 if s > best:
@@ -524,7 +548,7 @@ def _sliding_max(prev, l):
     ny = py + half
     out = np.zeros((nx, ny), np.float32)
     for X in range(nx):
-        x = X - pad   # world-cell index
+        x = X - pad  # world-cell index
         for Y in range(ny):
             y = Y - pad
             m = np.float32(0.0)
@@ -594,11 +618,12 @@ def _prepared(pyramid: BEVPyramid, dense_upto: int) -> _Prepared:
     return prep
 
 
-def _cells(pyramid: BEVPyramid, B: np.ndarray, angles: np.ndarray, anchor) -> tuple[np.ndarray, np.ndarray]:
+def angle_cells(pyramid: BEVPyramid, B: np.ndarray, angles: np.ndarray, anchor) -> tuple[np.ndarray, np.ndarray]:
     ax = float(anchor[0]) - float(pyramid.origin[0])
     ay = float(anchor[1]) - float(pyramid.origin[1])
-    return _angle_cells(np.ascontiguousarray(B, np.float64), np.cos(angles), np.sin(angles), ax, ay,
-                        1.0 / pyramid.resolution)
+    return _angle_cells(
+        np.ascontiguousarray(B, np.float64), np.cos(angles), np.sin(angles), ax, ay, 1.0 / pyramid.resolution
+    )
 
 
 def _top_level(n_levels: int, width: int, height: int) -> int:
@@ -611,8 +636,9 @@ def _wrap(yaw):
     return (yaw + math.pi) % (2 * math.pi) - math.pi
 
 
-def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=False,
-            keep: int = N_CANDIDATES) -> MatchResult:
+def _search(
+    pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=False, keep: int = N_CANDIDATES
+) -> MatchResult:
     if keep < 0:
         raise LidarlocError(f"keep_candidates must be ≥ 0, got {keep}")
     t0 = time.perf_counter()
@@ -623,7 +649,7 @@ def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=
     kx_lo, ky_lo = int(k_lo[0]), int(k_lo[1])
     kx_hi, ky_hi = int(k_hi[0]), int(k_hi[1])
     region = (anchor[0] + kx_lo * d, anchor[1] + ky_lo * d, anchor[0] + kx_hi * d, anchor[1] + ky_hi * d)
-    cx, cy = _cells(pyramid, B, angles, anchor)
+    cx, cy = angle_cells(pyramid, B, angles, anchor)
     keep = int(keep)
     if exhaustive:
         score, r, kx, ky, ts, tr, tx, ty, m = _exhaustive(prep.L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi, keep)
@@ -631,27 +657,73 @@ def _search(pyramid, scan_xy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=
         per_level = (int(nodes),)
     else:
         top = _top_level(prep.n_levels, kx_hi - kx_lo + 1, ky_hi - ky_lo + 1)
-        ex, ey, ec, ew, eoff = _level_entries(cx, cy, dense_upto + 1, top)
+        ex, ey, ec, ew, eoff = level_entries(cx, cy, dense_upto + 1, top)
         score, r, kx, ky, nodes, levels, ts, tr, tx, ty, m = _branch_and_bound(
-            prep.L0, prep.G, prep.gnx, prep.gny, prep.goff, prep.S, prep.snx, prep.sny, prep.soff, dense_upto,
-            cx, cy, ex, ey, ec, ew, eoff, top, kx_lo, kx_hi, ky_lo, ky_hi, float(beat), keep)
+            prep.L0,
+            prep.G,
+            prep.gnx,
+            prep.gny,
+            prep.goff,
+            prep.S,
+            prep.snx,
+            prep.sny,
+            prep.soff,
+            dense_upto,
+            cx,
+            cy,
+            ex,
+            ey,
+            ec,
+            ew,
+            eoff,
+            top,
+            kx_lo,
+            kx_hi,
+            ky_lo,
+            ky_hi,
+            float(beat),
+            keep,
+        )
         per_level = tuple(int(v) for v in levels)
     ms = (time.perf_counter() - t0) * 1e3
     # the same arithmetic as the optimum's pose below, so the first candidate equals it exactly
-    candidates = np.column_stack([anchor[0] + tx[:m] * d, anchor[1] + ty[:m] * d, _wrap(angles[tr[:m]]),
-                                  ts[:m]]).astype(np.float64).reshape(-1, 4)
-    common = dict(nodes_expanded=int(nodes), ms=ms, n_points=len(B), region=region, n_angles=len(angles),
-                  candidates=candidates, nodes_per_level=per_level)
+    candidates = (
+        np.column_stack([anchor[0] + tx[:m] * d, anchor[1] + ty[:m] * d, _wrap(angles[tr[:m]]), ts[:m]])
+        .astype(np.float64)
+        .reshape(-1, 4)
+    )
+    common = dict(
+        nodes_expanded=int(nodes),
+        ms=ms,
+        n_points=len(B),
+        region=region,
+        n_angles=len(angles),
+        candidates=candidates,
+        nodes_per_level=per_level,
+    )
     if r < 0:  # nothing strictly better than `beat`
         return MatchResult(x=math.nan, y=math.nan, yaw=math.nan, score=float(score), **common)
-    return MatchResult(x=float(anchor[0] + kx * d), y=float(anchor[1] + ky * d), yaw=float(_wrap(angles[r])),
-                       score=float(score), **common)
+    return MatchResult(
+        x=float(anchor[0] + kx * d),
+        y=float(anchor[1] + ky * d),
+        yaw=float(_wrap(angles[r])),
+        score=float(score),
+        **common,
+    )
 
 
 # ------------------------------------------------------------------------------------ public API
-def match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy, half_extent, yaw_center: float = 0.0,
-          yaw_window: float = math.pi, angle_step: float = 2.5 * math.pi / 180.0,
-          min_score: float | None = None, keep_candidates: int = N_CANDIDATES) -> MatchResult:
+def match(
+    pyramid: BEVPyramid,
+    scan_xy: np.ndarray,
+    center_xy,
+    half_extent,
+    yaw_center: float = 0.0,
+    yaw_window: float = math.pi,
+    angle_step: float = 2.5 * math.pi / 180.0,
+    min_score: float | None = None,
+    keep_candidates: int = N_CANDIDATES,
+) -> MatchResult:
     """Local search (paper, "Scan-to-map matching"): translations center ± half_extent on a lattice
     of step d_m anchored at center_xy (the search rectangle's lower bound is center − half_extent,
     so the start position is on it), yaws θ_r = −π + r·d_θ within ± yaw_window of yaw_center (the
@@ -690,8 +762,12 @@ def _global_lattice(pyramid: BEVPyramid):
     return anchor, (0, 0), (nx - 1, ny - 1)
 
 
-def match_global(pyramid: BEVPyramid, scan_xy: np.ndarray,
-                 angle_step: float = 2.5 * math.pi / 180.0, keep_candidates: int = N_CANDIDATES) -> MatchResult:
+def match_global(
+    pyramid: BEVPyramid,
+    scan_xy: np.ndarray,
+    angle_step: float = 2.5 * math.pi / 180.0,
+    keep_candidates: int = N_CANDIDATES,
+) -> MatchResult:
     """Global search: every L0 cell centre of the map as sensor position, θ_r = −π + r·d_θ.
     ``keep_candidates`` as for :func:`match`."""
     if angle_step <= 0:
@@ -700,10 +776,16 @@ def match_global(pyramid: BEVPyramid, scan_xy: np.ndarray,
     return _search(pyramid, scan_xy, anchor, angle_lattice(angle_step), lo, hi, keep=keep_candidates)
 
 
-def exhaustive_match(pyramid: BEVPyramid, scan_xy: np.ndarray, center_xy=None, half_extent=None,
-                     yaw_center: float = 0.0, yaw_window: float = math.pi,
-                     angle_step: float = 2.5 * math.pi / 180.0,
-                     keep_candidates: int = N_CANDIDATES) -> MatchResult:
+def exhaustive_match(
+    pyramid: BEVPyramid,
+    scan_xy: np.ndarray,
+    center_xy=None,
+    half_extent=None,
+    yaw_center: float = 0.0,
+    yaw_window: float = math.pi,
+    angle_step: float = 2.5 * math.pi / 180.0,
+    keep_candidates: int = N_CANDIDATES,
+) -> MatchResult:
     """Brute force over the same search space as :func:`match` (or :func:`match_global` when
     center_xy is None). For tests; O(angles × translations × points)."""
     d = pyramid.resolution
@@ -724,5 +806,5 @@ def score_pose(pyramid: BEVPyramid, scan_xy: np.ndarray, x: float, y: float, yaw
     down-sampling, same cell arithmetic), so it is comparable with MatchResult.score."""
     prep = _prepared(pyramid, DENSE_UPTO)
     B = scan_cells(scan_xy, pyramid.resolution)
-    cx, cy = _cells(pyramid, B, np.array([float(yaw)]), (float(x), float(y)))
-    return float(_score_l0(prep.L0, cx[0], cy[0], 0, 0))
+    cx, cy = angle_cells(pyramid, B, np.array([float(yaw)]), (float(x), float(y)))
+    return float(score_l0(prep.L0, cx[0], cy[0], 0, 0))

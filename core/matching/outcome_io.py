@@ -22,14 +22,20 @@ def outcome_arrays(job, outcome) -> dict[str, np.ndarray]:
     match_pose = getattr(outcome, "match_pose", None)
     candidates = None if match is None else getattr(match, "candidates", None)
     text = {
-        "cfg": None if job.cfg is None else dataclasses.asdict(job.cfg), "level": bool(job.level),
-        "started_at": int(job.started_at), "accepted": bool(outcome.accepted), "reason": str(outcome.reason or ""),
+        "cfg": None if job.cfg is None else dataclasses.asdict(job.cfg),
+        "level": bool(job.level),
+        "started_at": int(job.started_at),
+        "accepted": bool(outcome.accepted),
+        "reason": str(outcome.reason or ""),
         "stage": str(getattr(outcome, "stage", "") or ""),
         "timings": {k: float(v) for k, v in (getattr(outcome, "timings", None) or {}).items()},
-        "match": None if match is None else {"nodes_per_level": [int(v) for v in
-                                                                 (getattr(match, "nodes_per_level", ()) or ())],
-                                             "candidates": candidates is not None,
-                                             "found": bool(np.isfinite(getattr(match, "x", 0.0)))},
+        "match": None
+        if match is None
+        else {
+            "nodes_per_level": [int(v) for v in (getattr(match, "nodes_per_level", ()) or ())],
+            "candidates": candidates is not None,
+            "found": bool(np.isfinite(getattr(match, "x", 0.0))),
+        },
         "match_pose": match_pose is not None,
         "gicp": None if gicp is None else {"converged": bool(gicp.converged), "iterations": int(gicp.iterations)},
     }
@@ -39,8 +45,11 @@ def outcome_arrays(job, outcome) -> dict[str, np.ndarray]:
     numbers = [outcome.score, outcome.start_score, outcome.ms, *tuple(outcome.region)]
     if gicp is not None:
         numbers += [gicp.inlier_ratio, gicp.correction_m, gicp.correction_rad, gicp.ms]
-    d = {"text": np.array(json.dumps(text)), "poses": np.asarray(poses, np.float64),
-         "numbers": np.asarray(numbers, np.float64)}
+    d = {
+        "text": np.array(json.dumps(text)),
+        "poses": np.asarray(poses, np.float64),
+        "numbers": np.asarray(numbers, np.float64),
+    }
     if candidates is not None:
         d["candidates"] = np.asarray(candidates, np.float64).reshape(-1, 4)
     return d
@@ -52,11 +61,10 @@ class RecordedMatch:
 
     candidates: np.ndarray | None
     nodes_per_level: tuple
-    x: float = 0.0      # NaN: the search found no pose scoring higher than its start
+    x: float = 0.0  # NaN: the search found no pose scoring higher than its start
 
 
-def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, start_pose, cfg,
-                     level: bool):
+def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, start_pose, cfg, level: bool):
     """The matcher's outcome saved in an ``s2m_outcome`` file, if it is the outcome of exactly this
     match (bit-identical start pose, the same S2M settings and ``level``); else None."""
     text = json.loads(str(d["text"]))
@@ -70,9 +78,11 @@ def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, st
     region = tuple(float(v) for v in numbers[3:7])
     match = None
     if text["match"] is not None:
-        match = RecordedMatch(d["candidates"] if text["match"]["candidates"] else None,
-                              tuple(text["match"]["nodes_per_level"]),
-                              0.0 if text["match"].get("found", True) else math.nan)
+        match = RecordedMatch(
+            d["candidates"] if text["match"]["candidates"] else None,
+            tuple(text["match"]["nodes_per_level"]),
+            0.0 if text["match"].get("found", True) else math.nan,
+        )
     i = 2
     match_pose = None
     if text["match_pose"]:
@@ -80,9 +90,27 @@ def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, st
     gicp = None
     if text["gicp"] is not None:
         ratio, corr_m, corr_rad, gicp_ms = (float(v) for v in numbers[7:11])
-        gicp = GICPResult(pose=poses[i], converged=text["gicp"]["converged"], iterations=text["gicp"]["iterations"],
-                          inlier_ratio=ratio, ms=gicp_ms, correction_m=corr_m, correction_rad=corr_rad)
+        gicp = GICPResult(
+            pose=poses[i],
+            converged=text["gicp"]["converged"],
+            iterations=text["gicp"]["iterations"],
+            inlier_ratio=ratio,
+            ms=gicp_ms,
+            correction_m=corr_m,
+            correction_rad=corr_rad,
+        )
     return S2MOutcome(
-        accepted=bool(text["accepted"]), pose=poses[1], score=score, start_score=start_score, region=region, ms=ms,
-        reason=text["reason"], match=match, match_pose=match_pose, gicp=gicp, scan_world=scan_world,
-        timings=text["timings"], stage=text["stage"])
+        accepted=bool(text["accepted"]),
+        pose=poses[1],
+        score=score,
+        start_score=start_score,
+        region=region,
+        ms=ms,
+        reason=text["reason"],
+        match=match,
+        match_pose=match_pose,
+        gicp=gicp,
+        scan_world=scan_world,
+        timings=text["timings"],
+        stage=text["stage"],
+    )

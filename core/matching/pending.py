@@ -10,8 +10,8 @@ lands, and nothing needs cancelling.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Callable
 
 
 class S2MNotReady:
@@ -74,5 +74,6 @@ def in_daemon_thread(work: Callable[[], object], name: str) -> Future:
             future.set_result(work())
         except BaseException as exc:  # handed to whoever waits for it
             future.set_exception(exc)
+
     threading.Thread(target=run, name=name, daemon=True).start()
     return future

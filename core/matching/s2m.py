@@ -37,14 +37,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import m3rsm
-from ..maps.bev import BEVPyramid
 from ..config import MapConfig, PFConfig, S2MConfig
 from ..errors import LidarlocError
 from ..geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, rotation_zyx, transform_points
-from .gicp import GICPRefiner, GICPResult
+from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
 from ..o3d import open3d
+from . import m3rsm
+from .gicp import GICPRefiner, GICPResult
 
 #: Voxel (m) the scan is down-sampled to before its normals are estimated for road removal.
 #: 0.3 m keeps the scan's near-range density close to the 0.2 m map's (so the |n_z| test behaves
@@ -53,9 +53,9 @@ ROAD_REMOVAL_VOXEL = 0.3
 
 #: A GICP refinement that moves the pose farther than this from the 2D match is not a local
 #: correction of it (the BEV lattice error is at most ~0.7·d_m and d_θ/2): the match is rejected.
-GICP_MAX_SHIFT_CELLS = 2.0     # × d_m
-GICP_MAX_TURN_STEPS = 3.0      # × d_θ
-GICP_MIN_INLIERS = 0.3         # fraction of scan points with a map correspondence after GICP
+GICP_MAX_SHIFT_CELLS = 2.0  # × d_m
+GICP_MAX_TURN_STEPS = 3.0  # × d_θ
+GICP_MIN_INLIERS = 0.3  # fraction of scan points with a map correspondence after GICP
 #: Fewer occupied d_m cells than this in the road-removed scan: nothing to match (an empty road,
 #: a scan of the sky); the search would return an arbitrary pose.
 MIN_BEV_CELLS = 20
@@ -70,31 +70,32 @@ MAX_TRUSTED_TILT = math.radians(20.0)
 @dataclass(frozen=True)
 class PreparedScan:
     """One scan in the forms S2M needs (all sensor frame)."""
-    points: np.ndarray          # (N, 3) float64, range-filtered full scan (GICP source)
-    road_removed: np.ndarray    # (M, 3) float64, flat surfaces removed (the BEV scan before projection)
-    ground_z: float             # median z of the scan's flat points near the sensor (nan if none)
+
+    points: np.ndarray  # (N, 3) float64, range-filtered full scan (GICP source)
+    road_removed: np.ndarray  # (M, 3) float64, flat surfaces removed (the BEV scan before projection)
+    ground_z: float  # median z of the scan's flat points near the sensor (nan if none)
     ms: float
 
 
 @dataclass(frozen=True)
 class S2MOutcome:
     accepted: bool
-    pose: np.ndarray            # 4×4 world ← LiDAR: refined match if accepted, else the start pose
-    score: float                # BEV score of the accepted pose: the 2D match's, or for
-                                # stage "refined_start" the GICP-refined start's; = start_score
-                                # when rejected because nothing beat the start
-    start_score: float          # BEV score of the start pose (nan in global mode)
-    region: tuple               # (x_min, y_min, x_max, y_max) sensor positions searched, world m
-    ms: float                   # wall time of preparation + match + GICP
-    reason: str = ""            # why rejected ("" if accepted)
+    pose: np.ndarray  # 4×4 world ← LiDAR: refined match if accepted, else the start pose
+    score: float  # BEV score of the accepted pose: the 2D match's, or for
+    # stage "refined_start" the GICP-refined start's; = start_score
+    # when rejected because nothing beat the start
+    start_score: float  # BEV score of the start pose (nan in global mode)
+    region: tuple  # (x_min, y_min, x_max, y_max) sensor positions searched, world m
+    ms: float  # wall time of preparation + match + GICP
+    reason: str = ""  # why rejected ("" if accepted)
     match: m3rsm.MatchResult | None = None
-    match_pose: np.ndarray | None = None   # 4×4 pose of the 2D match (GICP's initial guess)
+    match_pose: np.ndarray | None = None  # 4×4 pose of the 2D match (GICP's initial guess)
     gicp: GICPResult | None = None
-    scan_world: np.ndarray | None = None   # (M, 3) float32 road-removed scan at ``pose``
-    timings: dict = field(default_factory=dict)   # ms per stage: prepare, m3rsm, gicp
-    stage: str = "m3rsm"        # what GICP refined, and if accepted what was accepted: "m3rsm"
-                                # (the 2D match) or "refined_start" (the start itself); "" when
-                                # rejected before GICP ran
+    scan_world: np.ndarray | None = None  # (M, 3) float32 road-removed scan at ``pose``
+    timings: dict = field(default_factory=dict)  # ms per stage: prepare, m3rsm, gicp
+    stage: str = "m3rsm"  # what GICP refined, and if accepted what was accepted: "m3rsm"
+    # (the 2D match) or "refined_start" (the start itself); "" when
+    # rejected before GICP ran
 
 
 def carry_forward_poses(T_w_k: np.ndarray, odom_k: np.ndarray, odom_k_prime: np.ndarray) -> np.ndarray:
@@ -113,9 +114,15 @@ def carry_forward(T_match_k: np.ndarray, rpe, k: int, k_prime: int) -> np.ndarra
 class ScanToMapMatcher:
     """The S2M block for one prior map: BEV pyramid + GICP target, both built once."""
 
-    def __init__(self, prior_map, pyramid: BEVPyramid, s2m_cfg: S2MConfig | None = None,
-                 map_cfg: MapConfig | None = None, gicp_backend: str = "small_gicp",
-                 refine_unbeaten: bool | None = None):
+    def __init__(
+        self,
+        prior_map,
+        pyramid: BEVPyramid,
+        s2m_cfg: S2MConfig | None = None,
+        map_cfg: MapConfig | None = None,
+        gicp_backend: str = "small_gicp",
+        refine_unbeaten: bool | None = None,
+    ):
         """``refine_unbeaten``: when no lattice pose beats the start (the start is already within the
         BEV's d_m / d_θ of the best it can tell), refine the start itself by GICP and accept that
         if its BEV score beats the start's — see the module docstring. False = the paper's rule
@@ -125,14 +132,20 @@ class ScanToMapMatcher:
         self.cfg = s2m_cfg or S2MConfig()
         self.map_cfg = map_cfg or MapConfig()
         if abs(pyramid.resolution - self.cfg.match_resolution) > 1e-9:
-            raise LidarlocError(f"BEV pyramid resolution {pyramid.resolution} m differs from "
-                                f"s2m.match_resolution {self.cfg.match_resolution} m")
+            raise LidarlocError(
+                f"BEV pyramid resolution {pyramid.resolution} m differs from "
+                f"s2m.match_resolution {self.cfg.match_resolution} m"
+            )
         self.prior_map = prior_map
         self.pyramid = pyramid
         # the map side is finer than the scan (but no finer than the map itself): see gicp.py
-        self.gicp = GICPRefiner(prior_map.points, voxel=self.cfg.gicp_voxel, max_corr=self.cfg.gicp_max_corr,
-                                backend=gicp_backend,
-                                target_voxel=max(float(prior_map.voxel_size), self.cfg.gicp_voxel / 2.0))
+        self.gicp = GICPRefiner(
+            prior_map.points,
+            voxel=self.cfg.gicp_voxel,
+            max_corr=self.cfg.gicp_max_corr,
+            backend=gicp_backend,
+            target_voxel=max(float(prior_map.voxel_size), self.cfg.gicp_voxel / 2.0),
+        )
         self._ground = _GroundGrid(prior_map.points, pyramid.resolution)
 
     # ------------------------------------------------------------------------- scan preparation
@@ -144,8 +157,9 @@ class ScanToMapMatcher:
             raise LidarlocError(f"scan must be (N, 3|4) with N > 0; got shape {pts.shape}")
         pts = range_filter(pts[:, :3].astype(np.float64), self.map_cfg)
         o3d = open3d()
-        down = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-                          .voxel_down_sample(ROAD_REMOVAL_VOXEL).points)
+        down = np.asarray(
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(ROAD_REMOVAL_VOXEL).points
+        )
         if len(down) < 3:
             return PreparedScan(pts, down, math.nan, (time.perf_counter() - t0) * 1e3)
         flat = flat_surface_mask(down, self.map_cfg)
@@ -161,9 +175,15 @@ class ScanToMapMatcher:
         return (np.asarray(road_removed)[:, :3] @ R.T)[:, :2]
 
     # ------------------------------------------------------------------------------- matching
-    def match_local(self, scan_sensor: np.ndarray, start_pose: np.ndarray, road_removed: bool = False,
-                    bev_scan: np.ndarray | None = None, prepared: PreparedScan | None = None,
-                    level: bool = False) -> S2MOutcome:
+    def match_local(
+        self,
+        scan_sensor: np.ndarray,
+        start_pose: np.ndarray,
+        road_removed: bool = False,
+        bev_scan: np.ndarray | None = None,
+        prepared: PreparedScan | None = None,
+        level: bool = False,
+    ) -> S2MOutcome:
         """Match around ``start_pose`` (4×4 world ← LiDAR): translations ± (region_x, region_y), yaws
         within ± yaw_window.
 
@@ -192,10 +212,27 @@ class ScanToMapMatcher:
         d = self.cfg.match_resolution
         region = (x - cfg.region_x, y - cfg.region_y, x + cfg.region_x, y + cfg.region_y)
         if len(m3rsm.scan_cells(B, d)) < MIN_BEV_CELLS:
-            return self._reject(start_pose, start_score, start_score, None, prep, t0, {"prepare": prep.ms},
-                                "too few road-removed scan points to match", region=region)
-        result = m3rsm.match(self.pyramid, B, (x, y), (cfg.region_x, cfg.region_y), yaw, cfg.yaw_window,
-                             cfg.angle_step, min_score=start_score)
+            return self._reject(
+                start_pose,
+                start_score,
+                start_score,
+                None,
+                prep,
+                t0,
+                {"prepare": prep.ms},
+                "too few road-removed scan points to match",
+                region=region,
+            )
+        result = m3rsm.match(
+            self.pyramid,
+            B,
+            (x, y),
+            (cfg.region_x, cfg.region_y),
+            yaw,
+            cfg.yaw_window,
+            cfg.angle_step,
+            min_score=start_score,
+        )
         timings = {"prepare": prep.ms, "m3rsm": result.ms}
         if math.isfinite(result.x):
             if not math.isfinite(z):
@@ -210,18 +247,36 @@ class ScanToMapMatcher:
                 rx, ry, _, ryaw, _, _ = pose_to_xyz_ypr(refined.pose)
                 score = m3rsm.score_pose(self.pyramid, B, rx, ry, ryaw)
                 if score > start_score:
-                    return dataclasses.replace(refined, score=score, stage="refined_start",
-                                               ms=(time.perf_counter() - t0) * 1e3)
+                    return dataclasses.replace(
+                        refined, score=score, stage="refined_start", ms=(time.perf_counter() - t0) * 1e3
+                    )
                 reason += f", nor does the start refined by GICP (score {score:.0f})"
             else:
                 reason += f"; refining the start failed: {refined.reason}"
             # what GICP did to the start stays in the outcome: the inspection shows it
-            return self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason,
-                                init=refined.match_pose, gicp=refined.gicp, stage="refined_start")
+            return self._reject(
+                start_pose,
+                start_score,
+                start_score,
+                result,
+                prep,
+                t0,
+                timings,
+                reason,
+                init=refined.match_pose,
+                gicp=refined.gicp,
+                stage="refined_start",
+            )
         return self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason)
 
-    def match_global(self, scan_sensor: np.ndarray, road_removed: bool = False, bev_scan: np.ndarray | None = None,
-                     prepared: PreparedScan | None = None, start_pose: np.ndarray | None = None) -> S2MOutcome:
+    def match_global(
+        self,
+        scan_sensor: np.ndarray,
+        road_removed: bool = False,
+        bev_scan: np.ndarray | None = None,
+        prepared: PreparedScan | None = None,
+        start_pose: np.ndarray | None = None,
+    ) -> S2MOutcome:
         """Match against the whole map (θ_r = −π + r·d_θ). z, pitch and roll for GICP come from
         ``start_pose`` if given; otherwise pitch = roll = 0 and z = map ground height under the
         match minus the scan's own ground height (its flat points within 15 m); for a scan given
@@ -236,8 +291,17 @@ class ScanToMapMatcher:
         B = self._bev(prep.road_removed, pitch, roll)
         if len(m3rsm.scan_cells(B, self.cfg.match_resolution)) < MIN_BEV_CELLS:
             identity = np.eye(4) if start_pose is None else np.asarray(start_pose, float)
-            return self._reject(identity, math.nan, math.nan, None, prep, t0, {"prepare": prep.ms},
-                                "too few road-removed scan points to match", region=self.pyramid.extent)
+            return self._reject(
+                identity,
+                math.nan,
+                math.nan,
+                None,
+                prep,
+                t0,
+                {"prepare": prep.ms},
+                "too few road-removed scan points to match",
+                region=self.pyramid.extent,
+            )
         result = m3rsm.match_global(self.pyramid, B, self.cfg.angle_step)
         timings = {"prepare": prep.ms, "m3rsm": result.ms}
         if not math.isfinite(z):
@@ -275,22 +339,64 @@ class ScanToMapMatcher:
         elif g.inlier_ratio < GICP_MIN_INLIERS:
             reason = f"GICP left only {100 * g.inlier_ratio:.0f}% of the scan with map correspondences"
         if reason:
-            return self._reject(start_pose, result.score, start_score, result, prep, t0, timings, reason,
-                                init=init, gicp=g, stage="m3rsm")
+            return self._reject(
+                start_pose,
+                result.score,
+                start_score,
+                result,
+                prep,
+                t0,
+                timings,
+                reason,
+                init=init,
+                gicp=g,
+                stage="m3rsm",
+            )
         pose = g.pose
-        return S2MOutcome(accepted=True, pose=pose, score=result.score, start_score=start_score,
-                          region=result.region, ms=(time.perf_counter() - t0) * 1e3, match=result,
-                          match_pose=init, gicp=g,
-                          scan_world=transform_points(pose, prep.road_removed).astype(np.float32),
-                          timings=timings)
+        return S2MOutcome(
+            accepted=True,
+            pose=pose,
+            score=result.score,
+            start_score=start_score,
+            region=result.region,
+            ms=(time.perf_counter() - t0) * 1e3,
+            match=result,
+            match_pose=init,
+            gicp=g,
+            scan_world=transform_points(pose, prep.road_removed).astype(np.float32),
+            timings=timings,
+        )
 
-    def _reject(self, start_pose, score, start_score, result, prep, t0, timings, reason, init=None, gicp=None,
-                region=None, stage=""):
-        return S2MOutcome(accepted=False, pose=np.asarray(start_pose, float).copy(), score=float(score),
-                          start_score=float(start_score), region=tuple(region if result is None else result.region),
-                          ms=(time.perf_counter() - t0) * 1e3, reason=reason, match=result, match_pose=init,
-                          gicp=gicp, scan_world=transform_points(start_pose, prep.road_removed).astype(np.float32),
-                          timings=timings, stage=stage)
+    def _reject(
+        self,
+        start_pose,
+        score,
+        start_score,
+        result,
+        prep,
+        t0,
+        timings,
+        reason,
+        init=None,
+        gicp=None,
+        region=None,
+        stage="",
+    ):
+        return S2MOutcome(
+            accepted=False,
+            pose=np.asarray(start_pose, float).copy(),
+            score=float(score),
+            start_score=float(start_score),
+            region=tuple(region if result is None else result.region),
+            ms=(time.perf_counter() - t0) * 1e3,
+            reason=reason,
+            match=result,
+            match_pose=init,
+            gicp=gicp,
+            scan_world=transform_points(start_pose, prep.road_removed).astype(np.float32),
+            timings=timings,
+            stage=stage,
+        )
 
 
 class _GroundGrid:
@@ -311,6 +417,8 @@ class _GroundGrid:
         road (reflections) and cells whose lowest point is a car roof."""
         i = int(math.floor(x / self.res)) - int(self.lo[0])
         j = int(math.floor(y / self.res)) - int(self.lo[1])
-        win = self.zmin[max(i - radius_cells, 0):i + radius_cells + 1, max(j - radius_cells, 0):j + radius_cells + 1]
+        win = self.zmin[
+            max(i - radius_cells, 0) : i + radius_cells + 1, max(j - radius_cells, 0) : j + radius_cells + 1
+        ]
         vals = win[np.isfinite(win)]
         return float(np.median(vals)) if len(vals) else math.nan

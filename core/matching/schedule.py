@@ -6,7 +6,7 @@ thread (RS and S2M, in the S2M child process by default, see :mod:`lidarloc.core
 and lands at a later scan k: an accepted match for scan k₀ is carried forward to scan k with the
 RPE relative pose and written into the particle it started from, which is then re-weighted
 (with ``s2m.reject_if_weight_drops``, the paper's rule, it is taken back if that lowered the
-particle's log-likelihood: see :meth:`S2MScheduler._write_unless_weight_drops`).
+particle's log-likelihood: see :func:`~.landing.write_unless_weight_drops`).
 ``replay`` lands it exactly ``n_s2m`` scans after it started (the step waits for it);
 ``realtime`` lands it at the first scan after it finished whose odometry is ready (see
 :meth:`S2MScheduler._odometry_ready_to_land`).
@@ -31,11 +31,12 @@ moved it; and the pose carried forward to the landing scan.
 
 from __future__ import annotations
 
-from concurrent.futures import Future, ThreadPoolExecutor
 import dataclasses
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -43,8 +44,9 @@ from ..config import Config, S2MConfig
 from ..geometry import pose_matrix, pose_to_xyz_ypr
 from ..odometry.feed import OdometryFeed
 from ..rules.integrity import VERDICT_TEXT, Verdict, judge
-from .worker import S2MProcess
 from ..snapshot import S2MView
+from .landing import landed_view, write_unless_weight_drops
+from .worker import S2MProcess
 
 # Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
 # the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
@@ -64,13 +66,13 @@ class S2MJob:
     generation: int
     start_pose: np.ndarray
     future: Future
-    deferrals: int = 0        # real time: scans at which the finished match could not land yet
-    mode: str = "local"       # "global": the search region covers the whole map (not localized);
-                              # "check": the whole-map second opinion once localized
-    cfg: Any = None           # the S2M settings it runs with (S2MConfig)
-    level: bool = False       # whether the start's z, pitch and roll are ignored (see s2m.match_local)
-    estimate_pose: np.ndarray | None = None   # the filter's estimate at k₀, 4×4: what the match is
-                                              # judged against (core/rules/integrity.py)
+    deferrals: int = 0  # real time: scans at which the finished match could not land yet
+    mode: str = "local"  # "global": the search region covers the whole map (not localized);
+    # "check": the whole-map second opinion once localized
+    cfg: Any = None  # the S2M settings it runs with (S2MConfig)
+    level: bool = False  # whether the start's z, pitch and roll are ignored (see s2m.match_local)
+    estimate_pose: np.ndarray | None = None  # the filter's estimate at k₀, 4×4: what the match is
+    # judged against (core/rules/integrity.py)
 
 
 class S2MScheduler:
@@ -81,9 +83,18 @@ class S2MScheduler:
     gives up on ``interrupt()`` and turns a block's failure into a clear error. ``event(k, kind,
     detail)`` records an event."""
 
-    def __init__(self, cfg: Config, prior_map, pyramid, map_dir: Path, bounds: tuple, pool: ThreadPoolExecutor,
-                 wait: Callable[[Future, str, int], Any], event: Callable[[int, str, str], None],
-                 start_matcher: bool = True):
+    def __init__(
+        self,
+        cfg: Config,
+        prior_map,
+        pyramid,
+        map_dir: Path,
+        bounds: tuple,
+        pool: ThreadPoolExecutor,
+        wait: Callable[[Future, str, int], Any],
+        event: Callable[[int, str, str], None],
+        start_matcher: bool = True,
+    ):
         """``start_matcher`` False: the matcher starts at the first match that needs it, or at
         :meth:`start_matcher` (a resumed run replays recorded matches first: its set-up would
         only take the CPU from the replay)."""
@@ -98,12 +109,12 @@ class S2MScheduler:
         self.matcher = None
         if start_matcher:
             self.start_matcher()
-        self._retired_matchers: list = []    # S2M processes replaced by a clock change
+        self._retired_matchers: list = []  # S2M processes replaced by a clock change
         self.job: S2MJob | None = None
         # resuming a recorded run: its matcher's outcomes (module docstring)
         self.recorded: Callable[[int, np.ndarray, Any, bool], Any] | None = None
-        self.last_landing: tuple[int, S2MJob, Any] | None = None   # (scan, job, raw outcome)
-        self.verdict: Verdict | None = None   # what the match that landed at the last step said
+        self.last_landing: tuple[int, S2MJob, Any] | None = None  # (scan, job, raw outcome)
+        self.verdict: Verdict | None = None  # what the match that landed at the last step said
         self.restart()
 
     def restart(self) -> None:
@@ -115,7 +126,7 @@ class S2MScheduler:
         self._last_start: int | None = None
         self.n_landed = 0
         self.n_accepted = 0
-        self.last: S2MView | None = None     # the last match that landed
+        self.last: S2MView | None = None  # the last match that landed
         self.last_landing = None
         self.verdict = None
 
@@ -186,8 +197,16 @@ class S2MScheduler:
             return True
         return self._last_start is None or k - self._last_start >= every
 
-    def start(self, k: int, j: int, state: np.ndarray, scan: np.ndarray, localized: bool,
-              check: str | None = None, estimate_pose: np.ndarray | None = None) -> None:
+    def start(
+        self,
+        k: int,
+        j: int,
+        state: np.ndarray,
+        scan: np.ndarray,
+        localized: bool,
+        check: str | None = None,
+        estimate_pose: np.ndarray | None = None,
+    ) -> None:
         """Start a match of scan k from particle j (whose ``state`` it is) in the background.
         ``check``: why this match is a whole-map second opinion (None: it is not);
         ``estimate_pose``: the filter's estimate at scan k, which the match's verdict compares
@@ -199,9 +218,17 @@ class S2MScheduler:
         level = not localized or check is not None
         cfg = self.job_config(state, localized, check is not None)
         mode = "check" if check is not None else ("global" if self.searches_whole_map(localized) else "local")
-        self.job = S2MJob(k, j, self._generation, start_pose, self.submit(k, scan, start_pose, cfg, level),
-                          mode=mode, cfg=cfg, level=level,
-                          estimate_pose=start_pose if estimate_pose is None else np.asarray(estimate_pose, float))
+        self.job = S2MJob(
+            k,
+            j,
+            self._generation,
+            start_pose,
+            self.submit(k, scan, start_pose, cfg, level),
+            mode=mode,
+            cfg=cfg,
+            level=level,
+            estimate_pose=start_pose if estimate_pose is None else np.asarray(estimate_pose, float),
+        )
         self._last_start = k
         self._event(k, "s2m_started", f"particle {j}" + ("" if check is None else f", whole-map check ({check})"))
 
@@ -223,7 +250,7 @@ class S2MScheduler:
 
     @staticmethod
     def _run(matcher, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool):
-        if isinstance(matcher, S2MProcess):     # the child process: it takes the live settings along
+        if isinstance(matcher, S2MProcess):  # the child process: it takes the live settings along
             return matcher.match_local(scan, start_pose, s2m_cfg, level=level)
         matcher.cfg = s2m_cfg
         return matcher.match_local(scan, start_pose, level=level)
@@ -233,14 +260,32 @@ class S2MScheduler:
         """What a checkpoint keeps of the scheduling: JSON-ready counts and the match in flight,
         and the arrays of the latter (its start pose and the estimate it is judged against)."""
         job = self.job
-        state = {"pending": False, "generation": self._generation, "last_start": self._last_start,
-                 "n_landed": self.n_landed, "n_accepted": self.n_accepted,
-                 "job": None if job is None else {
-                     "started_at": job.started_at, "particle": job.particle, "generation": job.generation,
-                     "deferrals": job.deferrals, "mode": job.mode, "level": bool(job.level),
-                     "cfg": None if job.cfg is None else dataclasses.asdict(job.cfg)}}
-        arrays = {} if job is None else {"s2m_job_start_pose": np.asarray(job.start_pose, np.float64),
-                                         "s2m_job_estimate_pose": np.asarray(job.estimate_pose, np.float64)}
+        state = {
+            "pending": False,
+            "generation": self._generation,
+            "last_start": self._last_start,
+            "n_landed": self.n_landed,
+            "n_accepted": self.n_accepted,
+            "job": None
+            if job is None
+            else {
+                "started_at": job.started_at,
+                "particle": job.particle,
+                "generation": job.generation,
+                "deferrals": job.deferrals,
+                "mode": job.mode,
+                "level": bool(job.level),
+                "cfg": None if job.cfg is None else dataclasses.asdict(job.cfg),
+            },
+        }
+        arrays = (
+            {}
+            if job is None
+            else {
+                "s2m_job_start_pose": np.asarray(job.start_pose, np.float64),
+                "s2m_job_estimate_pose": np.asarray(job.estimate_pose, np.float64),
+            }
+        )
         return state, arrays
 
     def restore(self, state: dict, arrays, scan_of: Callable[[int], np.ndarray]) -> None:
@@ -258,9 +303,18 @@ class S2MScheduler:
         k0 = int(job["started_at"])
         future = self.submit(k0, lambda: scan_of(k0), start_pose, cfg, bool(job["level"]))
         estimate = arrays["s2m_job_estimate_pose"] if "s2m_job_estimate_pose" in arrays else start_pose
-        self.job = S2MJob(k0, int(job["particle"]), int(job["generation"]), start_pose, future,
-                          deferrals=int(job["deferrals"]), mode=str(job["mode"]), cfg=cfg, level=bool(job["level"]),
-                          estimate_pose=np.array(estimate, np.float64))
+        self.job = S2MJob(
+            k0,
+            int(job["particle"]),
+            int(job["generation"]),
+            start_pose,
+            future,
+            deferrals=int(job["deferrals"]),
+            mode=str(job["mode"]),
+            cfg=cfg,
+            level=bool(job["level"]),
+            estimate_pose=np.array(estimate, np.float64),
+        )
 
     # ------------------------------------------------------------------------ cancelling
     def cancel(self, k: int, why: str) -> None:
@@ -272,8 +326,14 @@ class S2MScheduler:
             self._event(k, "s2m_cancelled", f"started {job.started_at} ({why})")
 
     # ------------------------------------------------------------------------ landing
-    def land(self, k: int, prepared: np.ndarray, pf, odometry: OdometryFeed,
-             fits_better: Callable[[np.ndarray, np.ndarray], tuple[bool, str]] | None = None) -> float | None:
+    def land(
+        self,
+        k: int,
+        prepared: np.ndarray,
+        pf,
+        odometry: OdometryFeed,
+        fits_better: Callable[[np.ndarray, np.ndarray], tuple[bool, str]] | None = None,
+    ) -> float | None:
         """Land the match in flight at scan k if it is due: an accepted one is carried forward
         to k with the ``odometry`` and written into its particle of ``pf``, which is then
         re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed;
@@ -292,7 +352,7 @@ class S2MScheduler:
             if k < planned:
                 return None
         elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
-            return None   # real time: land at a scan after the match finished (see there)
+            return None  # real time: land at a scan after the match finished (see there)
         self.job = None
         outcome = self._wait(job.future, "S2M", k, f"the S2M match started at scan {job.started_at}")
         self.last_landing = (k, job, outcome)
@@ -303,13 +363,25 @@ class S2MScheduler:
         # A search that nothing in its region beat: the start itself is the best place the
         # matcher sees there (its word on the estimate, see core/rules/integrity.py).
         match = getattr(outcome, "match", None)
-        unbeaten = (not accepted and match is not None and not np.isfinite(getattr(match, "x", 0.0))
-                    and np.isfinite(outcome.start_score))
+        unbeaten = (
+            not accepted
+            and match is not None
+            and not np.isfinite(getattr(match, "x", 0.0))
+            and np.isfinite(outcome.start_score)
+        )
         # Judged at scan k₀, against the estimate the filter had then: independent of the match
         # (after the landing the particle it is written into would agree with itself), and no
         # odometry is needed to judge a rejection.
-        verdict = judge(job.mode, accepted, unbeaten, outcome.pose, job.estimate_pose,
-                        float(outcome.score), float(outcome.start_score), self.cfg)
+        verdict = judge(
+            job.mode,
+            accepted,
+            unbeaten,
+            outcome.pose,
+            job.estimate_pose,
+            float(outcome.score),
+            float(outcome.start_score),
+            self.cfg,
+        )
         if accepted:
             # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
             odometry.wait_registered(k)
@@ -322,7 +394,7 @@ class S2MScheduler:
                     pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
                 except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
                     accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
-            if not accepted and verdict.kind == "relocalize":    # nowhere to move the filter to
+            if not accepted and verdict.kind == "relocalize":  # nowhere to move the filter to
                 verdict = dataclasses.replace(verdict, kind="look_alike")
             elif accepted:
                 verdict = dataclasses.replace(verdict, pose=pose_k)
@@ -336,11 +408,12 @@ class S2MScheduler:
             # a second opinion far from the estimate is never written into a particle: either the
             # filter re-localizes there (the localizer's call) or it is a look-alike
             accepted = False
-            reason = ("whole-map check: a clearly better pose far from the estimate, " + verdict.describe()
-                      if verdict.kind == "relocalize" else
-                      "whole-map check: a pose far from the estimate, not clearly better (BEV score "
-                      f"≥ {self.cfg.s2m.relocalize_score_ratio:g}× and a clearly better 3D fit needed): "
-                      + verdict.describe())
+            reason = (
+                "whole-map check: a clearly better pose far from the estimate, " + verdict.describe()
+                if verdict.kind == "relocalize"
+                else "whole-map check: a pose far from the estimate, not clearly better (BEV score "
+                f"≥ {self.cfg.s2m.relocalize_score_ratio:g}× and a clearly better 3D fit needed): " + verdict.describe()
+            )
             if fit_words:
                 reason += f"; {fit_words}"
         if accepted:
@@ -349,7 +422,7 @@ class S2MScheduler:
             state[6] = odometry.rpe.speed(k)
             state[7:10] = odometry.rpe.rates(k)
             if self.cfg.s2m.reject_if_weight_drops:
-                accepted, reason = self._write_unless_weight_drops(pf, job.particle, state, prepared)
+                accepted, reason = write_unless_weight_drops(pf, job.particle, state, prepared)
             else:
                 pf.set_particle(job.particle, state)
                 pf.reweight(job.particle, prepared)
@@ -357,58 +430,15 @@ class S2MScheduler:
             self.n_accepted += 1
         elif not reason:
             reason = "the matcher gave no reason"
-        self._event(k, "s2m_accepted" if accepted else "s2m_rejected",
-                    f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
-                    + (f" ({reason})" if reason and not accepted else "")
-                    + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}"))
-        self.last = self._view(job, k, outcome, accepted, pose_k, reason)
+        self._event(
+            k,
+            "s2m_accepted" if accepted else "s2m_rejected",
+            f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
+            + (f" ({reason})" if reason and not accepted else "")
+            + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}"),
+        )
+        self.last = landed_view(job, k, outcome, accepted, pose_k, reason)
         return float(outcome.ms)
-
-    @staticmethod
-    def _view(job: S2MJob, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason: str) -> S2MView:
-        """What the viewer shows of a landed match: the verdict and why, and what the search and
-        GICP did on the way (any of them may be missing: a match refused before the search, or an
-        outcome made by a stand-in matcher)."""
-        scan_world = outcome.scan_world if outcome.scan_world is not None else np.zeros((0, 3), np.float32)
-        result = getattr(outcome, "match", None)
-        gicp = getattr(outcome, "gicp", None)
-        match_pose = getattr(outcome, "match_pose", None)
-        candidates = np.zeros((0, 4))
-        if result is not None and getattr(result, "candidates", None) is not None:
-            candidates = np.asarray(result.candidates, np.float64).reshape(-1, 4)
-        return S2MView(
-            started_at=job.started_at, landed_at=k, accepted=accepted, score=float(outcome.score),
-            start_score=float(outcome.start_score), pose=np.asarray(pose_k),
-            scan_world=scan_world,
-            region=tuple(outcome.region), ms=float(outcome.ms), reason=reason or "",
-            mode=job.mode, start_pose=np.asarray(job.start_pose, np.float64).copy(),
-            candidates=candidates,
-            nodes_per_level=tuple(getattr(result, "nodes_per_level", ()) or ()) if result is not None else (),
-            match_pose=None if match_pose is None else np.asarray(match_pose, np.float64),
-            gicp_pose=None if gicp is None else np.asarray(gicp.pose, np.float64),
-            gicp_fitness=None if gicp is None else float(gicp.inlier_ratio),
-            gicp_correction=() if gicp is None else (float(gicp.correction_m), float(gicp.correction_rad)),
-            stage=str(getattr(outcome, "stage", "") or ""))
-
-    @staticmethod
-    def _write_unless_weight_drops(pf, j: int, state: np.ndarray, prepared: np.ndarray) -> tuple[bool, str]:
-        """The paper's acceptance of a landed match (``s2m.reject_if_weight_drops``): write
-        ``state`` into particle j and re-weight it; if its log-likelihood for the current scan is
-        lower than that of its own state, the particle, and every weight, is put back as it was.
-        Returns (accepted, reason).
-
-        The paper only says a failed match "will significantly lower the weight of the particle"
-        and is not accepted; "lower" is taken literally (any drop rejects: no margin), and the
-        comparison is between exact log-likelihoods of the same scan, the particle's own one
-        recomputed first (the weight update may have floored it, see likelihood.py)."""
-        saved = (pf.states[j].copy(), pf.log_weights.copy(), pf.log_likelihoods.copy())
-        before = pf.reweight(j, prepared)
-        pf.set_particle(j, state)
-        after = pf.reweight(j)
-        if after >= before:
-            return True, ""
-        pf.states[j], pf.log_weights, pf.log_likelihoods = saved
-        return False, f"lowers the particle's weight: log-likelihood {after:.1f} < {before:.1f}"
 
     def _odometry_ready_to_land(self, job: S2MJob, k: int, odometry: OdometryFeed) -> bool:
         """Real time: an accepted match is carried forward with scan k's odometry, so it lands
@@ -420,13 +450,13 @@ class S2MScheduler:
         rpe``), and the landing that waited for it made 16 scans late. A failed or rejected match
         needs no odometry and lands at once."""
         if job.future.exception() is not None or not job.future.result().accepted:
-            return True       # a failure (the landing reports it) or a rejection: no odometry needed
+            return True  # a failure (the landing reports it) or a rejection: no odometry needed
         if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
-            return True       # the landing waits for the odometry
+            return True  # the landing waits for the odometry
         if not odometry.registered_within(k, REALTIME_LAND_WAIT_S):
             job.deferrals += 1
             return False
-        return True           # registered (or failed: the landing reports it)
+        return True  # registered (or failed: the landing reports it)
 
     # ------------------------------------------------------------------------ the matcher
     def _nice(self) -> int:
@@ -444,7 +474,7 @@ class S2MScheduler:
             return
         self.cancel(k, "clock changed: new S2M process")
         old, self.matcher = self.matcher, S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, nice)
-        self._retired_matchers.append(old)     # close() kills it if its match is still running
+        self._retired_matchers.append(old)  # close() kills it if its match is still running
         self._pool.submit(old.close)
 
     def use_pyramid(self, k: int, pyramid) -> None:

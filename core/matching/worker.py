@@ -37,8 +37,11 @@ def _make_handler(init: tuple):
         lower_priority(nice)
     map_dir = Path(map_dir)
     prior_map = PriorMap.load(map_dir, json.loads((map_dir / "meta.json").read_text()))
-    state = {"matcher": ScanToMapMatcher(prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value,
-                                         s2m_cfg, map_cfg)}
+    state = {
+        "matcher": ScanToMapMatcher(
+            prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value, s2m_cfg, map_cfg
+        )
+    }
     _warm_up(state["matcher"])
 
     def handle(request):
@@ -47,7 +50,7 @@ def _make_handler(init: tuple):
         if abs(cfg.match_resolution - matcher.pyramid.resolution) > 1e-9:
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
             matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg).value
-        matcher.cfg = cfg                      # live region / angle-step changes
+        matcher.cfg = cfg  # live region / angle-step changes
         return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
 
     return handle
@@ -72,7 +75,7 @@ def _warm_up(matcher) -> None:
     try:
         matcher.match_local(near - centre, pose_matrix(*centre, 0.0, 0.0, 0.0), level=True)
     except Exception:
-        pass      # a warm-up failure is no set-up failure: the real match reports its own
+        pass  # a warm-up failure is no set-up failure: the real match reports its own
     finally:
         matcher.cfg = saved
 

@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as wait_futures
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +31,6 @@ from ..config import Config
 from ..geometry import euler_zyx
 from .rpe import RelativePoseEstimator
 from .worker import KissICPProcess
-
 
 #: Scans a resumed run's KISS-ICP registers before the first scan it has no recorded pose for.
 WARMUP_SCANS = 10
@@ -58,24 +58,29 @@ class OdometryFeed:
     ``wait(future, block, k)`` is the localizer's wait for a block: it gives up on
     ``interrupt()`` and turns a failed registration into a clear error."""
 
-    def __init__(self, cfg: Config, recorded: np.ndarray | None, pool: ThreadPoolExecutor,
-                 wait: Callable[[Future, str, int], Any]):
+    def __init__(
+        self,
+        cfg: Config,
+        recorded: np.ndarray | None,
+        pool: ThreadPoolExecutor,
+        wait: Callable[[Future, str, int], Any],
+    ):
         self.cfg = cfg
         self._recorded = recorded
         self._pool = pool
         self._wait = wait
-        self.process: KissICPProcess | None = None    # the KISS-ICP child, once started
+        self.process: KissICPProcess | None = None  # the KISS-ICP child, once started
         self.rpe: RelativePoseEstimator | None = None
-        self.futures: dict[int, Future] = {}          # registrations by scan
-        self._times: dict[int, float] = {}            # timestamps of the submitted scans
-        self.origin = 0                 # first scan the current KISS-ICP run has seen
-        self.used: int | None = None    # last odometry scan the rules consumed (real time)
-        self.last_ms: float | None = None   # wall time of the newest finished registration
+        self.futures: dict[int, Future] = {}  # registrations by scan
+        self._times: dict[int, float] = {}  # timestamps of the submitted scans
+        self.origin = 0  # first scan the current KISS-ICP run has seen
+        self.used: int | None = None  # last odometry scan the rules consumed (real time)
+        self.last_ms: float | None = None  # wall time of the newest finished registration
         # resuming a recorded run (module docstring): scan → (its odometry run's first scan,
         # T_odom←scan), and the scans as the odometry registers them, for the warm-up
         self.known: dict[int, tuple[int, np.ndarray]] | None = None
         self.scan_source: Callable[[int], np.ndarray] | None = None
-        self.live_from: int | None = None   # the first scan KISS-ICP registered after the known ones
+        self.live_from: int | None = None  # the first scan KISS-ICP registered after the known ones
         # real time: scan → the odometry scan the recorded run's rules read at it (timing chose it)
         self.used_plan: dict[int, int] | None = None
 
@@ -208,7 +213,7 @@ class OdometryFeed:
         """Whether scan k is registered, waiting up to ``timeout`` seconds for it; no wait at all
         while scan k−1 is still pending (the odometry is behind)."""
         previous = self.futures.get(k - 1)
-        behind = previous is not None and not previous.done()   # a backlog: do not wait
+        behind = previous is not None and not previous.done()  # a backlog: do not wait
         registration = self.futures[k]
         wait_futures([registration], timeout=0.0 if behind else timeout)
         return registration.done()
@@ -229,12 +234,12 @@ class OdometryFeed:
             for i in range(k, max(self.origin, self.used or 0) - 1, -1):
                 fut = self.futures.get(i)
                 if fut is not None and fut.done():
-                    self._wait(fut, "RPE", i)     # a failed registration surfaces here
+                    self._wait(fut, "RPE", i)  # a failed registration surfaces here
                     latest = i
                     break
             if latest is None:
                 latest = self.used
-                if latest is None:            # nothing registered yet since the (re)start
+                if latest is None:  # nothing registered yet since the (re)start
                     self.wait_registered(k)
                     latest = k
         else:
@@ -266,7 +271,7 @@ class OdometryFeed:
                     return None
                 continue
             if fut.exception() is not None or not (self.rpe.has(i) and self.rpe.has(i - 1)):
-                return None          # a failed registration surfaces where the rules wait for it
+                return None  # a failed registration surfaces where the rules wait for it
             dt = self._times.get(i, math.nan) - self._times.get(i - 1, math.nan)
             if not dt > 0:
                 return None

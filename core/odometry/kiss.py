@@ -12,8 +12,7 @@ from __future__ import annotations
 KISS_CONVERGENCE = 3e-3
 
 
-def kiss_config(max_range: float, min_range: float, voxel_size: float | None,
-                convergence: float = KISS_CONVERGENCE):
+def kiss_config(max_range: float, min_range: float, voxel_size: float | None, convergence: float = KISS_CONVERGENCE):
     """A ``kiss_icp.config.KISSConfig`` for scans without per-point times (no deskew), on one
     thread. ``voxel_size=None``: KISS-ICP's own rule, max_range / 100."""
     from kiss_icp.config import KISSConfig
@@ -24,6 +23,6 @@ def kiss_config(max_range: float, min_range: float, voxel_size: float | None,
     config.data.min_range = float(min_range)
     # KISS-ICP's own rule when no voxel size is given: max_range / 100 (1 m for 100 m)
     config.mapping.voxel_size = float(voxel_size if voxel_size is not None else max_range / 100.0)
-    config.registration.max_num_threads = 1   # the localizer's other threads need the second core
+    config.registration.max_num_threads = 1  # the localizer's other threads need the second core
     config.registration.convergence_criterion = float(convergence)
     return config

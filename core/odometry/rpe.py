@@ -45,9 +45,17 @@ def _rotation_angle(R: np.ndarray) -> float:
 class RelativePoseEstimator:
     """KISS-ICP odometry over a bounded buffer of the most recent scans."""
 
-    def __init__(self, max_buffer: int = 100, max_range: float = 100.0, min_range: float = 2.5,
-                 voxel_size: float | None = None, icp=None, recorded: np.ndarray | None = None,
-                 known: dict[int, np.ndarray] | None = None, make_icp=None):
+    def __init__(
+        self,
+        max_buffer: int = 100,
+        max_range: float = 100.0,
+        min_range: float = 2.5,
+        voxel_size: float | None = None,
+        icp=None,
+        recorded: np.ndarray | None = None,
+        known: dict[int, np.ndarray] | None = None,
+        make_icp=None,
+    ):
         """``icp``: an object with KissICP's ``register_frame``/``last_pose`` (e.g. the
         process-backed :class:`~lidarloc.core.odometry.worker.KissICPProcess`); default: in-process.
         ``recorded``: (N, 4, 4) odometry poses of every scan of the sequence from an earlier run
@@ -140,8 +148,10 @@ class RelativePoseEstimator:
     def _get(self, k: int):
         entry = self._buf.get(int(k))
         if entry is None:
-            raise KeyError(f"scan {k} is not in the odometry buffer (not registered yet, or older than the "
-                           f"last {self.max_buffer} scans)")
+            raise KeyError(
+                f"scan {k} is not in the odometry buffer (not registered yet, or older than the "
+                f"last {self.max_buffer} scans)"
+            )
         return entry
 
     def odom_pose(self, k: int) -> np.ndarray:

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kiss import kiss_config
 from ..worker_process import WorkerProxy, serve
+from .kiss import kiss_config
 
 
 def _make_handler(config_args: tuple):

@@ -43,8 +43,10 @@ def initial_pose_on_map(guess, prior_map, sensor_height: float):
     d = np.hypot(pts[:, 0] - (guess.x - origin[0]), pts[:, 1] - (guess.y - origin[1]))
     near = pts[d <= INIT_GROUND_RADIUS, 2]
     if near.size == 0:
-        raise LidarlocError(f"--init {guess.x:g},{guess.y:g}: no map point within {INIT_GROUND_RADIUS:g} m "
-                            f"(the nearest is {float(d.min()):.0f} m away); give a pose on the map, in its frame")
+        raise LidarlocError(
+            f"--init {guess.x:g},{guess.y:g}: no map point within {INIT_GROUND_RADIUS:g} m "
+            f"(the nearest is {float(d.min()):.0f} m away); give a pose on the map, in its frame"
+        )
     z = float(np.percentile(near, 10)) + sensor_height
     std = (guess.sigma_xy, guess.sigma_xy, INIT_SIGMA_Z, guess.sigma_yaw, INIT_SIGMA_TILT, INIT_SIGMA_TILT)
     return initial_pose(guess, origin, z), std
@@ -60,15 +62,17 @@ def truth_outside_map(seq, bounds: tuple, origin, d_max: float) -> str | None:
     outside = float(np.linalg.norm(np.maximum(lo - p, 0) + np.maximum(p - hi, 0)))
     if outside <= d_max:
         return None
-    return (f"the ground truth's first pose ({p[0] + origin[0]:.1f}, {p[1] + origin[1]:.1f}) lies {outside:.0f} m "
-            "outside the map: are the map and the ground truth in the same frame?")
+    return (
+        f"the ground truth's first pose ({p[0] + origin[0]:.1f}, {p[1] + origin[1]:.1f}) lies {outside:.0f} m "
+        "outside the map: are the map and the ground truth in the same frame?"
+    )
 
 
 class ScanFrameCheck:
     """The scan-side frame check over a run's first ``FRAME_CHECK_SCANS`` scans."""
 
     def __init__(self):
-        self.best_share = 0.0     # best inlier share at the highest-weight particle so far
+        self.best_share = 0.0  # best inlier share at the highest-weight particle so far
 
     def wanted(self, step: int) -> bool:
         """Whether the scan of ``step`` (scans processed before it) is still inside the window."""
@@ -81,9 +85,11 @@ class ScanFrameCheck:
         last = min(FRAME_CHECK_SCANS, n_scans) - 1
         if step != last or self.best_share >= FRAME_MIN_INLIER_SHARE:
             return None
-        return (f"over the first {last + 1} scans at most {100 * self.best_share:.1f} % of a scan's points came "
-                f"within {d_max:g} m of the map: the scans and the map look to be in different frames "
-                "(another place, units or axes)")
+        return (
+            f"over the first {last + 1} scans at most {100 * self.best_share:.1f} % of a scan's points came "
+            f"within {d_max:g} m of the map: the scans and the map look to be in different frames "
+            "(another place, units or axes)"
+        )
 
 
 class ConfidenceWatch:
@@ -97,8 +103,9 @@ class ConfidenceWatch:
         if localized and share < min_share:
             if self.armed:
                 self.armed = False
-                return (f"inlier share {share:.2f} < {min_share:g}"
-                        + ("" if residual is None else f", mean residual {residual:.2f} m"))
+                return f"inlier share {share:.2f} < {min_share:g}" + (
+                    "" if residual is None else f", mean residual {residual:.2f} m"
+                )
             return None
         self.armed = True
         return None

@@ -73,33 +73,47 @@ CHECK_COOLDOWN_SCANS = 10
 class Verdict:
     """What a landed S2M match says about the particle filter's estimate."""
 
-    kind: str              # "agrees", "disagrees" (a far pose, written as the paper does before
-                           # localization), "relocalize" (a far pose clearly better: the filter
-                           # moves there), "look_alike" (a far pose not clearly better: ignored),
-                           # "no_opinion" (rejected: no pose to compare)
-    mode: str              # the match's mode: "global", "local" or "check"
-    distance_m: float      # x-y distance of the match pose to the estimate (nan: no opinion)
-    yaw_rad: float         # |yaw difference| (nan: no opinion)
-    pose: np.ndarray | None    # the match pose at the landing scan (4×4, world ← LiDAR)
-    score: float           # the match's BEV score
+    kind: str  # "agrees", "disagrees" (a far pose, written as the paper does before
+    # localization), "relocalize" (a far pose clearly better: the filter
+    # moves there), "look_alike" (a far pose not clearly better: ignored),
+    # "no_opinion" (rejected: no pose to compare)
+    mode: str  # the match's mode: "global", "local" or "check"
+    distance_m: float  # x-y distance of the match pose to the estimate (nan: no opinion)
+    yaw_rad: float  # |yaw difference| (nan: no opinion)
+    pose: np.ndarray | None  # the match pose at the landing scan (4×4, world ← LiDAR)
+    score: float  # the match's BEV score
     estimate_score: float  # the BEV score of the pose it started from (the best particle)
 
     def describe(self) -> str:
         if self.pose is None:
             return "no pose"
         x, y = self.pose[0, 3], self.pose[1, 3]
-        return (f"({x:.1f}, {y:.1f}), {self.distance_m:.1f} m and {math.degrees(self.yaw_rad):.0f}° from the "
-                f"estimate; score {self.score:.0f} against the estimate's {self.estimate_score:.0f}")
+        return (
+            f"({x:.1f}, {y:.1f}), {self.distance_m:.1f} m and {math.degrees(self.yaw_rad):.0f}° from the "
+            f"estimate; score {self.score:.0f} against the estimate's {self.estimate_score:.0f}"
+        )
 
 
 #: How a landing event names each verdict.
-VERDICT_TEXT = {"agrees": "agrees with the estimate", "disagrees": "far from the estimate",
-                "relocalize": "clearly better far from the estimate", "look_alike": "a look-alike far from the estimate",
-                "no_opinion": "no opinion on the estimate"}
+VERDICT_TEXT = {
+    "agrees": "agrees with the estimate",
+    "disagrees": "far from the estimate",
+    "relocalize": "clearly better far from the estimate",
+    "look_alike": "a look-alike far from the estimate",
+    "no_opinion": "no opinion on the estimate",
+}
 
 
-def judge(mode: str, accepted: bool, unbeaten: bool, pose_k0: np.ndarray | None, estimate_pose: np.ndarray,
-          score: float, start_score: float, cfg: Config) -> Verdict:
+def judge(
+    mode: str,
+    accepted: bool,
+    unbeaten: bool,
+    pose_k0: np.ndarray | None,
+    estimate_pose: np.ndarray,
+    score: float,
+    start_score: float,
+    cfg: Config,
+) -> Verdict:
     """The verdict of one landed match (see the module docstring), judged at the scan k₀ it
     matched. ``pose_k0``: the accepted match, or for a search that nothing beat the start pose;
     ``estimate_pose``: the filter's estimate at k₀. The verdict's ``pose`` is ``pose_k0`` until
@@ -136,13 +150,20 @@ class Integrity:
         self.confirmed_at: int | None = None
         self.rejections_in_row = 0
         self.poor_fit_scans = 0
-        self.check_reason: str | None = None   # why the next match should search the whole map
+        self.check_reason: str | None = None  # why the next match should search the whole map
         self.last_check_at: int | None = None
         self.localized_at: int | None = None
-        self.fit_baseline: list[float] = []    # mean residuals of scans that fitted well while localized
+        self.fit_baseline: list[float] = []  # mean residuals of scans that fitted well while localized
 
-    _STATE = ("confirmed_at", "rejections_in_row", "poor_fit_scans", "check_reason", "last_check_at", "localized_at",
-              "fit_baseline")
+    _STATE = (
+        "confirmed_at",
+        "rejections_in_row",
+        "poor_fit_scans",
+        "check_reason",
+        "last_check_at",
+        "localized_at",
+        "fit_baseline",
+    )
 
     def state(self) -> dict:
         """What a checkpoint keeps (JSON-ready)."""
@@ -167,7 +188,7 @@ class Integrity:
         if verdict.kind == "agrees":
             self.confirmed_at = k
             if verdict.mode in ("global", "check"):
-                self.poor_fit_scans = 0      # the whole map agrees: a poor fit is the world's change
+                self.poor_fit_scans = 0  # the whole map agrees: a poor fit is the world's change
         if verdict.mode == "local":
             self.rejections_in_row = 0 if verdict.kind == "agrees" else self.rejections_in_row + 1
             if self.rejections_in_row >= DISAGREEMENTS_FOR_CHECK:
@@ -182,8 +203,7 @@ class Integrity:
 
     def want_check(self, k: int, why: str) -> None:
         """Ask for a whole-map check at the next match start (unless one ran just now)."""
-        if self.check_reason is None and (self.last_check_at is None
-                                          or k - self.last_check_at >= CHECK_COOLDOWN_SCANS):
+        if self.check_reason is None and (self.last_check_at is None or k - self.last_check_at >= CHECK_COOLDOWN_SCANS):
             self.check_reason = why
 
     def check_due(self, k: int, localized: bool) -> str | None:
@@ -230,8 +250,10 @@ class Integrity:
             self.want_check(k, why)
         if lc.lost_after_scans > 0 and self.poor_fit_scans >= lc.lost_after_scans:
             self.poor_fit_scans = 0
-            return (f"the scan fitted the map poorly ({why}) for {lc.lost_after_scans} scans and no "
-                    "whole-map match agreed with the estimate")
+            return (
+                f"the scan fitted the map poorly ({why}) for {lc.lost_after_scans} scans and no "
+                "whole-map match agreed with the estimate"
+            )
         return None
 
 

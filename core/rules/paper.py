@@ -21,8 +21,8 @@ streak that has not moved enough: it is neither localized nor false.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from ..config import LocalizeConfig
 @dataclass
 class RuleOutcome:
     localized: bool
-    event: str | None = None        # "localized", "false_positive", "loss" or None
+    event: str | None = None  # "localized", "false_positive", "loss" or None
     reinit: bool = False
 
 
@@ -45,9 +45,9 @@ class LocalizationRules:
         self.localized = False
         self.localized_since: int | None = None
         self.streak_start: int | None = None
-        self.streak_path = 0.0          # metres driven since the streak started
+        self.streak_path = 0.0  # metres driven since the streak started
         self.streak_yaw0 = 0.0
-        self.awaiting_confirmation = False   # the paper's conditions hold; S2M has not agreed yet
+        self.awaiting_confirmation = False  # the paper's conditions hold; S2M has not agreed yet
 
     _STATE = ("localized", "localized_since", "streak_start", "streak_path", "streak_yaw0", "awaiting_confirmation")
 
@@ -61,8 +61,14 @@ class LocalizationRules:
             if name in state:
                 setattr(self, name, state[name])
 
-    def update(self, k: int, std_xyz: np.ndarray, step_distance: float, yaw_odom: float,
-               confirmed: Callable[[int], bool] | None = None) -> RuleOutcome:
+    def update(
+        self,
+        k: int,
+        std_xyz: np.ndarray,
+        step_distance: float,
+        yaw_odom: float,
+        confirmed: Callable[[int], bool] | None = None,
+    ) -> RuleOutcome:
         """Feed scan k: the filter's per-axis std, the RPE distance since scan k−1, and the
         RPE (odometry-frame) yaw at scan k. ``confirmed(k0)``: whether an S2M match agreed with
         the estimate at or after scan k0 (None: the paper's rule, no confirmation needed)."""

@@ -28,7 +28,6 @@ def inside_2sigma(error_xy, cov_xy) -> bool:
     return mahalanobis_xy(error_xy, cov_xy) <= 2.0
 
 
-
 def truth_alarm(localized: bool, error_m: float | None) -> str | None:
     """The rule says localized while the truth is farther than :data:`FALSE_FIRE_M`: what the
     viewer shows in red (the test of summary.json's ``false_fire``, at every localized scan)."""

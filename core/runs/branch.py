@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -49,8 +49,7 @@ from .recording import Recording, RecordingError
 
 #: Settings a branch cannot change: what its map, lookup table, source and processes were built from.
 FIXED_SECTIONS = ("map", "town")
-FIXED_KEYS = ("pf.lookup_resolution", "localize.rpe_process", "localize.s2m_process",
-              "localize.recorded_odometry")
+FIXED_KEYS = ("pf.lookup_resolution", "localize.rpe_process", "localize.s2m_process", "localize.recorded_odometry")
 
 
 def open_recording(run) -> Recording:
@@ -64,8 +63,9 @@ def checkpoint_for(rec: Recording, step: int) -> int:
     """The recorded step of the nearest checkpoint at or before ``step``."""
     ckpts = [s for s in rec.resume_steps("checkpoint") if s <= step]
     if not ckpts:
-        raise RecordingError(f"{rec.path}: no resume data at or before step {step} (recorded by a lidarloc "
-                             "without branching)")
+        raise RecordingError(
+            f"{rec.path}: no resume data at or before step {step} (recorded by a lidarloc without branching)"
+        )
     return ckpts[-1]
 
 
@@ -80,15 +80,21 @@ def check_step(rec: Recording, step) -> int:
     return step
 
 
-def open_branch(rec, step: int, overrides=None, seq=None, cache_root: Path | None = None,
-                progress: Callable[[str, float], None] | None = None):
+def open_branch(
+    rec,
+    step: int,
+    overrides=None,
+    seq=None,
+    cache_root: Path | None = None,
+    progress: Callable[[str, float], None] | None = None,
+):
     """A :class:`~lidarloc.core.localizer.Localizer` in the state of the recorded run ``rec`` (a
     Recording or a run folder) right after its step ``step`` (0-based row of the recording), with
     ``overrides`` applied (module docstring). ``seq``: the run's sequence if already open (else
     rebuilt from the source the recording names; a moved source is a one-line error naming the path
     it expected). ``progress(stage, fraction)`` as for the Localizer, plus stage "replay"."""
-    from . import resume
     from ..localizer import Localizer
+    from . import resume
 
     rec = open_recording(rec)
     step = check_step(rec, step)
@@ -101,13 +107,15 @@ def open_branch(rec, step: int, overrides=None, seq=None, cache_root: Path | Non
         cfg = resume.checkpoint_config(data).validate()
     except LidarlocError as exc:
         raise RecordingError(f"{where}: corrupt checkpoint ({exc})") from None
-    live, fixed = _split_overrides(cfg, overrides)        # bad overrides fail before the long part
+    live, fixed = _split_overrides(cfg, overrides)  # bad overrides fail before the long part
     if seq is None:
         seq = rec.open_sequence()
     n_source = rec.meta.get("n_source_scans")
     if n_source is not None and int(n_source) != len(seq):
-        raise RecordingError(f"the run's source now has {len(seq)} scans, the recording {n_source}: it changed "
-                             f"since ({rec.meta.get('source_description', 'source')})")
+        raise RecordingError(
+            f"the run's source now has {len(seq)} scans, the recording {n_source}: it changed "
+            f"since ({rec.meta.get('source_description', 'source')})"
+        )
     loc = Localizer(seq, cfg, cache_root, progress=progress, known_odometry=recorded_odometry(rec), lazy_s2m=True)
     try:
         loc.s2m.recorded = RecordedMatches(rec, timing_until=step)
@@ -124,19 +132,21 @@ def open_branch(rec, step: int, overrides=None, seq=None, cache_root: Path | Non
             if progress is not None:
                 progress("replay", (i - c) / max(step - c, 1))
             if loc.k != int(scan_index[i]):
-                raise RecordingError(f"{rec.path}: step {i} processed scan {int(scan_index[i])}, the replay is at "
-                                     f"scan {loc.k} (a control without a checkpoint: corrupt recording)")
+                raise RecordingError(
+                    f"{rec.path}: step {i} processed scan {int(scan_index[i])}, the replay is at "
+                    f"scan {loc.k} (a control without a checkpoint: corrupt recording)"
+                )
             if ready_at is not None and loc.k >= ready_at[0]:
                 _join_s2m(loc, ready_at[1])
                 ready_at = None
             loc.step()
         # the recorded run's events end here: the branch's own recording holds what follows
         loc.recorded_events_base = len(loc.events)
-        if ready_at is not None:            # the branch's own time: its tables are there
+        if ready_at is not None:  # the branch's own time: its tables are there
             _join_s2m(loc, ready_at[1])
         _apply(loc, live, fixed)
         if loc.cfg.s2m.enabled:
-            loc.s2m.start_matcher()      # sets up in the background while the branch is looked at
+            loc.s2m.start_matcher()  # sets up in the background while the branch is looked at
         loc.branch_of = {"run": str(rec.run_dir), "step": step}
     except BaseException:
         loc.close()
@@ -209,12 +219,13 @@ def _apply(loc, live: dict, fixed: dict) -> None:
             from ..filter.dynamic import DynamicPointFilter
 
             pf = loc.pf
-            pf.dynamic = (DynamicPointFilter(pf.lookup, loc.cfg.pf.dynamic_distance, loc.cfg.pf.dynamic_scans)
-                          if value else None)
+            pf.dynamic = (
+                DynamicPointFilter(pf.lookup, loc.cfg.pf.dynamic_distance, loc.cfg.pf.dynamic_scans) if value else None
+            )
         elif section == "pf" and name in ("dynamic_distance", "dynamic_scans") and loc.pf.dynamic is not None:
             setattr(loc.pf.dynamic, name.split("_", 1)[1], value)
     if fixed:
-        loc.controls += 1            # the branch's recording checkpoints the changed configuration
+        loc.controls += 1  # the branch's recording checkpoints the changed configuration
     if live:
         loc.set_params(**live)
 
@@ -298,9 +309,16 @@ def _restore_history(loc, rec: Recording, c: int, state: dict, seq) -> None:
     loc.est_trajectory = trajectory + [rec.mean_pose[i].copy() for i in range(c + 1)]
     snap = rec.snapshot(c, seq)
     loc.s2m.last = snap.s2m
-    loc._snapshot = replace(snap, particles=loc.pf.states.copy(), weights=loc.pf.weights.copy(),
-                            log_weights=loc.pf.log_weights.copy(), events=tuple(loc.events[-50:]),
-                            s2m_running=loc.s2m.job is not None, n_scans=loc.n_scans, done=loc.done)
+    loc._snapshot = replace(
+        snap,
+        particles=loc.pf.states.copy(),
+        weights=loc.pf.weights.copy(),
+        log_weights=loc.pf.log_weights.copy(),
+        events=tuple(loc.events[-50:]),
+        s2m_running=loc.s2m.job is not None,
+        n_scans=loc.n_scans,
+        done=loc.done,
+    )
 
 
 def _parent_history(rec: Recording, depth: int = 0) -> tuple[list, list, list]:
@@ -332,24 +350,59 @@ def _records(rec: Recording, upto: int) -> list:
     """The per-scan records (:class:`~lidarloc.core.snapshot.ScanRecord`) of steps 0…``upto``."""
     from ..snapshot import ScanRecord, Snapshot
 
-    names = ("scan_index", "timestamp", "best_index", "mean_pose", "cov_xyz", "std_xyz", "ellipse_xy", "n_eff",
-             "localized", "localized_since", "gt_pose", "error_m", "pf_ms", "n_particles", "converged",
-             "inlier_share", "mean_residual_m", "inside_2sigma", "s2m_ms", "reinit")
+    names = (
+        "scan_index",
+        "timestamp",
+        "best_index",
+        "mean_pose",
+        "cov_xyz",
+        "std_xyz",
+        "ellipse_xy",
+        "n_eff",
+        "localized",
+        "localized_since",
+        "gt_pose",
+        "error_m",
+        "pf_ms",
+        "n_particles",
+        "converged",
+        "inlier_share",
+        "mean_residual_m",
+        "inside_2sigma",
+        "s2m_ms",
+        "reinit",
+    )
     f = {name: rec.field(name) for name in names}
     out = []
     for i in range(upto + 1):
         gt, inside, since = f["gt_pose"][i], int(f["inside_2sigma"][i]), int(f["localized_since"][i])
         snap = Snapshot(
-            scan_index=int(f["scan_index"][i]), n_scans=0, timestamp=float(f["timestamp"][i]),
-            particles=np.zeros((0, 11)), weights=np.zeros(0), best_index=int(f["best_index"][i]),
-            mean_pose=f["mean_pose"][i], cov_xyz=f["cov_xyz"][i], std_xyz=f["std_xyz"][i],
-            ellipse_xy=tuple(f["ellipse_xy"][i]), n_eff=float(f["n_eff"][i]), localized=bool(f["localized"][i]),
-            localized_since=None if since < 0 else since, scan_world=np.zeros((0, 3), np.float32),
-            gt_pose=gt if np.all(np.isfinite(gt)) else None, error_m=_opt(f["error_m"][i]),
-            pf_ms=float(f["pf_ms"][i]), s2m=None, s2m_running=False, s2m_acceptance=0.0,
-            n_particles=int(f["n_particles"][i]), converged=bool(f["converged"][i]),
-            inlier_share=_opt(f["inlier_share"][i]), mean_residual_m=_opt(f["mean_residual_m"][i]),
-            inside_2sigma=None if inside < 0 else bool(inside))
+            scan_index=int(f["scan_index"][i]),
+            n_scans=0,
+            timestamp=float(f["timestamp"][i]),
+            particles=np.zeros((0, 11)),
+            weights=np.zeros(0),
+            best_index=int(f["best_index"][i]),
+            mean_pose=f["mean_pose"][i],
+            cov_xyz=f["cov_xyz"][i],
+            std_xyz=f["std_xyz"][i],
+            ellipse_xy=tuple(f["ellipse_xy"][i]),
+            n_eff=float(f["n_eff"][i]),
+            localized=bool(f["localized"][i]),
+            localized_since=None if since < 0 else since,
+            scan_world=np.zeros((0, 3), np.float32),
+            gt_pose=gt if np.all(np.isfinite(gt)) else None,
+            error_m=_opt(f["error_m"][i]),
+            pf_ms=float(f["pf_ms"][i]),
+            s2m=None,
+            s2m_running=False,
+            s2m_acceptance=0.0,
+            n_particles=int(f["n_particles"][i]),
+            converged=bool(f["converged"][i]),
+            inlier_share=_opt(f["inlier_share"][i]),
+            mean_residual_m=_opt(f["mean_residual_m"][i]),
+            inside_2sigma=None if inside < 0 else bool(inside),
+        )
         out.append(ScanRecord.from_snapshot(snap, _opt(f["s2m_ms"][i]), bool(f["reinit"][i])))
     return out
 

@@ -39,8 +39,8 @@ from ..rules.truth import FALSE_FIRE_M
 class ScanLog:
     """The columns metrics need; arrays of equal length, one entry per processed scan."""
 
-    localized: np.ndarray        # bool
-    error_m: np.ndarray          # float, |p_est − p_true| in 3D (NaN where no truth)
+    localized: np.ndarray  # bool
+    error_m: np.ndarray  # float, |p_est − p_true| in 3D (NaN where no truth)
     yaw_error_rad: np.ndarray | None = None
 
 
@@ -50,7 +50,7 @@ def _first_window(localized: np.ndarray, ok: np.ndarray, length: int) -> int | N
     run = np.zeros(n + 1, dtype=np.int64)
     for i in range(n - 1, -1, -1):
         run[i] = run[i + 1] + 1 if ok[i] else 0
-    need = length + 1          # [k, k+length] inclusive
+    need = length + 1  # [k, k+length] inclusive
     hits = np.flatnonzero(localized & (run[:n] >= need))
     return int(hits[0]) if hits.size else None
 
@@ -67,11 +67,16 @@ def compute_metrics(log: ScanLog) -> dict:
     kC = _first_window(localized, ok5, 10)
     kD = _first_window(localized, ok5, 50)
     kE = _first_window(localized, ok25, 50)
-    out = {"A": A, "B": B,
-           "C": None if kC is None else kC + 1,
-           "D": None if kD is None else kD + 1,
-           "E": None if kE is None else kE + 1,
-           "rmse_pos_after_D_m": None, "rmse_yaw_after_D_deg": None, "scans": int(len(localized))}
+    out = {
+        "A": A,
+        "B": B,
+        "C": None if kC is None else kC + 1,
+        "D": None if kD is None else kD + 1,
+        "E": None if kE is None else kE + 1,
+        "rmse_pos_after_D_m": None,
+        "rmse_yaw_after_D_deg": None,
+        "scans": int(len(localized)),
+    }
     if kD is not None:
         tail = err[kD:]
         out["rmse_pos_after_D_m"] = float(np.sqrt(np.nanmean(tail**2)))
@@ -97,6 +102,7 @@ def aggregate(per_run: list[dict]) -> dict:
                 return None
             v = float(np.percentile(values, q, method="inverted_cdf"))  # an observed value, never interpolated with ∞
             return v if np.isfinite(v) else None
+
         out[key] = {"median": stat(50), "p75": stat(75), "max": stat(100), "success": success}
     return out
 
@@ -126,5 +132,7 @@ def aggregate_confidence(summaries: list[dict]) -> dict:
     truth. Runs without a value (no truth, or never localized) are left out; None if none has one."""
     cons = [float(s["consistency_2sigma"]) for s in summaries if s.get("consistency_2sigma") is not None]
     fires = [bool(s["false_fire"]) for s in summaries if s.get("false_fire") is not None]
-    return {"consistency_2sigma": float(np.median(cons)) if cons else None,
-            "false_fire_rate": float(np.mean(fires)) if fires else None}
+    return {
+        "consistency_2sigma": float(np.median(cons)) if cons else None,
+        "false_fire_rate": float(np.mean(fires)) if fires else None,
+    }

@@ -138,12 +138,17 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
 def world_of(seq) -> dict | None:
     """The world options of the generated town's drive (changes, traffic, sensor, …); None for
     every other source."""
-    world_options = getattr(seq, "world_options", None)     # only the generated town has one
+    world_options = getattr(seq, "world_options", None)  # only the generated town has one
     return world_options() if callable(world_options) else None
 
 
-def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = None,
-                  cpu_s: dict | None = None, preset: str | None = None) -> dict:
+def summarize_run(
+    loc: Localizer,
+    wall_s: float,
+    lags_ms: list[float] | None = None,
+    cpu_s: dict | None = None,
+    preset: str | None = None,
+) -> dict:
     """The run's summary.json. ``lags_ms`` (real-time clock): for each processed scan, how long
     after its arrival time its step started. ``cpu_s``: CPU seconds each block's process used
     during the run (differences of :meth:`Localizer.cpu_seconds`). ``preset``: the named
@@ -165,15 +170,21 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
     confidence = confidence_metrics(localized, err, [r.inside_2sigma for r in recs])
     n_particles = np.array([r.n_particles for r in recs], dtype=float)
     return {
-        "source": loc.seq.name, "seed": loc.cfg.seed, "scans": len(recs), "clock": loc.cfg.localize.clock,
-        "preset": preset, "world": world_of(loc.seq),
-        "s2m": loc.cfg.s2m.enabled, "particles": loc.cfg.pf.n_particles,
+        "source": loc.seq.name,
+        "seed": loc.cfg.seed,
+        "scans": len(recs),
+        "clock": loc.cfg.localize.clock,
+        "preset": preset,
+        "world": world_of(loc.seq),
+        "s2m": loc.cfg.s2m.enabled,
+        "particles": loc.cfg.pf.n_particles,
         "n_particles_median": float(np.median(n_particles)) if n_particles.size else None,
         "localized_at_scan": first_loc,
         "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
         "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
         # evo's APE / RPE of the written TUM files (write_run fills them in; None without truth)
-        "ape_rmse_m": None, "rpe_rmse_m": None,
+        "ape_rmse_m": None,
+        "rpe_rmse_m": None,
         "final_error_m": float(err[-1]) if len(err) and np.isfinite(err[-1]) else None,
         "pf_ms_median": float(np.median(pf_ms)) if pf_ms.size else None,
         "s2m_ms_median": float(np.median(s2m_ms)) if s2m_ms.size else None,
@@ -181,7 +192,8 @@ def summarize_run(loc: Localizer, wall_s: float, lags_ms: list[float] | None = N
         "s2m_landed": kinds.count("s2m_accepted") + kinds.count("s2m_rejected"),
         "s2m_accepted": kinds.count("s2m_accepted"),
         "s2m_cancelled": kinds.count("s2m_cancelled"),
-        "false_positives": kinds.count("false_positive"), "losses": kinds.count("loss"),
+        "false_positives": kinds.count("false_positive"),
+        "losses": kinds.count("loss"),
         **integrity_summary(loc.events, recs),
         "map_origin_m": [float(v) for v in loc.prior_map.origin],
         "frame_mismatch": [e.detail for e in loc.events if e.kind == "frame_mismatch"],
@@ -203,11 +215,19 @@ def integrity_summary(events: list, records: list) -> dict:
     by_scan = {r.scan: r for r in records}
     has_truth = any(r.error_m is not None for r in records)
     moves = [e.scan for e in events if e.kind == "relocalized"]
-    spurious = sum(1 for k in moves if by_scan.get(k - 1) is not None and by_scan[k - 1].error_m is not None
-                   and by_scan[k - 1].error_m <= FALSE_FIRE_M)
+    spurious = sum(
+        1
+        for k in moves
+        if by_scan.get(k - 1) is not None
+        and by_scan[k - 1].error_m is not None
+        and by_scan[k - 1].error_m <= FALSE_FIRE_M
+    )
     wrong = sum(1 for r in records if r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)
-    return {"relocalizations": len(moves), "spurious_relocalizations": spurious if has_truth else None,
-            "localized_wrong_scans": wrong if has_truth else None}
+    return {
+        "relocalizations": len(moves),
+        "spurious_relocalizations": spurious if has_truth else None,
+        "localized_wrong_scans": wrong if has_truth else None,
+    }
 
 
 def cpu_summary(cpu_s: dict | None, scans: int, wall_s: float) -> dict:
@@ -216,11 +236,13 @@ def cpu_summary(cpu_s: dict | None, scans: int, wall_s: float) -> dict:
     if not cpu_s or scans == 0:
         return {"cpu_ms_per_scan": None, "cpu_percent": None}
     known = [v for v in cpu_s.values() if v is not None]
-    return {"cpu_ms_per_scan": {k: None if v is None else 1000.0 * v / scans for k, v in cpu_s.items()},
-            "cpu_percent": 100.0 * sum(known) / wall_s if wall_s > 0 else None}
+    return {
+        "cpu_ms_per_scan": {k: None if v is None else 1000.0 * v / scans for k, v in cpu_s.items()},
+        "cpu_percent": 100.0 * sum(known) / wall_s if wall_s > 0 else None,
+    }
 
 
-LATE_MS = 100.0   # a step that starts this much after its scan arrived is late (one LiDAR period)
+LATE_MS = 100.0  # a step that starts this much after its scan arrived is late (one LiDAR period)
 
 
 def lag_summary(lags_ms: list[float] | None) -> dict:
@@ -231,6 +253,9 @@ def lag_summary(lags_ms: list[float] | None) -> dict:
         return {"late_scans": None, "max_lag_ms": None, "lag_at_end_ms": None, "kept_up_from_scan": None}
     lag = np.asarray(lags_ms, dtype=float)
     late = np.flatnonzero(lag > LATE_MS)
-    return {"late_scans": int(late.size), "max_lag_ms": float(lag.max()) if lag.size else 0.0,
-            "lag_at_end_ms": float(lag[-1]) if lag.size else 0.0,
-            "kept_up_from_scan": 0 if not late.size else (int(late[-1]) + 1 if late[-1] + 1 < lag.size else None)}
+    return {
+        "late_scans": int(late.size),
+        "max_lag_ms": float(lag.max()) if lag.size else 0.0,
+        "lag_at_end_ms": float(lag[-1]) if lag.size else 0.0,
+        "kept_up_from_scan": 0 if not late.size else (int(late[-1]) + 1 if late[-1] + 1 < lag.size else None),
+    }

@@ -33,13 +33,13 @@ def trajectory_errors(trajectory_tum: Path, groundtruth_tum: Path) -> dict:
     from evo.main_rpe import rpe
     from evo.tools import file_interface
 
-    logging.getLogger("evo").setLevel(logging.WARNING)   # evo logs its result tables at INFO
+    logging.getLogger("evo").setLevel(logging.WARNING)  # evo logs its result tables at INFO
     out: dict = {"ape_rmse_m": None, "rpe_rmse_m": None}
     try:
         ref = file_interface.read_tum_trajectory_file(str(groundtruth_tum))
         est = file_interface.read_tum_trajectory_file(str(trajectory_tum))
         ref, est = sync.associate_trajectories(ref, est, max_diff=MAX_DIFF_S)
-    except Exception:   # noqa: BLE001 - evo raises its own error types for empty or foreign files
+    except Exception:  # noqa: BLE001 - evo raises its own error types for empty or foreign files
         return out
     relation = metrics.PoseRelation.translation_part
     if ref.num_poses >= 1:

@@ -31,7 +31,7 @@ class Sequence(ABC):
         """Raw scan i as (N, 4) float32 (validated by :meth:`scan`)."""
 
     @abstractmethod
-    def _describe_scan(self, i: int) -> str:
+    def describe_scan(self, i: int) -> str:
         """Where scan i comes from (a file path, or 'town seed 0 scan 12'), for error messages."""
 
     @property
@@ -50,7 +50,7 @@ class Sequence(ABC):
         return self.poses is not None
 
     @property
-    def map_source(self) -> "Sequence":
+    def map_source(self) -> Sequence:
         """The sequence whose scans and poses build the prior map: this one, unless the source
         knows a separate mapping drive (the generated town's, when its world changed)."""
         return self
@@ -68,7 +68,7 @@ class Sequence(ABC):
         if not -n <= i < n:
             raise IndexError(f"scan index {i} out of range for {self.name} ({n} scans)")
         i = i % n
-        return validate_scan(self._read_scan(i), self._describe_scan(i))
+        return validate_scan(self._read_scan(i), self.describe_scan(i))
 
     def timestamp(self, i: int) -> float:
         return float(self.timestamps[i])
@@ -130,8 +130,8 @@ class Limited(Sequence):
     def _read_scan(self, i: int) -> np.ndarray:
         return self.inner._read_scan(i)
 
-    def _describe_scan(self, i: int) -> str:
-        return self.inner._describe_scan(i)
+    def describe_scan(self, i: int) -> str:
+        return self.inner.describe_scan(i)
 
     @property
     def timestamps(self) -> np.ndarray:

@@ -15,8 +15,8 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -56,9 +56,13 @@ def _tr_line(seq: Sequence) -> str:
     return "Tr: " + " ".join(f"{v:.12e}" for v in np.asarray(Tr, float)[:3, :4].reshape(-1))
 
 
-def export_kitti_odometry(seq: Sequence, out_dir: str | os.PathLike, sequence: str = "00",
-                          progress: Callable[[int, int], None] | None = None,
-                          overwrite: bool = False) -> Path:
+def export_kitti_odometry(
+    seq: Sequence,
+    out_dir: str | os.PathLike,
+    sequence: str = "00",
+    progress: Callable[[int, int], None] | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Write ``seq`` as KITTI odometry sequence ``sequence`` under ``out_dir``; returns the
     sequence directory. ``progress(done, total)`` is called after each scan. An existing
     sequence of that id is replaced only with ``overwrite=True``."""

@@ -10,9 +10,9 @@ Without ``--map``, a bag or folder builds its map from its scans and truth, so i
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -67,17 +67,17 @@ class SourceSpec:
     date: str | None = None
     drive: str | None = None
     town_seed: int = 0
-    trajectory: Path | None = None     # lay the town along a KITTI poses file …
-    calib: Path | None = None          # … whose calib (Tr line) converts cam0 → LiDAR
-    scans: int | None = None           # keep only the first N scans
-    map: Path | None = None            # a point-cloud map file instead of the drive's map
-    bag: Path | None = None            # ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap
-    topic: str | None = None           # its PointCloud2 topic (default: the only one)
-    scans_dir: Path | None = None      # a folder of scan files
-    gt: Path | None = None             # ground truth, TUM or KITTI
-    gt_times: Path | None = None       # times of KITTI-format ground truth
-    extrinsic: Path | None = None      # base ← LiDAR 4×4 text file
-    init: str | None = None            # x,y,yaw[,σ_xy,σ_yaw] (metres, degrees): start around it
+    trajectory: Path | None = None  # lay the town along a KITTI poses file …
+    calib: Path | None = None  # … whose calib (Tr line) converts cam0 → LiDAR
+    scans: int | None = None  # keep only the first N scans
+    map: Path | None = None  # a point-cloud map file instead of the drive's map
+    bag: Path | None = None  # ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap
+    topic: str | None = None  # its PointCloud2 topic (default: the only one)
+    scans_dir: Path | None = None  # a folder of scan files
+    gt: Path | None = None  # ground truth, TUM or KITTI
+    gt_times: Path | None = None  # times of KITTI-format ground truth
+    extrinsic: Path | None = None  # base ← LiDAR 4×4 text file
+    init: str | None = None  # x,y,yaw[,σ_xy,σ_yaw] (metres, degrees): start around it
 
     @property
     def kind(self) -> str:
@@ -107,8 +107,11 @@ def _path(value) -> Path | None:
 
 def check_spec(spec: SourceSpec) -> None:
     """The combinations of source options that make no sense, as one-line errors."""
-    chosen = [f"--{n.replace('_', '-')}" for n in ("kitti_odometry", "kitti_raw", "bag", "scans_dir")
-              if getattr(spec, n) is not None]
+    chosen = [
+        f"--{n.replace('_', '-')}"
+        for n in ("kitti_odometry", "kitti_raw", "bag", "scans_dir")
+        if getattr(spec, n) is not None
+    ]
     if len(chosen) > 1:
         raise DataError(f"choose one source: {' or '.join(chosen)}, not both")
     if spec.topic is not None and spec.bag is None:
@@ -123,15 +126,16 @@ def check_spec(spec: SourceSpec) -> None:
         raise DataError("a prior map needs --map FILE or ground truth (--gt) to fuse the scans")
 
 
-def open_sequence(spec: SourceSpec, cfg: Config | None = None,
-                  progress: Callable[[int, int], None] | None = None) -> Sequence:
+def open_sequence(
+    spec: SourceSpec, cfg: Config | None = None, progress: Callable[[int, int], None] | None = None
+) -> Sequence:
     """The sequence ``spec`` names. ``progress(i, n)``: indexing a bag's topic (seconds for a long
     bag). Its ``notes`` (when the source has any) are lines a user should read."""
     cfg = cfg or Config()
     check_spec(spec)
     init = parse_init(spec.init) if spec.init is not None else None
     map_file = None
-    if spec.map is not None:      # a missing or unreadable map fails before a long bag is indexed
+    if spec.map is not None:  # a missing or unreadable map fails before a long bag is indexed
         from ..maps.map_source import MapFileSource
 
         map_file = MapFileSource(_path(spec.map))
@@ -150,20 +154,28 @@ def open_sequence(spec: SourceSpec, cfg: Config | None = None,
     elif spec.bag is not None:
         from .rosbag import BagSequence
 
-        seq = BagSequence(_path(spec.bag), topic=spec.topic, gt=_path(spec.gt), extrinsic=_path(spec.extrinsic),
-                          gt_times=_path(spec.gt_times), progress=progress)
+        seq = BagSequence(
+            _path(spec.bag),
+            topic=spec.topic,
+            gt=_path(spec.gt),
+            extrinsic=_path(spec.extrinsic),
+            gt_times=_path(spec.gt_times),
+            progress=progress,
+        )
     elif spec.scans_dir is not None:
         from .scan_folder import ScanFolderSequence
 
-        seq = ScanFolderSequence(_path(spec.scans_dir), gt=_path(spec.gt), extrinsic=_path(spec.extrinsic),
-                                 gt_times=_path(spec.gt_times))
+        seq = ScanFolderSequence(
+            _path(spec.scans_dir), gt=_path(spec.gt), extrinsic=_path(spec.extrinsic), gt_times=_path(spec.gt_times)
+        )
     else:
         if (spec.trajectory is None) != (spec.calib is None):
             raise DataError("--trajectory and --calib go together (the calib's Tr converts cam0 poses to LiDAR)")
         from .town import TownSequence
 
-        seq = TownSequence.from_config(cfg.town, seed=spec.town_seed, trajectory=_path(spec.trajectory),
-                                       calib=_path(spec.calib))
+        seq = TownSequence.from_config(
+            cfg.town, seed=spec.town_seed, trajectory=_path(spec.trajectory), calib=_path(spec.calib)
+        )
     if map_file is not None:
         from .framed import MapFramed
 

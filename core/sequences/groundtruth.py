@@ -107,10 +107,12 @@ def read_times_precise(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]
     from decimal import Decimal, InvalidOperation
 
     absolute = read_times(path)
-    lines = [ln.split("#", 1)[0].replace(",", " ").strip() for ln in Path(path).read_text(errors="replace").splitlines()]
+    lines = [
+        ln.split("#", 1)[0].replace(",", " ").strip() for ln in Path(path).read_text(errors="replace").splitlines()
+    ]
     try:
         exact = [Decimal(ln) for ln in lines if ln]
-    except InvalidOperation:                    # read_times accepted it: a float-only spelling
+    except InvalidOperation:  # read_times accepted it: a float-only spelling
         return absolute, absolute - absolute[0]
     return absolute, np.array([float(t - exact[0]) for t in exact], dtype=np.float64)
 
@@ -136,12 +138,15 @@ def load_truth(path: str | os.PathLike, times: str | os.PathLike | None = None) 
     width = rows[0][1].size
     if width == 8:
         if times is not None:
-            raise DataError(f"{path}: a TUM file carries its own times; a separate times file applies to KITTI poses only")
+            raise DataError(
+                f"{path}: a TUM file carries its own times; a separate times file applies to KITTI poses only"
+            )
         return read_tum(path)
     if width == 12:
         return read_kitti(path, times)
-    raise DataError(f"{path}: {width} numbers per line; ground truth must be TUM (8: t x y z qx qy qz qw) "
-                    "or KITTI (12: a 3×4 pose)")
+    raise DataError(
+        f"{path}: {width} numbers per line; ground truth must be TUM (8: t x y z qx qy qz qw) or KITTI (12: a 3×4 pose)"
+    )
 
 
 def _sorted_unique(truth: Truth) -> tuple[np.ndarray, np.ndarray]:
@@ -161,13 +166,15 @@ def match(scan_times: np.ndarray, truth: Truth, tol: float = MATCH_TOL_S) -> tup
     s = np.asarray(scan_times, dtype=np.float64)
     if truth.times is None:
         if len(truth) != len(s):
-            raise DataError(f"{truth.source}: {len(truth)} poses for {len(s)} scans and no times to match them by "
-                            "(give a times file, or poses one per scan)")
+            raise DataError(
+                f"{truth.source}: {len(truth)} poses for {len(s)} scans and no times to match them by "
+                "(give a times file, or poses one per scan)"
+            )
         return truth.poses.copy(), np.ones(len(s), dtype=bool)
     t, poses = _sorted_unique(truth)
     out = np.full((len(s), 4, 4), np.nan)
     has = np.zeros(len(s), dtype=bool)
-    idx = np.searchsorted(t, s)                        # t[idx-1] < s ≤ t[idx]
+    idx = np.searchsorted(t, s)  # t[idx-1] < s ≤ t[idx]
     lo, hi = np.clip(idx - 1, 0, len(t) - 1), np.clip(idx, 0, len(t) - 1)
     nearest = np.where(np.abs(s - t[lo]) <= np.abs(t[hi] - s), lo, hi)
     close = np.abs(t[nearest] - s) <= tol
@@ -185,8 +192,10 @@ def match(scan_times: np.ndarray, truth: Truth, tol: float = MATCH_TOL_S) -> tup
         out[inside] = interp
         has[inside] = True
     if not has.any():
-        raise DataError(f"{truth.source}: ground-truth times {t[0]:.3f}–{t[-1]:.3f} s do not overlap the scans' "
-                        f"times {s.min():.3f}–{s.max():.3f} s (same clock? TUM times must be the scans' header stamps)")
+        raise DataError(
+            f"{truth.source}: ground-truth times {t[0]:.3f}–{t[-1]:.3f} s do not overlap the scans' "
+            f"times {s.min():.3f}–{s.max():.3f} s (same clock? TUM times must be the scans' header stamps)"
+        )
     return out, has
 
 
@@ -199,7 +208,7 @@ class MatchedTruth:
     keep: np.ndarray
     poses: np.ndarray
     notes: list[str] = field(default_factory=list)
-    source: str = ""          # the truth's file
+    source: str = ""  # the truth's file
 
     @property
     def origin(self) -> np.ndarray:
@@ -221,8 +230,9 @@ class MatchedTruth:
         return file_identity(self.source)
 
 
-def truth_for_scans(scan_times: np.ndarray, truth: Truth, T_base_lidar: np.ndarray | None,
-                    tol: float = MATCH_TOL_S) -> MatchedTruth:
+def truth_for_scans(
+    scan_times: np.ndarray, truth: Truth, T_base_lidar: np.ndarray | None, tol: float = MATCH_TOL_S
+) -> MatchedTruth:
     """Match ``truth`` to the scans and move it to the LiDAR: ``T_world_lidar = T_world_base ·
     T_base_lidar`` (identity when None)."""
     poses, has = match(scan_times, truth, tol)
@@ -235,13 +245,16 @@ def truth_for_scans(scan_times: np.ndarray, truth: Truth, T_base_lidar: np.ndarr
     if dropped:
         before = int(keep[0]) if len(keep) else 0
         after = dropped - before
-        notes.append(f"{truth.source}: {dropped} of {len(has)} scans lie outside the ground truth's time span and "
-                     f"are left out ({before} at the start, {after} at the end)")
+        notes.append(
+            f"{truth.source}: {dropped} of {len(has)} scans lie outside the ground truth's time span and "
+            f"are left out ({before} at the start, {after} at the end)"
+        )
     return MatchedTruth(keep=keep, poses=lidar, notes=notes, source=str(truth.source))
 
 
-def truth_of_recording(gt, gt_times, scan_times: np.ndarray, T_base_lidar: np.ndarray | None,
-                       tol: float = MATCH_TOL_S) -> MatchedTruth:
+def truth_of_recording(
+    gt, gt_times, scan_times: np.ndarray, T_base_lidar: np.ndarray | None, tol: float = MATCH_TOL_S
+) -> MatchedTruth:
     """A recording's ``--gt`` (a file, or a :class:`Truth` already read; ``gt_times`` for KITTI
     files) matched to its scan times (seconds) and moved to the LiDAR (:func:`truth_for_scans`)."""
     truth = gt if isinstance(gt, Truth) else load_truth(gt, gt_times)

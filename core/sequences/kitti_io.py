@@ -6,8 +6,9 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -97,8 +98,9 @@ class FileBackedSequence(Sequence):
     _times: np.ndarray
     _poses: np.ndarray | None = None
 
-    def _open_pykitti(self, opener: Callable[[], Any], errors: tuple[type[Exception], ...], failure: str,
-                      velodyne_dir: Path) -> None:
+    def _open_pykitti(
+        self, opener: Callable[[], Any], errors: tuple[type[Exception], ...], failure: str, velodyne_dir: Path
+    ) -> None:
         """Run ``opener`` (a pykitti reader) and list its scan files. pykitti prints when poses are
         absent, so its output is swallowed; ``errors`` it raises become a DataError starting with
         ``failure``, and a layout without scans one naming ``velodyne_dir``."""
@@ -117,7 +119,7 @@ class FileBackedSequence(Sequence):
     def _read_scan(self, i: int) -> np.ndarray:
         return read_velodyne_bin(self._files[i])
 
-    def _describe_scan(self, i: int) -> str:
+    def describe_scan(self, i: int) -> str:
         return str(self._files[i])
 
     @property

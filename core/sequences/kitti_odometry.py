@@ -28,8 +28,12 @@ class KittiOdometry(FileBackedSequence):
         for needed in ("calib.txt", "times.txt"):
             if not (seq_dir / needed).is_file():
                 raise DataError(f"{seq_dir / needed}: file not found")
-        self._open_pykitti(lambda: pykitti.odometry(str(self.root), self.sequence), (KeyError, ValueError, OSError),
-                           f"{seq_dir / 'calib.txt'}: unreadable calibration or times", seq_dir / "velodyne")
+        self._open_pykitti(
+            lambda: pykitti.odometry(str(self.root), self.sequence),
+            (KeyError, ValueError, OSError),
+            f"{seq_dir / 'calib.txt'}: unreadable calibration or times",
+            seq_dir / "velodyne",
+        )
         n = len(self._files)
         times = np.array([t.total_seconds() for t in self._kitti.timestamps], dtype=np.float64)
         if len(times) != n:

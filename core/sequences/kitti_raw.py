@@ -33,9 +33,12 @@ class KittiRaw(FileBackedSequence):
                 raise DataError(f"{date_dir / needed}: calibration file not found")
         if not (drive_dir / "oxts" / "timestamps.txt").is_file():
             raise DataError(f"{drive_dir / 'oxts' / 'timestamps.txt'}: file not found")
-        self._open_pykitti(lambda: pykitti.raw(str(self.root), self.date, self.drive),
-                           (KeyError, ValueError, OSError, IndexError),
-                           f"{drive_dir}: unreadable OXTS or calibration", drive_dir / "velodyne_points" / "data")
+        self._open_pykitti(
+            lambda: pykitti.raw(str(self.root), self.date, self.drive),
+            (KeyError, ValueError, OSError, IndexError),
+            f"{drive_dir}: unreadable OXTS or calibration",
+            drive_dir / "velodyne_points" / "data",
+        )
         n = len(self._files)
         oxts = self._kitti.oxts
         T_velo_imu = np.asarray(self._kitti.calib.T_velo_imu, dtype=np.float64)

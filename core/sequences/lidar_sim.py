@@ -25,14 +25,14 @@ from __future__ import annotations
 import functools
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Callable
 
 import numba as nb
 import numpy as np
 
-from ..odometry.deskew import sweep_fraction
 from ..o3d import open3d
+from ..odometry.deskew import sweep_fraction
 
 DEG = np.pi / 180.0
 
@@ -75,7 +75,7 @@ def _fill_rays_per_column(dirs, n_azimuth, R, origin, rays):
         rays[k, 5] = R[c, 2, 0] * dx + R[c, 2, 1] * dy + R[c, 2, 2] * dz
 
 
-AZIMUTH_BINS = 1440   # 0.25°: the azimuth histogram that picks the rays worth casting at movers
+AZIMUTH_BINS = 1440  # 0.25°: the azimuth histogram that picks the rays worth casting at movers
 
 
 @nb.njit(cache=True, nogil=True)
@@ -92,8 +92,8 @@ def _rays_toward(rays, n_azimuth, origin, centres, radii, bottoms, tops):
     for a in range(centres.shape[0]):
         dx, dy = centres[a, 0] - origin[0], centres[a, 1] - origin[1]
         d = np.sqrt(dx * dx + dy * dy)
-        r = radii[a] + 1.0                    # the sweep moves the sensor by up to ±0.7 m
-        if d <= r:                            # around the sensor: every ray may hit it
+        r = radii[a] + 1.0  # the sweep moves the sensor by up to ±0.7 m
+        if d <= r:  # around the sensor: every ray may hit it
             low[:] = -np.inf
             high[:] = np.inf
             break
@@ -126,9 +126,25 @@ def _rays_toward(rays, n_azimuth, origin, centres, radii, bottoms, tops):
 
 
 @nb.njit(cache=True, nogil=True)
-def _returns(hit, t_hit, geometry, primitive, normals, rays, dirs, reflectivity, offsets,
-             intensity_noise, drop_draw, range_noise, max_range, range_sigma, intensity_sigma,
-             dropout, weak_dropout):
+def _returns(
+    hit,
+    t_hit,
+    geometry,
+    primitive,
+    normals,
+    rays,
+    dirs,
+    reflectivity,
+    offsets,
+    intensity_noise,
+    drop_draw,
+    range_noise,
+    max_range,
+    range_sigma,
+    intensity_sigma,
+    dropout,
+    weak_dropout,
+):
     """The returned points of one sweep, in the sensor frame: (M, 4) x, y, z, intensity.
 
     For hit k: intensity = reflectivity × |cos incidence| × (1 + noise), in [0, 1]; the return is
@@ -156,7 +172,7 @@ def _returns(hit, t_hit, geometry, primitive, normals, rays, dirs, reflectivity,
     return out[:m]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compile_kernels() -> None:
     """Run both kernels once on tiny inputs: numba compiles them (or loads its on-disk cache)."""
     dirs = np.array([[1.0, 0.0, 0.0]], np.float32)
@@ -166,22 +182,38 @@ def _compile_kernels() -> None:
     _rays_toward(rays, 1, np.zeros(3), np.ones((1, 2)), np.ones(1), np.zeros(1), np.ones(1))
     one_f = np.ones(1, np.float32)
     one_u = np.zeros(1, np.uint32)
-    _returns(np.zeros(1, np.int64), one_f, one_u, one_u, np.ones((1, 3), np.float32), rays, dirs, one_f,
-             np.zeros(1, np.int64), one_f, one_f, one_f, np.float32(1), np.float32(0), np.float32(0),
-             np.float32(0), np.float32(0))
+    _returns(
+        np.zeros(1, np.int64),
+        one_f,
+        one_u,
+        one_u,
+        np.ones((1, 3), np.float32),
+        rays,
+        dirs,
+        one_f,
+        np.zeros(1, np.int64),
+        one_f,
+        one_f,
+        one_f,
+        np.float32(1),
+        np.float32(0),
+        np.float32(0),
+        np.float32(0),
+        np.float32(0),
+    )
 
 
 @dataclass(frozen=True, repr=False)
 class LidarModel:
     """Parameters of the simulated sensor (the defaults: Velodyne HDL-64E S2)."""
 
-    n_azimuth: int = 2000              # firings per revolution and laser (0.18° apart)
-    max_range: float = 120.0           # m
-    range_sigma: float = 0.02          # m, Gaussian range noise
-    dropout: float = 0.02              # probability that any return is lost
-    weak_dropout: float = 0.4          # extra loss probability of a zero-intensity return at max range
-    intensity_noise: float = 0.05      # relative (multiplicative) intensity noise, standard deviation
-    elevations_deg: tuple[float, ...] | None = None   # beam elevations, °; None = the HDL-64E's two blocks
+    n_azimuth: int = 2000  # firings per revolution and laser (0.18° apart)
+    max_range: float = 120.0  # m
+    range_sigma: float = 0.02  # m, Gaussian range noise
+    dropout: float = 0.02  # probability that any return is lost
+    weak_dropout: float = 0.4  # extra loss probability of a zero-intensity return at max range
+    intensity_noise: float = 0.05  # relative (multiplicative) intensity noise, standard deviation
+    elevations_deg: tuple[float, ...] | None = None  # beam elevations, °; None = the HDL-64E's two blocks
 
     def __repr__(self) -> str:
         # The repr is part of the town's cache identity: the HDL-64E's (no elevations_deg) must
@@ -207,9 +239,9 @@ class LidarModel:
         elevation = self.elevations()[:, None]
         azimuth = (np.arange(self.n_azimuth)[None, :] + phase) * (2.0 * np.pi / self.n_azimuth)
         dirs = np.stack(
-            np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth),
-                                np.cos(elevation) * np.sin(azimuth),
-                                np.sin(elevation)),
+            np.broadcast_arrays(
+                np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+            ),
             axis=-1,
         )
         return dirs.reshape(-1, 3).astype(np.float32)
@@ -223,19 +255,59 @@ SENSORS: dict[str, LidarModel] = {
     "hdl64e": LidarModel(),
     # Velodyne VLP-16 (Puck) datasheet 63-9229: 16 channels over ±15° every 2°, 0.2° azimuth
     # resolution at 10 Hz (1800 firings), range up to 100 m, accuracy ±3 cm (typical).
-    "vlp16": LidarModel(n_azimuth=1800, max_range=100.0, range_sigma=0.03,
-                        elevations_deg=tuple(float(e) for e in range(-15, 16, 2))),
+    "vlp16": LidarModel(
+        n_azimuth=1800, max_range=100.0, range_sigma=0.03, elevations_deg=tuple(float(e) for e in range(-15, 16, 2))
+    ),
     # Velodyne VLP-32C (Ultra Puck) datasheet 63-9378 and user manual 63-9325 (vertical angle per
     # laser ID): 32 channels, −25° … +15°, densest (0.33°) around the horizon; 0.2° azimuth
     # resolution at 10 Hz (1800 firings), range up to 200 m, accuracy ±3 cm.
-    "vlp32c": LidarModel(n_azimuth=1800, max_range=200.0, range_sigma=0.03, elevations_deg=(
-        -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0,
-        -2.667, -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0, 1.333,
-        1.667, 2.333, 3.333, 4.667, 7.0, 10.333, 15.0)),
+    "vlp32c": LidarModel(
+        n_azimuth=1800,
+        max_range=200.0,
+        range_sigma=0.03,
+        elevations_deg=(
+            -25.0,
+            -15.639,
+            -11.31,
+            -8.843,
+            -7.254,
+            -6.148,
+            -5.333,
+            -4.667,
+            -4.0,
+            -3.667,
+            -3.333,
+            -3.0,
+            -2.667,
+            -2.333,
+            -2.0,
+            -1.667,
+            -1.333,
+            -1.0,
+            -0.667,
+            -0.333,
+            0.0,
+            0.333,
+            0.667,
+            1.0,
+            1.333,
+            1.667,
+            2.333,
+            3.333,
+            4.667,
+            7.0,
+            10.333,
+            15.0,
+        ),
+    ),
     # Ouster OS1-128 datasheet (rev. 6): 128 channels, uniform over 45° (±22.5°, 0.35° apart),
     # 1024 × 10 Hz mode (the sensor's default), 120 m range, accuracy ±3 cm (Lambertian targets).
-    "os1-128": LidarModel(n_azimuth=1024, max_range=120.0, range_sigma=0.03,
-                          elevations_deg=tuple(float(e) for e in np.round(np.linspace(-22.5, 22.5, 128), 4))),
+    "os1-128": LidarModel(
+        n_azimuth=1024,
+        max_range=120.0,
+        range_sigma=0.03,
+        elevations_deg=tuple(float(e) for e in np.round(np.linspace(-22.5, 22.5, 128), 4)),
+    ),
 }
 
 
@@ -296,8 +368,9 @@ class _Scene:
         # are assigned by open3d in insertion order starting at 0, which build() checks.
         counts = np.array([p.n_triangles for p in self.parts], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self.reflectivity = (np.concatenate([p.reflectivity for p in self.parts])
-                             if self.parts else np.zeros(0, np.float32))
+        self.reflectivity = (
+            np.concatenate([p.reflectivity for p in self.parts]) if self.parts else np.zeros(0, np.float32)
+        )
         self.scene = None
         self._lock = threading.Lock()
 
@@ -350,7 +423,7 @@ class RaycastLidar:
         self._world = _scene if _scene is not None else _Scene(parts)
         self._tables = self._ray_tables(self.model)
 
-    def with_model(self, model: LidarModel) -> "RaycastLidar":
+    def with_model(self, model: LidarModel) -> RaycastLidar:
         """The same world scanned by another sensor (sharing its triangles and scene)."""
         return self if model == self.model else RaycastLidar([], model, _scene=self._world)
 
@@ -387,11 +460,18 @@ class RaycastLidar:
         first_beam = self._tables[phase][:n].astype(np.float64)  # one direction per column
         offsets = (sweep_fraction(np.arctan2(first_beam[:, 1], first_beam[:, 0])) - 0.5) * sweep.period
         T = np.asarray(sweep.poses(offsets), np.float64)
-        return (np.ascontiguousarray(T[:, :3, :3], dtype=np.float32),
-                np.ascontiguousarray(T[:, :3, 3], dtype=np.float32))
+        return (
+            np.ascontiguousarray(T[:, :3, :3], dtype=np.float32),
+            np.ascontiguousarray(T[:, :3, 3], dtype=np.float32),
+        )
 
-    def scan(self, T_world_sensor: np.ndarray, rng: np.random.Generator, sweep: Sweep | None = None,
-             moving: Movers | None = None) -> np.ndarray:
+    def scan(
+        self,
+        T_world_sensor: np.ndarray,
+        rng: np.random.Generator,
+        sweep: Sweep | None = None,
+        moving: Movers | None = None,
+    ) -> np.ndarray:
         """One sweep from the sensor pose ``T_world_sensor`` (4×4): float32 (N, 4) x, y, z,
         intensity in the sensor frame. Only rays that hit something within max_range return.
 
@@ -429,21 +509,28 @@ class RaycastLidar:
         parts = [p for p in (moving.parts if moving is not None else []) if p.n_triangles > 0]
         if parts:
             origin = rays[len(rays) // 2, :3].astype(np.float64)
-            cast = _rays_toward(rays, model.n_azimuth, origin, np.asarray(moving.centres, np.float64),
-                                np.asarray(moving.radii, np.float64), np.asarray(moving.bottoms, np.float64),
-                                np.asarray(moving.tops, np.float64))
+            cast = _rays_toward(
+                rays,
+                model.n_azimuth,
+                origin,
+                np.asarray(moving.centres, np.float64),
+                np.asarray(moving.radii, np.float64),
+                np.asarray(moving.bottoms, np.float64),
+                np.asarray(moving.tops, np.float64),
+            )
             t2 = raycasting_scene(parts, commit=False).cast_rays(o3d.core.Tensor.from_numpy(rays[cast]), nthreads=0)
             t_near = t2["t_hit"].numpy()
             closer = t_near < t_hit[cast]
             nearer = cast[closer]
-            if len(nearer):   # (the cast's own result arrays: changed in place)
+            if len(nearer):  # (the cast's own result arrays: changed in place)
                 t_hit[nearer] = t_near[closer]
                 geometry[nearer] = t2["geometry_ids"].numpy()[closer] + len(world.parts)
                 primitive[nearer] = t2["primitive_ids"].numpy()[closer]
                 normals[nearer] = t2["primitive_normals"].numpy()[closer]
                 counts = np.array([p.n_triangles for p in parts], np.int64)
-                offsets = np.concatenate([offsets, world.reflectivity.size
-                                          + np.concatenate([[0], np.cumsum(counts)[:-1]])]).astype(np.int64)
+                offsets = np.concatenate(
+                    [offsets, world.reflectivity.size + np.concatenate([[0], np.cumsum(counts)[:-1]])]
+                ).astype(np.int64)
                 reflectivity = np.concatenate([reflectivity] + [p.reflectivity for p in parts])
                 was_hit = np.zeros(len(t_hit), bool)
                 was_hit[hit] = True
@@ -451,10 +538,13 @@ class RaycastLidar:
                 if len(extra):  # rays that return only because a mover is in their way
                     m = len(extra)
                     drawn = [intensity_noise, drop_draw, range_noise]
-                    more = [(rng.random(m, dtype=np.float32) - np.float32(0.5)) * np.float32(math.sqrt(12.0)),
-                            rng.random(m, dtype=np.float32), rng.standard_normal(m, dtype=np.float32)]
+                    more = [
+                        (rng.random(m, dtype=np.float32) - np.float32(0.5)) * np.float32(math.sqrt(12.0)),
+                        rng.random(m, dtype=np.float32),
+                        rng.standard_normal(m, dtype=np.float32),
+                    ]
                     was_hit[extra] = True
-                    all_hit = np.flatnonzero(was_hit)     # in ray order, as without movers
+                    all_hit = np.flatnonzero(was_hit)  # in ray order, as without movers
                     for k in range(3):
                         full = np.empty(len(t_hit), np.float32)
                         full[hit] = drawn[k]
@@ -462,7 +552,22 @@ class RaycastLidar:
                         drawn[k] = full[all_hit]
                     hit = all_hit
                     intensity_noise, drop_draw, range_noise = drawn
-        return _returns(hit, t_hit, geometry, primitive, normals, rays, dirs, reflectivity, offsets,
-                        intensity_noise, drop_draw, range_noise, np.float32(model.max_range),
-                        np.float32(model.range_sigma), np.float32(model.intensity_noise),
-                        np.float32(model.dropout), np.float32(model.weak_dropout))
+        return _returns(
+            hit,
+            t_hit,
+            geometry,
+            primitive,
+            normals,
+            rays,
+            dirs,
+            reflectivity,
+            offsets,
+            intensity_noise,
+            drop_draw,
+            range_noise,
+            np.float32(model.max_range),
+            np.float32(model.range_sigma),
+            np.float32(model.intensity_noise),
+            np.float32(model.dropout),
+            np.float32(model.weak_dropout),
+        )

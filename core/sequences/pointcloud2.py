@@ -20,8 +20,16 @@ import numpy as np
 from ..errors import DataError
 
 #: sensor_msgs/PointField datatype codes → numpy scalar type
-POINTFIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16,
-                    5: np.int32, 6: np.uint32, 7: np.float32, 8: np.float64}
+POINTFIELD_TYPES = {
+    1: np.int8,
+    2: np.uint8,
+    3: np.int16,
+    4: np.uint16,
+    5: np.int32,
+    6: np.uint32,
+    7: np.float32,
+    8: np.float64,
+}
 
 #: the field read as intensity, first found wins (else the intensity is 0): drivers name the
 #: return strength differently (Velodyne/Hesai "intensity", Livox/PCL "i", Ouster also
@@ -41,14 +49,16 @@ def cloud_dtype(msg, where: str = "PointCloud2") -> np.dtype:
         if code not in POINTFIELD_TYPES:
             if f.name in ("x", "y", "z"):
                 raise DataError(f"{where}: field {f.name!r} has unknown PointField datatype {code} (expected 1–8)")
-            continue                # a vendor's field this reader does not use
+            continue  # a vendor's field this reader does not use
         if f.name in names:
             continue
         scalar = np.dtype(POINTFIELD_TYPES[code]).newbyteorder(order)
         count = max(int(f.count), 1)
         if int(f.offset) < 0 or int(f.offset) + scalar.itemsize * count > step:
-            raise DataError(f"{where}: field {f.name!r} (offset {f.offset}, {count}×{scalar.itemsize} bytes) "
-                            f"does not fit in point_step {step}")
+            raise DataError(
+                f"{where}: field {f.name!r} (offset {f.offset}, {count}×{scalar.itemsize} bytes) "
+                f"does not fit in point_step {step}"
+            )
         names.append(f.name)
         formats.append(scalar if count == 1 else (scalar, (count,)))
         offsets.append(int(f.offset))
@@ -78,24 +88,25 @@ def structured_points(msg, where: str = "PointCloud2") -> np.ndarray:
     size = len(buf) if not isinstance(buf, np.ndarray) else buf.nbytes
     needed = (height - 1) * row_step + width * dtype.itemsize
     if size < needed:
-        raise DataError(f"{where}: data holds {size} bytes, {height}×{width} points of {dtype.itemsize} bytes "
-                        f"with row_step {row_step} need {needed} (truncated message)")
-    return np.ndarray(shape=(height, width), dtype=dtype, buffer=buf, offset=0,
-                      strides=(row_step, dtype.itemsize))
+        raise DataError(
+            f"{where}: data holds {size} bytes, {height}×{width} points of {dtype.itemsize} bytes "
+            f"with row_step {row_step} need {needed} (truncated message)"
+        )
+    return np.ndarray(shape=(height, width), dtype=dtype, buffer=buf, offset=0, strides=(row_step, dtype.itemsize))
 
 
 def to_xyzi(msg, where: str = "PointCloud2") -> np.ndarray:
     """(N, 4) float32 x, y, z, intensity (0 when the cloud has none) of a PointCloud2, in its
     frame; returns with a NaN or infinite coordinate, and x = y = z = 0 returns, are dropped."""
     check_xyz(msg, where)
-    pts = structured_points(msg, where)         # (height, width), rows possibly padded: no copy
+    pts = structured_points(msg, where)  # (height, width), rows possibly padded: no copy
     names = pts.dtype.names or ()
     inten = next((n for n in INTENSITY_NAMES if n in names), None)
     # one contiguous float32 copy per field, then 1-D tests: ~20× faster on a 120 k-point scan
     # than testing rows of an (N, 3) block (np.isfinite(...).all(axis=1) reduces over 3 elements)
-    with np.errstate(invalid="ignore", over="ignore"):   # garbage values are dropped, not warned about
+    with np.errstate(invalid="ignore", over="ignore"):  # garbage values are dropped, not warned about
         x, y, z = (_field(pts, c) for c in ("x", "y", "z"))
-        keep = np.isfinite(x + y + z)           # a NaN or ±inf coordinate makes the sum non-finite
+        keep = np.isfinite(x + y + z)  # a NaN or ±inf coordinate makes the sum non-finite
         i = None if inten is None else _field(pts, inten)
     returned = x != 0
     returned |= y != 0

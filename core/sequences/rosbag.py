@@ -43,16 +43,16 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from ..cache import array_digest, file_identity
 from ..errors import DataError
+from .base import Sequence
 from .extrinsic import from_tf_static, resolve_extrinsic, transform_from_ros
 from .groundtruth import MATCH_TOL_S, truth_of_recording
-from .base import Sequence
 from .pointcloud2 import check_xyz, to_xyzi
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -103,7 +103,9 @@ def choose_topic(where: Path, topics: dict[str, str | None], topic: str | None) 
             return same[0]
         other = next((t for n, t in topics.items() if n.lstrip("/") == topic.lstrip("/")), None)
         what = f"topic {topic} is a {other}, not a sensor_msgs/PointCloud2" if other else f"no topic {topic}"
-        choices = f"PointCloud2 topics: {', '.join(clouds)}" if clouds else f"no PointCloud2 topic at all (topics: {listing})"
+        choices = (
+            f"PointCloud2 topics: {', '.join(clouds)}" if clouds else f"no PointCloud2 topic at all (topics: {listing})"
+        )
         raise DataError(f"{where}: {what}; {choices}")
     if len(clouds) == 1:
         return clouds[0]
@@ -133,21 +135,28 @@ class BagSequence(Sequence):
     ``extrinsic``: base ← LiDAR as a 4×4 array, a text file or "identity"; ``progress(i, n)`` is
     called while the topic is indexed (a long bag takes seconds: worth a progress bar)."""
 
-    def __init__(self, path: str | os.PathLike, topic: str | None = None, gt=None, extrinsic=None,
-                 gt_times: str | os.PathLike | None = None, match_tol: float = MATCH_TOL_S,
-                 progress: Callable[[int, int], None] | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        topic: str | None = None,
+        gt=None,
+        extrinsic=None,
+        gt_times: str | os.PathLike | None = None,
+        match_tol: float = MATCH_TOL_S,
+        progress: Callable[[int, int], None] | None = None,
+    ):
         self.path = Path(path)
         self._bag = resolve_bag_path(self.path)
         self.notes: list[str] = []
         self._lock = threading.Lock()
         self._reader = None
         self._pid = None
-        self._cursor = None          # (generator, next log position) of the stream being read
+        self._cursor = None  # (generator, next log position) of the stream being read
         reader = self._ensure_open()
         try:
             self._set_up(reader, topic, gt, extrinsic, gt_times, match_tol, progress)
         except BaseException:
-            self.close()             # a refused bag leaves no open file behind
+            self.close()  # a refused bag leaves no open file behind
             raise
 
     def _set_up(self, reader, topic, gt, extrinsic, gt_times, match_tol, progress) -> None:
@@ -158,15 +167,17 @@ class BagSequence(Sequence):
         log_ns, stamp_ns, self.frame_id = self._index(reader, progress)
 
         # scans in header-stamp order; positions refer to the topic's messages in recorded order
-        self._log_ns = log_ns                     # by recorded position
-        self._header_ns = stamp_ns                # by recorded position: checks each read
+        self._log_ns = log_ns  # by recorded position
+        self._header_ns = stamp_ns  # by recorded position: checks each read
         times_ns = stamp_ns
         if len(stamp_ns) > 1 and (stamp_ns == stamp_ns[0]).all():
-            times_ns = log_ns                     # a driver that never sets the stamp
-            self.notes.append(f"{self.path}: every {self.topic} header has the stamp {stamp_ns[0] / 1e9:.9f} s; "
-                              "the recorder's times are used instead")
+            times_ns = log_ns  # a driver that never sets the stamp
+            self.notes.append(
+                f"{self.path}: every {self.topic} header has the stamp {stamp_ns[0] / 1e9:.9f} s; "
+                "the recorder's times are used instead"
+            )
         order = np.argsort(times_ns, kind="stable")
-        self._positions = order                   # scan → recorded position
+        self._positions = order  # scan → recorded position
         stamps = times_ns[order]
         repeated = int((np.diff(stamps) == 0).sum())
         if repeated:
@@ -251,7 +262,7 @@ class BagSequence(Sequence):
     def poses(self) -> np.ndarray | None:
         return self._poses
 
-    def _describe_scan(self, i: int) -> str:
+    def describe_scan(self, i: int) -> str:
         return f"{self.path} {self.topic} message {int(self._positions[i])} (stamp {self.stamps_ns[i] / 1e9:.6f} s)"
 
     def _read_scan(self, i: int) -> np.ndarray:
@@ -260,7 +271,7 @@ class BagSequence(Sequence):
             with bag_errors(self.path, f"reading {self.topic} message {int(self._positions[i])}"):
                 pos = int(self._positions[i])
                 msg = self._message(reader, pos, int(self._header_ns[pos]))
-            return to_xyzi(msg, self._describe_scan(i))
+            return to_xyzi(msg, self.describe_scan(i))
 
     def _message(self, reader, pos: int, stamp: int):
         if self._cursor is None or self._cursor[1] != pos:
@@ -299,11 +310,15 @@ class BagSequence(Sequence):
         raise self._missing(pos)
 
     def _missing(self, pos: int) -> DataError:
-        return DataError(f"{self.path}: message {pos} of {self.topic} is missing (the bag changed since it was opened?)")
+        return DataError(
+            f"{self.path}: message {pos} of {self.topic} is missing (the bag changed since it was opened?)"
+        )
 
     # ------------------------------------------------------------------ identity, life cycle
     def identity(self) -> str:
-        return f"bag|{file_identity(self._bag)}|{self.topic}|gt={self._gt_identity}|ext={array_digest(self.T_base_lidar)}"
+        return (
+            f"bag|{file_identity(self._bag)}|{self.topic}|gt={self._gt_identity}|ext={array_digest(self.T_base_lidar)}"
+        )
 
     def close(self) -> None:
         with self._lock:
@@ -326,5 +341,3 @@ class BagSequence(Sequence):
     def __setstate__(self, state):
         self.__dict__.update(state)
         self._lock = threading.Lock()
-
-

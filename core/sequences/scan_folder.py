@@ -49,7 +49,9 @@ def read_scan_file(path: Path) -> np.ndarray:
         except (ValueError, OSError, EOFError) as exc:
             raise DataError(f"{path}: unreadable .npy ({exc})") from None
         if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
-            raise DataError(f"{path}: a .npy scan must be a numeric (N, 3) or (N, ≥4) array; got {arr.dtype} {arr.shape}")
+            raise DataError(
+                f"{path}: a .npy scan must be a numeric (N, 3) or (N, ≥4) array; got {arr.dtype} {arr.shape}"
+            )
         out = np.zeros((len(arr), 4), dtype=np.float32)
         out[:, : min(arr.shape[1], 4)] = arr[:, :4]
         return out
@@ -58,7 +60,7 @@ def read_scan_file(path: Path) -> np.ndarray:
     o3d = open3d()
     if not path.is_file():
         raise DataError(f"{path}: scan file not found")
-    cloud = o3d.t.io.read_point_cloud(str(path))     # an unreadable file gives an empty cloud
+    cloud = o3d.t.io.read_point_cloud(str(path))  # an unreadable file gives an empty cloud
     if "positions" not in cloud.point or len(cloud.point.positions) == 0:
         raise DataError(f"{path}: no points (empty or unreadable {suffix} file)")
     xyz = cloud.point.positions.numpy()
@@ -72,8 +74,14 @@ def read_scan_file(path: Path) -> np.ndarray:
 class ScanFolderSequence(FileBackedSequence):
     """The scans of a folder, one file each (the module docstring)."""
 
-    def __init__(self, directory: str | os.PathLike, gt=None, extrinsic=None,
-                 gt_times: str | os.PathLike | None = None, match_tol: float = MATCH_TOL_S):
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        gt=None,
+        extrinsic=None,
+        gt_times: str | os.PathLike | None = None,
+        match_tol: float = MATCH_TOL_S,
+    ):
         self.directory = Path(directory)
         self.name = f"scans {self.directory.name}"
         self.notes: list[str] = []
@@ -122,5 +130,7 @@ class ScanFolderSequence(FileBackedSequence):
     def identity(self) -> str:
         stats = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in self._files]
         digest = hashlib.sha1(repr(stats).encode()).hexdigest()[:12]
-        return (f"scan-folder|{self.directory.resolve()}|{digest}|gt={self._gt_identity}"
-                f"|ext={array_digest(self.T_base_lidar)}")
+        return (
+            f"scan-folder|{self.directory.resolve()}|{digest}|gt={self._gt_identity}"
+            f"|ext={array_digest(self.T_base_lidar)}"
+        )

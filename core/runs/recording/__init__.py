@@ -10,4 +10,15 @@ from .format import FOLDER, INDEX, STEPS, VERSION, RecordingError, ResumePayload
 from .reader import Recording, open
 from .writer import RecordingWriter
 
-__all__ = ["FOLDER", "INDEX", "STEPS", "VERSION", "format", "Recording", "RecordingError", "RecordingWriter", "ResumePayload", "open"]
+__all__ = [
+    "FOLDER",
+    "INDEX",
+    "STEPS",
+    "VERSION",
+    "format",
+    "Recording",
+    "RecordingError",
+    "RecordingWriter",
+    "ResumePayload",
+    "open",
+]

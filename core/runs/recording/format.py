@@ -74,16 +74,36 @@ class RecordingError(LidarlocError):
 
 # The display fields every step has: name → (dtype, per-step shape).
 FIELDS: dict[str, tuple[str, tuple]] = {
-    "scan_index": ("<i8", ()), "timestamp": ("<f8", ()), "mean_pose": ("<f8", (4, 4)),
-    "cov_xyz": ("<f8", (3, 3)), "std_xyz": ("<f8", (3,)), "ellipse_xy": ("<f8", (3,)),
-    "n_eff": ("<f8", ()), "n_particles": ("<i8", ()), "best_index": ("<i8", ()),
-    "localized": ("|u1", ()), "localized_since": ("<i8", ()), "converged": ("|u1", ()),
-    "error_m": ("<f8", ()), "gt_pose": ("<f8", (4, 4)), "pf_ms": ("<f8", ()), "rpe_ms": ("<f8", ()),
-    "s2m_ms": ("<f8", ()), "reinit": ("|u1", ()), "inlier_share": ("<f8", ()),
-    "mean_residual_m": ("<f8", ()), "inside_2sigma": ("|i1", ()), "scan_voxel": ("<f8", ()),
-    "s2m_running": ("|u1", ()), "s2m_pending": ("|u1", ()), "s2m_acceptance": ("<f8", ()),
-    "done": ("|u1", ()), "particle_rows": ("<i8", (2,)),
-    "awaiting_confirmation": ("|u1", ()), "confirmed_at": ("<i8", ()), "s2m_status": ("|i1", ()),
+    "scan_index": ("<i8", ()),
+    "timestamp": ("<f8", ()),
+    "mean_pose": ("<f8", (4, 4)),
+    "cov_xyz": ("<f8", (3, 3)),
+    "std_xyz": ("<f8", (3,)),
+    "ellipse_xy": ("<f8", (3,)),
+    "n_eff": ("<f8", ()),
+    "n_particles": ("<i8", ()),
+    "best_index": ("<i8", ()),
+    "localized": ("|u1", ()),
+    "localized_since": ("<i8", ()),
+    "converged": ("|u1", ()),
+    "error_m": ("<f8", ()),
+    "gt_pose": ("<f8", (4, 4)),
+    "pf_ms": ("<f8", ()),
+    "rpe_ms": ("<f8", ()),
+    "s2m_ms": ("<f8", ()),
+    "reinit": ("|u1", ()),
+    "inlier_share": ("<f8", ()),
+    "mean_residual_m": ("<f8", ()),
+    "inside_2sigma": ("|i1", ()),
+    "scan_voxel": ("<f8", ()),
+    "s2m_running": ("|u1", ()),
+    "s2m_pending": ("|u1", ()),
+    "s2m_acceptance": ("<f8", ()),
+    "done": ("|u1", ()),
+    "particle_rows": ("<i8", (2,)),
+    "awaiting_confirmation": ("|u1", ()),
+    "confirmed_at": ("<i8", ()),
+    "s2m_status": ("|i1", ()),
 }
 #: ``s2m_status`` as recorded (the index into this tuple)
 S2M_STATUSES = ("ready", "building", "held", "off")
@@ -123,7 +143,7 @@ def source_dict(spec) -> dict:
 def write_json_atomic(path: Path, data: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(jsonable(data), indent=1))
-    os.replace(tmp, path)        # a reader never sees half an index
+    os.replace(tmp, path)  # a reader never sees half an index
 
 
 def save_s2m(folder: Path, step: int, view: S2MView) -> None:
@@ -153,8 +173,11 @@ def load_s2m(folder: Path, step: int) -> S2MView:
     for f in dataclasses.fields(S2MView):
         if f.name == "scan_world":
             raw = folder / f"{step:06d}.f16"
-            local = np.frombuffer(raw.read_bytes(), "<f2").reshape(-1, 3).astype(np.float64) if raw.is_file() \
+            local = (
+                np.frombuffer(raw.read_bytes(), "<f2").reshape(-1, 3).astype(np.float64)
+                if raw.is_file()
                 else np.zeros((0, 3))
+            )
             pose = np.asarray(d["pose"], np.float64)
             kw[f.name] = (local @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
             continue

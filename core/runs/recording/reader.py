@@ -12,10 +12,23 @@ import numpy as np
 
 from ...rules.truth import truth_alarm
 from ...snapshot import Event, S2MView, Snapshot
-from .format import (FIELDS, FOLDER, FORMAT, INDEX, LOG_WEIGHTS, PARTICLES, S2M_STATUSES, STEPS, VERSION,
-                     RecordingError, load_s2m, named_field)
+from .format import (
+    FIELDS,
+    FOLDER,
+    FORMAT,
+    INDEX,
+    LOG_WEIGHTS,
+    PARTICLES,
+    S2M_STATUSES,
+    STEPS,
+    VERSION,
+    RecordingError,
+    load_s2m,
+    named_field,
+)
 
-def open(path) -> "Recording":  # noqa: A001 - the documented name: recording.open(dir)
+
+def open(path) -> Recording:  # noqa: A001 - the documented name: recording.open(dir)
     """The recording of a run folder (or the ``recording/`` folder itself)."""
     return Recording(path)
 
@@ -32,8 +45,9 @@ class Recording:
             path = path / FOLDER
         index_file = path / INDEX
         if not index_file.is_file():
-            raise RecordingError(f"{path}: not a recorded run (no {FOLDER}/{INDEX}; record with lidarloc run, "
-                                 "without --no-record)")
+            raise RecordingError(
+                f"{path}: not a recorded run (no {FOLDER}/{INDEX}; record with lidarloc run, without --no-record)"
+            )
         try:
             index = json.loads(index_file.read_text())
         except (OSError, ValueError) as exc:
@@ -41,8 +55,9 @@ class Recording:
         if not isinstance(index, dict) or index.get("format") != FORMAT:
             raise RecordingError(f"{index_file}: not a lidarloc recording")
         if index.get("version") != VERSION:
-            raise RecordingError(f"{index_file}: recording format version {index.get('version')}, "
-                                 f"this lidarloc reads version {VERSION}")
+            raise RecordingError(
+                f"{index_file}: recording format version {index.get('version')}, this lidarloc reads version {VERSION}"
+            )
         self.path = path
         self.run_dir = path.parent
         self.meta: dict = index.get("meta", {})
@@ -51,14 +66,16 @@ class Recording:
         n = steps_file.stat().st_size // 8 if steps_file.is_file() else 0
         self._cache: dict[str, np.ndarray] = {}
         try:
-            for name, info in self._fields.items():   # a step counts only if every field has its row
+            for name, info in self._fields.items():  # a step counts only if every field has its row
                 if name in (PARTICLES[0], LOG_WEIGHTS[0]):
                     continue
                 rows = self._rows_on_disk(name, info)
                 n = min(n, info["first_step"] + rows) if rows >= 0 else n
-            if n > 0:   # the particles of the last steps may be cut short too
-                n_rows = min(self._rows_on_disk(*named_field(self._fields, PARTICLES[0])),
-                             self._rows_on_disk(*named_field(self._fields, LOG_WEIGHTS[0])))
+            if n > 0:  # the particles of the last steps may be cut short too
+                n_rows = min(
+                    self._rows_on_disk(*named_field(self._fields, PARTICLES[0])),
+                    self._rows_on_disk(*named_field(self._fields, LOG_WEIGHTS[0])),
+                )
                 while n > 0 and self.field("particle_rows", n)[n - 1].sum() > n_rows:
                     n -= 1
         except (KeyError, TypeError, ValueError) as exc:
@@ -111,11 +128,14 @@ class Recording:
 
     def _memmap(self, name: str) -> np.ndarray:
         if name not in self._cache:
-            dtype, shape = (np.dtype(PARTICLES[1]), PARTICLES[2]) if name == PARTICLES[0] else (np.dtype(LOG_WEIGHTS[1]), ())
+            dtype, shape = (
+                (np.dtype(PARTICLES[1]), PARTICLES[2]) if name == PARTICLES[0] else (np.dtype(LOG_WEIGHTS[1]), ())
+            )
             f = self.path / f"{name}.bin"
             rows = f.stat().st_size // (dtype.itemsize * int(np.prod(shape, dtype=np.int64))) if f.is_file() else 0
-            self._cache[name] = (np.memmap(f, dtype=dtype, mode="r", shape=(rows,) + shape) if rows
-                                 else np.zeros((0,) + shape, dtype))
+            self._cache[name] = (
+                np.memmap(f, dtype=dtype, mode="r", shape=(rows,) + shape) if rows else np.zeros((0,) + shape, dtype)
+            )
         return self._cache[name]
 
     def _check(self, i: int) -> int:
@@ -126,11 +146,11 @@ class Recording:
     def particles(self, i: int) -> np.ndarray:
         """(N, 11) float32 particles after step i (see config.STATE_NAMES)."""
         start, count = self.field("particle_rows")[self._check(i)]
-        return np.asarray(self._memmap(PARTICLES[0])[start:start + count])
+        return np.asarray(self._memmap(PARTICLES[0])[start : start + count])
 
     def log_weights(self, i: int) -> np.ndarray:
         start, count = self.field("particle_rows")[self._check(i)]
-        return np.asarray(self._memmap(LOG_WEIGHTS[0])[start:start + count])
+        return np.asarray(self._memmap(LOG_WEIGHTS[0])[start : start + count])
 
     def weights(self, i: int) -> np.ndarray:
         """Normalised float64 weights after step i (from the log-weights: no underflow to all-zero)."""
@@ -152,7 +172,7 @@ class Recording:
                     try:
                         d = json.loads(line)
                     except ValueError:
-                        break                     # a line cut short by a crash: the steps after it are not complete
+                        break  # a line cut short by a crash: the steps after it are not complete
                     if d["step"] >= self.n:
                         break
                     out.append((int(d["step"]), Event(int(d["scan"]), str(d["kind"]), str(d.get("detail", "")))))
@@ -231,8 +251,18 @@ class Recording:
         for key, value in self.meta.get("source", {}).items():
             if key not in names:
                 continue
-            if value is not None and key in ("kitti_odometry", "kitti_raw", "trajectory", "calib", "map", "bag",
-                                             "scans_dir", "gt", "gt_times", "extrinsic"):
+            if value is not None and key in (
+                "kitti_odometry",
+                "kitti_raw",
+                "trajectory",
+                "calib",
+                "map",
+                "bag",
+                "scans_dir",
+                "gt",
+                "gt_times",
+                "extrinsic",
+            ):
                 value = Path(value)
             kw[key] = value
         return SourceSpec(**kw)
@@ -240,12 +270,24 @@ class Recording:
     def check_source(self) -> None:
         """One line naming the path the run expected, if its source has moved."""
         for key, value in self.meta.get("source", {}).items():
-            if isinstance(value, str) and key in ("kitti_odometry", "kitti_raw", "trajectory", "calib", "map", "bag",
-                                                  "scans_dir", "gt", "gt_times", "extrinsic"):
+            if isinstance(value, str) and key in (
+                "kitti_odometry",
+                "kitti_raw",
+                "trajectory",
+                "calib",
+                "map",
+                "bag",
+                "scans_dir",
+                "gt",
+                "gt_times",
+                "extrinsic",
+            ):
                 if not Path(value).exists():
-                    raise RecordingError(f"{value}: the run's source is not there any more (named by "
-                                         f"{self.path / INDEX} as --{key.replace('_', '-')}); put it back or "
-                                         "rerun")
+                    raise RecordingError(
+                        f"{value}: the run's source is not there any more (named by "
+                        f"{self.path / INDEX} as --{key.replace('_', '-')}); put it back or "
+                        "rerun"
+                    )
 
     def open_sequence(self):
         """The run's sequence, rebuilt from its source (one-line error if the source moved)."""
@@ -306,31 +348,49 @@ class Recording:
         def opt(v):
             return None if not np.isfinite(v) else float(v)
 
-        def recorded(name, default):    # a field recordings made before it appeared do not have
+        def recorded(name, default):  # a field recordings made before it appeared do not have
             return self.field(name)[i] if name in self._fields else default
+
         confirmed_at = int(recorded("confirmed_at", -1))
         status = S2M_STATUSES[int(recorded("s2m_status", 0))]
 
         return Snapshot(
-            scan_index=k, n_scans=int(self.meta.get("n_source_scans", self.n)), timestamp=float(self.timestamp[i]),
-            particles=self.particles(i).astype(np.float64), weights=self.weights(i),
-            log_weights=self.log_weights(i).astype(np.float64), best_index=int(self.best_index[i]),
-            mean_pose=pose.copy(), cov_xyz=self.cov_xyz[i].copy(), std_xyz=self.std_xyz[i].copy(),
-            ellipse_xy=tuple(float(v) for v in self.ellipse_xy[i]), n_eff=float(self.n_eff[i]),
-            localized=bool(self.localized[i]), localized_since=None if since < 0 else since,
-            scan_world=scan_world, gt_pose=None if not np.all(np.isfinite(gt)) else gt.copy(),
-            error_m=opt(self.error_m[i]), pf_ms=float(self.pf_ms[i]), rpe_ms=opt(self.rpe_ms[i]),
-            s2m=self.s2m(i), s2m_running=bool(self.s2m_running[i]), s2m_acceptance=float(self.s2m_acceptance[i]),
-            s2m_pending=bool(self.s2m_pending[i]), n_particles=int(self.n_particles[i]),
-            converged=bool(self.converged[i]), inlier_share=opt(self.inlier_share[i]),
-            mean_residual_m=opt(self.mean_residual_m[i]), inside_2sigma=None if inside < 0 else bool(inside),
-            events=tuple(self.events_until(i)[-50:]), done=bool(self.done[i]),
+            scan_index=k,
+            n_scans=int(self.meta.get("n_source_scans", self.n)),
+            timestamp=float(self.timestamp[i]),
+            particles=self.particles(i).astype(np.float64),
+            weights=self.weights(i),
+            log_weights=self.log_weights(i).astype(np.float64),
+            best_index=int(self.best_index[i]),
+            mean_pose=pose.copy(),
+            cov_xyz=self.cov_xyz[i].copy(),
+            std_xyz=self.std_xyz[i].copy(),
+            ellipse_xy=tuple(float(v) for v in self.ellipse_xy[i]),
+            n_eff=float(self.n_eff[i]),
+            localized=bool(self.localized[i]),
+            localized_since=None if since < 0 else since,
+            scan_world=scan_world,
+            gt_pose=None if not np.all(np.isfinite(gt)) else gt.copy(),
+            error_m=opt(self.error_m[i]),
+            pf_ms=float(self.pf_ms[i]),
+            rpe_ms=opt(self.rpe_ms[i]),
+            s2m=self.s2m(i),
+            s2m_running=bool(self.s2m_running[i]),
+            s2m_acceptance=float(self.s2m_acceptance[i]),
+            s2m_pending=bool(self.s2m_pending[i]),
+            n_particles=int(self.n_particles[i]),
+            converged=bool(self.converged[i]),
+            inlier_share=opt(self.inlier_share[i]),
+            mean_residual_m=opt(self.mean_residual_m[i]),
+            inside_2sigma=None if inside < 0 else bool(inside),
+            events=tuple(self.events_until(i)[-50:]),
+            done=bool(self.done[i]),
             awaiting_confirmation=bool(recorded("awaiting_confirmation", False)),
-            confirmed_at=None if confirmed_at < 0 else confirmed_at, s2m_status=status,
-            truth_alarm=truth_alarm(bool(self.localized[i]), opt(self.error_m[i])))
+            confirmed_at=None if confirmed_at < 0 else confirmed_at,
+            s2m_status=status,
+            truth_alarm=truth_alarm(bool(self.localized[i]), opt(self.error_m[i])),
+        )
 
     def size_bytes(self) -> int:
         """Bytes on disk of the whole recording."""
         return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())
-
-

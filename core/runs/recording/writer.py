@@ -16,9 +16,26 @@ from typing import Any
 import numpy as np
 
 from ...snapshot import S2MView, Snapshot
-from .format import (COMPRESS_ABOVE_BYTES, FIELDS, FOLDER, FORMAT, INDEX, LOG_WEIGHTS, PARTICLES, QUEUE_STEPS,
-                     S2M_STATUSES, STEPS, VERSION, RecordingError, ResumePayload, nan_or_value, save_s2m,
-                     source_dict, write_json_atomic)
+from .format import (
+    COMPRESS_ABOVE_BYTES,
+    FIELDS,
+    FOLDER,
+    FORMAT,
+    INDEX,
+    LOG_WEIGHTS,
+    PARTICLES,
+    QUEUE_STEPS,
+    S2M_STATUSES,
+    STEPS,
+    VERSION,
+    RecordingError,
+    ResumePayload,
+    nan_or_value,
+    save_s2m,
+    source_dict,
+    write_json_atomic,
+)
+
 
 class RecordingWriter:
     """Appends a localizer's steps to ``run_dir/recording/`` (see the module docstring).
@@ -32,8 +49,9 @@ class RecordingWriter:
     a reader sees), :meth:`flush` waits for the rest, :meth:`close` writes what is queued. A
     failure to write is raised by the next ``on_scan``, ``flush`` or ``close``."""
 
-    def __init__(self, run_dir, spec, cfg, seq, preset: str | None = None, branch_of: dict | None = None,
-                 first_step: int = 0):
+    def __init__(
+        self, run_dir, spec, cfg, seq, preset: str | None = None, branch_of: dict | None = None, first_step: int = 0
+    ):
         from .... import __version__ as version
 
         self.path = Path(run_dir) / FOLDER
@@ -46,11 +64,18 @@ class RecordingWriter:
         except OSError as exc:
             raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
         self.meta = {
-            "source": source_dict(spec), "source_description": spec.describe(), "config": cfg.to_dict(),
-            "seed": int(cfg.seed), "sequence": getattr(seq, "name", "sequence"), "n_source_scans": int(len(seq)),
-            "clock": cfg.localize.clock, "preset": preset,
+            "source": source_dict(spec),
+            "source_description": spec.describe(),
+            "config": cfg.to_dict(),
+            "seed": int(cfg.seed),
+            "sequence": getattr(seq, "name", "sequence"),
+            "n_source_scans": int(len(seq)),
+            "clock": cfg.localize.clock,
+            "preset": preset,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "branch_of": branch_of, "first_step": int(first_step), "lidarloc_version": version,
+            "branch_of": branch_of,
+            "first_step": int(first_step),
+            "lidarloc_version": version,
         }
         self.fields: dict[str, dict] = {}
         self._files: dict[str, Any] = {}
@@ -71,7 +96,7 @@ class RecordingWriter:
         # The disk work is done on a thread of its own, so that a step costs the filter only the
         # copies it hands over; ``committed`` counts the steps on disk (what a reader sees).
         self.committed = 0
-        self.writer_cpu_s = 0.0           # the writing thread's CPU time
+        self.writer_cpu_s = 0.0  # the writing thread's CPU time
         self._error: RecordingError | None = None
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_STEPS)
         self._committed_changed = threading.Condition()
@@ -91,7 +116,9 @@ class RecordingWriter:
         self._files[name] = builtins.open(self.path / f"{name}.bin", "ab")
 
     def _write_index(self) -> None:
-        write_json_atomic(self.path / INDEX, {"format": FORMAT, "version": VERSION, "meta": self.meta, "fields": self.fields})
+        write_json_atomic(
+            self.path / INDEX, {"format": FORMAT, "version": VERSION, "meta": self.meta, "fields": self.fields}
+        )
 
     def on_scan(self, loc, snap: Snapshot) -> None:
         """Append the step ``snap`` is the snapshot of (``loc`` just produced it; call it before
@@ -109,20 +136,32 @@ class RecordingWriter:
         n = len(snap.particles)
         lw = snap.log_weights if snap.log_weights is not None else np.log(np.maximum(snap.weights, 1e-300))
         values = {
-            "scan_index": snap.scan_index, "timestamp": snap.timestamp, "mean_pose": snap.mean_pose,
-            "cov_xyz": snap.cov_xyz, "std_xyz": snap.std_xyz, "ellipse_xy": np.asarray(snap.ellipse_xy, float),
-            "n_eff": snap.n_eff, "n_particles": snap.n_particles if snap.n_particles else n,
-            "best_index": snap.best_index, "localized": snap.localized,
+            "scan_index": snap.scan_index,
+            "timestamp": snap.timestamp,
+            "mean_pose": snap.mean_pose,
+            "cov_xyz": snap.cov_xyz,
+            "std_xyz": snap.std_xyz,
+            "ellipse_xy": np.asarray(snap.ellipse_xy, float),
+            "n_eff": snap.n_eff,
+            "n_particles": snap.n_particles if snap.n_particles else n,
+            "best_index": snap.best_index,
+            "localized": snap.localized,
             "localized_since": -1 if snap.localized_since is None else snap.localized_since,
-            "converged": snap.converged, "error_m": nan_or_value(snap.error_m),
+            "converged": snap.converged,
+            "error_m": nan_or_value(snap.error_m),
             "gt_pose": np.full((4, 4), np.nan) if snap.gt_pose is None else snap.gt_pose,
-            "pf_ms": snap.pf_ms, "rpe_ms": nan_or_value(snap.rpe_ms),
+            "pf_ms": snap.pf_ms,
+            "rpe_ms": nan_or_value(snap.rpe_ms),
             "s2m_ms": nan_or_value(record.s2m_ms if record is not None else None),
             "reinit": bool(record.reinit) if record is not None else False,
-            "inlier_share": nan_or_value(snap.inlier_share), "mean_residual_m": nan_or_value(snap.mean_residual_m),
+            "inlier_share": nan_or_value(snap.inlier_share),
+            "mean_residual_m": nan_or_value(snap.mean_residual_m),
             "inside_2sigma": -1 if snap.inside_2sigma is None else int(bool(snap.inside_2sigma)),
-            "scan_voxel": float(loc.cfg.pf.scan_voxel), "s2m_running": snap.s2m_running,
-            "s2m_pending": snap.s2m_pending, "s2m_acceptance": snap.s2m_acceptance, "done": snap.done,
+            "scan_voxel": float(loc.cfg.pf.scan_voxel),
+            "s2m_running": snap.s2m_running,
+            "s2m_pending": snap.s2m_pending,
+            "s2m_acceptance": snap.s2m_acceptance,
+            "done": snap.done,
             "particle_rows": (self._particle_row, n),
             "awaiting_confirmation": snap.awaiting_confirmation,
             "confirmed_at": -1 if snap.confirmed_at is None else snap.confirmed_at,
@@ -130,13 +169,22 @@ class RecordingWriter:
         }
         rows = {name: self._row(name, value) for name, value in values.items()}
         payload = loc.resume_payload(i) if hasattr(loc, "resume_payload") else None
-        if payload is not None:   # the next step must not change what this one hands over
-            payload = ResumePayload(per_step={k: np.array(v) for k, v in payload.per_step.items()},
-                                    files={k: dict(v) for k, v in payload.files.items()})
+        if payload is not None:  # the next step must not change what this one hands over
+            payload = ResumePayload(
+                per_step={k: np.array(v) for k, v in payload.per_step.items()},
+                files={k: dict(v) for k, v in payload.files.items()},
+            )
         s2m = snap.s2m if snap.s2m is not None and snap.s2m is not self._last_s2m else None
-        item = _Step(i, np.array(snap.particles, np.float32), np.array(lw, np.float32), rows,
-                     self._event_lines(loc, i, snap.scan_index), s2m, payload)
-        self._queue.put(item)        # blocks while the writing thread is QUEUE_STEPS steps behind
+        item = _Step(
+            i,
+            np.array(snap.particles, np.float32),
+            np.array(lw, np.float32),
+            rows,
+            self._event_lines(loc, i, snap.scan_index),
+            s2m,
+            payload,
+        )
+        self._queue.put(item)  # blocks while the writing thread is QUEUE_STEPS steps behind
         self._particle_row += n
         self._last_s2m = snap.s2m
         self.n += 1
@@ -153,7 +201,7 @@ class RecordingWriter:
     def _event_lines(self, loc, i: int, scan: int) -> list[str]:
         events = getattr(loc, "events", [])
         lines = []
-        for ev in events[self._n_events:]:
+        for ev in events[self._n_events :]:
             # an event from before the first scan (scan -1), or from a control between the previous
             # step and this one (a kidnap or reset names the previous scan), belongs to that step
             if ev.scan < 0:
@@ -187,9 +235,11 @@ class RecordingWriter:
                         f.flush()
                     self._events.flush()
                     self._steps.write(np.asarray([item.index for item in items], np.int64).tobytes())
-                    self._steps.flush()      # the commit: the steps exist from here on
-                except Exception as exc:   # whatever it is, the thread lives on (a step waiting for it must not hang)
-                    why = exc.strerror if isinstance(exc, OSError) and exc.strerror else (str(exc) or type(exc).__name__)
+                    self._steps.flush()  # the commit: the steps exist from here on
+                except Exception as exc:  # whatever it is, the thread lives on (a step waiting for it must not hang)
+                    why = (
+                        exc.strerror if isinstance(exc, OSError) and exc.strerror else (str(exc) or type(exc).__name__)
+                    )
                     self._error = RecordingError(f"{self.path}: cannot write the recording ({why})")
             self.writer_cpu_s += time.thread_time() - t0
             with self._committed_changed:
@@ -199,7 +249,7 @@ class RecordingWriter:
             if batch[-1] is None:
                 return
 
-    def _write_step(self, item: "_Step") -> None:
+    def _write_step(self, item: _Step) -> None:
         self._files["particles"].write(item.particles.tobytes())
         self._files["log_weights"].write(item.log_weights.tobytes())
         for name, row in item.rows.items():
@@ -232,8 +282,9 @@ class RecordingWriter:
         """Wait until every step handed over is on disk (readers see it); raises the writing
         thread's failure, if it had one."""
         with self._committed_changed:
-            self._committed_changed.wait_for(lambda: self.committed >= self.n or self._error is not None
-                                             or not self._thread.is_alive())
+            self._committed_changed.wait_for(
+                lambda: self.committed >= self.n or self._error is not None or not self._thread.is_alive()
+            )
         if self._error is not None:
             raise self._error
 
@@ -248,7 +299,7 @@ class RecordingWriter:
         for f in self._files.values():
             try:
                 f.close()
-            except OSError:      # its failure is the one reported below
+            except OSError:  # its failure is the one reported below
                 pass
         self._events.close()
         self._steps.close()
@@ -275,5 +326,3 @@ class _Step:
     event_lines: list[str]
     s2m: S2MView | None
     payload: ResumePayload | None
-
-

@@ -28,9 +28,19 @@ import numpy as np
 
 from ..lidar_sim import MeshPart
 from .constants import CHANGES_STREAM
-from .objects import (MOVABLE_KINDS, Item, Solids, add_bin, add_parked_car, add_sign, car_spot_free, footprint,
-                      occupy, post_spot_free)
 from .meshes import object_parts, row_triangles
+from .objects import (
+    MOVABLE_KINDS,
+    Item,
+    Solids,
+    add_bin,
+    add_parked_car,
+    add_sign,
+    car_spot_free,
+    footprint,
+    occupy,
+    post_spot_free,
+)
 from .raster import left_normal
 from .world import Town
 
@@ -53,8 +63,15 @@ class ChangeRecord:
     grown: list[Item] = field(default_factory=list)
 
     def counts(self) -> dict:
-        return dict(movable=self.n_movable, moved=len(self.moved), removed=len(self.removed),
-                    added=len(self.added), trees=self.n_trees, cut=len(self.cut), grown=len(self.grown))
+        return dict(
+            movable=self.n_movable,
+            moved=len(self.moved),
+            removed=len(self.removed),
+            added=len(self.added),
+            trees=self.n_trees,
+            cut=len(self.cut),
+            grown=len(self.grown),
+        )
 
 
 def changed_world(town: Town, share: float) -> tuple[list[MeshPart], ChangeRecord, Solids]:
@@ -78,7 +95,7 @@ def changed_world(town: Town, share: float) -> tuple[list[MeshPart], ChangeRecor
     for item in picked[:n_moved]:
         now = _move(plan, solids, new, rng, item)
         if now is None:
-            record.removed.append(item)   # nowhere to go: it is gone
+            record.removed.append(item)  # nowhere to go: it is gone
         else:
             record.moved.append(item)
             record.moved_to.append(now)
@@ -87,10 +104,10 @@ def changed_world(town: Town, share: float) -> tuple[list[MeshPart], ChangeRecor
     m = int(round(share * len(trees)))
     picked_trees = [trees[k] for k in rng.permutation(len(trees))[:m]]
     record.cut = picked_trees[: m // 2]
-    grown = [_grow(solids, new, rng, tree) for tree in picked_trees[m // 2:]]
+    grown = [_grow(solids, new, rng, tree) for tree in picked_trees[m // 2 :]]
 
     gone = [key for item in record.removed + record.moved + record.cut for key in item.rows]
-    gone += [key for item in picked_trees[m // 2:] for key in item.rows if key[0] == "blobs"]   # the old crowns
+    gone += [key for item in picked_trees[m // 2 :] for key in item.rows if key[0] == "blobs"]  # the old crowns
     record.grown = grown
     parts = _without(town.parts, solids, gone) + object_parts(new, plan.ground, rng)
     return parts, record, new
@@ -115,19 +132,19 @@ def _without(parts: list[MeshPart], solids: Solids, keys) -> list[MeshPart]:
 
 
 def _shifted_row(store: str, row: tuple, dx: float, dy: float, dz: float) -> tuple:
-    row = list(row)
-    row[0] += dx
-    row[1] += dy
+    shifted = list(row)
+    shifted[0] += dx
+    shifted[1] += dy
     if store in ("boxes", "prisms"):
-        row[5] += dz
+        shifted[5] += dz
         if store == "boxes":
-            row[6] += dz
+            shifted[6] += dz
     elif store == "cylinders":
-        row[3] += dz
-        row[4] += dz
+        shifted[3] += dz
+        shifted[4] += dz
     elif store == "blobs":
-        row[2] += dz
-    return tuple(row)
+        shifted[2] += dz
+    return tuple(shifted)
 
 
 def _move(plan, solids: Solids, new: Solids, rng, item: Item) -> Item | None:
@@ -139,7 +156,7 @@ def _move(plan, solids: Solids, new: Solids, rng, item: Item) -> Item | None:
     else:  # a sign faces the road: along the street is across its yaw
         along = left_normal(np.array([math.cos(item.yaw), math.sin(item.yaw)]))
         distances = (1.5, 5.0)
-    for attempt in range(40):   # farther and farther along the street until there is room
+    for attempt in range(40):  # farther and farther along the street until there is room
         d = rng.uniform(distances[0], distances[1] * (1.0 + attempt / 8.0)) * rng.choice([-1.0, 1.0])
         x, y = item.x + d * along[0], item.y + d * along[1]
         moved = Item(item.kind, x, y, item.yaw, item.length, item.width)
@@ -149,8 +166,13 @@ def _move(plan, solids: Solids, new: Solids, rng, item: Item) -> Item | None:
         # Cars sit on the lowest ground under their footprint, posts on the ground at their foot.
         dz = float(plan.ground(*footprint(moved)).min() - plan.ground(*footprint(item)).min())
         for store, material, index in item.rows:
-            moved.rows.append(new.add(store, material, _shifted_row(store, solids.row((store, material, index)),
-                                                                    x - item.x, y - item.y, dz)))
+            moved.rows.append(
+                new.add(
+                    store,
+                    material,
+                    _shifted_row(store, solids.row((store, material, index)), x - item.x, y - item.y, dz),
+                )
+            )
         new.items.append(moved)
         occupy(plan, moved)
         return moved
@@ -193,9 +215,9 @@ def _grow(solids: Solids, new: Solids, rng, tree: Item) -> Item:
     key = next(k for k in tree.rows if k[0] == "blobs")
     cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl = solids.row(key)
     g = float(rng.uniform(1.15, 1.4))
-    if shape == 1:      # a cone from its base: the base stays
+    if shape == 1:  # a cone from its base: the base stays
         row = (cx, cy, cz, rx * g, ry * g, rz * g, yaw, int(n * g * g), leaf, shape, refl)
-    else:               # an ellipsoid around its centre: its bottom stays
+    else:  # an ellipsoid around its centre: its bottom stays
         row = (cx, cy, cz - rz + rz * g, rx * g, ry * g, rz * g, yaw, int(n * g * g), leaf, shape, refl)
     grown = Item("tree", tree.x, tree.y, rows=[new.add("blobs", "crown", row)])
     new.items.append(grown)

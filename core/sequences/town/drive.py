@@ -13,8 +13,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import DataError
-from .constants import (A_ACCEL, A_BRAKE, A_LATERAL, DS, LANE_OFFSET, R_LEFT, R_RIGHT, SENSOR_HEIGHT,
-                        STOP_PROB, SWAY_FULL_SPEED, SWAY_STD, SWAY_TIME)
+from .constants import (
+    A_ACCEL,
+    A_BRAKE,
+    A_LATERAL,
+    DS,
+    LANE_OFFSET,
+    R_LEFT,
+    R_RIGHT,
+    SENSOR_HEIGHT,
+    STOP_PROB,
+    SWAY_FULL_SPEED,
+    SWAY_STD,
+    SWAY_TIME,
+)
 from .layout import Grid
 from .raster import HeightField, left_normal
 
@@ -25,12 +37,12 @@ class _LanePath:
 
     s: np.ndarray
     xy: np.ndarray
-    heading: np.ndarray       # unwrapped, rad
-    curvature: np.ndarray     # 1/m, signed (left positive)
-    edge: np.ndarray          # route edge each sample lies on (arcs: the incoming edge)
-    on_arc: np.ndarray        # bool
-    vertex_s: np.ndarray      # per route vertex: s where its turn starts (or where it is passed)
-    stop_back: np.ndarray     # per route vertex: (lane corner − node)·heading in, minus the turn's tangent length
+    heading: np.ndarray  # unwrapped, rad
+    curvature: np.ndarray  # 1/m, signed (left positive)
+    edge: np.ndarray  # route edge each sample lies on (arcs: the incoming edge)
+    on_arc: np.ndarray  # bool
+    vertex_s: np.ndarray  # per route vertex: s where its turn starts (or where it is passed)
+    stop_back: np.ndarray  # per route vertex: (lane corner − node)·heading in, minus the turn's tangent length
 
 
 def _lane_path(route: np.ndarray) -> _LanePath:
@@ -103,14 +115,23 @@ def _lane_path(route: np.ndarray) -> _LanePath:
     along = np.einsum("ij,ij->i", C[1:] - P[1:], d)  # (C_k − P_k)·d_in: corner beyond (+) or before (−) the node
     stop_back = np.concatenate([[0.0], along]) - tangent
     return _LanePath(
-        s=np.concatenate(s_list), xy=np.concatenate(xs), heading=heading,
-        curvature=np.concatenate(ks), edge=np.concatenate(es).astype(np.int64),
-        on_arc=np.concatenate(arcs), vertex_s=vertex_s, stop_back=stop_back,
+        s=np.concatenate(s_list),
+        xy=np.concatenate(xs),
+        heading=heading,
+        curvature=np.concatenate(ks),
+        edge=np.concatenate(es).astype(np.int64),
+        on_arc=np.concatenate(arcs),
+        vertex_s=vertex_s,
+        stop_back=stop_back,
     )
 
 
-def _speed_profile(path: _LanePath, edge_speed: np.ndarray, stops: list[tuple[float, float]],
-                   slow_zones: list[tuple[float, float, float]]):
+def _speed_profile(
+    path: _LanePath,
+    edge_speed: np.ndarray,
+    stops: list[tuple[float, float]],
+    slow_zones: list[tuple[float, float, float]],
+):
     """Speeds along the path from the limits (street, curvature, slow zones, stops) shaped by
     acceleration and braking limits. Returns (v, arrive, depart): speed at each path sample and
     the times the car reaches and leaves it (they differ only where it stops and waits)."""
@@ -186,10 +207,12 @@ def vehicle_poses(x, y, yaw, ground: HeightField) -> np.ndarray:
     half_wheelbase, half_track = 1.35, 0.8
     f = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
     l = left_normal(f)
-    slope_f = (ground(*(np.stack([x, y], 1) + half_wheelbase * f).T)
-               - ground(*(np.stack([x, y], 1) - half_wheelbase * f).T)) / (2 * half_wheelbase)
-    slope_l = (ground(*(np.stack([x, y], 1) + half_track * l).T)
-               - ground(*(np.stack([x, y], 1) - half_track * l).T)) / (2 * half_track)
+    slope_f = (
+        ground(*(np.stack([x, y], 1) + half_wheelbase * f).T) - ground(*(np.stack([x, y], 1) - half_wheelbase * f).T)
+    ) / (2 * half_wheelbase)
+    slope_l = (
+        ground(*(np.stack([x, y], 1) + half_track * l).T) - ground(*(np.stack([x, y], 1) - half_track * l).T)
+    ) / (2 * half_track)
     x_axis = np.concatenate([f, slope_f[:, None]], axis=1)
     x_axis /= np.linalg.norm(x_axis, axis=1, keepdims=True)
     normal = np.concatenate([-slope_f[:, None] * f - slope_l[:, None] * l, np.ones((len(x), 1))], axis=1)
@@ -208,8 +231,9 @@ def choose_next_node(rng: np.random.Generator, grid: Grid, prev, here, options: 
     """The next grid node of a drive arriving at ``here`` from ``prev``: straight on three times
     as likely as a turn (the grid is axis-aligned)."""
     heading_in = grid.node_xy(here) - grid.node_xy(prev)
-    weights = np.array([3.0 if float((grid.node_xy(m) - grid.node_xy(here)) @ heading_in) > 0 else 1.0
-                        for m in options])
+    weights = np.array(
+        [3.0 if float((grid.node_xy(m) - grid.node_xy(here)) @ heading_in) > 0 else 1.0 for m in options]
+    )
     return options[int(rng.choice(len(options), p=weights / weights.sum()))]
 
 
@@ -217,13 +241,21 @@ def _grid_route(rng: np.random.Generator, grid: Grid, length_needed: float):
     """Nodes of the drive: half an edge, a full loop around the chosen rectangle (back past the
     start), then a random walk that prefers going straight and never U-turns."""
     a0, a1, b0, b1 = grid.loop
-    cycle = ([(a, b0) for a in range(a0, a1)] + [(a1, b) for b in range(b0, b1)]
-             + [(a, b1) for a in range(a1, a0, -1)] + [(a0, b) for b in range(b1, b0, -1)])
+    cycle = (
+        [(a, b0) for a in range(a0, a1)]
+        + [(a1, b) for b in range(b0, b1)]
+        + [(a, b1) for a in range(a1, a0, -1)]
+        + [(a0, b) for b in range(b1, b0, -1)]
+    )
     if rng.random() < 0.5:
         cycle = cycle[::-1]
     n = len(cycle)
     lengths = [np.linalg.norm(grid.node_xy(cycle[(k + 1) % n]) - grid.node_xy(cycle[k])) for k in range(n)]
-    k0 = int(rng.choice(np.flatnonzero(np.asarray(lengths) >= 40.0))) if max(lengths) >= 40.0 else int(np.argmax(lengths))
+    k0 = (
+        int(rng.choice(np.flatnonzero(np.asarray(lengths) >= 40.0)))
+        if max(lengths) >= 40.0
+        else int(np.argmax(lengths))
+    )
     start_xy = 0.5 * (grid.node_xy(cycle[k0]) + grid.node_xy(cycle[(k0 + 1) % n]))
     nodes = [cycle[(k0 + 1 + k) % n] for k in range(n + 1)]  # ends one node past the start point
     length = sum(lengths)
@@ -246,9 +278,9 @@ class GridDrive:
     x: np.ndarray
     y: np.ndarray
     yaw: np.ndarray
-    driven: np.ndarray        # (K, 2) dense path actually driven (plus 10 m)
+    driven: np.ndarray  # (K, 2) dense path actually driven (plus 10 m)
     n_stops: int
-    edges: list               # grid edges driven, in order: ((a, b), (a', b')) node pairs
+    edges: list  # grid edges driven, in order: ((a, b), (a', b')) node pairs
 
 
 def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -> GridDrive:
@@ -262,8 +294,9 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -
 
     # Per-edge cruising speed: the street's limit, driven at 90–100 %.
     chain = [before_start] + nodes  # chain[k] → chain[k+1] is route edge k (edge 0 starts mid-block)
-    edge_speed = np.array([grid.edge_street(chain[k], chain[k + 1])[1] * rng.uniform(0.9, 1.0)
-                           for k in range(len(nodes))])
+    edge_speed = np.array(
+        [grid.edge_street(chain[k], chain[k + 1])[1] * rng.uniform(0.9, 1.0) for k in range(len(nodes))]
+    )
     stops = []
     for k in range(1, len(nodes)):
         node, prev, nxt = nodes[k - 1], chain[k - 1], nodes[k]

@@ -18,18 +18,17 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ...errors import DataError
-from .constants import (BUILD_REACH, CELL, GROUND_MARGIN, LANE_OFFSET, NODE_CELLS, SIDEWALK_MIN,
-                        SPEED_CHOICES_KMH)
+from .constants import BUILD_REACH, CELL, GROUND_MARGIN, LANE_OFFSET, NODE_CELLS, SIDEWALK_MIN, SPEED_CHOICES_KMH
 from .raster import HeightField, Raster, densify, left_normal
 
 
 # --------------------------------------------------------------------------------- streets
 @dataclass
 class Street:
-    points: np.ndarray        # (K, 2) centre-line polyline, town frame
-    half_width: float         # m, centre line to curb
-    sidewalk: float           # m, curb to property line
-    parking: bool             # parked cars along both curbs
+    points: np.ndarray  # (K, 2) centre-line polyline, town frame
+    half_width: float  # m, centre line to curb
+    sidewalk: float  # m, curb to property line
+    parking: bool  # parked cars along both curbs
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=np.float64)
@@ -69,18 +68,18 @@ def _street_positions(rng: np.random.Generator, size: float) -> np.ndarray:
 
 @dataclass
 class Grid:
-    xs: np.ndarray            # x of the N–S streets (index a)
-    ys: np.ndarray            # y of the E–W streets (index b)
+    xs: np.ndarray  # x of the N–S streets (index a)
+    ys: np.ndarray  # y of the E–W streets (index b)
     hw_x: np.ndarray
     hw_y: np.ndarray
     sw_x: np.ndarray
     sw_y: np.ndarray
-    speed_x: np.ndarray       # m/s, speed limit
+    speed_x: np.ndarray  # m/s, speed limit
     speed_y: np.ndarray
     park_x: np.ndarray
     park_y: np.ndarray
-    h_edge: np.ndarray        # (na-1, nb): (a, b)–(a+1, b) present, along E–W street b
-    v_edge: np.ndarray        # (na, nb-1): (a, b)–(a, b+1) present, along N–S street a
+    h_edge: np.ndarray  # (na-1, nb): (a, b)–(a+1, b) present, along E–W street b
+    v_edge: np.ndarray  # (na, nb-1): (a, b)–(a, b+1) present, along N–S street a
     loop: tuple[int, int, int, int]
 
     @property
@@ -158,7 +157,9 @@ def plan_grid(rng: np.random.Generator, size: float, loop_distance: float) -> Gr
 
     # Drop some street segments (merging blocks) while every intersection keeps ≥ 2 streets
     # (no dead ends for the drive) and the network stays connected.
-    edges = [("h", a, b) for a in range(na - 1) for b in range(nb)] + [("v", a, b) for a in range(na) for b in range(nb - 1)]
+    edges = [("h", a, b) for a in range(na - 1) for b in range(nb)] + [
+        ("v", a, b) for a in range(na) for b in range(nb - 1)
+    ]
     for idx in rng.permutation(len(edges)):
         kind, a, b = edges[idx]
         if (kind, a, b) in protected or rng.random() > 0.22:
@@ -270,7 +271,9 @@ def trajectory_streets(rng, ego_xy: np.ndarray):
                     if u > 15.0 and main_tree.query(q)[0] < hw_main:
                         break  # joined another stretch of the road
                 if len(pts) > 10:
-                    streets.append(Street(np.array(pts), hw, float(rng.uniform(SIDEWALK_MIN, 3.5)), bool(rng.random() < 0.5)))
+                    streets.append(
+                        Street(np.array(pts), hw, float(rng.uniform(SIDEWALK_MIN, 3.5)), bool(rng.random() < 0.5))
+                    )
                     junctions.append(p)
             s_branch += rng.uniform(50.0, 120.0)
     return streets, np.asarray(junctions, float).reshape(-1, 2), path
@@ -320,14 +323,14 @@ class Plan:
     ground: HeightField
     streets: list
     junctions: np.ndarray
-    build_area: np.ndarray    # bool, where buildings may stand
-    road: np.ndarray          # bool
-    dist_road: np.ndarray     # m, from each cell to the road (0 on road)
-    road_dir: np.ndarray      # (nx, ny, 2), unit vector from a cell to its nearest road cell
-    dist_ego: np.ndarray      # m, from each cell to the driven path
-    occupied: np.ndarray      # bool, taken by something solid
-    density: np.ndarray       # [0, 1], urban density (tall, dense, close to the street when high)
-    park: np.ndarray          # bool
+    build_area: np.ndarray  # bool, where buildings may stand
+    road: np.ndarray  # bool
+    dist_road: np.ndarray  # m, from each cell to the road (0 on road)
+    road_dir: np.ndarray  # (nx, ny, 2), unit vector from a cell to its nearest road cell
+    dist_ego: np.ndarray  # m, from each cell to the driven path
+    occupied: np.ndarray  # bool, taken by something solid
+    density: np.ndarray  # [0, 1], urban density (tall, dense, close to the street when high)
+    park: np.ndarray  # bool
 
 
 def _smooth_noise(rng: np.random.Generator, raster: Raster, feature: float) -> np.ndarray:
@@ -380,7 +383,21 @@ def make_plan(rng, raster, ground, streets, junctions, build_area, driven_xy, do
     if downtown is not None:  # grid towns have a centre where it is densest
         cx, cy, spread = downtown
         X, Y = np.meshgrid(xs, ys, indexing="ij")
-        density = np.clip(0.55 * density + 0.65 * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * spread**2)) - 0.1, 0, 1)
+        density = np.clip(
+            0.55 * density + 0.65 * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * spread**2)) - 0.1, 0, 1
+        )
     park = (_smooth_noise(rng, raster, 90.0) > 0.8) & ~road
-    return Plan(raster, ground, streets, junctions, build_area & ~road, road, dist_road, road_dir, dist_ego,
-                 np.zeros(raster.shape, bool), density, park)
+    return Plan(
+        raster,
+        ground,
+        streets,
+        junctions,
+        build_area & ~road,
+        road,
+        dist_road,
+        road_dir,
+        dist_ego,
+        np.zeros(raster.shape, bool),
+        density,
+        park,
+    )

@@ -13,11 +13,20 @@ from .layout import Plan
 from .objects import Solids
 from .raster import HeightField
 
-
-_BOX_FACES = np.array([  # bottom 0-3, top 4-7; no bottom face (it sits on or in the ground)
-    [4, 5, 6], [4, 6, 7],
-    [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7],
-])
+_BOX_FACES = np.array(
+    [  # bottom 0-3, top 4-7; no bottom face (it sits on or in the ground)
+        [4, 5, 6],
+        [4, 6, 7],
+        [0, 1, 5],
+        [0, 5, 4],
+        [1, 2, 6],
+        [1, 6, 5],
+        [2, 3, 7],
+        [2, 7, 6],
+        [3, 0, 4],
+        [3, 4, 7],
+    ]
+)
 
 
 def _rect_corners(cx, cy, yaw, L, W):
@@ -76,10 +85,13 @@ def _cylinders_mesh(rows, sides=_CYLINDER_SIDES):
     V[:, sides:, 2] = z1[:, None]
     k = np.arange(sides)
     k1 = (k + 1) % sides
-    faces = np.concatenate([
-        np.stack([k, k1, k1 + sides], 1), np.stack([k, k1 + sides, k + sides], 1),
-        np.stack([np.full(sides - 2, sides), np.arange(1, sides - 1) + sides, np.arange(2, sides) + sides], 1),
-    ])
+    faces = np.concatenate(
+        [
+            np.stack([k, k1, k1 + sides], 1),
+            np.stack([k, k1 + sides, k + sides], 1),
+            np.stack([np.full(sides - 2, sides), np.arange(1, sides - 1) + sides, np.arange(2, sides) + sides], 1),
+        ]
+    )
     T = faces[None] + 2 * sides * np.arange(len(a))[:, None, None]
     return V.reshape(-1, 3), T.reshape(-1, 3), np.repeat(refl, len(faces))
 
@@ -104,7 +116,9 @@ def _blobs_mesh(rows, rng):
     local = np.where((shape == 0)[:, None], ell, np.where((shape == 1)[:, None], cone, box))
     local *= np.stack([rx, ry, rz], axis=1)
     c, s = np.cos(yaw), np.sin(yaw)
-    centre = np.stack([cx + local[:, 0] * c - local[:, 1] * s, cy + local[:, 0] * s + local[:, 1] * c, cz + local[:, 2]], 1)
+    centre = np.stack(
+        [cx + local[:, 0] * c - local[:, 1] * s, cy + local[:, 0] * s + local[:, 1] * c, cz + local[:, 2]], 1
+    )
     V = centre[:, None, :] + rng.standard_normal((m, 3, 3)) * (0.6 * leaf)[:, None, None]
     T = np.arange(3 * m).reshape(-1, 3)
     return V.reshape(-1, 3), T, refl * rng.uniform(0.8, 1.2, m)
@@ -190,8 +204,22 @@ def ground_parts(plan: Plan, rng) -> list[MeshPart]:
 
 
 # Intensity of each object material is set per object above; these only name the mesh parts.
-_PART_ORDER = ("building", "roof", "wall", "fence", "hedge", "trunk", "crown", "bush", "pole", "sign",
-               "car", "glass", "wheel", "marking")
+_PART_ORDER = (
+    "building",
+    "roof",
+    "wall",
+    "fence",
+    "hedge",
+    "trunk",
+    "crown",
+    "bush",
+    "pole",
+    "sign",
+    "car",
+    "glass",
+    "wheel",
+    "marking",
+)
 
 
 def object_parts(solids: Solids, ground: HeightField, rng) -> list[MeshPart]:
@@ -220,7 +248,7 @@ def object_parts(solids: Solids, ground: HeightField, rng) -> list[MeshPart]:
     return parts
 
 
-_STORES = ("boxes", "prisms", "cylinders", "blobs", "decals")   # the order object_parts meshes them in
+_STORES = ("boxes", "prisms", "cylinders", "blobs", "decals")  # the order object_parts meshes them in
 _TRIANGLES_PER_ROW = {"boxes": len(_BOX_FACES), "prisms": 6, "cylinders": 3 * _CYLINDER_SIDES - 2, "decals": 2}
 
 

@@ -18,7 +18,6 @@ from .constants import CELL, CURB, EGO_CLEARANCE, EGO_CLEARANCE_STATIC, JUNCTION
 from .layout import Plan
 from .raster import left_normal
 
-
 #: Objects of the mapped town that can plausibly move between two drives (a parked car drives
 #: off, a sign is put up elsewhere); bins are only ever added (see :mod:`.changes`).
 MOVABLE_KINDS = ("parked_car", "sign")
@@ -29,11 +28,11 @@ class Item:
     """One object the town's changes can move, remove or regrow, and the rows that draw it: each
     row is (store, material, index) into :class:`Solids` (e.g. ("boxes", "car", 12))."""
 
-    kind: str                 # "parked_car" | "sign" | "tree" | "bin"
+    kind: str  # "parked_car" | "sign" | "tree" | "bin"
     x: float
     y: float
     yaw: float = 0.0
-    length: float = 0.0       # m, footprint on the ground (0 for posts and trunks)
+    length: float = 0.0  # m, footprint on the ground (0 for posts and trunks)
     width: float = 0.0
     rows: list = field(default_factory=list)
 
@@ -42,13 +41,13 @@ class Solids:
     """Collects object parameters per material; meshes are made in bulk at the end."""
 
     def __init__(self):
-        self.boxes = defaultdict(list)     # material → (cx, cy, yaw, length, width, z0, z1, refl)
-        self.prisms = defaultdict(list)    # gable roofs: (cx, cy, yaw, length, width, z0, rise, refl)
+        self.boxes = defaultdict(list)  # material → (cx, cy, yaw, length, width, z0, z1, refl)
+        self.prisms = defaultdict(list)  # gable roofs: (cx, cy, yaw, length, width, z0, rise, refl)
         self.cylinders = defaultdict(list)  # (cx, cy, r, z0, z1, refl)
-        self.blobs = defaultdict(list)     # (cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl)
-        self.decals = defaultdict(list)    # flat quads on the ground: (cx, cy, yaw, length, width, refl)
+        self.blobs = defaultdict(list)  # (cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl)
+        self.decals = defaultdict(list)  # flat quads on the ground: (cx, cy, yaw, length, width, refl)
         self.counts = defaultdict(int)
-        self.items: list[Item] = []        # the objects that can change between drives
+        self.items: list[Item] = []  # the objects that can change between drives
 
     def add(self, store: str, material: str, row: tuple) -> tuple[str, str, int]:
         """Append ``row`` to ``store`` (boxes, cylinders, blobs …) under ``material``; returns its key."""
@@ -74,8 +73,15 @@ def _rect_free(plan: Plan, cx, cy, yaw, length, width, clearance=0.0):
     from the drive and from everything already placed (``clearance`` keeps a gap)."""
     x, y = _rect_points(cx, cy, yaw, length + 2 * clearance, width + 2 * clearance)
     i, j, ok = plan.raster.ij(x, y)
-    return bool(np.all(ok & plan.build_area[i, j] & ~plan.occupied[i, j]
-                       & (plan.dist_road[i, j] >= SIDEWALK_MIN) & (plan.dist_ego[i, j] >= 5.0)))
+    return bool(
+        np.all(
+            ok
+            & plan.build_area[i, j]
+            & ~plan.occupied[i, j]
+            & (plan.dist_road[i, j] >= SIDEWALK_MIN)
+            & (plan.dist_ego[i, j] >= 5.0)
+        )
+    )
 
 
 def _mark_rect(plan: Plan, cx, cy, yaw, length, width):
@@ -88,8 +94,14 @@ def _point_free(plan: Plan, x, y, radius, min_road=0.6):
     px = np.concatenate([[x], x + radius * np.cos(ang)])
     py = np.concatenate([[y], y + radius * np.sin(ang)])
     i, j, ok = plan.raster.ij(px, py)
-    return bool(np.all(ok & ~plan.occupied[i, j] & (plan.dist_road[i, j] >= min_road)
-                       & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)))
+    return bool(
+        np.all(
+            ok
+            & ~plan.occupied[i, j]
+            & (plan.dist_road[i, j] >= min_road)
+            & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)
+        )
+    )
 
 
 def _mark_point(plan: Plan, x, y, radius):
@@ -112,13 +124,32 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, densi
     c, s = math.cos(yaw), math.sin(yaw)
     if height < 10.0 and rng.random() < 0.6:
         along = length >= width
-        solids.prisms["roof"].append((cx, cy, yaw if along else yaw + np.pi / 2, max(length, width), min(length, width),
-                                      top_ground + height, rng.uniform(1.2, 3.0), float(rng.uniform(0.1, 0.4))))
+        solids.prisms["roof"].append(
+            (
+                cx,
+                cy,
+                yaw if along else yaw + np.pi / 2,
+                max(length, width),
+                min(length, width),
+                top_ground + height,
+                rng.uniform(1.2, 3.0),
+                float(rng.uniform(0.1, 0.4)),
+            )
+        )
     elif height > 12.0 and rng.random() < 0.5:
         ux, uy = rng.uniform(-0.3, 0.3) * length, rng.uniform(-0.3, 0.3) * width
-        solids.boxes["building"].append((cx + ux * c - uy * s, cy + ux * s + uy * c, yaw, rng.uniform(2.5, 5.0),
-                                         rng.uniform(2.5, 5.0), top_ground + height - 0.5,
-                                         top_ground + height + rng.uniform(2.0, 3.5), refl))
+        solids.boxes["building"].append(
+            (
+                cx + ux * c - uy * s,
+                cy + ux * s + uy * c,
+                yaw,
+                rng.uniform(2.5, 5.0),
+                rng.uniform(2.5, 5.0),
+                top_ground + height - 0.5,
+                top_ground + height + rng.uniform(2.0, 3.5),
+                refl,
+            )
+        )
     solids.counts["buildings"] += 1
     if rng.random() < 0.35:
         # Annex behind or beside the main block: L- and T-shaped footprints.
@@ -128,8 +159,9 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, densi
         uy = width / 2 + aw / 2 - 0.3  # behind: local +v points away from the street (see populate)
         ax, ay = cx + ux * c - uy * s, cy + ux * s + uy * c
         if _rect_free(plan, ax, ay, yaw, al, aw - 0.6):
-            solids.boxes["building"].append((ax, ay, yaw, al, aw, base,
-                                             top_ground + max(3.0, height * rng.uniform(0.3, 1.3)), refl))
+            solids.boxes["building"].append(
+                (ax, ay, yaw, al, aw, base, top_ground + max(3.0, height * rng.uniform(0.3, 1.3)), refl)
+            )
             _mark_rect(plan, ax, ay, yaw, al, aw)
     _mark_rect(plan, cx, cy, yaw, length, width)
 
@@ -155,13 +187,15 @@ def _fence_line(plan: Plan, solids: Solids, rng, p0, p1, kind):
         gz = ground(np.array([a[0], mid[0], b[0]]), np.array([a[1], mid[1], b[1]]))
         if kind == "wall":
             h = rng.uniform(0.8, 2.2)
-            solids.boxes["wall"].append((mid[0], mid[1], yaw, seg, 0.25, gz.min() - 0.3, gz.max() + CURB + h,
-                                         float(rng.uniform(0.3, 0.55))))
+            solids.boxes["wall"].append(
+                (mid[0], mid[1], yaw, seg, 0.25, gz.min() - 0.3, gz.max() + CURB + h, float(rng.uniform(0.3, 0.55)))
+            )
         elif kind == "hedge":
             h = rng.uniform(1.0, 2.0)
             n = int(seg * h * 14)
-            solids.blobs["hedge"].append((mid[0], mid[1], gz.mean() + CURB + h / 2, seg / 2, 0.45, h / 2, yaw,
-                                          n, 0.3, 2, 0.5))
+            solids.blobs["hedge"].append(
+                (mid[0], mid[1], gz.mean() + CURB + h / 2, seg / 2, 0.45, h / 2, yaw, n, 0.3, 2, 0.5)
+            )
         else:  # fence: posts every 2.5 m and two rails; rays pass between them
             h = rng.uniform(1.0, 1.8)
             n_posts = int(seg / 2.5) + 1
@@ -186,15 +220,33 @@ def _tree(plan: Plan, solids: Solids, rng, x, y, scale=1.0):
         crown_base = ground_z + rng.uniform(0.8, 2.0)
         trunk_top = crown_base + crown_h * 0.6
         n = int(np.clip(crown_r * crown_h * 12, 80, 450))
-        crown = solids.add("blobs", "crown", (x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1,
-                                              float(rng.uniform(0.4, 0.6))))
+        crown = solids.add(
+            "blobs",
+            "crown",
+            (x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1, float(rng.uniform(0.4, 0.6))),
+        )
     else:
         crown_r = rng.uniform(1.5, 4.0) * scale
         crown_v = crown_r * rng.uniform(0.7, 1.2)
         trunk_top = ground_z + rng.uniform(2.2, 4.0) * scale
         n = int(np.clip(crown_r * crown_v * 22, 80, 450))
-        crown = solids.add("blobs", "crown", (x, y, trunk_top + crown_v * 0.7, crown_r, crown_r * rng.uniform(0.8, 1.2),
-                                              crown_v, rng.uniform(0, np.pi), n, 0.45, 0, float(rng.uniform(0.45, 0.7))))
+        crown = solids.add(
+            "blobs",
+            "crown",
+            (
+                x,
+                y,
+                trunk_top + crown_v * 0.7,
+                crown_r,
+                crown_r * rng.uniform(0.8, 1.2),
+                crown_v,
+                rng.uniform(0, np.pi),
+                n,
+                0.45,
+                0,
+                float(rng.uniform(0.45, 0.7)),
+            ),
+        )
     trunk = solids.add("cylinders", "trunk", (x, y, trunk_r, ground_z - 0.3, trunk_top, float(rng.uniform(0.25, 0.4))))
     solids.items.append(Item("tree", x, y, rows=[trunk, crown]))
     _mark_point(plan, x, y, max(trunk_r, 0.6))
@@ -208,10 +260,12 @@ def _pole(plan: Plan, solids: Solids, rng, x, y, toward_road, kind):
         h = rng.uniform(7.0, 9.0)
         solids.cylinders["pole"].append((x, y, 0.1, z - 0.3, z + h, 0.5))
         arm = 1.8
-        solids.boxes["pole"].append((x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15,
-                                     z + h - 0.25, z + h, 0.5))
-        solids.boxes["pole"].append((x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.7, 0.3,
-                                     z + h - 0.4, z + h - 0.1, 0.6))
+        solids.boxes["pole"].append(
+            (x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15, z + h - 0.25, z + h, 0.5)
+        )
+        solids.boxes["pole"].append(
+            (x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.7, 0.3, z + h - 0.4, z + h - 0.1, 0.6)
+        )
     elif kind == "utility":
         h = rng.uniform(9.0, 11.0)
         solids.cylinders["pole"].append((x, y, 0.14, z - 0.3, z + h, 0.35))
@@ -220,10 +274,12 @@ def _pole(plan: Plan, solids: Solids, rng, x, y, toward_road, kind):
         h = rng.uniform(5.0, 6.0)
         solids.cylinders["pole"].append((x, y, 0.12, z - 0.3, z + h, 0.5))
         arm = rng.uniform(3.0, 5.0)
-        solids.boxes["pole"].append((x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15,
-                                     z + h - 0.2, z + h, 0.5))
-        solids.boxes["sign"].append((x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.35, 0.35,
-                                     z + h - 1.1, z + h, 0.3))
+        solids.boxes["pole"].append(
+            (x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15, z + h - 0.2, z + h, 0.5)
+        )
+        solids.boxes["sign"].append(
+            (x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.35, 0.35, z + h - 1.1, z + h, 0.3)
+        )
     else:  # sign: thin post with a retro-reflective plate facing the road
         h = rng.uniform(2.2, 3.0)
         post = solids.add("cylinders", "pole", (x, y, 0.04, z - 0.3, z + h, 0.5))
@@ -246,21 +302,39 @@ def _parked_car(plan: Plan, solids: Solids, rng, x, y, yaw):
     rows = [solids.add("boxes", "car", (x, y, yaw, length, width, z + 0.3, z + 0.3 + body_h, refl))]
     if cabin_h > 0:
         back = -0.15 * length
-        rows.append(solids.add("boxes", "glass", (x + back * c, y + back * s, yaw, 0.55 * length, width - 0.15,
-                                                  z + 0.3 + body_h, z + 0.3 + body_h + cabin_h, 0.08)))
+        rows.append(
+            solids.add(
+                "boxes",
+                "glass",
+                (
+                    x + back * c,
+                    y + back * s,
+                    yaw,
+                    0.55 * length,
+                    width - 0.15,
+                    z + 0.3 + body_h,
+                    z + 0.3 + body_h + cabin_h,
+                    0.08,
+                ),
+            )
+        )
     for u in (-1, 1):
         for v in (-1, 1):
             ux, uy = u * (length / 2 - 0.85), v * (width / 2 - 0.12)
-            rows.append(solids.add("boxes", "wheel", (x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22,
-                                                      z, z + 0.62, 0.05)))
+            rows.append(
+                solids.add(
+                    "boxes", "wheel", (x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22, z, z + 0.62, 0.05)
+                )
+            )
     solids.items.append(Item("parked_car", x, y, yaw, length, width, rows))
     solids.counts["parked_cars"] += 1
 
 
 def footprint(item: Item) -> tuple[np.ndarray, np.ndarray]:
     """Corner x and y of an item's footprint (its post or trunk for point-like items)."""
-    return _rect_points(item.x, item.y, item.yaw, max(item.length, 1e-3), max(item.width, 1e-3),
-                        step=max(item.length, item.width, 1e-3))
+    return _rect_points(
+        item.x, item.y, item.yaw, max(item.length, 1e-3), max(item.width, 1e-3), step=max(item.length, item.width, 1e-3)
+    )
 
 
 def car_spot_free(plan: Plan, x, y, yaw) -> bool:
@@ -395,8 +469,7 @@ def populate(plan: Plan, rng) -> Solids:
                     q = jp + dist * np.array([math.cos(ang), math.sin(ang)])
                     i, j, ok = raster.ij(q[0], q[1])
                     if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-                        _pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j],
-                              "traffic_light" if lights else "sign")
+                        _pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j], "traffic_light" if lights else "sign")
                         break
 
     # Parked cars in the parking lanes; right curb faces the street's direction, left curb against.
@@ -454,8 +527,21 @@ def populate(plan: Plan, rng) -> Solids:
                 if _point_free(plan, x, y, 0.8, min_road=1.5):
                     gz = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
                     r = rng.uniform(0.5, 1.3)
-                    solids.blobs["bush"].append((x, y, gz + r * 0.6, r, r, r * 0.7, 0.0, int(40 * r * r + 20), 0.3, 0,
-                                                 float(rng.uniform(0.4, 0.6))))
+                    solids.blobs["bush"].append(
+                        (
+                            x,
+                            y,
+                            gz + r * 0.6,
+                            r,
+                            r,
+                            r * 0.7,
+                            0.0,
+                            int(40 * r * r + 20),
+                            0.3,
+                            0,
+                            float(rng.uniform(0.4, 0.6)),
+                        )
+                    )
                     _mark_point(plan, x, y, r * 0.8)
                     solids.counts["bushes"] += 1
             elif _point_free(plan, x, y, 1.2, min_road=1.5):

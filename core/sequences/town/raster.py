@@ -22,7 +22,7 @@ class Raster:
     cell: float = CELL
 
     @classmethod
-    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float) -> "Raster":
+    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float) -> Raster:
         quantum = CELL * BLOCK_CELLS  # whole ground blocks, so block reshapes are exact
         x0 = math.floor(xmin / quantum) * quantum
         y0 = math.floor(ymin / quantum) * quantum
@@ -78,8 +78,7 @@ class HeightField:
         j = v.astype(np.int64)
         fu, fv = u - i, v - j
         z = self.z
-        return ((z[i, j] * (1 - fu) + z[i + 1, j] * fu) * (1 - fv)
-                + (z[i, j + 1] * (1 - fu) + z[i + 1, j + 1] * fu) * fv)
+        return (z[i, j] * (1 - fu) + z[i + 1, j] * fu) * (1 - fv) + (z[i, j + 1] * (1 - fu) + z[i + 1, j + 1] * fu) * fv
 
 
 def left_normal(t: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from .constants import LANE_OFFSET, ROUTE2_STREAM, SWAY2_STREAM
 from .drive import choose_next_node, grid_drive
 from .world import Town, drive_poses
 
+
 def second_route(town: Town) -> tuple[np.ndarray, np.ndarray]:
     """(poses (n, 4, 4) in the town frame, times (n,) from 0) of the town's second drive."""
     rng = np.random.default_rng([town.seed, *ROUTE2_STREAM])
@@ -89,7 +90,7 @@ def _walk_on_mapped_streets(town: Town):
             on_map = [m for m in options if frozenset((here, m)) in mapped]
             if on_loop or on_map:
                 options = on_loop or on_map
-            else:   # a detour: the shortest way back onto the mapped streets
+            else:  # a detour: the shortest way back onto the mapped streets
                 nearest = min(hops[m] for m in options)
                 options = [m for m in options if hops[m] == nearest]
             nxt = choose_next_node(rng, grid, prev, here, options)

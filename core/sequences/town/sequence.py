@@ -41,24 +41,38 @@ class TownSequence(Sequence):
     town has the same world frame: the mapping drive's first LiDAR pose.
     """
 
-    def __init__(self, seed: int = 0, size: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
-                 trajectory: str | Path | None = None, calib: str | Path | None = None,
-                 lidar: LidarModel | None = None, *, changes: float = 0.0, traffic: bool = False,
-                 sensor: str = "hdl64e", mount_height: float = SENSOR_HEIGHT, skew: bool = False, route: int = 1):
+    def __init__(
+        self,
+        seed: int = 0,
+        size: float = 400.0,
+        n_scans: int = 1200,
+        rate_hz: float = 10.0,
+        trajectory: str | Path | None = None,
+        calib: str | Path | None = None,
+        lidar: LidarModel | None = None,
+        *,
+        changes: float = 0.0,
+        traffic: bool = False,
+        sensor: str = "hdl64e",
+        mount_height: float = SENSOR_HEIGHT,
+        skew: bool = False,
+        route: int = 1,
+    ):
         t_start = time.perf_counter()
-        options = _check_options(dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height,
-                                      skew=skew, route=route))
+        options = _check_options(
+            dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height, skew=skew, route=route)
+        )
         self._setup(Town(seed, size, n_scans, rate_hz, trajectory, calib, lidar), options)
         self.lidar.build()
         self.stats["build_seconds"] = time.perf_counter() - t_start
 
     @classmethod
-    def _of_town(cls, town: Town, options: dict) -> "TownSequence":
+    def _of_town(cls, town: Town, options: dict) -> TownSequence:
         seq = cls.__new__(cls)
         seq._setup(town, options)
         return seq
 
-    def with_world(self, **options) -> "TownSequence":
+    def with_world(self, **options) -> TownSequence:
         """Another drive through this same town (no new layout): this drive's world options
         with ``options`` (changes, traffic, sensor, mount_height, skew, route) replaced."""
         unknown = set(options) - set(MAPPING_OPTIONS)
@@ -68,7 +82,7 @@ class TownSequence(Sequence):
             raise DataError("town: a copied town cannot add changes or traffic; build it anew")
         seq = TownSequence._of_town(self.town, _check_options(dict(self.options, **options)))
         if not seq.is_mapping_drive:
-            seq.__dict__["_mapping_drive"] = self.map_source   # one mapping drive per town
+            seq.__dict__["_mapping_drive"] = self.map_source  # one mapping drive per town
         seq.lidar.build()
         return seq
 
@@ -101,7 +115,7 @@ class TownSequence(Sequence):
 
             poses_town, times = second_route(town)
         lift = options["mount_height"] - SENSOR_HEIGHT
-        if lift != 0.0:   # the sensor higher or lower on the same car, along the car's up axis
+        if lift != 0.0:  # the sensor higher or lower on the same car, along the car's up axis
             poses_town = poses_town.copy()
             poses_town[:, :3, 3] += lift * poses_town[:, :3, 2]
         self.poses_town = poses_town
@@ -119,21 +133,32 @@ class TownSequence(Sequence):
             self._traffic = Traffic(town, poses_town, times)
 
     @classmethod
-    def from_config(cls, cfg: TownConfig, seed: int | None = None, trajectory: Path | None = None,
-                    calib: Path | None = None) -> "TownSequence":
+    def from_config(
+        cls, cfg: TownConfig, seed: int | None = None, trajectory: Path | None = None, calib: Path | None = None
+    ) -> TownSequence:
         """The town of ``cfg`` (``seed`` overrides ``cfg.seed``), optionally along a trajectory,
         driven with ``cfg``'s world options."""
-        return cls(seed=cfg.seed if seed is None else seed, size=cfg.size, n_scans=cfg.n_scans,
-                   rate_hz=cfg.rate_hz, trajectory=trajectory, calib=calib, changes=cfg.changes,
-                   traffic=cfg.traffic, sensor=cfg.sensor, mount_height=cfg.mount_height, skew=cfg.skew,
-                   route=cfg.route)
+        return cls(
+            seed=cfg.seed if seed is None else seed,
+            size=cfg.size,
+            n_scans=cfg.n_scans,
+            rate_hz=cfg.rate_hz,
+            trajectory=trajectory,
+            calib=calib,
+            changes=cfg.changes,
+            traffic=cfg.traffic,
+            sensor=cfg.sensor,
+            mount_height=cfg.mount_height,
+            skew=cfg.skew,
+            route=cfg.route,
+        )
 
     def world_options(self) -> dict:
         """The world options of this drive (changes, traffic, sensor, mount_height, skew, route)."""
         return dict(self.options)
 
     @functools.cached_property
-    def _mapping_drive(self) -> "TownSequence":
+    def _mapping_drive(self) -> TownSequence:
         return TownSequence._of_town(self.town, dict(MAPPING_OPTIONS))
 
     @property
@@ -152,15 +177,17 @@ class TownSequence(Sequence):
         sweep = None
         if self.options["skew"]:
             t_i = float(self._times[i])
-            sweep = Sweep(1.0 / self.rate_hz, lambda offsets: interpolate_poses(self._times, self.poses_town,
-                                                                                t_i + offsets))
+            sweep = Sweep(
+                1.0 / self.rate_hz, lambda offsets: interpolate_poses(self._times, self.poses_town, t_i + offsets)
+            )
         moving = None
         if self._traffic is not None:
-            moving = self._traffic.movers_at(float(self._times[i]), self.poses_town[i, :2, 3],
-                                            self.lidar.model.max_range + 5.0)
+            moving = self._traffic.movers_at(
+                float(self._times[i]), self.poses_town[i, :2, 3], self.lidar.model.max_range + 5.0
+            )
         return self.lidar.scan(self.poses_town[i], rng, sweep=sweep, moving=moving)
 
-    def _describe_scan(self, i: int) -> str:
+    def describe_scan(self, i: int) -> str:
         return f"town seed {self.seed} scan {i}"
 
     @property
@@ -196,15 +223,18 @@ class TownSequence(Sequence):
         z0, z1, reflectivity), as scanned; empty without traffic."""
         if self._traffic is None:
             return np.zeros((0, 8))
-        return self._traffic.boxes_at(float(self._times[i]), self.poses_town[i, :2, 3],
-                                      self.lidar.model.max_range + 5.0)
+        return self._traffic.boxes_at(
+            float(self._times[i]), self.poses_town[i, :2, 3], self.lidar.model.max_range + 5.0
+        )
 
     def world_mesh(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
         """The triangles this drive scans (the changed town, without traffic) in the world
         frame: [(material, vertices (V, 3) float32, triangles (T, 3) uint32)], for display."""
         R, t = self.town_to_world[:3, :3], self.town_to_world[:3, 3]
-        return [(p.name, (p.vertices.astype(np.float64) @ R.T + t).astype(np.float32), p.triangles)
-                for p in self.lidar.parts]
+        return [
+            (p.name, (p.vertices.astype(np.float64) @ R.T + t).astype(np.float32), p.triangles)
+            for p in self.lidar.parts
+        ]
 
     @functools.cached_property
     def extent(self) -> np.ndarray:
@@ -237,5 +267,11 @@ def _check_options(options: dict) -> dict:
         raise DataError(f"town: mount_height must be in 0.3..5 m, got {mount:g}")
     if options["route"] not in (1, 2):
         raise DataError(f"town: route must be 1 or 2, got {options['route']!r}")
-    return dict(changes=changes, traffic=bool(options["traffic"]), sensor=str(options["sensor"]),
-                mount_height=mount, skew=bool(options["skew"]), route=int(options["route"]))
+    return dict(
+        changes=changes,
+        traffic=bool(options["traffic"]),
+        sensor=str(options["sensor"]),
+        mount_height=mount,
+        skew=bool(options["skew"]),
+        route=int(options["route"]),
+    )

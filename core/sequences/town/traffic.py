@@ -38,9 +38,9 @@ from .world import Town
 
 CAR, CYCLIST, PEDESTRIAN, LEADER = 0, 1, 2, 3
 KIND_NAMES = ("car", "cyclist", "pedestrian", "leader")
-_KEEP_OUT = np.array([5.0, 2.0, 2.0, 0.0])     # m from the drive's sensor, per kind
-LEADER_HEADWAY = 1.5                           # s
-LEADER_GAP = 8.0                               # m, centre to centre
+_KEEP_OUT = np.array([5.0, 2.0, 2.0, 0.0])  # m from the drive's sensor, per kind
+LEADER_HEADWAY = 1.5  # s
+LEADER_GAP = 8.0  # m, centre to centre
 
 
 def _offset_polyline(points: np.ndarray, offset: float) -> np.ndarray:
@@ -98,7 +98,7 @@ class Traffic:
                 return
             p = len(polylines)
             polylines.append(points)
-            P = cum[-1] + rng.uniform(30.0, 80.0)              # the unseen stretch before it starts over
+            P = cum[-1] + rng.uniform(30.0, 80.0)  # the unseen stretch before it starts over
             u = rng.uniform(0.0, spacing[1])
             v_path = rng.uniform(*speeds)
             while u < P:
@@ -131,7 +131,7 @@ class Traffic:
                 lane_pts = _offset_polyline(points, lane)
                 if not drives_it(lane_pts):
                     add_path(lane_pts, CAR, (20.0, 150.0), (8.0, 13.0), True)
-                if bike - 0.3 >= lane + 0.95 + 0.4:               # room beside a car in the lane
+                if bike - 0.3 >= lane + 0.95 + 0.4:  # room beside a car in the lane
                     add_path(_offset_polyline(points, bike), CYCLIST, (150.0, 400.0), (3.5, 6.0), True)
                 add_path(_offset_polyline(points, walk), PEDESTRIAN, (60.0, 150.0), (1.0, 1.6), False)
 
@@ -156,9 +156,16 @@ class Traffic:
         keep = np.concatenate([[True], step > 1e-3])
         self.ego_path_s, self.ego_path_xy = self.ego_s[keep], ego_xy[keep]
         self.ego_times = np.asarray(times, float)
-        self.leader_windows = self._leader_windows(rng, town.plan.junctions if town.plan is not None else np.zeros((0, 2)))
-        self.leader_size = (rng.uniform(4.2, 4.8), rng.uniform(1.75, 1.9), rng.uniform(0.7, 0.85), 0.55,
-                            rng.uniform(0.1, 0.75))
+        self.leader_windows = self._leader_windows(
+            rng, town.plan.junctions if town.plan is not None else np.zeros((0, 2))
+        )
+        self.leader_size = (
+            rng.uniform(4.2, 4.8),
+            rng.uniform(1.75, 1.9),
+            rng.uniform(0.7, 0.85),
+            0.55,
+            rng.uniform(0.1, 0.75),
+        )
 
     # ----------------------------------------------------------------------------- the leader
     def _leader_s(self, t):
@@ -249,13 +256,26 @@ class Traffic:
             x = xy[mask, 0] + du * c[mask] - dv * s[mask]
             y = xy[mask, 1] + du * s[mask] + dv * c[mask]
             n = int(mask.sum())
-            rows.append(np.stack([x, y, yaw[mask], np.broadcast_to(length, n), np.broadcast_to(width, n),
-                                  z0, z1, np.broadcast_to(r, n)], axis=1))
+            rows.append(
+                np.stack(
+                    [
+                        x,
+                        y,
+                        yaw[mask],
+                        np.broadcast_to(length, n),
+                        np.broadcast_to(width, n),
+                        z0,
+                        z1,
+                        np.broadcast_to(r, n),
+                    ],
+                    axis=1,
+                )
+            )
 
         car = (kind == CAR) | is_leader
         if np.any(car):
             zc, Lc, Wc, bc, cc = z[car], L[car], W[car], bh[car], ch[car]
-            box(car, 0.0, 0.0, Lc, Wc, zc + 0.3, zc + 0.3 + bc, refl[car])                    # body
+            box(car, 0.0, 0.0, Lc, Wc, zc + 0.3, zc + 0.3 + bc, refl[car])  # body
             box(car, -0.15 * Lc, 0.0, 0.55 * Lc, Wc - 0.15, zc + 0.3 + bc, zc + 0.3 + bc + cc, 0.08)  # cabin
             for u in (-1, 1):
                 for v in (-1, 1):
@@ -263,14 +283,14 @@ class Traffic:
         bike = kind == CYCLIST
         if np.any(bike):
             zb, hb = z[bike], h[bike]
-            box(bike, 0.0, 0.0, 1.7, 0.12, zb + 0.05, zb + 1.0, 0.35)                           # bicycle
-            box(bike, -0.1, 0.0, 0.55, 0.45, zb + 1.0, zb + 1.75 * hb, refl[bike])              # rider
+            box(bike, 0.0, 0.0, 1.7, 0.12, zb + 0.05, zb + 1.0, 0.35)  # bicycle
+            box(bike, -0.1, 0.0, 0.55, 0.45, zb + 1.0, zb + 1.75 * hb, refl[bike])  # rider
         walker = kind == PEDESTRIAN
         if np.any(walker):
             zp, hp, rp = z[walker], h[walker], refl[walker]
-            box(walker, 0.0, 0.0, 0.3, 0.4, zp, zp + 0.85 * hp, rp)                            # legs
-            box(walker, 0.0, 0.0, 0.3, 0.5, zp + 0.85 * hp, zp + 1.45 * hp, rp)                # torso
-            box(walker, 0.0, 0.0, 0.22, 0.2, zp + 1.45 * hp, zp + 1.72 * hp, 0.3)              # head
+            box(walker, 0.0, 0.0, 0.3, 0.4, zp, zp + 0.85 * hp, rp)  # legs
+            box(walker, 0.0, 0.0, 0.3, 0.5, zp + 0.85 * hp, zp + 1.45 * hp, rp)  # torso
+            box(walker, 0.0, 0.0, 0.22, 0.2, zp + 1.45 * hp, zp + 1.72 * hp, 0.3)  # head
         return np.concatenate(rows) if rows else np.zeros((0, 8))
 
     def movers_at(self, t: float, sensor_xy, reach: float) -> Movers | None:
@@ -278,5 +298,6 @@ class Traffic:
         rows = self.boxes_at(t, sensor_xy, reach)
         if not len(rows):
             return None
-        return Movers([boxes_part("traffic", rows)], rows[:, :2], 0.5 * np.hypot(rows[:, 3], rows[:, 4]),
-                      rows[:, 5], rows[:, 6])
+        return Movers(
+            [boxes_part("traffic", rows)], rows[:, :2], 0.5 * np.hypot(rows[:, 3], rows[:, 4]), rows[:, 5], rows[:, 6]
+        )

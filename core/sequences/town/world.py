@@ -42,9 +42,16 @@ class Town:
     ``grid`` and ``route_edges`` (grid mode) and ``stats``.
     """
 
-    def __init__(self, seed: int = 0, size: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
-                 trajectory: str | Path | None = None, calib: str | Path | None = None,
-                 lidar: LidarModel | None = None):
+    def __init__(
+        self,
+        seed: int = 0,
+        size: float = 400.0,
+        n_scans: int = 1200,
+        rate_hz: float = 10.0,
+        trajectory: str | Path | None = None,
+        calib: str | Path | None = None,
+        lidar: LidarModel | None = None,
+    ):
         t_start = time.perf_counter()
         self.seed = int(seed)
         self.size = float(size)
@@ -91,16 +98,25 @@ class Town:
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        state["plan"] = None   # ~50 MB of rasters, only needed to place changes and traffic
+        state["plan"] = None  # ~50 MB of rasters, only needed to place changes and traffic
         return state
 
     def identity(self) -> str:
         """The mapping drive's identity (keys the prior-map cache)."""
-        parts = [f"town|v{TOWN_VERSION}", f"seed={self.seed}", f"size={self.size:g}", f"n_scans={self.n_scans}",
-                 f"rate={self.rate_hz:g}", f"lidar={self.lidar.model}"]
+        parts = [
+            f"town|v{TOWN_VERSION}",
+            f"seed={self.seed}",
+            f"size={self.size:g}",
+            f"n_scans={self.n_scans}",
+            f"rate={self.rate_hz:g}",
+            f"lidar={self.lidar.model}",
+        ]
         if self.trajectory is not None:
-            parts += [f"trajectory={self.trajectory.resolve()}#{_file_digest(self.trajectory)}",
-                      f"calib={self.calib.resolve()}#{_file_digest(self.calib)}", f"times={self._times_source}"]
+            parts += [
+                f"trajectory={self.trajectory.resolve()}#{_file_digest(self.trajectory)}",
+                f"calib={self.calib.resolve()}#{_file_digest(self.calib)}",
+                f"times={self._times_source}",
+            ]
         return "|".join(parts)
 
     # -------------------------------------------------------------- construction
@@ -158,15 +174,20 @@ class Town:
         # Sensor height above the ground minus SENSOR_HEIGHT: ≈ 0, > 0 where the drive's own
         # heights disagree between passes (see heights_from_track), < 0 would be a sunken car.
         residual = samples[:, 2] - ground(samples[:, 0], samples[:, 1])
-        self.stats.update(ground_residual_median=float(np.median(np.abs(residual))),
-                          ground_residual_min=float(residual.min()), ground_residual_max=float(residual.max()))
+        self.stats.update(
+            ground_residual_median=float(np.median(np.abs(residual))),
+            ground_residual_min=float(residual.min()),
+            ground_residual_max=float(residual.max()),
+        )
         return poses, times, plan
 
     def _trajectory_times(self, n):
         """Timestamps from the times file beside the poses (``…/times/SS.txt`` as in
         kitti_odometry_poses, or ``sequences/SS/times.txt``), else ``rate_hz``."""
-        candidates = [self.trajectory.parent.parent / "times" / self.trajectory.name,
-                      self.trajectory.parent.parent / "sequences" / self.trajectory.stem / "times.txt"]
+        candidates = [
+            self.trajectory.parent.parent / "times" / self.trajectory.name,
+            self.trajectory.parent.parent / "sequences" / self.trajectory.stem / "times.txt",
+        ]
         for path in candidates:
             if path.is_file():
                 try:
@@ -187,5 +208,5 @@ def drive_poses(drive, ground: HeightField, sway_rng: np.random.Generator) -> np
     poses = vehicle_poses(x, y, drive.yaw, ground)
     speed = np.hypot(np.gradient(x, times), np.gradient(y, times)) if len(times) > 1 else np.zeros(1)
     pitch, roll = body_sway(sway_rng, times, speed)
-    poses[:, :3, :3] = poses[:, :3, :3] @ rotation_zyx(0.0, pitch, roll)   # about the sensor
+    poses[:, :3, :3] = poses[:, :3, :3] @ rotation_zyx(0.0, pitch, roll)  # about the sensor
     return poses

@@ -153,11 +153,11 @@ class ParticleInspector:
         gui.add_markdown(f"<small>{HELP}</small>")
 
     @property
-    @property
     def marker(self):
         """Its scene handle, or None while nothing is drawn."""
         return self._marker
 
+    @property
     def selected(self) -> bool:
         return self.state is not None
 

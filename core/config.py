@@ -225,7 +225,7 @@ class TownConfig:
     below change only the world and the sensor of the drive being localized."""
 
     seed: int = 0
-    size: float = 400.0                # m, side of the square town
+    extent_m: float = 400.0            # m, side of the square town (a city of districts from 1000 m)
     n_scans: int = 1200                # scans in the default drive (10 Hz)
     rate_hz: float = 10.0
     changes: float = 0.0               # share of movable objects (parked cars, bins, signs) moved,
@@ -300,7 +300,7 @@ class Config:
              "localize.recorded_odometry needs the replay clock (real time must pay for its odometry)"),
             (self.localize.tracking_region > 0, "localize.tracking_region must be > 0"),
             (self.town.n_scans >= 1, "town.n_scans must be ≥ 1"),
-            (self.town.size >= 100, "town.size must be ≥ 100 m"),
+            (self.town.extent_m >= 100, "town.extent_m must be ≥ 100 m"),
         ]
         for ok, message in checks:
             if not ok:

@@ -281,7 +281,7 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -
 
     times = np.arange(n_scans) / rate_hz
     if times[-1] > arrive[-1]:
-        raise DataError("town: the planned route is shorter than the drive (increase the town size)")
+        raise DataError("town: the planned route is shorter than the drive (increase town.extent_m)")
     s_scan = _arc_length_at(times, path.s, v, arrive, depart)
     x = np.interp(s_scan, path.s, path.xy[:, 0])
     y = np.interp(s_scan, path.s, path.xy[:, 1])

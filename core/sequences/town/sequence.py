@@ -25,10 +25,10 @@ MAPPING_OPTIONS = dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height
 class TownSequence(Sequence):
     """A generated town and a drive through it, scanned on demand by a simulated LiDAR.
 
-    ``TownSequence(seed)`` lays out a ``size`` × ``size`` m grid town and drives ``n_scans`` scans
+    ``TownSequence(seed)`` lays out an ``extent_m`` × ``extent_m`` m grid town and drives ``n_scans`` scans
     at ``rate_hz``; with ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib``
     (its calib with the ``Tr:`` line), the drive is that trajectory and the town is grown around
-    it (one scan per pose; ``size`` and ``n_scans`` are then ignored).
+    it (one scan per pose; ``extent_m`` and ``n_scans`` are then ignored).
 
     The world options describe the drive being localized (see :class:`~lidarloc.core.config.TownConfig`):
     ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
@@ -41,14 +41,14 @@ class TownSequence(Sequence):
     town has the same world frame: the mapping drive's first LiDAR pose.
     """
 
-    def __init__(self, seed: int = 0, size: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
+    def __init__(self, seed: int = 0, extent_m: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
                  trajectory: str | Path | None = None, calib: str | Path | None = None,
                  lidar: LidarModel | None = None, *, changes: float = 0.0, traffic: bool = False,
                  sensor: str = "hdl64e", mount_height: float = SENSOR_HEIGHT, skew: bool = False, route: int = 1):
         t_start = time.perf_counter()
         options = _check_options(dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height,
                                       skew=skew, route=route))
-        self._setup(Town(seed, size, n_scans, rate_hz, trajectory, calib, lidar), options)
+        self._setup(Town(seed, extent_m, n_scans, rate_hz, trajectory, calib, lidar), options)
         self.lidar.build()
         self.stats["build_seconds"] = time.perf_counter() - t_start
 
@@ -75,7 +75,7 @@ class TownSequence(Sequence):
     def _setup(self, town: Town, options: dict) -> None:
         self.town = town
         self.options = options
-        self.seed, self.size, self.rate_hz = town.seed, town.size, town.rate_hz
+        self.seed, self.extent_m, self.rate_hz = town.seed, town.extent_m, town.rate_hz
         self.trajectory, self.calib, self.name = town.trajectory, town.calib, town.name
         self.ground, self.raster, self.road, self.streets = town.ground, town.raster, town.road, town.streets
         self.town_to_world = town.town_to_world
@@ -123,7 +123,7 @@ class TownSequence(Sequence):
                     calib: Path | None = None) -> "TownSequence":
         """The town of ``cfg`` (``seed`` overrides ``cfg.seed``), optionally along a trajectory,
         driven with ``cfg``'s world options."""
-        return cls(seed=cfg.seed if seed is None else seed, size=cfg.size, n_scans=cfg.n_scans,
+        return cls(seed=cfg.seed if seed is None else seed, extent_m=cfg.extent_m, n_scans=cfg.n_scans,
                    rate_hz=cfg.rate_hz, trajectory=trajectory, calib=calib, changes=cfg.changes,
                    traffic=cfg.traffic, sensor=cfg.sensor, mount_height=cfg.mount_height, skew=cfg.skew,
                    route=cfg.route)

@@ -30,7 +30,7 @@ def _file_digest(path: Path) -> str:
 class Town:
     """A generated town and its mapping drive.
 
-    Grid mode (no ``trajectory``): a ``size`` × ``size`` m street grid and a drive of
+    Grid mode (no ``trajectory``): an ``extent_m`` × ``extent_m`` m street grid and a drive of
     ``n_scans`` scans at ``rate_hz``. Trajectory mode: the drive is a KITTI odometry poses file
     (cam0 poses, converted to LiDAR poses with ``calib``'s Tr), one scan per pose, and the town is
     grown around it. ``lidar`` is the mapping drive's sensor (HDL-64E by default).
@@ -42,12 +42,12 @@ class Town:
     ``grid`` and ``route_edges`` (grid mode) and ``stats``.
     """
 
-    def __init__(self, seed: int = 0, size: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
+    def __init__(self, seed: int = 0, extent_m: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,
                  trajectory: str | Path | None = None, calib: str | Path | None = None,
                  lidar: LidarModel | None = None):
         t_start = time.perf_counter()
         self.seed = int(seed)
-        self.size = float(size)
+        self.extent_m = float(extent_m)
         self.rate_hz = float(rate_hz)
         self.trajectory = Path(trajectory) if trajectory is not None else None
         self.calib = Path(calib) if calib is not None else None
@@ -56,8 +56,8 @@ class Town:
         for path in (self.trajectory, self.calib):
             if path is not None and not path.is_file():
                 raise DataError(f"{path}: no such file")
-        if self.size < 100.0:
-            raise DataError(f"town: size must be ≥ 100 m, got {self.size:g}")
+        if not self.extent_m >= 100.0:
+            raise DataError(f"town: extent_m must be ≥ 100 m, got {self.extent_m:g}")
         if n_scans < 1:
             raise DataError(f"town: n_scans must be ≥ 1, got {n_scans}")
         if not self.rate_hz > 0:
@@ -96,7 +96,8 @@ class Town:
 
     def identity(self) -> str:
         """The mapping drive's identity (keys the prior-map cache)."""
-        parts = [f"town|v{TOWN_VERSION}", f"seed={self.seed}", f"size={self.size:g}", f"n_scans={self.n_scans}",
+        # "size=" is the extent's key as it always was: maps and tables cached before stay valid
+        parts = [f"town|v{TOWN_VERSION}", f"seed={self.seed}", f"size={self.extent_m:g}", f"n_scans={self.n_scans}",
                  f"rate={self.rate_hz:g}", f"lidar={self.lidar.model}"]
         if self.trajectory is not None:
             parts += [f"trajectory={self.trajectory.resolve()}#{_file_digest(self.trajectory)}",
@@ -105,7 +106,7 @@ class Town:
 
     # -------------------------------------------------------------- construction
     def _build_grid(self, rng, n_scans):
-        size = self.size
+        size = self.extent_m
         grid = plan_grid(rng, size, loop_distance=6.5 * n_scans / self.rate_hz)
         streets, junctions = grid_streets(grid, size)
         drive = grid_drive(rng, grid, n_scans, self.rate_hz)

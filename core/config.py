@@ -238,6 +238,8 @@ class TownConfig:
 
 
 TOWN_SENSORS = ("hdl64e", "vlp16", "vlp32c", "os1-128")
+#: m, the largest town.extent_m: a city's generation needs memory in proportion to its area (~10 GB at 4 km)
+TOWN_MAX_EXTENT = 6000.0
 
 
 @dataclass
@@ -300,7 +302,7 @@ class Config:
              "localize.recorded_odometry needs the replay clock (real time must pay for its odometry)"),
             (self.localize.tracking_region > 0, "localize.tracking_region must be > 0"),
             (self.town.n_scans >= 1, "town.n_scans must be ≥ 1"),
-            (self.town.extent_m >= 100, "town.extent_m must be ≥ 100 m"),
+            (100 <= self.town.extent_m <= TOWN_MAX_EXTENT, f"town.extent_m must be in 100..{TOWN_MAX_EXTENT:g} m"),
         ]
         for ok, message in checks:
             if not ok:

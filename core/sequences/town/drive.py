@@ -14,7 +14,7 @@ import numpy as np
 
 from ...errors import DataError
 from .constants import (A_ACCEL, A_BRAKE, A_LATERAL, DS, LANE_OFFSET, R_LEFT, R_RIGHT, SENSOR_HEIGHT,
-                        STOP_PROB, SWAY_FULL_SPEED, SWAY_STD, SWAY_TIME)
+                        SWAY_FULL_SPEED, SWAY_STD, SWAY_TIME)
 from .layout import Grid
 from .raster import HeightField, left_normal
 
@@ -270,7 +270,7 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -
         turning = (node[0] - prev[0], node[1] - prev[1]) != (nxt[0] - node[0], nxt[1] - node[1])
         is_junction = len(grid.neighbours(node)) >= 3 or turning
         forced = k == 2 and not stops  # make sure the drive has a stop early on
-        if is_junction and (forced or rng.random() < STOP_PROB):
+        if is_junction and (forced or rng.random() < grid.stop_probability(prev, node, nxt)):
             back = max(0.0, grid.crossing_half_width(prev, node) + 1.5 + path.stop_back[k])
             stops.append((path.vertex_s[k] - back, float(rng.uniform(1.5, 6.0))))
     slow_zones = []

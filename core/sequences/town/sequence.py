@@ -13,7 +13,7 @@ from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
 from ...geometry import inv_pose
 from ..base import Sequence, rebase_poses
-from ..lidar_sim import SENSORS, LidarModel, RaycastLidar, Sweep
+from ..lidar_sim import SENSORS, LidarModel, Sweep
 from .constants import SENSOR_HEIGHT
 from .drive import interpolate_poses
 from .world import Town
@@ -67,7 +67,7 @@ class TownSequence(Sequence):
         if self.town.plan is None and (options.get("changes") or options.get("traffic")):
             raise DataError("town: a copied town cannot add changes or traffic; build it anew")
         seq = TownSequence._of_town(self.town, _check_options(dict(self.options, **options)))
-        if not seq.is_mapping_drive:
+        if not seq.is_mapping_drive and not self.town.is_city:
             seq.__dict__["_mapping_drive"] = self.map_source   # one mapping drive per town
         seq.lidar.build()
         return seq
@@ -88,7 +88,7 @@ class TownSequence(Sequence):
             from .changes import changed_world
 
             parts, self.changes_made, _ = changed_world(town, options["changes"])
-            lidar = RaycastLidar(parts, town.lidar.model)
+            lidar = town.lidar_of(parts)
             self.stats.update(changes=self.changes_made.counts())
         if options["sensor"] != MAPPING_OPTIONS["sensor"]:
             lidar = lidar.with_model(SENSORS[options["sensor"]])
@@ -107,7 +107,7 @@ class TownSequence(Sequence):
         self.poses_town = poses_town
         self.n_scans = len(poses_town)
         self._times = times
-        if options["route"] == 1 and lift == 0.0:
+        if options["route"] == 1 and lift == 0.0 and not town.is_city:
             self._poses = rebase_poses(poses_town)
         else:
             self._poses = town.town_to_world[None] @ poses_town
@@ -137,8 +137,11 @@ class TownSequence(Sequence):
         return TownSequence._of_town(self.town, dict(MAPPING_OPTIONS))
 
     @property
-    def map_source(self) -> Sequence:
-        """The mapping drive (this sequence itself at the default world options)."""
+    def map_source(self):
+        """The mapping drive (this sequence itself at the default world options); a city's
+        survey map (:class:`~.survey.CitySurvey`) for every drive through it."""
+        if self.town.is_city:
+            return self.town.survey
         return self if self.is_mapping_drive else self._mapping_drive
 
     # -------------------------------------------------------------- Sequence interface

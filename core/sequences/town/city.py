@@ -160,16 +160,13 @@ def load_or_build_city(seed: int, extent: float, cache_root: Path | None = None)
 
 
 def _storable(world: CityWorld) -> CityWorld:
-    # The distance to a drive is a constant and the density follows from the districts: neither
-    # is worth storing (67 M cells each at 4 km).
-    return replace(world, plan=replace(world.plan, dist_ego=None, density=None))
+    # The distance to a drive is a constant: not worth 67 M cells of a 4 km city on disk.
+    return replace(world, plan=replace(world.plan, dist_ego=None))
 
 
 def _restored(world: CityWorld) -> CityWorld:
     plan = world.plan
-    plan = replace(plan, dist_ego=np.broadcast_to(np.float32(np.inf), plan.raster.shape),
-                   density=world.districts.density_on(plan.raster))
-    return replace(world, plan=plan)
+    return replace(world, plan=replace(plan, dist_ego=np.broadcast_to(np.float32(np.inf), plan.raster.shape)))
 
 
 def describe(world: CityWorld) -> str:

@@ -41,14 +41,21 @@ LOCAL_SPEED_KMH = {DOWNTOWN: 40.0, SUBURB: 30.0, INDUSTRIAL: 40.0, PARK: 30.0, H
 class CityGrid(Grid):
     """A :class:`~.layout.Grid` whose street parameters are per segment (a street changes class
     and width from one district to the next): ``h_*`` arrays are (na−1, nb) for the E–W
-    segments, ``v_*`` (na, nb−1) for the N–S ones."""
+    segments, ``v_*`` (na, nb−1) for the N–S ones. (The per-line parameters of a town's grid
+    are placeholders here, except ``speed_x``/``speed_y``: each line's top speed limit.)"""
 
-    h_kind: np.ndarray = None
+    h_kind: np.ndarray = None         # street class: LOCAL, ARTERIAL or RING
     v_kind: np.ndarray = None
-    h_hw: np.ndarray = None
+    h_hw: np.ndarray = None           # m, half width
     v_hw: np.ndarray = None
-    h_speed: np.ndarray = None
+    h_speed: np.ndarray = None        # m/s, speed limit
     v_speed: np.ndarray = None
+    h_sidewalk: np.ndarray = None     # m
+    v_sidewalk: np.ndarray = None
+    h_parking: np.ndarray = None      # bool
+    v_parking: np.ndarray = None
+    h_style: np.ndarray = None        # district style of the segment's middle
+    v_style: np.ndarray = None
 
     def _edge(self, n0, n1):
         if n0[1] == n1[1]:
@@ -227,9 +234,9 @@ def _with_streets(rng, xs, ys, h_edge, v_edge, h_kind, v_kind, h_style, v_style)
     speed_y = np.maximum(np.max(np.where(h_edge, h_speed, 0.0), axis=0), 1e-3)
     grid = CityGrid(xs, ys, np.full(na, 6.0), np.full(nb, 6.0), np.full(na, 3.0), np.full(nb, 3.0), speed_x, speed_y,
                     np.zeros(na, bool), np.zeros(nb, bool), h_edge, v_edge, (0, 0, 0, 0),
-                    h_kind=h_kind, v_kind=v_kind, h_hw=h_hw, v_hw=v_hw, h_speed=h_speed, v_speed=v_speed)
-    grid.h_sidewalk, grid.v_sidewalk, grid.h_parking, grid.v_parking = h_sw, v_sw, h_park, v_park
-    grid.h_style, grid.v_style = h_style, v_style
+                    h_kind=h_kind, v_kind=v_kind, h_hw=h_hw, v_hw=v_hw, h_speed=h_speed, v_speed=v_speed,
+                    h_sidewalk=h_sw, v_sidewalk=v_sw, h_parking=h_park, v_parking=v_park, h_style=h_style,
+                    v_style=v_style)
     return grid
 
 
@@ -375,12 +382,12 @@ def make_city_plan(rng, raster: Raster, ground: HeightField, streets, junctions,
     xs, ys = raster.centres()
     inside = ((xs >= 0) & (xs <= extent))[:, None] & ((ys >= 0) & (ys <= extent))[None, :]
     build_area = inside & ~road & (style != HIGHWAY)
-    density = districts.density_on(raster)
     park = (style == PARK) & ~road
     del style
     no_drive = np.broadcast_to(np.float32(np.inf), raster.shape)
+    # No density raster: a city's buildings take their style from the districts.
     return Plan(raster, ground, streets, junctions, build_area, road, dist_road, road_dir, no_drive,
-                np.zeros(raster.shape, bool), density, park, districts)
+                np.zeros(raster.shape, bool), None, park, districts)
 
 
 def city_raster(extent: float) -> Raster:

@@ -78,11 +78,6 @@ STYLES = {
                    fences=(0.0, 1.0, 0.0), green=0.08, parking_fill=(0.0, 0.0), traffic_lights=0.0),
 }
 
-#: A building-style density per district in [0, 1] (the town's "urban density"): how far bushes
-#: and yard trees thin out and how busy the traffic lights are.
-DENSITY = {DOWNTOWN: 0.95, SUBURB: 0.2, INDUSTRIAL: 0.45, PARK: 0.0, HIGHWAY: 0.1}
-
-
 @dataclass
 class DistrictMap:
     """The style of every DISTRICT_CELL cell over the city and its margin."""
@@ -105,13 +100,6 @@ class DistrictMap:
         i = np.clip(np.floor((xs - self.x0) / DISTRICT_CELL).astype(np.int64), 0, self.codes.shape[0] - 1)
         j = np.clip(np.floor((ys - self.y0) / DISTRICT_CELL).astype(np.int64), 0, self.codes.shape[1] - 1)
         return self.codes[i[:, None], j[None, :]]
-
-    def density_on(self, raster) -> np.ndarray:
-        """The districts' :data:`DENSITY` on the ground-plan raster (float32)."""
-        table = np.zeros(256, np.float32)
-        for code, value in DENSITY.items():
-            table[code] = value
-        return table[self.on_raster(raster)]
 
     def shares(self, extent: float) -> dict[str, float]:
         """Share of the city's square each style covers."""

@@ -332,7 +332,7 @@ class Plan:
     road_dir: np.ndarray      # (nx, ny, 2), unit vector from a cell to its nearest road cell
     dist_ego: np.ndarray      # m, from each cell to the driven path
     occupied: np.ndarray      # bool, taken by something solid
-    density: np.ndarray       # [0, 1], urban density (tall, dense, close to the street when high)
+    density: np.ndarray       # [0, 1], urban density (tall, dense, close to the street when high); None in a city
     park: np.ndarray          # bool
     districts: object = None  # a city's DistrictMap (see .districts); None in a town
 

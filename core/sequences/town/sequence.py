@@ -25,10 +25,11 @@ MAPPING_OPTIONS = dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height
 class TownSequence(Sequence):
     """A generated town and a drive through it, scanned on demand by a simulated LiDAR.
 
-    ``TownSequence(seed)`` lays out an ``extent_m`` × ``extent_m`` m grid town and drives ``n_scans`` scans
-    at ``rate_hz``; with ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib``
-    (its calib with the ``Tr:`` line), the drive is that trajectory and the town is grown around
-    it (one scan per pose; ``extent_m`` and ``n_scans`` are then ignored).
+    ``TownSequence(seed)`` lays out an ``extent_m`` × ``extent_m`` m grid town (from 1000 m a city
+    of districts, see the package) and drives ``n_scans`` scans at ``rate_hz``; with
+    ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib`` (its calib with the
+    ``Tr:`` line), the drive is that trajectory and the town is grown around it (one scan per
+    pose; ``extent_m`` and ``n_scans`` are then ignored).
 
     The world options describe the drive being localized (see :class:`~lidarloc.core.config.TownConfig`):
     ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
@@ -38,7 +39,8 @@ class TownSequence(Sequence):
     sequence *is* the mapping drive. Otherwise :attr:`map_source` is the mapping drive — route 1,
     the town as mapped, HDL-64E (or ``lidar``) at SENSOR_HEIGHT, no skew, no traffic — sharing
     this sequence's streets, ground and objects (the town is laid out once). Every drive of one
-    town has the same world frame: the mapping drive's first LiDAR pose.
+    town has the same world frame: the mapping drive's first LiDAR pose. A city's map source is
+    its survey and its world frame its own, for every drive.
     """
 
     def __init__(self, seed: int = 0, extent_m: float = 400.0, n_scans: int = 1200, rate_hz: float = 10.0,

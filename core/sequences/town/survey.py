@@ -27,8 +27,8 @@ flat surfaces: the same rule as for a fused map (|normal z| > ``map.road_normal_
 triangle's exact normal instead of one estimated from the points; curbs count as road. The map
 lists those upright voxels first, so that the road-removed copy is a slice of it, not a copy.
 
-The work goes block by block (512 m squares), so that only one block's samples are held at a
-time; the points are in the city's frame (the frame of every drive through it).
+The work goes block by block (256 m squares, two at a time), so that only two blocks' samples
+are held at once; the points are in the city's frame (the frame of every drive through it).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ OBJECT_REACH = 40.0       # m beyond the road's edge
 SURVEY_TOP = 15.0         # m above the ground
 SURVEY_HEIGHT = 2.5       # m, the survey scanner above the road
 SURVEY_VERSION = 1
-BLOCK = 512.0             # m
+BLOCK = 256.0             # m: two blocks in the making take a few hundred MB
 COVER_STEP = 0.25         # m per unit of the city's cover raster
 _GROUND_PARTS = ("road", "sidewalk_lot")
 _FLAT_PARTS = ("curb",)
@@ -106,36 +106,76 @@ def survey_points(town, voxel: float, road_normal_z: float, progress: Callable[[
         x_lo, y_lo = max(x_lo, region[0]), max(y_lo, region[1])
         x_hi, y_hi = min(x_hi, region[2]), min(y_hi, region[3])
     blocks = [(x0, y0) for x0 in np.arange(x_lo, x_hi, BLOCK) for y0 in np.arange(y_lo, y_hi, BLOCK)]
-    results = []
+    upright, flat = _Rows(), _Rows()
 
     def one(block):
         x0, y0 = block
         return _block(town, voxel, road_normal_z, x0, y0, min(x0 + BLOCK, x_hi), min(y0 + BLOCK, y_hi))
 
-    # Two blocks at a time: the kernels release the GIL, and both cores are busy.
+    # Two blocks at a time: the kernels release the GIL, and both cores are busy. Each block's
+    # points are copied into big chunks at once and dropped: hundreds of blocks' arrays kept
+    # until the end would leave the heap in pieces that the allocator never returns (a 4 km
+    # city's survey peaked 3 GB higher that way).
     with ThreadPoolExecutor(2, thread_name_prefix="lidarloc-survey") as pool:
-        for k, result in enumerate(pool.map(one, blocks)):
-            results.append(result)
-            if progress is not None:
-                progress(k + 1, len(blocks))
-    # One array: every block's upright voxels first, then the flat ones, so that the road-removed
-    # map is a slice of the map (a 4 km city's map takes GBs; its copy would double them). The
-    # blocks are dropped as they are copied: the peak is the map plus one block.
-    n_upright = sum(int((~flat).sum()) for _, flat in results)
-    out = np.empty((sum(len(p) for p, _ in results), 3), np.float32)
-    a, b = 0, n_upright
-    while results:
-        p, flat = results.pop(0)
-        up = p[~flat]
-        out[a:a + len(up)] = up
-        out[b:b + len(p) - len(up)] = p[flat]
-        a, b = a + len(up), b + len(p) - len(up)
+        pending = {}
+        for k, block in enumerate(blocks):
+            pending[k] = pool.submit(one, block)
+            if k >= 1:
+                _take(pending.pop(k - 1).result(), upright, flat, progress, k, len(blocks))
+        _take(pending.pop(len(blocks) - 1).result(), upright, flat, progress, len(blocks), len(blocks))
+    # One array: the upright voxels first, then the flat ones, so that the road-removed map is a
+    # slice of the map (a 4 km city's map takes GBs; its copy would double them).
+    n_upright = upright.n
+    out = np.empty((n_upright + flat.n, 3), np.float32)
+    upright.move_to(out[:n_upright])
+    flat.move_to(out[n_upright:])
     return out, out[:n_upright]
 
 
+def _take(result, upright: "_Rows", flat: "_Rows", progress, k: int, n: int) -> None:
+    upright.append(result[0])
+    flat.append(result[1])
+    if progress is not None:
+        progress(k, n)
+
+
+class _Rows:
+    """(n, 3) float32 rows appended block by block into chunks of CHUNK_ROWS (each its own
+    allocation, returned to the system when freed)."""
+
+    CHUNK_ROWS = 1 << 25      # 400 MB
+
+    def __init__(self):
+        self.chunks: list[np.ndarray] = []
+        self.fill = 0
+        self.n = 0
+
+    def append(self, rows: np.ndarray) -> None:
+        at = 0
+        while at < len(rows):
+            if not self.chunks or self.fill == len(self.chunks[-1]):
+                self.chunks.append(np.empty((self.CHUNK_ROWS, 3), np.float32))
+                self.fill = 0
+            k = min(len(rows) - at, len(self.chunks[-1]) - self.fill)
+            self.chunks[-1][self.fill:self.fill + k] = rows[at:at + k]
+            self.fill += k
+            at += k
+        self.n += len(rows)
+
+    def move_to(self, out: np.ndarray) -> None:
+        """Copy every row into ``out`` (n, 3), dropping each chunk once copied."""
+        at = 0
+        while self.chunks:
+            chunk = self.chunks.pop(0)
+            k = min(len(chunk), self.n - at)
+            out[at:at + k] = chunk[:k]
+            at += k
+
+
 def _block(town, voxel, road_normal_z, x0, y0, x1, y1) -> tuple[np.ndarray, np.ndarray]:
-    """The voxel points of one block (float32 (n, 3)) and whether each lies mostly on flat
-    surfaces. A voxel belongs to the block its index falls in, so that blocks never share one."""
+    """The voxel points of one block (float32 (n, 3)): those mostly on upright surfaces, and
+    those mostly on flat ones. A voxel belongs to the block its index falls in, so that blocks
+    never share one."""
     from .constants import TILE
 
     plan, raster, cover = town.plan, town.raster, town.cover
@@ -173,6 +213,10 @@ def _block(town, voxel, road_normal_z, x0, y0, x1, y1) -> tuple[np.ndarray, np.n
     for part, idx in zip(index.parts, index.triangles_in(*tiles)):
         if part.name in _GROUND_PARTS or not len(idx):
             continue
+        corners = part.vertices[part.triangles[idx]][:, :, :2]      # only the triangles reaching into the block
+        lo, hi = corners.min(axis=1), corners.max(axis=1)
+        idx = idx[(hi[:, 0] >= bounds[0]) & (lo[:, 0] < bounds[1]) & (hi[:, 1] >= bounds[2]) & (lo[:, 1] < bounds[3])]
+        del corners, lo, hi
         for chunk, cap in _chunks(part, idx, h):
             tri = part.vertices[part.triangles[chunk]].astype(np.float64)
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -213,8 +257,12 @@ class _Voxels:
             self.size += _accumulate(self.keys, self.acc, p, f, self.inv_voxel)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """The centroids of the voxels mostly on upright surfaces, and of those mostly on flat ones."""
         acc = self.acc[self.keys != -1]
-        return (acc[:, :3] / acc[:, 3:4]).astype(np.float32), acc[:, 4] > 0.5 * acc[:, 3]
+        self.keys = self.acc = None
+        flat = acc[:, 4] > 0.5 * acc[:, 3]
+        centroid = (acc[:, :3] / acc[:, 3:4]).astype(np.float32)
+        return centroid[~flat], centroid[flat]
 
 
 @nb.njit(cache=True, nogil=True)

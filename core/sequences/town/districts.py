@@ -1,10 +1,14 @@
 """The city's districts: which style each place is built in, and what each style builds.
 
-A town of ``extent_m`` ≥ :data:`~.constants.CITY_EXTENT` is a city. Its district map (8 m cells)
-assigns every place one of five styles:
+A town of ``extent_m`` ≥ :data:`~.constants.CITY_EXTENT` (1000 m) is a city; a smaller one keeps
+the town's single style, unchanged. Why 1 km: a highway ring around a downtown, with suburbs,
+an industrial strip and parks beside it, needs about that much room (at 1 km the ring runs some
+300 m from the centre, downtown's radius is 220 m and the parks 100 m), while a town below it is
+one neighbourhood, which is what the single style draws. Its district map (8 m cells) assigns
+every place one of five styles:
 
-- **downtown** around the centre (a disc of 16 % of the extent, 220–700 m across its radius,
-  with a wavy edge): a dense grid of narrow, deep, tall buildings right at the sidewalk, no
+- **downtown** around the centre (a disc of radius 16 % of the extent, 220–700 m, with a wavy
+  edge): a dense grid of narrow, deep, tall buildings right at the sidewalk, no
   gaps, few trees, streets busy with parked cars and traffic lights;
 - **suburb**, everywhere else: detached houses with gable roofs set back behind front gardens,
   hedges, fences and trees on the lot lines, long blocks (every other cross street left out,

@@ -156,4 +156,3 @@ def test_bad_extents_are_one_line_errors_where_a_town_is_built():
         with pytest.raises(DataError) as info:
             TownSequence(extent_m=value, n_scans=10)
         assert "\n" not in str(info.value) and "extent_m" in str(info.value)
-

@@ -23,7 +23,7 @@ from ..lidar_sim import MeshPart
 from .city_layout import CityGrid, city_ground, city_raster, city_streets, make_city_plan, plan_city_grid
 from .city_objects import populate_city
 from .constants import CELL, CITY_STREAM, CITY_VERSION
-from .districts import STYLE_NAMES, DistrictMap
+from .districts import DistrictMap
 from .layout import Plan
 from .meshes import ground_parts, object_parts
 from .objects import Solids
@@ -167,9 +167,3 @@ def _storable(world: CityWorld) -> CityWorld:
 def _restored(world: CityWorld) -> CityWorld:
     plan = world.plan
     return replace(world, plan=replace(plan, dist_ego=np.broadcast_to(np.float32(np.inf), plan.raster.shape)))
-
-
-def describe(world: CityWorld) -> str:
-    shares = ", ".join(f"{name} {100 * world.stats['districts'].get(name, 0):.0f} %" for name in STYLE_NAMES)
-    return f"city of {world.extent:g} m: {shares}; {world.stats['triangles']:,} triangles"
-

@@ -392,4 +392,3 @@ def make_city_plan(rng, raster: Raster, ground: HeightField, streets, junctions,
 
 def city_raster(extent: float) -> Raster:
     return Raster.covering(-GROUND_MARGIN, -GROUND_MARGIN, extent + GROUND_MARGIN, extent + GROUND_MARGIN)
-

@@ -17,9 +17,13 @@ What the survey keeps is what a mapping van driving every street sees (constants
   the road passes over every opaque object between them (buildings, walls, containers: the
   city's ``cover`` raster) — the line to the nearest road, or for a wall the line halfway
   between that one and the way the wall faces (a passing scanner sees side walls at an
-  angle), or straight out of the wall to another street — so back yards, back walls and what stands behind a building are missing as they
-  are from a real survey; roofs and other tops above the scanner are missing too (seen from
-  below, a surface facing up is not seen).
+  angle), or straight out of the wall to another street — so back yards, back walls and what
+  stands behind a building are missing as they are from a real survey; roofs and other tops
+  above the scanner are missing too (seen from below, a surface facing up is not seen).
+
+The reaches trade completeness against size: a scan from the road finds 97–99 % of its points
+within 40 m on the map (the rest mostly open ground beyond the reach), and the 4 km city's map
+is already 421 M points, 60 % of them ground along the streets (docs/city.md).
 
 Each voxel's point is the centroid of the samples in it, as a fused map's is of its returns.
 The road-removed copy (the bird's-eye-view map) drops the voxels whose samples lie mostly on

@@ -10,7 +10,7 @@ import sys
 import pytest
 from lidarloc.core.config import PRESETS
 
-SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
+SMALL_TOWN = ("--set", "town.extent_m=100", "--set", "town.n_scans=40")
 
 
 def cli(*args, cache):

@@ -11,7 +11,7 @@ import typer
 from lidarloc.core.config import PRESETS
 
 # A small town (100 m, a 40-scan mapping drive) keeps the map build to seconds.
-SMALL_TOWN = ("--set", "town.size=100", "--set", "town.n_scans=40")
+SMALL_TOWN = ("--set", "town.extent_m=100", "--set", "town.n_scans=40")
 # The commands with a configuration; bench robustness runs the presets as one of its axes instead.
 WITH_PRESET = {
     ("demo",),

@@ -12,7 +12,7 @@ from lidarloc.core.sequences.town import TownSequence
 
 @pytest.fixture(scope="module")
 def small_town() -> TownSequence:
-    return TownSequence(seed=3, size=150.0, n_scans=40)
+    return TownSequence(seed=3, extent_m=150.0, n_scans=40)
 
 
 def test_export_round_trip_through_kitti_reader(small_town, tmp_path):

@@ -25,7 +25,7 @@ def town() -> TownSequence:
 
 @pytest.fixture(scope="module")
 def small_town() -> TownSequence:
-    return TownSequence(seed=3, size=150.0, n_scans=40)
+    return TownSequence(seed=3, extent_m=150.0, n_scans=40)
 
 
 def _to_world(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -39,14 +39,14 @@ def test_scan_is_deterministic_per_seed_and_index(town, small_town):
     c = town.scan(8)
     assert not (a.shape == c.shape and np.array_equal(a, c))
     # A second build from the same seed is the same town, drive and scans (the cache relies on it).
-    again = TownSequence(seed=3, size=150.0, n_scans=40)
+    again = TownSequence(seed=3, extent_m=150.0, n_scans=40)
     assert again.identity() == small_town.identity()
     np.testing.assert_array_equal(again.poses, small_town.poses)
     np.testing.assert_array_equal(again.scan(11), small_town.scan(11))
     # A pickled copy rebuilds its ray-casting scene from the same triangles.
     copy = pickle.loads(pickle.dumps(small_town))
     np.testing.assert_array_equal(copy.scan(11), small_town.scan(11))
-    other = TownSequence(seed=4, size=150.0, n_scans=40)
+    other = TownSequence(seed=4, extent_m=150.0, n_scans=40)
     assert other.identity() != small_town.identity()
     assert not np.allclose(other.poses[-1], small_town.poses[-1])
 
@@ -175,8 +175,8 @@ def test_identity_and_config(town, small_town):
 def test_bad_arguments_are_reported():
     with pytest.raises(DataError, match="calib"):
         TownSequence(trajectory="poses.txt")
-    with pytest.raises(DataError, match="size"):
-        TownSequence(size=50.0)
+    with pytest.raises(DataError, match="extent_m"):
+        TownSequence(extent_m=50.0)
 
 
 # ------------------------------------------------------------------------------ along a KITTI drive

@@ -92,9 +92,17 @@ def test_mapping_drive_is_its_own_map_source(town):
 def test_map_source_is_the_town_as_mapped():
     """Whatever the world options, the map source is the same mapping drive: same identity and
     cache key as the town built without options, same streets, objects, poses and scans."""
-    plain = TownSequence(seed=3, size=150.0, n_scans=120)
+    plain = TownSequence(seed=3, extent_m=150.0, n_scans=120)
     drive = TownSequence(
-        seed=3, size=150.0, n_scans=120, changes=0.5, traffic=True, sensor="vlp16", mount_height=2.1, skew=True, route=2
+        seed=3,
+        extent_m=150.0,
+        n_scans=120,
+        changes=0.5,
+        traffic=True,
+        sensor="vlp16",
+        mount_height=2.1,
+        skew=True,
+        route=2,
     )
     mapping = drive.map_source
     assert mapping is not drive and mapping.map_source is mapping
@@ -115,11 +123,11 @@ def test_map_source_is_the_town_as_mapped():
 
 
 def test_limited_plays_inside_the_full_map():
-    full = TownSequence(seed=3, size=150.0, n_scans=120, sensor="vlp16")
+    full = TownSequence(seed=3, extent_m=150.0, n_scans=120, sensor="vlp16")
     short = Limited(full, 40)
     assert len(short) == 40
     assert len(short.map_source) == 120 and short.map_source.cache_key() == full.map_source.cache_key()
-    plain = TownSequence(seed=3, size=150.0, n_scans=120)
+    plain = TownSequence(seed=3, extent_m=150.0, n_scans=120)
     short_plain = Limited(plain, 40)
     assert short_plain.map_source is plain and len(short_plain.map_source) == 120
     assert short_plain.cache_key() != plain.cache_key()  # the drive is shorter, the map is not
@@ -127,14 +135,14 @@ def test_limited_plays_inside_the_full_map():
 
 
 def test_disk_cached_scans_keep_the_map_source(tmp_path):
-    plain = TownSequence(seed=3, size=150.0, n_scans=40)
+    plain = TownSequence(seed=3, extent_m=150.0, n_scans=40)
     cached = DiskCachedScans(Limited(plain, 10), tmp_path)
     assert cached.map_source is plain
 
 
 def test_factory_passes_the_world_options():
     cfg = Config()
-    cfg.town.size, cfg.town.n_scans = 150.0, 40
+    cfg.town.extent_m, cfg.town.n_scans = 150.0, 40
     cfg.town.changes, cfg.town.sensor, cfg.town.route = 0.3, "vlp32c", 2
     seq = open_sequence(SourceSpec(town_seed=3, scans=12), cfg)
     assert isinstance(seq, Limited) and len(seq) == 12
@@ -152,15 +160,15 @@ def test_bad_world_options_are_reported():
         (dict(route=3), "route"),
     ):
         with pytest.raises(DataError, match=message):
-            TownSequence(seed=3, size=150.0, n_scans=10, **options)
+            TownSequence(seed=3, extent_m=150.0, n_scans=10, **options)
     with pytest.raises(DataError, match="unknown"):
-        TownSequence(seed=3, size=150.0, n_scans=10).with_world(rain=True)
+        TownSequence(seed=3, extent_m=150.0, n_scans=10).with_world(rain=True)
 
 
 def test_world_options_are_deterministic():
     options = dict(changes=0.4, traffic=True, sensor="vlp32c", skew=True, route=2, mount_height=1.9)
-    a = TownSequence(seed=3, size=150.0, n_scans=40, **options)
-    b = TownSequence(seed=3, size=150.0, n_scans=40, **options)
+    a = TownSequence(seed=3, extent_m=150.0, n_scans=40, **options)
+    b = TownSequence(seed=3, extent_m=150.0, n_scans=40, **options)
     assert a.identity() == b.identity()
     np.testing.assert_array_equal(a.poses, b.poses)
     for i in (0, 23):

@@ -48,13 +48,14 @@ def map_build(
     cfg = config_from(config, set_, preset=preset)
     # the map of a source is its whole mapping drive (--scans N plays N scans inside it)
     seq = open_source(spec, cfg).map_source
-    if not hasattr(seq, "poses") or not seq.has_poses:
+    surveyed = getattr(seq, "delivers_map", False)  # a generated city's survey map
+    if not surveyed and (not hasattr(seq, "poses") or not seq.has_poses):
         raise LidarlocError(f"{seq.name}: no ground-truth poses to fuse the scans with (give --gt)")
     t0 = time.perf_counter()
     with progress_bar() as bar:
-        task = bar.add_task(f"map of {seq.name}", total=len(seq))
+        task = bar.add_task(f"map of {seq.name}", total=None if surveyed else len(seq))
         prior, directory, cached = load_or_build_map(
-            seq, cfg.map, cache if to_file else out, progress=lambda i, n: bar.update(task, completed=i)
+            seq, cfg.map, cache if to_file else out, progress=lambda i, n: bar.update(task, completed=i, total=n)
         )
     summary = {
         "points": int(len(prior.points)),
@@ -63,7 +64,7 @@ def map_build(
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "cached": cached,
         "cache_dir": str(directory),
-        "scans": len(seq),
+        "scans": 0 if surveyed else len(seq),
     }
     if to_file:
         road_removed = road_removed_path(out)

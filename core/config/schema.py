@@ -223,7 +223,7 @@ class TownConfig:
     below change only the world and the sensor of the drive being localized."""
 
     seed: int = 0
-    size: float = 400.0  # m, side of the square town
+    extent_m: float = 400.0  # m, side of the square town (a city of districts from 1000 m)
     n_scans: int = 1200  # scans in the default drive (10 Hz)
     rate_hz: float = 10.0
     # share of movable objects (parked cars, bins, signs) moved, removed or added, and of
@@ -237,6 +237,8 @@ class TownConfig:
 
 
 TOWN_SENSORS = ("hdl64e", "vlp16", "vlp32c", "os1-128")
+#: m, the largest town.extent_m: a city's generation needs memory in proportion to its area (~10 GB at 4 km)
+TOWN_MAX_EXTENT = 6000.0
 
 
 @dataclass
@@ -303,7 +305,7 @@ class Config:
             ),
             (self.localize.tracking_region > 0, "localize.tracking_region must be > 0"),
             (self.town.n_scans >= 1, "town.n_scans must be ≥ 1"),
-            (self.town.size >= 100, "town.size must be ≥ 100 m"),
+            (100 <= self.town.extent_m <= TOWN_MAX_EXTENT, f"town.extent_m must be in 100..{TOWN_MAX_EXTENT:g} m"),
         ]
         for ok, message in checks:
             if not ok:

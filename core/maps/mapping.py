@@ -7,7 +7,9 @@ the returns that fell in it.
 
 A prior map can also come from a point-cloud file (:class:`~lidarloc.core.maps.map_source.MapFileSource`,
 passed where a sequence is): its points are voxelized with the same accumulator, in the file's
-local frame, and ``PriorMap.origin`` keeps that frame's float64 origin.
+local frame, and ``PriorMap.origin`` keeps that frame's float64 origin. A source may also deliver
+its map itself (``delivers_map``: the generated city's survey, sampled from its surfaces, see
+:mod:`lidarloc.core.sequences.town.survey`); it is cached like any other.
 """
 
 from __future__ import annotations
@@ -260,6 +262,8 @@ def build_prior_map(
     :func:`build_prior_map_from_file`)."""
     if _is_map_file(seq):
         return build_prior_map_from_file(seq, cfg, progress, road_removal)
+    if getattr(seq, "delivers_map", False):  # with its road-removed copy, which it knows exactly
+        return seq.prior_map(cfg, progress)
     poses = seq.poses
     if poses is None:
         raise DataError(f"{seq.name}: a prior map needs ground-truth poses, and this sequence has none")
@@ -372,10 +376,11 @@ def load_or_build_map(
             return Cached(prior, directory, True)
     t0 = time.perf_counter()
     prior = build_prior_map(seq, cfg, progress, road_removal=road_removal)
+    scans = 0 if _is_map_file(seq) or getattr(seq, "delivers_map", False) else len(seq)
     meta = {
         "source": seq.name,
         "identity": seq.identity(),
-        "scans": 0 if _is_map_file(seq) else len(seq),
+        "scans": scans,
         "map": asdict(cfg),
         "points": int(len(prior.points)),
         "points_road_removed": None if prior.points_bev is None else int(len(prior.points_bev)),

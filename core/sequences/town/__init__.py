@@ -18,13 +18,26 @@ return scattered points as real foliage does), street lights and sign poles, wal
 hedges on property lines, parked cars in the parking lanes, dashed centre lines, and a smooth
 height field under everything with sidewalks and lots raised by a curb.
 
-Scans are simulated on demand from (seed, index) and nothing is written to disk. The town is
+**A city**: from ``extent_m`` ≥ 1000 m (``--set town.extent_m=4000``: 16 km²) the grid grows
+into a city of districts, each built in its own style: downtown (tall, dense, narrow lots),
+suburbs (detached houses, gardens, hedges, trees), an industrial strip (large low halls, fences,
+yards), parks (trees, paths, few buildings) and a highway ring (wide, fast, guard rails and noise
+walls, nothing built near it); streets come in classes (local, arterial, highway) with their
+own widths and speed limits, and drives pick routes across districts. Below 1000 m a town keeps
+its single style, bit for bit. A city's world does not depend on any drive: it is built once per
+(seed, extent) and cached, its frame is its own (the drives' poses are in it), its triangles are
+cast tile by tile, and its prior map is not fused from a mapping drive but sampled from its
+surfaces as a survey of every street sees them (``docs/city.md``).
+
+Scans are simulated on demand from (seed, index) and nothing is written to disk (a city caches
+its world). The town is
 built in its own frame ("town frame"); the world frame of every drive through a town is the
 mapping drive's first LiDAR pose (for the mapping drive, its own first pose, as for every
 :class:`~..base.Sequence`); :attr:`TownSequence.town_to_world` maps one to the other.
 
-The prior map always comes from the **mapping drive** (route 1, the town as it was mapped,
-HDL-64E at 1.73 m, no motion skew, no traffic: :attr:`TownSequence.map_source`). The drive being
+A town's prior map always comes from the **mapping drive** (route 1, the town as it was mapped,
+HDL-64E at 1.73 m, no motion skew, no traffic: :attr:`TownSequence.map_source`); a city's from
+its survey (:mod:`.survey`). The drive being
 localized may differ from it in its world options (``town.*`` in the configuration): changes
 since mapping, traffic, another sensor or mounting height, motion skew, a second route.
 
@@ -40,7 +53,17 @@ The package, in the order a town is made:
 - :mod:`.changes`: what changed since the mapping drive (``town.changes``);
 - :mod:`.traffic`: cars, cyclists and pedestrians moving through it (``town.traffic``);
 - :mod:`.routes`: the second drive through the same streets (``town.route = 2``);
-- :mod:`.sequence`: :class:`TownSequence`, a drive through a town, scanned on demand.
+- :mod:`.sequence`: :class:`TownSequence`, a drive through a town, scanned on demand;
+
+and for a city:
+
+- :mod:`.districts`: the district map and what each style builds;
+- :mod:`.city_layout`: the city's streets by class, and its compact ground plan;
+- :mod:`.city_objects`: the objects, district by district, and the highway's own;
+- :mod:`.city_route`: drives across districts;
+- :mod:`.city`: the city's world, built once per (seed, extent) and cached;
+- :mod:`.tiles`: its ray caster, tile by tile;
+- :mod:`.survey`: its prior map, sampled from its surfaces.
 """
 
 from .constants import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION

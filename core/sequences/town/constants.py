@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 
+from ...config import TOWN_MAX_EXTENT as CITY_MAX_EXTENT  # noqa: F401  (m, the largest extent)
+
 #: Bump whenever the generated geometry, the drive or the sensor model changes: it is part of
 #: :meth:`TownSequence.identity`, which keys the prior-map cache.
 TOWN_VERSION = 3
@@ -44,3 +46,12 @@ SWAY2_STREAM = (0x7A11, 0x5B)  # the second route's body sway
 SWAY_STD = 0.13 * math.pi / 180  # rad, pitch and roll of the body on its suspension at speed
 SWAY_TIME = 0.35  # s, correlation time of the sway
 SWAY_FULL_SPEED = 5.0  # m/s; the sway grows linearly up to this speed (none at a stop)
+
+# The city: a town this large or larger (town.extent_m) is laid out in districts of their own
+# style (see :mod:`.districts`); below it the town keeps its single style, bit for bit.
+CITY_EXTENT = 1000.0  # m
+#: Bump whenever the city's generated geometry changes: it keys the city's world and map caches.
+CITY_VERSION = 1
+CITY_STREAM = (0x7A11, 0xC1)  # the city's world: streets, districts, objects (not its drives)
+CITY_ROUTE_STREAM = (0x7A11, 0xC2)  # route 1 through a city
+TILE = 128.0  # m, the side of the squares the city's triangles are sorted into

@@ -22,7 +22,6 @@ from .constants import (
     R_LEFT,
     R_RIGHT,
     SENSOR_HEIGHT,
-    STOP_PROB,
     SWAY_FULL_SPEED,
     SWAY_STD,
     SWAY_TIME,
@@ -303,7 +302,7 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -
         turning = (node[0] - prev[0], node[1] - prev[1]) != (nxt[0] - node[0], nxt[1] - node[1])
         is_junction = len(grid.neighbours(node)) >= 3 or turning
         forced = k == 2 and not stops  # make sure the drive has a stop early on
-        if is_junction and (forced or rng.random() < STOP_PROB):
+        if is_junction and (forced or rng.random() < grid.stop_probability(prev, node, nxt)):
             back = max(0.0, grid.crossing_half_width(prev, node) + 1.5 + path.stop_back[k])
             stops.append((path.vertex_s[k] - back, float(rng.uniform(1.5, 6.0))))
     slow_zones = []
@@ -314,7 +313,7 @@ def grid_drive(rng, grid: Grid, n_scans: int, rate_hz: float, plan_route=None) -
 
     times = np.arange(n_scans) / rate_hz
     if times[-1] > arrive[-1]:
-        raise DataError("town: the planned route is shorter than the drive (increase the town size)")
+        raise DataError("town: the planned route is shorter than the drive (increase town.extent_m)")
     s_scan = _arc_length_at(times, path.s, v, arrive, depart)
     x = np.interp(s_scan, path.s, path.xy[:, 0])
     y = np.interp(s_scan, path.s, path.xy[:, 1])

@@ -18,7 +18,16 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ...errors import DataError
-from .constants import BUILD_REACH, CELL, GROUND_MARGIN, LANE_OFFSET, NODE_CELLS, SIDEWALK_MIN, SPEED_CHOICES_KMH
+from .constants import (
+    BUILD_REACH,
+    CELL,
+    GROUND_MARGIN,
+    LANE_OFFSET,
+    NODE_CELLS,
+    SIDEWALK_MIN,
+    SPEED_CHOICES_KMH,
+    STOP_PROB,
+)
 from .raster import HeightField, Raster, densify, left_normal
 
 
@@ -29,6 +38,8 @@ class Street:
     half_width: float  # m, centre line to curb
     sidewalk: float  # m, curb to property line
     parking: bool  # parked cars along both curbs
+    kind: str = "local"  # street class: local | arterial | highway (a city's; a town's are local)
+    style: int = -1  # a city's district style the street runs through (see .districts); −1 in a town
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=np.float64)
@@ -115,6 +126,10 @@ class Grid:
     def crossing_half_width(self, prev, node):
         """Half width of the street crossed when arriving at ``node`` from ``prev``."""
         return self.hw_x[node[0]] if prev[1] == node[1] else self.hw_y[node[1]]
+
+    def stop_probability(self, prev, node, nxt) -> float:
+        """Chance that a drive from ``prev`` through ``node`` to ``nxt`` stops at ``node``."""
+        return STOP_PROB
 
 
 def plan_grid(rng: np.random.Generator, size: float, loop_distance: float) -> Grid:
@@ -329,8 +344,9 @@ class Plan:
     road_dir: np.ndarray  # (nx, ny, 2), unit vector from a cell to its nearest road cell
     dist_ego: np.ndarray  # m, from each cell to the driven path
     occupied: np.ndarray  # bool, taken by something solid
-    density: np.ndarray  # [0, 1], urban density (tall, dense, close to the street when high)
+    density: np.ndarray  # [0, 1], urban density (tall, dense, close to the street when high); None in a city
     park: np.ndarray  # bool
+    districts: object = None  # a city's DistrictMap (see .districts); None in a town
 
 
 def _smooth_noise(rng: np.random.Generator, raster: Raster, feature: float) -> np.ndarray:

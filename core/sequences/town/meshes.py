@@ -11,7 +11,7 @@ from ..lidar_sim import MeshPart
 from .constants import BLOCK_CELLS, CELL, CURB, NODE_CELLS
 from .layout import Plan
 from .objects import Solids
-from .raster import HeightField
+from .raster import HeightField, Raster
 
 _BOX_FACES = np.array(
     [  # bottom 0-3, top 4-7; no bottom face (it sits on or in the ground)
@@ -150,19 +150,28 @@ def _compact(vertices: np.ndarray, triangles: np.ndarray):
     return vertices[used], remap.reshape(triangles.shape)
 
 
-def ground_parts(plan: Plan, rng) -> list[MeshPart]:
+def ground_parts(plan: Plan, rng, window: tuple[int, int, int, int] | None = None) -> list[MeshPart]:
     """Road-level ground (2 m quads wherever there is road), the raised level of sidewalks and
-    lots (4 m quads where a block is all raised, 0.5 m quads along curbs) and vertical curbs."""
-    raster, ground = plan.raster, plan.ground
+    lots (4 m quads where a block is all raised, 0.5 m quads along curbs) and vertical curbs.
+
+    ``window`` (i0, i1, j0, j1): only the cells [i0, i1) × [j0, j1) of the raster (multiples of
+    BLOCK_CELLS), with the curbs between the window and its +x and +y neighbours, so that
+    windows side by side make the whole ground once (a city's ground is made window by
+    window: its full vertex grids would not fit in memory). None: the whole raster."""
+    full_raster, ground = plan.raster, plan.ground
+    i0, i1, j0, j1 = window if window is not None else (0, full_raster.nx, 0, full_raster.ny)
+    raster = Raster(full_raster.x0 + i0 * CELL, full_raster.y0 + j0 * CELL, i1 - i0, j1 - j0)
+    road = plan.road[i0:i1, j0:j1]
     nx, ny = raster.shape
-    raised = ~plan.road
+    raised = ~road
     parts = []
 
     # Road level on the height-field nodes.
     X, Y = HeightField.node_coordinates(raster)
-    node_vertices = np.stack([X.ravel(), Y.ravel(), ground.z.ravel()], axis=1)
     nb = NODE_CELLS
-    any_road = plan.road.reshape(nx // nb, nb, ny // nb, nb).any(axis=(1, 3))
+    z = ground.z[i0 // nb : i1 // nb + 1, j0 // nb : j1 // nb + 1]
+    node_vertices = np.stack([X.ravel(), Y.ravel(), z.ravel()], axis=1)
+    any_road = road.reshape(nx // nb, nb, ny // nb, nb).any(axis=(1, 3))
     qi, qj = np.nonzero(any_road)
     tris = _quads(X.shape, qi, qj, 1, 1)
     parts.append(MeshPart("road", *_compact(node_vertices, tris), rng.uniform(0.12, 0.2, len(tris)).astype(np.float32)))
@@ -182,15 +191,18 @@ def ground_parts(plan: Plan, rng) -> list[MeshPart]:
     # Sidewalk near the road, grass and soil behind: material by the quad's first cell.
     first_i = np.concatenate([fi * bb, fi * bb, ci, ci])  # _quads gives all first halves, then all second
     first_j = np.concatenate([fj * bb, fj * bb, cj, cj])
-    near = plan.dist_road[first_i, first_j] <= 3.0
+    near = plan.dist_road[i0 + first_i, j0 + first_j] <= 3.0
     refl = np.where(near, rng.uniform(0.25, 0.32, len(tris)), rng.uniform(0.3, 0.5, len(tris))).astype(np.float32)
     parts.append(MeshPart("sidewalk_lot", *_compact(corner_vertices, tris), refl))
 
-    # Curbs: a vertical quad on every cell edge between road and raised ground.
+    # Curbs: a vertical quad on every cell edge between road and raised ground (and on the edges
+    # between this window and the next one along +x and +y).
     quads = []
-    ex_i, ex_j = np.nonzero(raised[1:, :] != raised[:-1, :])  # edge x = xc[i+1], y from yc[j] to yc[j+1]
+    raised_x = ~plan.road[i0 : min(i1 + 1, full_raster.nx), j0:j1]
+    ex_i, ex_j = np.nonzero(raised_x[1:, :] != raised_x[:-1, :])  # edge x = xc[i+1], y from yc[j] to yc[j+1]
     quads.append(np.stack([np.stack([xc[ex_i + 1], yc[ex_j]], 1), np.stack([xc[ex_i + 1], yc[ex_j + 1]], 1)], 1))
-    ey_i, ey_j = np.nonzero(raised[:, 1:] != raised[:, :-1])
+    raised_y = ~plan.road[i0:i1, j0 : min(j1 + 1, full_raster.ny)]
+    ey_i, ey_j = np.nonzero(raised_y[:, 1:] != raised_y[:, :-1])
     quads.append(np.stack([np.stack([xc[ey_i], yc[ey_j + 1]], 1), np.stack([xc[ey_i + 1], yc[ey_j + 1]], 1)], 1))
     ends = np.concatenate(quads)  # (Q, 2 ends, 2)
     top = ground(ends[..., 0], ends[..., 1]) + CURB
@@ -222,18 +234,36 @@ _PART_ORDER = (
 )
 
 
-def object_parts(solids: Solids, ground: HeightField, rng) -> list[MeshPart]:
+def object_parts(solids: Solids, ground: HeightField, rng, chunk_rows: int | None = None) -> list[MeshPart]:
+    """One part per material. ``chunk_rows``: mesh at most this many rows of a store at a time
+    (a city's millions of foliage triangles would need GBs of temporaries at once); None: each
+    store in one go, as a town does."""
     meshes = defaultdict(list)
+
+    def chunks(rows):
+        step = chunk_rows or max(len(rows), 1)
+        for k in range(0, max(len(rows), 1), step):
+            yield rows[k : k + step]
+
+    def add(name, mesh):
+        V, T, R = mesh
+        meshes[name].append((V.astype(np.float32) if chunk_rows else V, T, R))
+
     for name, rows in solids.boxes.items():
-        meshes[name].append(_boxes_mesh(rows))
+        for part in chunks(rows):
+            add(name, _boxes_mesh(part))
     for name, rows in solids.prisms.items():
-        meshes[name].append(_prisms_mesh(rows))
+        for part in chunks(rows):
+            add(name, _prisms_mesh(part))
     for name, rows in solids.cylinders.items():
-        meshes[name].append(_cylinders_mesh(rows))
+        for part in chunks(rows):
+            add(name, _cylinders_mesh(part))
     for name, rows in solids.blobs.items():
-        meshes[name].append(_blobs_mesh(rows, rng))
+        for part in chunks(rows):
+            add(name, _blobs_mesh(part, rng))
     for name, rows in solids.decals.items():
-        meshes[name].append(_decals_mesh(rows, ground))
+        for part in chunks(rows):
+            add(name, _decals_mesh(part, ground))
     parts = []
     for name in _PART_ORDER + tuple(sorted(set(meshes) - set(_PART_ORDER))):
         if name not in meshes:

@@ -30,6 +30,13 @@ def second_route(town: Town) -> tuple[np.ndarray, np.ndarray]:
     sway_rng = np.random.default_rng([town.seed, *SWAY2_STREAM])
     if town.grid is None:
         return _reversed_drive(town, sway_rng)
+    if town.is_city:  # the whole city is mapped: another route across its districts
+        from .city_route import city_route
+
+        drive = grid_drive(
+            rng, town.grid, town.n_scans, town.rate_hz, plan_route=city_route(town.grid, town.districts, town.extent_m)
+        )
+        return drive_poses(drive, town.ground, sway_rng), drive.times
     drive = grid_drive(rng, town.grid, town.n_scans, town.rate_hz, plan_route=_walk_on_mapped_streets(town))
     return drive_poses(drive, town.ground, sway_rng), drive.times
 

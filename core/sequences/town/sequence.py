@@ -13,7 +13,7 @@ from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
 from ...geometry import inv_pose
 from ..base import Sequence, rebase_poses
-from ..lidar_sim import SENSORS, LidarModel, RaycastLidar, Sweep
+from ..lidar_sim import SENSORS, LidarModel, Sweep
 from .constants import SENSOR_HEIGHT
 from .drive import interpolate_poses
 from .world import Town
@@ -25,10 +25,11 @@ MAPPING_OPTIONS = dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height
 class TownSequence(Sequence):
     """A generated town and a drive through it, scanned on demand by a simulated LiDAR.
 
-    ``TownSequence(seed)`` lays out a ``size`` × ``size`` m grid town and drives ``n_scans`` scans
-    at ``rate_hz``; with ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib``
-    (its calib with the ``Tr:`` line), the drive is that trajectory and the town is grown around
-    it (one scan per pose; ``size`` and ``n_scans`` are then ignored).
+    ``TownSequence(seed)`` lays out an ``extent_m`` × ``extent_m`` m grid town (from 1000 m a city
+    of districts, see the package) and drives ``n_scans`` scans at ``rate_hz``; with
+    ``trajectory`` (a KITTI odometry poses file of cam0 poses) and ``calib`` (its calib with the
+    ``Tr:`` line), the drive is that trajectory and the town is grown around it (one scan per
+    pose; ``extent_m`` and ``n_scans`` are then ignored).
 
     The world options describe the drive being localized (see :class:`~lidarloc.core.config.TownConfig`):
     ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
@@ -38,13 +39,14 @@ class TownSequence(Sequence):
     sequence *is* the mapping drive. Otherwise :attr:`map_source` is the mapping drive — route 1,
     the town as mapped, HDL-64E (or ``lidar``) at SENSOR_HEIGHT, no skew, no traffic — sharing
     this sequence's streets, ground and objects (the town is laid out once). Every drive of one
-    town has the same world frame: the mapping drive's first LiDAR pose.
+    town has the same world frame: the mapping drive's first LiDAR pose. A city's map source is
+    its survey and its world frame its own, for every drive.
     """
 
     def __init__(
         self,
         seed: int = 0,
-        size: float = 400.0,
+        extent_m: float = 400.0,
         n_scans: int = 1200,
         rate_hz: float = 10.0,
         trajectory: str | Path | None = None,
@@ -62,7 +64,7 @@ class TownSequence(Sequence):
         options = _check_options(
             dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height, skew=skew, route=route)
         )
-        self._setup(Town(seed, size, n_scans, rate_hz, trajectory, calib, lidar), options)
+        self._setup(Town(seed, extent_m, n_scans, rate_hz, trajectory, calib, lidar), options)
         self.lidar.build()
         self.stats["build_seconds"] = time.perf_counter() - t_start
 
@@ -81,7 +83,7 @@ class TownSequence(Sequence):
         if self.town.plan is None and (options.get("changes") or options.get("traffic")):
             raise DataError("town: a copied town cannot add changes or traffic; build it anew")
         seq = TownSequence._of_town(self.town, _check_options(dict(self.options, **options)))
-        if not seq.is_mapping_drive:
+        if not seq.is_mapping_drive and not self.town.is_city:
             seq.__dict__["_mapping_drive"] = self.map_source  # one mapping drive per town
         seq.lidar.build()
         return seq
@@ -89,7 +91,7 @@ class TownSequence(Sequence):
     def _setup(self, town: Town, options: dict) -> None:
         self.town = town
         self.options = options
-        self.seed, self.size, self.rate_hz = town.seed, town.size, town.rate_hz
+        self.seed, self.extent_m, self.rate_hz = town.seed, town.extent_m, town.rate_hz
         self.trajectory, self.calib, self.name = town.trajectory, town.calib, town.name
         self.ground, self.raster, self.road, self.streets = town.ground, town.raster, town.road, town.streets
         self.town_to_world = town.town_to_world
@@ -102,7 +104,7 @@ class TownSequence(Sequence):
             from .changes import changed_world
 
             parts, self.changes_made, _ = changed_world(town, options["changes"])
-            lidar = RaycastLidar(parts, town.lidar.model)
+            lidar = town.lidar_of(parts)
             self.stats.update(changes=self.changes_made.counts())
         if options["sensor"] != MAPPING_OPTIONS["sensor"]:
             lidar = lidar.with_model(SENSORS[options["sensor"]])
@@ -121,7 +123,7 @@ class TownSequence(Sequence):
         self.poses_town = poses_town
         self.n_scans = len(poses_town)
         self._times = times
-        if options["route"] == 1 and lift == 0.0:
+        if options["route"] == 1 and lift == 0.0 and not town.is_city:
             self._poses = rebase_poses(poses_town)
         else:
             self._poses = town.town_to_world[None] @ poses_town
@@ -140,7 +142,7 @@ class TownSequence(Sequence):
         driven with ``cfg``'s world options."""
         return cls(
             seed=cfg.seed if seed is None else seed,
-            size=cfg.size,
+            extent_m=cfg.extent_m,
             n_scans=cfg.n_scans,
             rate_hz=cfg.rate_hz,
             trajectory=trajectory,
@@ -162,8 +164,11 @@ class TownSequence(Sequence):
         return TownSequence._of_town(self.town, dict(MAPPING_OPTIONS))
 
     @property
-    def map_source(self) -> Sequence:
-        """The mapping drive (this sequence itself at the default world options)."""
+    def map_source(self):
+        """The mapping drive (this sequence itself at the default world options); a city's
+        survey map (:class:`~.survey.CitySurvey`) for every drive through it."""
+        if self.town.is_city:
+            return self.town.survey
         return self if self.is_mapping_drive else self._mapping_drive
 
     # -------------------------------------------------------------- Sequence interface
@@ -187,7 +192,7 @@ class TownSequence(Sequence):
             )
         return self.lidar.scan(self.poses_town[i], rng, sweep=sweep, moving=moving)
 
-    def describe_scan(self, i: int) -> str:
+    def _describe_scan(self, i: int) -> str:
         return f"town seed {self.seed} scan {i}"
 
     @property

@@ -15,7 +15,18 @@ from ...geometry import inv_pose, rotation_zyx
 from ..base import check_poses, rebase_poses
 from ..kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
 from ..lidar_sim import LidarModel, RaycastLidar
-from .constants import BUILD_REACH, CELL, GROUND_MARGIN, SENSOR_HEIGHT, SWAY_STREAM, TOWN_STREAM, TOWN_VERSION
+from .constants import (
+    BUILD_REACH,
+    CELL,
+    CITY_EXTENT,
+    CITY_MAX_EXTENT,
+    CITY_ROUTE_STREAM,
+    GROUND_MARGIN,
+    SENSOR_HEIGHT,
+    SWAY_STREAM,
+    TOWN_STREAM,
+    TOWN_VERSION,
+)
 from .drive import body_sway, grid_drive, vehicle_poses
 from .layout import centre_lines, grid_streets, heights_from_track, make_plan, plan_grid, trajectory_streets
 from .meshes import ground_parts, object_parts
@@ -30,8 +41,10 @@ def _file_digest(path: Path) -> str:
 class Town:
     """A generated town and its mapping drive.
 
-    Grid mode (no ``trajectory``): a ``size`` × ``size`` m street grid and a drive of
-    ``n_scans`` scans at ``rate_hz``. Trajectory mode: the drive is a KITTI odometry poses file
+    Grid mode (no ``trajectory``): an ``extent_m`` × ``extent_m`` m street grid and a drive of
+    ``n_scans`` scans at ``rate_hz``; from ``extent_m`` ≥ CITY_EXTENT a city of districts
+    (:mod:`.city`), its world shared by all its drives and cached, its frame its own (not the
+    first pose's), its triangles cast tile by tile (:mod:`.tiles`). Trajectory mode: the drive is a KITTI odometry poses file
     (cam0 poses, converted to LiDAR poses with ``calib``'s Tr), one scan per pose, and the town is
     grown around it. ``lidar`` is the mapping drive's sensor (HDL-64E by default).
 
@@ -39,13 +52,16 @@ class Town:
     pickled), ``solids`` (the objects' parameters), ``parts`` (their triangles), ``lidar``
     (the mapping sensor over them, its scene built on first use), ``poses_town`` and ``times``
     of the mapping drive, ``town_to_world`` (the world frame is the mapping drive's first pose),
-    ``grid`` and ``route_edges`` (grid mode) and ``stats``.
+    ``grid`` and ``route_edges`` (grid mode) and ``stats``; a city also keeps ``districts`` and
+    ``cover`` (what hides what from the street, for its survey map).
     """
+
+    is_city = False
 
     def __init__(
         self,
         seed: int = 0,
-        size: float = 400.0,
+        extent_m: float = 400.0,
         n_scans: int = 1200,
         rate_hz: float = 10.0,
         trajectory: str | Path | None = None,
@@ -54,7 +70,7 @@ class Town:
     ):
         t_start = time.perf_counter()
         self.seed = int(seed)
-        self.size = float(size)
+        self.extent_m = float(extent_m)
         self.rate_hz = float(rate_hz)
         self.trajectory = Path(trajectory) if trajectory is not None else None
         self.calib = Path(calib) if calib is not None else None
@@ -63,8 +79,8 @@ class Town:
         for path in (self.trajectory, self.calib):
             if path is not None and not path.is_file():
                 raise DataError(f"{path}: no such file")
-        if self.size < 100.0:
-            raise DataError(f"town: size must be ≥ 100 m, got {self.size:g}")
+        if not 100.0 <= self.extent_m <= CITY_MAX_EXTENT:
+            raise DataError(f"town: extent_m must be in 100..{CITY_MAX_EXTENT:g} m, got {self.extent_m:g}")
         if n_scans < 1:
             raise DataError(f"town: n_scans must be ≥ 1, got {n_scans}")
         if not self.rate_hz > 0:
@@ -73,6 +89,10 @@ class Town:
         self.stats: dict = {}
         self.grid = None
         self.route_edges: list = []
+        if self.trajectory is None and self.extent_m >= CITY_EXTENT:
+            self._build_city(int(n_scans), lidar)
+            self.build_seconds = time.perf_counter() - t_start
+            return
 
         if self.trajectory is None:
             self.name = f"town-seed{self.seed}"
@@ -99,14 +119,45 @@ class Town:
     def __getstate__(self):
         state = self.__dict__.copy()
         state["plan"] = None  # ~50 MB of rasters, only needed to place changes and traffic
+        state.pop("cover", None)  # a city's: only its survey map needs it
+        state.pop("_survey", None)
         return state
 
+    def lidar_of(self, parts):
+        """This town's kind of ray caster over ``parts``, with its mapping sensor."""
+        if self.is_city:
+            from .tiles import TiledLidar
+
+            return TiledLidar(parts, self.lidar.model)
+        return RaycastLidar(parts, self.lidar.model)
+
+    @property
+    def survey(self):
+        """A city's prior-map source: its surfaces sampled at survey density (:mod:`.survey`)."""
+        if "_survey" not in self.__dict__:
+            from .survey import CitySurvey
+
+            self._survey = CitySurvey(self)
+        return self._survey
+
     def identity(self) -> str:
-        """The mapping drive's identity (keys the prior-map cache)."""
+        """The mapping drive's identity (keys the prior-map cache); a city's drive's."""
+        if self.is_city:
+            from .city import city_identity
+
+            return "|".join(
+                [
+                    city_identity(self.seed, self.extent_m),
+                    f"n_scans={self.n_scans}",
+                    f"rate={self.rate_hz:g}",
+                    f"lidar={self.lidar.model}",
+                ]
+            )
+        # "size=" is the extent's key as it always was: maps and tables cached before stay valid
         parts = [
             f"town|v{TOWN_VERSION}",
             f"seed={self.seed}",
-            f"size={self.size:g}",
+            f"size={self.extent_m:g}",
             f"n_scans={self.n_scans}",
             f"rate={self.rate_hz:g}",
             f"lidar={self.lidar.model}",
@@ -121,7 +172,7 @@ class Town:
 
     # -------------------------------------------------------------- construction
     def _build_grid(self, rng, n_scans):
-        size = self.size
+        size = self.extent_m
         grid = plan_grid(rng, size, loop_distance=6.5 * n_scans / self.rate_hz)
         streets, junctions = grid_streets(grid, size)
         drive = grid_drive(rng, grid, n_scans, self.rate_hz)
@@ -146,6 +197,39 @@ class Town:
         self.grid, self.route_edges = grid, drive.edges
         self.stats.update(stops=drive.n_stops, route_loop=grid.loop)
         return poses, drive.times, plan
+
+    def _build_city(self, n_scans, lidar):
+        from .city import load_or_build_city
+        from .city_route import city_route
+        from .tiles import TiledLidar
+
+        world, cached = load_or_build_city(self.seed, self.extent_m)
+        self.is_city = True
+        self.name = f"city-seed{self.seed}"
+        self.grid, self.districts, self.cover = world.grid, world.districts, world.cover
+        self.plan, self.solids, self.parts = world.plan, world.solids, world.parts
+        self.ground, self.raster, self.road, self.streets = (
+            world.plan.ground,
+            world.plan.raster,
+            world.plan.road,
+            world.plan.streets,
+        )
+        drive = grid_drive(
+            np.random.default_rng([self.seed, *CITY_ROUTE_STREAM]),
+            self.grid,
+            n_scans,
+            self.rate_hz,
+            plan_route=city_route(self.grid, self.districts, self.extent_m),
+        )
+        self.poses_town = drive_poses(drive, self.ground, np.random.default_rng([self.seed, *SWAY_STREAM]))
+        self.n_scans = len(self.poses_town)
+        self.times = drive.times - drive.times[0]
+        self.route_edges = drive.edges
+        self.town_to_world = np.eye(4)  # the city's own frame: its drives and its map share it
+        self.lidar = TiledLidar(self.parts, lidar)
+        self.stats.update(
+            world.stats, stops=drive.n_stops, world_cached=cached, world_build_seconds=round(world.build_seconds, 2)
+        )
 
     def _build_along_trajectory(self, rng):
         cam0 = read_pose_lines(self.trajectory)

@@ -31,18 +31,9 @@ from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from ..core.errors import LidarlocError
+from .foxglove_channels import FIGURES, LOG, MAP, PARTICLE_CLOUD, PARTICLES, POSE, SCAN, SCENE, TF, TRUTH
 from .run_steps import LIDAR_FRAME, LOCAL_FRAME, MAP_FRAME, TRUTH_FRAME, RunSteps, Step, event_level
 
-POSE = "/lidarloc/pose"
-TRUTH = "/lidarloc/truth"
-TF = "/tf"
-PARTICLES = "/lidarloc/particles"
-PARTICLE_CLOUD = "/lidarloc/particle_cloud"
-SCAN = "/lidarloc/scan"
-MAP = "/lidarloc/map"
-SCENE = "/lidarloc/scene"
-LOG = "/lidarloc/log"
-FIGURES = "/lidarloc/figures"
 LAYOUT_SUFFIX = ".layout.json"
 
 #: the figures channel's JSON schema: numbers a plot reads (a figure unknown at a scan is left out)

@@ -10,7 +10,7 @@ Foxglove renames fails here, at build time, instead of giving a panel that silen
 
 from __future__ import annotations
 
-from . import export_foxglove as T
+from . import foxglove_channels as T
 
 #: (title, [(message path, label, colour)]) of the plots, top to bottom
 PLOTS = (

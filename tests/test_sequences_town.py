@@ -12,7 +12,7 @@ from lidarloc.core.config import TownConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.geometry import inv_pose, pose_to_xyz_ypr
 from lidarloc.core.sequences.kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
-from lidarloc.core.sequences.lidar_sim import HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG, LidarModel
+from lidarloc.core.sequences.lidar_models import HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG, LidarModel
 from lidarloc.core.sequences.town import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION, TownSequence
 from lidarloc.core.sequences.town.drive import body_sway
 from scipy.spatial import cKDTree

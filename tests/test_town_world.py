@@ -12,7 +12,7 @@ from lidarloc.core.config import Config, TownConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import DiskCachedScans, Limited
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
-from lidarloc.core.sequences.lidar_sim import SENSORS, LidarModel
+from lidarloc.core.sequences.lidar_models import SENSORS, LidarModel
 from lidarloc.core.sequences.town import SENSOR_HEIGHT, TownSequence
 from lidarloc.core.sequences.town.objects import MOVABLE_KINDS
 from lidarloc.core.sequences.town.traffic import CAR, LEADER, LEADER_GAP, PEDESTRIAN

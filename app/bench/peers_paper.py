@@ -60,7 +60,7 @@ def run(
     from ...core.errors import LidarlocError
     from ...core.localizer import Localizer
     from ...core.runs.results import summarize_run
-    from .peers import global_localization
+    from .peers_global import global_localization
 
     spec = kitti05_spec(scans)
     if spec is None:

@@ -31,8 +31,6 @@ from .constants import CHANGES_STREAM
 from .meshes import object_parts, row_triangles
 from .objects import (
     MOVABLE_KINDS,
-    Item,
-    Solids,
     add_bin,
     add_parked_car,
     add_sign,
@@ -42,6 +40,7 @@ from .objects import (
     post_spot_free,
 )
 from .raster import left_normal
+from .solids import Item, Solids
 from .world import Town
 
 ADDED_KINDS = ("parked_car", "bin", "sign")

@@ -26,7 +26,7 @@ from .constants import CELL, CITY_STREAM, CITY_VERSION
 from .districts import DistrictMap
 from .layout import Plan
 from .meshes import ground_parts, object_parts
-from .objects import Solids
+from .solids import Solids
 
 GROUND_WINDOW = 512  # cells (256 m): the ground is meshed window by window
 #: materials that hide what is behind them from a street-level sensor (see :mod:`.survey`)

@@ -44,18 +44,18 @@ class CityGrid(Grid):
     segments, ``v_*`` (na, nb−1) for the N–S ones. (The per-line parameters of a town's grid
     are placeholders here, except ``speed_x``/``speed_y``: each line's top speed limit.)"""
 
-    h_kind: np.ndarray = None  # street class: LOCAL, ARTERIAL or RING
-    v_kind: np.ndarray = None
-    h_hw: np.ndarray = None  # m, half width
-    v_hw: np.ndarray = None
-    h_speed: np.ndarray = None  # m/s, speed limit
-    v_speed: np.ndarray = None
-    h_sidewalk: np.ndarray = None  # m
-    v_sidewalk: np.ndarray = None
-    h_parking: np.ndarray = None  # bool
-    v_parking: np.ndarray = None
-    h_style: np.ndarray = None  # district style of the segment's middle
-    v_style: np.ndarray = None
+    h_kind: np.ndarray | None = None  # street class: LOCAL, ARTERIAL or RING
+    v_kind: np.ndarray | None = None
+    h_hw: np.ndarray | None = None  # m, half width
+    v_hw: np.ndarray | None = None
+    h_speed: np.ndarray | None = None  # m/s, speed limit
+    v_speed: np.ndarray | None = None
+    h_sidewalk: np.ndarray | None = None  # m
+    v_sidewalk: np.ndarray | None = None
+    h_parking: np.ndarray | None = None  # bool
+    v_parking: np.ndarray | None = None
+    h_style: np.ndarray | None = None  # district style of the segment's middle
+    v_style: np.ndarray | None = None
 
     def _edge(self, n0, n1):
         if n0[1] == n1[1]:

@@ -17,20 +17,11 @@ from scipy.spatial import cKDTree
 
 from .constants import CELL, CURB, JUNCTION_CLEAR
 from .districts import DOWNTOWN, HIGHWAY, INDUSTRIAL, PARK, STYLES, SUBURB, Style
+from .furniture import fence_line, parked_car, pole, tree
 from .layout import Plan, Street
-from .objects import (
-    Solids,
-    _fence_line,
-    _mark_point,
-    _mark_rect,
-    _parked_car,
-    _point_free,
-    _pole,
-    _rect_free,
-    _rect_points,
-    _tree,
-)
+from .placement import mark_point, mark_rect, point_free, rect_free, rect_points
 from .raster import left_normal
+from .solids import Solids
 
 
 def populate_city(plan: Plan, rng: np.random.Generator) -> Solids:
@@ -80,7 +71,7 @@ def _frontage(plan: Plan, solids: Solids, rng, st: Street, side: float, near_jun
             if rng.random() < S.front_fence:
                 a = p + normal * (prop + 0.3)
                 q, tq = st.at(s + gap)
-                _fence_line(plan, solids, rng, a, q + side * left_normal(tq) * (prop + 0.3), fence_kind)
+                fence_line(plan, solids, rng, a, q + side * left_normal(tq) * (prop + 0.3), fence_kind)
             s += gap
             continue
         width, depth, setback = rng.uniform(*S.lot_width), rng.uniform(*S.depth), rng.uniform(*S.setback)
@@ -89,15 +80,15 @@ def _frontage(plan: Plan, solids: Solids, rng, st: Street, side: float, near_jun
         centre = pm + normal * (prop + setback + depth / 2)
         yaw = math.atan2(tm[1], tm[0])
         b_yaw = yaw if side > 0 else yaw + np.pi  # local +v away from the street on both sides
-        if _rect_free(plan, centre[0], centre[1], b_yaw, width - 0.6, depth - 0.6):
+        if rect_free(plan, centre[0], centre[1], b_yaw, width - 0.6, depth - 0.6):
             _building(plan, solids, rng, centre[0], centre[1], b_yaw, width, depth, code)
             if setback > 2.5 and rng.random() < S.front_fence:
                 a = st.at(s)[0] + normal * (prop + 0.3)
                 b = st.at(s + width)[0] + normal * (prop + 0.3)
-                _fence_line(plan, solids, rng, a, b, fence_kind)
+                fence_line(plan, solids, rng, a, b, fence_kind)
             if code == SUBURB and rng.random() < 0.5:  # a hedge or fence between two gardens
                 a = st.at(s - 1.0)[0] + normal * (prop + 0.5)
-                _fence_line(
+                fence_line(
                     plan,
                     solids,
                     rng,
@@ -113,8 +104,8 @@ def _frontage(plan: Plan, solids: Solids, rng, st: Street, side: float, near_jun
         for u in np.arange(rng.uniform(2, 8), st.length, rng.uniform(7.0, 11.0)):
             p, t = st.at(u + rng.uniform(-0.8, 0.8))
             q = p + side * left_normal(t) * curb_off
-            if not near_junction(q, st.half_width + 6.0) and _point_free(plan, q[0], q[1], 0.6):
-                _tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
+            if not near_junction(q, st.half_width + 6.0) and point_free(plan, q[0], q[1], 0.6):
+                tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
 
 
 def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, code: int) -> None:
@@ -122,7 +113,7 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, code:
     (downtown: taller towards the centre), a gable roof on some low ones, roof plant on tall
     ones, a garage or an annex beside some. The base is buried below the lowest ground under it."""
     S: Style = STYLES[code]
-    fx, fy = _rect_points(cx, cy, yaw, length, width, step=max(length, width) / 2)
+    fx, fy = rect_points(cx, cy, yaw, length, width, step=max(length, width) / 2)
     gz = plan.ground(fx, fy)
     base, top_ground = float(gz.min()) - 0.5, float(gz.max()) + CURB
     lo, hi = S.height
@@ -172,11 +163,11 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, code:
         ux = (length / 2 + al / 2 + 0.2) * rng.choice([-1.0, 1.0])
         uy = (width - aw) / 2
         ax, ay = cx + ux * c - uy * s, cy + ux * s + uy * c
-        if _rect_free(plan, ax, ay, yaw, al - 0.6, aw - 0.6):
+        if rect_free(plan, ax, ay, yaw, al - 0.6, aw - 0.6):
             ah = rng.uniform(2.6, 3.2) if code == SUBURB else rng.uniform(4.0, 7.0)
             solids.boxes["building"].append((ax, ay, yaw, al, aw, base, top_ground + ah, refl))
-            _mark_rect(plan, ax, ay, yaw, al, aw)
-    _mark_rect(plan, cx, cy, yaw, length, width)
+            mark_rect(plan, ax, ay, yaw, al, aw)
+    mark_rect(plan, cx, cy, yaw, length, width)
 
 
 def _street_lights(plan: Plan, solids: Solids, rng, st: Street) -> None:
@@ -187,8 +178,8 @@ def _street_lights(plan: Plan, solids: Solids, rng, st: Street) -> None:
         side = (1.0 if k % 2 else -1.0) if alternate else 1.0
         p, t = st.at(u)
         q = p + side * left_normal(t) * (st.half_width + 0.7)
-        if _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-            _pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), light_kind)
+        if point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+            pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), light_kind)
 
 
 def _junction_poles(plan: Plan, solids: Solids, rng) -> None:
@@ -201,8 +192,8 @@ def _junction_poles(plan: Plan, solids: Solids, rng) -> None:
                 for dist in (8.5, 9.5, 10.5, 12.5, 14.5):
                     q = jp + dist * np.array([math.cos(ang), math.sin(ang)])
                     i, j, ok = raster.ij(q[0], q[1])
-                    if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-                        _pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j], "traffic_light" if lights else "sign")
+                    if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+                        pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j], "traffic_light" if lights else "sign")
                         break
 
 
@@ -221,11 +212,11 @@ def _parking(plan: Plan, solids: Solids, rng, near_junction) -> None:
                 q = p + side * left_normal(t) * (st.half_width - 1.15)
                 yaw = math.atan2(t[1], t[0]) + (0.0 if side < 0 else np.pi) + rng.uniform(-0.03, 0.03)
                 if rng.random() < fill and not near_junction(q, JUNCTION_CLEAR):
-                    x, y = _rect_points(q[0], q[1], yaw, 5.0, 2.0)
+                    x, y = rect_points(q[0], q[1], yaw, 5.0, 2.0)
                     i, j, ok = raster.ij(x, y)
                     if np.all(ok & plan.road[i, j] & ~plan.occupied[i, j]):
-                        _parked_car(plan, solids, rng, q[0], q[1], yaw)
-                        _mark_rect(plan, q[0], q[1], yaw, 4.8, 1.9)
+                        parked_car(plan, solids, rng, q[0], q[1], yaw)
+                        mark_rect(plan, q[0], q[1], yaw, 4.8, 1.9)
                 u += rng.uniform(5.6, 7.0)
 
 
@@ -267,8 +258,8 @@ def _highway(plan: Plan, solids: Solids, rng, st: Street, near_junction) -> None
         side = 1.0 if k % 2 else -1.0
         p, t = st.at(u)
         q = p + side * left_normal(t) * (st.half_width + 1.5)
-        if not near_junction(p, st.half_width + 10.0) and _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-            _pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), "light")
+        if not near_junction(p, st.half_width + 10.0) and point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+            pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), "light")
 
 
 def _runs(
@@ -297,7 +288,7 @@ def _runs(
                     refl,
                 )
             )
-            _mark_rect(plan, mid[0], mid[1], math.atan2(*(b - a)[::-1]), length, thickness + 0.2)
+            mark_rect(plan, mid[0], mid[1], math.atan2(*(b - a)[::-1]), length, thickness + 0.2)
             solids.counts[material + "s"] += 1
         run = [q] if q is not None else []
 
@@ -327,16 +318,16 @@ def _back_lots(plan: Plan, solids: Solids, rng) -> None:
         code = _style_at(plan, (x, y))
         if code == DOWNTOWN:
             length, width = rng.uniform(10.0, 25.0), rng.uniform(8.0, 18.0)
-            if _rect_free(plan, x, y, yaw, length, width, clearance=2.5):
+            if rect_free(plan, x, y, yaw, length, width, clearance=2.5):
                 _building(plan, solids, rng, x, y, yaw, length, width, DOWNTOWN)
         elif rng.random() < 0.3:
             length, width = rng.uniform(2.5, 4.0), rng.uniform(2.0, 3.0)
-            if _rect_free(plan, x, y, yaw, length, width, clearance=1.0):
+            if rect_free(plan, x, y, yaw, length, width, clearance=1.0):
                 z = float(plan.ground(np.array([x]), np.array([y]))[0])
                 solids.boxes["building"].append(
                     (x, y, yaw, length, width, z - 0.3, z + CURB + rng.uniform(2.0, 2.6), float(rng.uniform(0.2, 0.5)))
                 )
-                _mark_rect(plan, x, y, yaw, length, width)
+                mark_rect(plan, x, y, yaw, length, width)
                 solids.counts["sheds"] += 1
     for x, y in _free_samples(plan, rng, int(area / 600.0), 10.0, (INDUSTRIAL,)):
         i, j, _ = raster.ij(x, y)
@@ -344,15 +335,15 @@ def _back_lots(plan: Plan, solids: Solids, rng) -> None:
         yaw = math.atan2(rd[1], rd[0]) + rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.03)
         trailer = rng.random() < 0.25
         length, width = (13.6, 2.55) if trailer else (float(rng.choice([6.06, 12.19])), 2.44)
-        if not _rect_free(plan, x, y, yaw, length, width, clearance=0.8):
+        if not rect_free(plan, x, y, yaw, length, width, clearance=0.8):
             continue
-        z = float(plan.ground(*_rect_points(x, y, yaw, length, width, step=length)).min())
+        z = float(plan.ground(*rect_points(x, y, yaw, length, width, step=length)).min())
         levels = 1 if trailer else int(rng.choice([1, 1, 2, 3]))
         height = 4.0 if trailer else 2.59
         solids.boxes["container"].append(
             (x, y, yaw, length, width, z - 0.2, z + CURB + height * levels, float(rng.uniform(0.15, 0.7)))
         )
-        _mark_rect(plan, x, y, yaw, length, width)
+        mark_rect(plan, x, y, yaw, length, width)
         solids.counts["containers"] += 1
 
 
@@ -380,20 +371,20 @@ def _park_paths(plan: Plan, solids: Solids, rng) -> None:
             solids.boxes["path"].append(
                 (mid[0], mid[1], heading, 2.6, 2.4, z - 0.1, z + 0.02, float(rng.uniform(0.32, 0.4)))
             )
-            _mark_rect(plan, mid[0], mid[1], heading, 2.5, 2.4)
+            mark_rect(plan, mid[0], mid[1], heading, 2.5, 2.4)
             since_lamp += 2.5
             if since_lamp >= 25.0:
                 n = left_normal(np.array([math.cos(heading), math.sin(heading)]))
                 lamp = mid + 1.8 * n
-                if _point_free(plan, lamp[0], lamp[1], 0.3, min_road=0.1):
-                    _pole(plan, solids, rng, lamp[0], lamp[1], -n, "light")
+                if point_free(plan, lamp[0], lamp[1], 0.3, min_road=0.1):
+                    pole(plan, solids, rng, lamp[0], lamp[1], -n, "light")
                     since_lamp = 0.0
                 elif rng.random() < 0.3:
                     bench = mid - 1.8 * n
-                    if _point_free(plan, bench[0], bench[1], 1.0, min_road=0.1):
+                    if point_free(plan, bench[0], bench[1], 1.0, min_road=0.1):
                         z = float(plan.ground(np.array([bench[0]]), np.array([bench[1]]))[0]) + CURB
                         solids.boxes["bench"].append((bench[0], bench[1], heading, 1.8, 0.6, z, z + 0.85, 0.4))
-                        _mark_point(plan, bench[0], bench[1], 1.0)
+                        mark_point(plan, bench[0], bench[1], 1.0)
             p = q
     solids.counts["paths"] += len(starts)
 
@@ -411,7 +402,7 @@ def _greenery(plan: Plan, solids: Solids, rng) -> None:
     bush_draw = rng.random(n)
     for k in np.flatnonzero(keep):
         if bush_draw[k] < 0.3:
-            if _point_free(plan, x[k], y[k], 0.8, min_road=1.5):
+            if point_free(plan, x[k], y[k], 0.8, min_road=1.5):
                 gz = float(plan.ground(x[k : k + 1], y[k : k + 1])[0]) + CURB
                 r = rng.uniform(0.5, 1.3)
                 solids.blobs["bush"].append(
@@ -429,7 +420,7 @@ def _greenery(plan: Plan, solids: Solids, rng) -> None:
                         float(rng.uniform(0.4, 0.6)),
                     )
                 )
-                _mark_point(plan, x[k], y[k], r * 0.8)
+                mark_point(plan, x[k], y[k], r * 0.8)
                 solids.counts["bushes"] += 1
-        elif _point_free(plan, x[k], y[k], 1.2, min_road=1.5):
-            _tree(plan, solids, rng, x[k], y[k])
+        elif point_free(plan, x[k], y[k], 1.2, min_road=1.5):
+            tree(plan, solids, rng, x[k], y[k])

@@ -10,8 +10,8 @@ import numpy as np
 from ..lidar_sim import MeshPart
 from .constants import BLOCK_CELLS, CELL, CURB, NODE_CELLS
 from .layout import Plan
-from .objects import Solids
 from .raster import HeightField, Raster
+from .solids import Solids
 
 _BOX_FACES = np.array(
     [  # bottom 0-3, top 4-7; no bottom face (it sits on or in the ground)

@@ -8,112 +8,30 @@ parameters per material (:class:`Solids`); :mod:`.meshes` turns those into trian
 from __future__ import annotations
 
 import math
-from collections import defaultdict
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .constants import CELL, CURB, EGO_CLEARANCE, EGO_CLEARANCE_STATIC, JUNCTION_CLEAR, SIDEWALK_MIN
+from .constants import CELL, CURB, EGO_CLEARANCE, JUNCTION_CLEAR
+
+#: Objects of the mapped town that can plausibly move between two drives (a parked car drives
+#: off, a sign is put up elsewhere); bins are only ever added (see :mod:`.changes`).
+from .furniture import fence_line, parked_car, pole, tree
 from .layout import Plan
+from .placement import mark_point, mark_rect, point_free, rect_free, rect_points
 from .raster import left_normal
+from .solids import Item, Solids
 
 #: Objects of the mapped town that can plausibly move between two drives (a parked car drives
 #: off, a sign is put up elsewhere); bins are only ever added (see :mod:`.changes`).
 MOVABLE_KINDS = ("parked_car", "sign")
 
 
-@dataclass
-class Item:
-    """One object the town's changes can move, remove or regrow, and the rows that draw it: each
-    row is (store, material, index) into :class:`Solids` (e.g. ("boxes", "car", 12))."""
-
-    kind: str  # "parked_car" | "sign" | "tree" | "bin"
-    x: float
-    y: float
-    yaw: float = 0.0
-    length: float = 0.0  # m, footprint on the ground (0 for posts and trunks)
-    width: float = 0.0
-    rows: list = field(default_factory=list)
-
-
-class Solids:
-    """Collects object parameters per material; meshes are made in bulk at the end."""
-
-    def __init__(self):
-        self.boxes = defaultdict(list)  # material → (cx, cy, yaw, length, width, z0, z1, refl)
-        self.prisms = defaultdict(list)  # gable roofs: (cx, cy, yaw, length, width, z0, rise, refl)
-        self.cylinders = defaultdict(list)  # (cx, cy, r, z0, z1, refl)
-        self.blobs = defaultdict(list)  # (cx, cy, cz, rx, ry, rz, yaw, n, leaf, shape, refl)
-        self.decals = defaultdict(list)  # flat quads on the ground: (cx, cy, yaw, length, width, refl)
-        self.counts = defaultdict(int)
-        self.items: list[Item] = []  # the objects that can change between drives
-
-    def add(self, store: str, material: str, row: tuple) -> tuple[str, str, int]:
-        """Append ``row`` to ``store`` (boxes, cylinders, blobs …) under ``material``; returns its key."""
-        rows = getattr(self, store)[material]
-        rows.append(row)
-        return (store, material, len(rows) - 1)
-
-    def row(self, key: tuple[str, str, int]) -> tuple:
-        store, material, index = key
-        return getattr(self, store)[material][index]
-
-
-def _rect_points(cx, cy, yaw, length, width, step=CELL):
-    nu = max(2, int(math.ceil(length / step)) + 1)
-    nv = max(2, int(math.ceil(width / step)) + 1)
-    U, V = np.meshgrid(np.linspace(-length / 2, length / 2, nu), np.linspace(-width / 2, width / 2, nv))
-    c, s = math.cos(yaw), math.sin(yaw)
-    return cx + U.ravel() * c - V.ravel() * s, cy + U.ravel() * s + V.ravel() * c
-
-
-def _rect_free(plan: Plan, cx, cy, yaw, length, width, clearance=0.0):
-    """A footprint can be built: inside the build area, off the road and its sidewalks, away
-    from the drive and from everything already placed (``clearance`` keeps a gap)."""
-    x, y = _rect_points(cx, cy, yaw, length + 2 * clearance, width + 2 * clearance)
-    i, j, ok = plan.raster.ij(x, y)
-    return bool(
-        np.all(
-            ok
-            & plan.build_area[i, j]
-            & ~plan.occupied[i, j]
-            & (plan.dist_road[i, j] >= SIDEWALK_MIN)
-            & (plan.dist_ego[i, j] >= 5.0)
-        )
-    )
-
-
-def _mark_rect(plan: Plan, cx, cy, yaw, length, width):
-    x, y = _rect_points(cx, cy, yaw, length, width, step=CELL / 2)
-    plan.raster.paint(plan.occupied, x, y)
-
-
-def _point_free(plan: Plan, x, y, radius, min_road=0.6):
-    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    px = np.concatenate([[x], x + radius * np.cos(ang)])
-    py = np.concatenate([[y], y + radius * np.sin(ang)])
-    i, j, ok = plan.raster.ij(px, py)
-    return bool(
-        np.all(
-            ok
-            & ~plan.occupied[i, j]
-            & (plan.dist_road[i, j] >= min_road)
-            & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)
-        )
-    )
-
-
-def _mark_point(plan: Plan, x, y, radius):
-    x2, y2 = _rect_points(x, y, 0.0, 2 * radius, 2 * radius, step=CELL / 2)
-    plan.raster.paint(plan.occupied, x2, y2)
-
-
 def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, density):
     """A building: main block, maybe an annex of another height, a gable roof on low houses or
     roof plant on tall ones. Its base is buried below the lowest ground under it."""
     ground = plan.ground
-    fx, fy = _rect_points(cx, cy, yaw, length, width, step=max(length, width) / 2)
+    fx, fy = rect_points(cx, cy, yaw, length, width, step=max(length, width) / 2)
     gz = ground(fx, fy)
     base = float(gz.min()) - 0.5
     top_ground = float(gz.max()) + CURB
@@ -158,181 +76,17 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, densi
         ux = rng.uniform(-0.5, 0.5) * (length - al)
         uy = width / 2 + aw / 2 - 0.3  # behind: local +v points away from the street (see populate)
         ax, ay = cx + ux * c - uy * s, cy + ux * s + uy * c
-        if _rect_free(plan, ax, ay, yaw, al, aw - 0.6):
+        if rect_free(plan, ax, ay, yaw, al, aw - 0.6):
             solids.boxes["building"].append(
                 (ax, ay, yaw, al, aw, base, top_ground + max(3.0, height * rng.uniform(0.3, 1.3)), refl)
             )
-            _mark_rect(plan, ax, ay, yaw, al, aw)
-    _mark_rect(plan, cx, cy, yaw, length, width)
-
-
-def _fence_line(plan: Plan, solids: Solids, rng, p0, p1, kind):
-    """A wall, fence or hedge from p0 to p1 on the ground, split where its cells are not free."""
-    length = float(np.linalg.norm(p1 - p0))
-    if length < 2.0:
-        return
-    u = np.arange(0.0, length, CELL) + CELL / 2
-    pts = p0 + (p1 - p0) / length * u[:, None]
-    i, j, ok = plan.raster.ij(pts[:, 0], pts[:, 1])
-    free = ok & ~plan.occupied[i, j] & ~plan.road[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE_STATIC)
-    runs = np.flatnonzero(np.diff(np.concatenate([[0], free.astype(np.int8), [0]])))
-    yaw = math.atan2(*(p1 - p0)[::-1])
-    ground = plan.ground
-    for r0, r1 in zip(runs[::2], runs[1::2]):
-        if (r1 - r0) * CELL < 2.0:
-            continue
-        a, b = pts[r0] - (pts[1] - pts[0]) * 0.5, pts[r1 - 1] + (pts[1] - pts[0]) * 0.5
-        seg = float(np.linalg.norm(b - a))
-        mid = 0.5 * (a + b)
-        gz = ground(np.array([a[0], mid[0], b[0]]), np.array([a[1], mid[1], b[1]]))
-        if kind == "wall":
-            h = rng.uniform(0.8, 2.2)
-            solids.boxes["wall"].append(
-                (mid[0], mid[1], yaw, seg, 0.25, gz.min() - 0.3, gz.max() + CURB + h, float(rng.uniform(0.3, 0.55)))
-            )
-        elif kind == "hedge":
-            h = rng.uniform(1.0, 2.0)
-            n = int(seg * h * 14)
-            solids.blobs["hedge"].append(
-                (mid[0], mid[1], gz.mean() + CURB + h / 2, seg / 2, 0.45, h / 2, yaw, n, 0.3, 2, 0.5)
-            )
-        else:  # fence: posts every 2.5 m and two rails; rays pass between them
-            h = rng.uniform(1.0, 1.8)
-            n_posts = int(seg / 2.5) + 1
-            for k in range(n_posts):
-                q = a + (b - a) * (k / max(n_posts - 1, 1))
-                z = float(ground(q[0:1], q[1:2])[0])
-                solids.boxes["fence"].append((q[0], q[1], yaw, 0.08, 0.08, z - 0.2, z + CURB + h, 0.45))
-            for frac in (0.45, 0.9):
-                z = float(gz.mean()) + CURB + h * frac
-                solids.boxes["fence"].append((mid[0], mid[1], yaw, seg, 0.04, z - 0.05, z + 0.05, 0.45))
-        _mark_rect(plan, mid[0], mid[1], yaw, seg, 0.5)
-        solids.counts[kind + "s"] += 1
-
-
-def _tree(plan: Plan, solids: Solids, rng, x, y, scale=1.0):
-    ground_z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
-    conifer = rng.random() < 0.25
-    trunk_r = rng.uniform(0.12, 0.3) * scale
-    if conifer:
-        crown_h = rng.uniform(5.0, 12.0) * scale
-        crown_r = crown_h * rng.uniform(0.25, 0.35)
-        crown_base = ground_z + rng.uniform(0.8, 2.0)
-        trunk_top = crown_base + crown_h * 0.6
-        n = int(np.clip(crown_r * crown_h * 12, 80, 450))
-        crown = solids.add(
-            "blobs",
-            "crown",
-            (x, y, crown_base, crown_r, crown_r, crown_h, 0.0, n, 0.4, 1, float(rng.uniform(0.4, 0.6))),
-        )
-    else:
-        crown_r = rng.uniform(1.5, 4.0) * scale
-        crown_v = crown_r * rng.uniform(0.7, 1.2)
-        trunk_top = ground_z + rng.uniform(2.2, 4.0) * scale
-        n = int(np.clip(crown_r * crown_v * 22, 80, 450))
-        crown = solids.add(
-            "blobs",
-            "crown",
-            (
-                x,
-                y,
-                trunk_top + crown_v * 0.7,
-                crown_r,
-                crown_r * rng.uniform(0.8, 1.2),
-                crown_v,
-                rng.uniform(0, np.pi),
-                n,
-                0.45,
-                0,
-                float(rng.uniform(0.45, 0.7)),
-            ),
-        )
-    trunk = solids.add("cylinders", "trunk", (x, y, trunk_r, ground_z - 0.3, trunk_top, float(rng.uniform(0.25, 0.4))))
-    solids.items.append(Item("tree", x, y, rows=[trunk, crown]))
-    _mark_point(plan, x, y, max(trunk_r, 0.6))
-    solids.counts["trees"] += 1
-
-
-def _pole(plan: Plan, solids: Solids, rng, x, y, toward_road, kind):
-    z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
-    yaw = math.atan2(toward_road[1], toward_road[0])
-    if kind == "light":
-        h = rng.uniform(7.0, 9.0)
-        solids.cylinders["pole"].append((x, y, 0.1, z - 0.3, z + h, 0.5))
-        arm = 1.8
-        solids.boxes["pole"].append(
-            (x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15, z + h - 0.25, z + h, 0.5)
-        )
-        solids.boxes["pole"].append(
-            (x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.7, 0.3, z + h - 0.4, z + h - 0.1, 0.6)
-        )
-    elif kind == "utility":
-        h = rng.uniform(9.0, 11.0)
-        solids.cylinders["pole"].append((x, y, 0.14, z - 0.3, z + h, 0.35))
-        solids.boxes["pole"].append((x, y, yaw + np.pi / 2, 1.8, 0.12, z + h - 0.8, z + h - 0.65, 0.35))
-    elif kind == "traffic_light":
-        h = rng.uniform(5.0, 6.0)
-        solids.cylinders["pole"].append((x, y, 0.12, z - 0.3, z + h, 0.5))
-        arm = rng.uniform(3.0, 5.0)
-        solids.boxes["pole"].append(
-            (x + toward_road[0] * arm / 2, y + toward_road[1] * arm / 2, yaw, arm, 0.15, z + h - 0.2, z + h, 0.5)
-        )
-        solids.boxes["sign"].append(
-            (x + toward_road[0] * arm, y + toward_road[1] * arm, yaw, 0.35, 0.35, z + h - 1.1, z + h, 0.3)
-        )
-    else:  # sign: thin post with a retro-reflective plate facing the road
-        h = rng.uniform(2.2, 3.0)
-        post = solids.add("cylinders", "pole", (x, y, 0.04, z - 0.3, z + h, 0.5))
-        plate = solids.add("boxes", "sign", (x, y, yaw, 0.03, 0.65, z + h - 0.7, z + h, 0.95))
-        solids.items.append(Item("sign", x, y, yaw, rows=[post, plate]))
-    _mark_point(plan, x, y, 0.5)
-    solids.counts["poles"] += 1
-
-
-def _parked_car(plan: Plan, solids: Solids, rng, x, y, yaw):
-    kind = rng.choice(3, p=[0.6, 0.3, 0.1])  # car, SUV, van
-    length = [rng.uniform(3.9, 4.7), rng.uniform(4.4, 4.9), rng.uniform(4.8, 5.4)][kind]
-    width = [rng.uniform(1.7, 1.85), rng.uniform(1.8, 1.95), rng.uniform(1.9, 2.05)][kind]
-    body_h = [rng.uniform(0.65, 0.8), rng.uniform(0.8, 1.0), rng.uniform(1.5, 1.9)][kind]
-    cabin_h = [rng.uniform(0.45, 0.55), rng.uniform(0.55, 0.7), 0.0][kind]
-    fx, fy = _rect_points(x, y, yaw, length, width, step=length)
-    z = float(plan.ground(fx, fy).min())
-    c, s = math.cos(yaw), math.sin(yaw)
-    refl = float(rng.uniform(0.1, 0.75))
-    rows = [solids.add("boxes", "car", (x, y, yaw, length, width, z + 0.3, z + 0.3 + body_h, refl))]
-    if cabin_h > 0:
-        back = -0.15 * length
-        rows.append(
-            solids.add(
-                "boxes",
-                "glass",
-                (
-                    x + back * c,
-                    y + back * s,
-                    yaw,
-                    0.55 * length,
-                    width - 0.15,
-                    z + 0.3 + body_h,
-                    z + 0.3 + body_h + cabin_h,
-                    0.08,
-                ),
-            )
-        )
-    for u in (-1, 1):
-        for v in (-1, 1):
-            ux, uy = u * (length / 2 - 0.85), v * (width / 2 - 0.12)
-            rows.append(
-                solids.add(
-                    "boxes", "wheel", (x + ux * c - uy * s, y + ux * s + uy * c, yaw, 0.62, 0.22, z, z + 0.62, 0.05)
-                )
-            )
-    solids.items.append(Item("parked_car", x, y, yaw, length, width, rows))
-    solids.counts["parked_cars"] += 1
+            mark_rect(plan, ax, ay, yaw, al, aw)
+    mark_rect(plan, cx, cy, yaw, length, width)
 
 
 def footprint(item: Item) -> tuple[np.ndarray, np.ndarray]:
     """Corner x and y of an item's footprint (its post or trunk for point-like items)."""
-    return _rect_points(
+    return rect_points(
         item.x, item.y, item.yaw, max(item.length, 1e-3), max(item.width, 1e-3), step=max(item.length, item.width, 1e-3)
     )
 
@@ -340,7 +94,7 @@ def footprint(item: Item) -> tuple[np.ndarray, np.ndarray]:
 def car_spot_free(plan: Plan, x, y, yaw) -> bool:
     """A car can park at (x, y) heading ``yaw``: free road clear of the drive and of junctions
     (the checks of the parking lanes in :func:`populate`)."""
-    px, py = _rect_points(x, y, yaw, 5.0, 2.0)
+    px, py = rect_points(x, y, yaw, 5.0, 2.0)
     i, j, ok = plan.raster.ij(px, py)
     if not np.all(ok & plan.road[i, j] & ~plan.occupied[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE)):
         return False
@@ -349,23 +103,23 @@ def car_spot_free(plan: Plan, x, y, yaw) -> bool:
 
 def post_spot_free(plan: Plan, x, y) -> bool:
     """A sign post can stand at (x, y) (the check of the signs in :func:`populate`)."""
-    return _point_free(plan, x, y, 0.3, min_road=0.1)
+    return point_free(plan, x, y, 0.3, min_road=0.1)
 
 
 def occupy(plan: Plan, item: Item) -> None:
     """Mark the ground an item now stands on."""
     if item.kind == "parked_car":
-        _mark_rect(plan, item.x, item.y, item.yaw, 4.8, 1.9)
+        mark_rect(plan, item.x, item.y, item.yaw, 4.8, 1.9)
     else:
-        _mark_point(plan, item.x, item.y, 0.5)
+        mark_point(plan, item.x, item.y, 0.5)
 
 
 def add_parked_car(plan: Plan, solids: Solids, rng, x, y, yaw) -> bool:
     """Park a car at (x, y) heading ``yaw`` if :func:`car_spot_free`; True if it was parked."""
     if not car_spot_free(plan, x, y, yaw):
         return False
-    _parked_car(plan, solids, rng, x, y, yaw)
-    _mark_rect(plan, x, y, yaw, 4.8, 1.9)
+    parked_car(plan, solids, rng, x, y, yaw)
+    mark_rect(plan, x, y, yaw, 4.8, 1.9)
     return True
 
 
@@ -373,19 +127,19 @@ def add_sign(plan: Plan, solids: Solids, rng, x, y, toward_road) -> bool:
     """Put up a sign post at (x, y) facing ``toward_road`` if the spot is free; True if it was."""
     if not post_spot_free(plan, x, y):
         return False
-    _pole(plan, solids, rng, x, y, toward_road, "sign")
+    pole(plan, solids, rng, x, y, toward_road, "sign")
     return True
 
 
 def add_bin(plan: Plan, solids: Solids, rng, x, y, yaw) -> bool:
     """Stand a wheelie bin (about 0.6 × 0.7 × 1.1 m) at (x, y) on the sidewalk if the spot is free."""
-    if not _point_free(plan, x, y, 0.5, min_road=0.3):
+    if not point_free(plan, x, y, 0.5, min_road=0.3):
         return False
     z = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
     length, width, h = rng.uniform(0.55, 0.75), rng.uniform(0.6, 0.8), rng.uniform(0.95, 1.25)
     row = solids.add("boxes", "bin", (x, y, yaw, length, width, z - 0.05, z + h, float(rng.uniform(0.15, 0.5))))
     solids.items.append(Item("bin", x, y, yaw, length, width, [row]))
-    _mark_point(plan, x, y, 0.5)
+    mark_point(plan, x, y, 0.5)
     solids.counts["bins"] += 1
     return True
 
@@ -426,18 +180,18 @@ def populate(plan: Plan, rng) -> Solids:
                     if rng.random() < 0.5:
                         a = st.at(s)[0] + side * left_normal(st.at(s)[1]) * (prop + 0.3)
                         b = st.at(s + gap)[0] + side * left_normal(st.at(s + gap)[1]) * (prop + 0.3)
-                        _fence_line(plan, solids, rng, a, b, fence_kind)
+                        fence_line(plan, solids, rng, a, b, fence_kind)
                     s += gap
                     continue
-                # In a footprint's own frame (_rect_points) +v is to the left of its yaw; turning
+                # In a footprint's own frame (rect_points) +v is to the left of its yaw; turning
                 # right-side buildings by π makes +v point away from the street on both sides.
                 b_yaw = yaw if side > 0 else yaw + np.pi
-                if _rect_free(plan, centre[0], centre[1], b_yaw, width - 0.6, depth - 0.6):
+                if rect_free(plan, centre[0], centre[1], b_yaw, width - 0.6, depth - 0.6):
                     _building(plan, solids, rng, centre[0], centre[1], b_yaw, width, depth, d)
                     if setback > 2.5 and rng.random() < 0.45:
                         a = st.at(s)[0] + normal * (prop + 0.3)
                         b = st.at(s + width)[0] + normal * (prop + 0.3)
-                        _fence_line(plan, solids, rng, a, b, fence_kind)
+                        fence_line(plan, solids, rng, a, b, fence_kind)
                     s += width + (0.0 if (d > 0.55 and rng.random() < 0.6) else rng.uniform(1.5, 8.0))
                 else:
                     s += 2.0
@@ -448,8 +202,8 @@ def populate(plan: Plan, rng) -> Solids:
                 for u in np.arange(rng.uniform(2, 8), st.length, rng.uniform(7.0, 11.0)):
                     p, t = st.at(u + rng.uniform(-0.8, 0.8))
                     q = p + side * left_normal(t) * curb_off
-                    if not near_junction(q, st.half_width + 6.0) and _point_free(plan, q[0], q[1], 0.6):
-                        _tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
+                    if not near_junction(q, st.half_width + 6.0) and point_free(plan, q[0], q[1], 0.6):
+                        tree(plan, solids, rng, q[0], q[1], scale=rng.uniform(0.7, 1.0))
         # Street lights (or utility poles) at the curb, on one side or alternating.
         light_kind = "light" if rng.random() < 0.7 else "utility"
         alternate = rng.random() < 0.5
@@ -457,8 +211,8 @@ def populate(plan: Plan, rng) -> Solids:
             side = (1.0 if k % 2 else -1.0) if alternate else 1.0
             p, t = st.at(u)
             q = p + side * left_normal(t) * (st.half_width + 0.7)
-            if _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-                _pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), light_kind)
+            if point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+                pole(plan, solids, rng, q[0], q[1], -side * left_normal(t), light_kind)
 
     # Signs and traffic lights at junction corners.
     for jp in plan.junctions:
@@ -468,8 +222,8 @@ def populate(plan: Plan, rng) -> Solids:
                 for dist in (8.5, 9.5, 10.5, 7.5):
                     q = jp + dist * np.array([math.cos(ang), math.sin(ang)])
                     i, j, ok = raster.ij(q[0], q[1])
-                    if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and _point_free(plan, q[0], q[1], 0.3, min_road=0.1):
-                        _pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j], "traffic_light" if lights else "sign")
+                    if ok and 0.2 <= plan.dist_road[i, j] <= 2.0 and point_free(plan, q[0], q[1], 0.3, min_road=0.1):
+                        pole(plan, solids, rng, q[0], q[1], plan.road_dir[i, j], "traffic_light" if lights else "sign")
                         break
 
     # Parked cars in the parking lanes; right curb faces the street's direction, left curb against.
@@ -484,11 +238,11 @@ def populate(plan: Plan, rng) -> Solids:
                 q = p + side * left_normal(t) * (st.half_width - 1.15)
                 yaw = math.atan2(t[1], t[0]) + (0.0 if side < 0 else np.pi) + rng.uniform(-0.03, 0.03)
                 if rng.random() < fill and not near_junction(q, JUNCTION_CLEAR):
-                    x, y = _rect_points(q[0], q[1], yaw, 5.0, 2.0)
+                    x, y = rect_points(q[0], q[1], yaw, 5.0, 2.0)
                     i, j, ok = raster.ij(x, y)
                     if np.all(ok & plan.road[i, j] & ~plan.occupied[i, j] & (plan.dist_ego[i, j] >= EGO_CLEARANCE)):
-                        _parked_car(plan, solids, rng, q[0], q[1], yaw)
-                        _mark_rect(plan, q[0], q[1], yaw, 4.8, 1.9)
+                        parked_car(plan, solids, rng, q[0], q[1], yaw)
+                        mark_rect(plan, q[0], q[1], yaw, 4.8, 1.9)
                 u += rng.uniform(5.6, 7.0)
 
     # Dashed centre lines, not across junctions.
@@ -510,7 +264,7 @@ def populate(plan: Plan, rng) -> Solids:
             rd = plan.road_dir[i, j]
             yaw = math.atan2(rd[1], rd[0]) + np.pi / 2 + rng.choice([0.0, np.pi / 2]) + rng.normal(0, 0.05)
             length, width = rng.uniform(8.0, 14.0 + 20.0 * d), rng.uniform(7.0, 10.0 + 14.0 * d)
-            if _rect_free(plan, x, y, yaw, length, width, clearance=2.5):
+            if rect_free(plan, x, y, yaw, length, width, clearance=2.5):
                 _building(plan, solids, rng, x, y, yaw, length, width, d)
     green = ~plan.road & ~plan.occupied & (plan.dist_road >= 1.5) & (plan.dist_ego >= 3.0)
     cells = np.flatnonzero(green.ravel())
@@ -524,7 +278,7 @@ def populate(plan: Plan, rng) -> Solids:
             x = raster.x0 + (i + rng.random()) * CELL
             y = raster.y0 + (j + rng.random()) * CELL
             if rng.random() < 0.3:  # a bush
-                if _point_free(plan, x, y, 0.8, min_road=1.5):
+                if point_free(plan, x, y, 0.8, min_road=1.5):
                     gz = float(plan.ground(np.array([x]), np.array([y]))[0]) + CURB
                     r = rng.uniform(0.5, 1.3)
                     solids.blobs["bush"].append(
@@ -542,8 +296,8 @@ def populate(plan: Plan, rng) -> Solids:
                             float(rng.uniform(0.4, 0.6)),
                         )
                     )
-                    _mark_point(plan, x, y, r * 0.8)
+                    mark_point(plan, x, y, r * 0.8)
                     solids.counts["bushes"] += 1
-            elif _point_free(plan, x, y, 1.2, min_road=1.5):
-                _tree(plan, solids, rng, x, y)
+            elif point_free(plan, x, y, 1.2, min_road=1.5):
+                tree(plan, solids, rng, x, y)
     return solids

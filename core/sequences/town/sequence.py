@@ -13,7 +13,8 @@ from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
 from ...geometry import inv_pose
 from ..base import Sequence, rebase_poses
-from ..lidar_sim import SENSORS, LidarModel, Sweep
+from ..lidar_models import SENSORS, LidarModel
+from ..lidar_sim import Sweep
 from .constants import SENSOR_HEIGHT
 from .drive import interpolate_poses
 from .world import Town
@@ -33,7 +34,7 @@ class TownSequence(Sequence):
 
     The world options describe the drive being localized (see :class:`~lidarloc.core.config.TownConfig`):
     ``changes`` (share of movable objects and trees changed since mapping, :mod:`.changes`),
-    ``traffic`` (:mod:`.traffic`), ``sensor`` (:data:`~..lidar_sim.SENSORS`), ``mount_height``
+    ``traffic`` (:mod:`.traffic`), ``sensor`` (:data:`~..lidar_models.SENSORS`), ``mount_height``
     (m above the road), ``skew`` (each scan swept over 1/rate_hz while moving, not de-skewed;
     :mod:`lidarloc.core.odometry.deskew`) and ``route`` (1, or 2: :mod:`.routes`). At their defaults the
     sequence *is* the mapping drive. Otherwise :attr:`map_source` is the mapping drive — route 1,
@@ -192,7 +193,7 @@ class TownSequence(Sequence):
             )
         return self.lidar.scan(self.poses_town[i], rng, sweep=sweep, moving=moving)
 
-    def _describe_scan(self, i: int) -> str:
+    def describe_scan(self, i: int) -> str:
         return f"town seed {self.seed} scan {i}"
 
     @property

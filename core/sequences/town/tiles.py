@@ -19,7 +19,8 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..lidar_sim import LidarModel, MeshPart, RaycastLidar, _compile_kernels, _Scene
+from ..lidar_models import LidarModel
+from ..lidar_sim import MeshPart, RaycastLidar, _compile_kernels, _Scene
 from .constants import TILE
 
 _OFFSET = 512  # tile indices are stored shifted by this, so that keys stay ≥ 0

@@ -14,7 +14,8 @@ from ...errors import DataError
 from ...geometry import inv_pose, rotation_zyx
 from ..base import check_poses, rebase_poses
 from ..kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
-from ..lidar_sim import LidarModel, RaycastLidar
+from ..lidar_models import LidarModel
+from ..lidar_sim import RaycastLidar
 from .constants import (
     BUILD_REACH,
     CELL,

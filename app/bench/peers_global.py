@@ -1,0 +1,140 @@
+"""``lidarloc bench peers``, global part: lidarloc's M3RSM (+ GICP) beside open3d's FPFH + RANSAC and
+FGR global registration of a scan to the whole map (hdl_global_localization's alternative to BBS),
+on the same scans, map and machine."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...core.config import Config
+from ...core.maps.bev import load_or_build_pyramid
+from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.sequences.factory import SourceSpec
+from .common import median, open_source, pose_error
+
+SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
+FEATURE_VOXEL = 1.0  # m, the peers' map and scan voxel
+
+
+# ------------------------------------------------------------------------------ global localization
+class FeatureMap:
+    """The map's down-sampled points and FPFH features, computed once (open3d)."""
+
+    def __init__(self, points: np.ndarray, voxel: float = FEATURE_VOXEL):
+        from ...core.o3d import open3d
+
+        self.o3d = open3d()
+        self.voxel = voxel
+        t0 = time.perf_counter()
+        self.cloud, self.fpfh = self.features(points)
+        self.build_s = time.perf_counter() - t0
+
+    def features(self, points: np.ndarray):
+        o3d, v = self.o3d, self.voxel
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)[:, :3]))
+        pcd = pcd.voxel_down_sample(v)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100)
+        )
+        return pcd, fpfh
+
+    def ransac(self, scan: np.ndarray, seed: int) -> np.ndarray:
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        self.o3d.utility.random.seed(seed)
+        src, src_f = self.features(scan)
+        res = reg.registration_ransac_based_on_feature_matching(
+            src,
+            self.cloud,
+            src_f,
+            self.fpfh,
+            True,
+            1.5 * v,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+        return np.asarray(res.transformation)
+
+    def fgr(self, scan: np.ndarray) -> np.ndarray:
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        src, src_f = self.features(scan)
+        res = reg.registration_fgr_based_on_feature_matching(
+            src, self.cloud, src_f, self.fpfh, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * v)
+        )
+        return np.asarray(res.transformation)
+
+
+def _judge(T: np.ndarray, truth: np.ndarray) -> tuple[bool, float, float]:
+    if not np.isfinite(T).all():
+        return False, math.inf, math.inf
+    m, deg = pose_error(T, truth)
+    return m <= SUCCESS_M and deg <= SUCCESS_DEG, m, deg
+
+
+def global_localization(
+    spec: SourceSpec, cfg: Config, scans: int, cache_root: Path | None = None, progress=None, peers: bool = True
+) -> dict:
+    """M3RSM (+GICP) against FPFH + RANSAC and FGR (``peers``; else M3RSM alone) on ``scans``
+    random scans of the source."""
+    from ...core.matching import m3rsm
+    from ...core.matching.s2m import ScanToMapMatcher
+
+    seq = open_source(spec, cfg, "peers", need_poses=True)
+    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
+    t0 = time.perf_counter()
+    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
+    matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m)
+    lidarloc_build_s = time.perf_counter() - t0
+    features = FeatureMap(prior.points) if peers else None
+    names = ("m3rsm", "fpfh_ransac", "fgr") if peers else ("m3rsm",)
+    rng = np.random.default_rng(cfg.seed)
+    idx = [int(k) for k in rng.choice(len(seq), min(scans, len(seq)), replace=False)]
+    warm = matcher.prepare(seq.scan(idx[0]))  # numba's kernels and the bound grids, off the clock
+    m3rsm.match_global(pyramid, warm.road_removed[:, :2], cfg.s2m.angle_step)
+    rows = []
+    for j, k in enumerate(idx):
+        truth, scan = seq.pose(k), seq.scan(k)
+        row = {"scan": k}
+        out = matcher.match_global(scan)
+        row["m3rsm_ms"], row["m3rsm_accepted"] = out.ms, bool(out.accepted)
+        row["m3rsm_success"], row["m3rsm_err_m"], row["m3rsm_err_deg"] = _judge(out.pose, truth)
+        pts = range_filter(scan, cfg.map)[:, :3]
+        peer_calls = (("fpfh_ransac", lambda: features.ransac(pts, cfg.seed + j)), ("fgr", lambda: features.fgr(pts)))
+        for name, call in peer_calls if peers else ():
+            t = time.perf_counter()
+            T = call()
+            row[f"{name}_ms"] = (time.perf_counter() - t) * 1e3
+            row[f"{name}_success"], row[f"{name}_err_m"], row[f"{name}_err_deg"] = _judge(T, truth)
+        rows.append(row)
+        if progress is not None:
+            progress(j + 1, len(idx))
+    out = {
+        "source": seq.name,
+        "scans": len(rows),
+        "map_points": int(len(prior.points)),
+        "lidarloc_map_build_s": lidarloc_build_s,
+        "rows": rows,
+    }
+    for name in names:
+        out[f"{name}_success"] = float(np.mean([r[f"{name}_success"] for r in rows]))
+        out[f"{name}_ms_median"] = median(r[f"{name}_ms"] for r in rows)
+        out[f"{name}_err_m_median"] = median(r[f"{name}_err_m"] for r in rows)
+    out["m3rsm_accepted"] = float(np.mean([r["m3rsm_accepted"] for r in rows]))
+    if peers:
+        best = max(("fpfh_ransac", "fgr"), key=lambda n: (out[f"{n}_success"], -out[f"{n}_ms_median"]))
+        out.update(
+            feature_map_points=int(len(features.cloud.points)),
+            feature_map_build_s=features.build_s,
+            best_peer=best,
+            time_ratio_best_peer_over_m3rsm=out[f"{best}_ms_median"] / max(out["m3rsm_ms_median"], 1e-9),
+        )
+    return out
+
+
+# ------------------------------------------------------------------------------------- tracking

@@ -11,6 +11,7 @@ Foxglove renames fails here, at build time, instead of giving a panel that silen
 from __future__ import annotations
 
 from . import foxglove_channels as T
+from .run_steps import LIDAR_FRAME
 
 #: (title, [(message path, label, colour)]) of the plots, top to bottom
 PLOTS = (
@@ -51,7 +52,7 @@ def layout():
     }
     scene = fl.ThreeDeePanel(
         title="lidarloc",
-        config=fl.ThreeDeeConfig(topics=topics, follow_tf=T.LIDAR_FRAME, follow_mode="follow-position"),
+        config=fl.ThreeDeeConfig(topics=topics, follow_tf=LIDAR_FRAME, follow_mode="follow-position"),
     )
     plots = [
         fl.SplitItem(

@@ -86,6 +86,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             folder_order=self.controls.particles_folder.order + 0.25,
         )
         self.owns_localizer = False
+        self._display_lock = threading.RLock()  # one display update at a time (update_display)
         self.sinks: list = []  # more consumers of each step played (the Foxglove stream)
         self._autoplay = autoplay
         self._start_lock = threading.Lock()
@@ -371,7 +372,12 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     def update_display(self, force_plots: bool = False) -> float:
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
-        on the scene and status (the per-scan cost)."""
+        on the scene and status (the per-scan cost). Updates are serialised: the display thread and
+        a caller (a test, the timeline) never interleave, so the newest state is what stays shown."""
+        with self._display_lock:
+            return self._update_display(force_plots)
+
+    def _update_display(self, force_plots: bool) -> float:
         self.readouts.update_progress(None if self.localizer is None else self.localizer.rebuild_progress)
         shown = self.travel.shown()  # a recorded step the timeline was moved to
         snap = shown if shown is not None else self._latest

@@ -124,6 +124,11 @@ class S2MDetailView:
         with self._lock:
             return ([ROOT] if self._root is not None else []) + sorted(self._handles)
 
+    def handle(self, name: str):
+        """The scene handle of the node ``name`` (``ROOT`` or ``ROOT/part``), None when not drawn."""
+        with self._lock:
+            return self._root if name == ROOT else self._handles.get(name)
+
     # ---------------------------------------------------------------------------- drawing
     def _clear_locked(self) -> None:
         if self._root is not None:

@@ -206,3 +206,31 @@ def test_an_estimate_moved_unannounced_is_noticed_and_relocalized(cache_root):
     after = [s for s in snaps if s.scan_index > moved[0].scan]
     assert all(s.error_m < 5.0 for s in after)
     assert all(s.truth_alarm is None for s in after)
+
+
+def test_a_drive_that_ends_before_s2m_joins_is_not_counted_as_a_failed_recovery():
+    from lidarloc.app.bench.integrity import summarize
+
+    def figures(scans, recovery):
+        return {
+            "false_fires": 0,
+            "wrong_green": 0,
+            "noticed": 0,
+            "recovery": recovery,
+            "lost_after": None,
+            "relocalizations": 0,
+            "spurious_relocalizations": 0,
+            "scans": scans,
+        }
+
+    done = {
+        ("real", "s2m-at-100", 0): figures(100, None),  # S2M would join after the drive's end
+        ("town", "s2m-at-100", 0): figures(300, 4),
+        ("town", "s2m-at-50", 0): figures(300, None),  # joined and never recovered: a failure
+    }
+    s = summarize(done, {}, 1.0)
+    assert s["cases"]["s2m-at-100"]["s2m_never_joined"] == 1
+    assert s["cases"]["s2m-at-100"]["recovery_scans_max"] == 4
+    assert s["recovery_scans_max"] is None  # the s2m-at-50 run that never recovered still counts
+    del done[("town", "s2m-at-50", 0)]
+    assert summarize(done, {}, 1.0)["recovery_scans_max"] == 4

@@ -312,9 +312,14 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
     per_case = {}
     for case in dict.fromkeys(key[1] for key in sorted(done)):
         runs = [done[key] for key in sorted(done) if key[1] == case]
-        recoveries = [r["recovery"] for r in runs]
+        # S2M held back past the drive's end (s2m-at-100 on a 100-scan drive): nothing to recover
+        # from; such a run only shows that PF alone never turns green, so it counts for false
+        # fires and green-and-wrong scans but not for recovery
+        joined = [r for r in runs if not _s2m_never_joined(case, r)]
+        recoveries = [r["recovery"] for r in joined]
         per_case[case] = {
             "runs": len(runs),
+            "s2m_never_joined": len(runs) - len(joined),
             "false_fires": _total([r["false_fires"] for r in runs]),
             "wrong_green_scans": _total([r["wrong_green"] for r in runs]),
             "noticed_scans_max": None if any(r["noticed"] is None for r in runs) else max(r["noticed"] for r in runs),
@@ -346,7 +351,7 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
             },
         }
     joins = [c for c in per_case if c.startswith("s2m-at-")]
-    join_recoveries = [v for c in joins for v in [done[k]["recovery"] for k in done if k[1] == c]]
+    join_recoveries = [done[k]["recovery"] for k in done if k[1] in joins and not _s2m_never_joined(k[1], done[k])]
     return {
         "false_fires": _total([c["false_fires"] for c in per_case.values()]),
         "spurious_relocalizations": _total([c["spurious_relocalizations"] for c in per_case.values()]),
@@ -360,6 +365,12 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
         "lookalikes": lookalikes,
         "cases": per_case,
     }
+
+
+def _s2m_never_joined(case: str, figures: dict) -> bool:
+    """Whether the case held S2M back until a scan the drive never reached."""
+    join_at = Case(case).join_at
+    return join_at is not None and figures["scans"] <= join_at
 
 
 def report_markdown(summary: dict) -> str:
@@ -381,7 +392,7 @@ def report_markdown(summary: dict) -> str:
         lines.append(
             f"| {name} | {c['runs']} | {v(c['false_fires'])} | {v(c['wrong_green_scans'])} | "
             f"{v(c['noticed_scans_max'])} | "
-            f"{c['recovered']}/{c['runs']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
+            f"{c['recovered']}/{c['runs'] - c['s2m_never_joined']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
             f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) |"
         )
     if summary["lookalikes"]:
@@ -397,7 +408,9 @@ def report_markdown(summary: dict) -> str:
     lines += [
         "",
         "- recovery: scans from the disturbance (S2M joining, the start, the kidnap, the move) to the "
-        "first scan localized within 5 m of the truth; max '–': a run never recovered.",
+        "first scan localized within 5 m of the truth; max '–': a run never recovered. A run whose drive "
+        "ends before S2M would join has nothing to recover from: it is left out of recovered (x/y counts "
+        "the others) and only shows that the filter alone never turns green.",
         "- scans green & wrong: scans called localized more than 5 m from the truth, from the disturbance on.",
         "- noticed within: the most scans, over runs, from the disturbance until the filter was no longer "
         "green and wrong (right again, or not claiming to be localized).",

@@ -3,7 +3,7 @@
 Every run records its steps into ``--out``'s ``recording/`` folder unless told not to
 (:mod:`lidarloc.core.runs.recording`); a branch of a recorded run (:mod:`lidarloc.app.branch`) goes
 through the same loop. Ctrl-C stops after the scan in progress and still writes everything
-computed so far. The source's notes (a bag's dropped scans, a folder without times) are printed
+computed so far; SIGTERM and SIGHUP do the same. The source's notes (a bag's dropped scans, a folder without times) are printed
 before the run, and a map and scans found to be in different frames are warned about as soon as
 the localizer says so.
 """
@@ -23,7 +23,7 @@ from ..core.localizer import Interrupted, Localizer
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
-from .console import progress_bar
+from .console import progress_bar, stop_signals_like_ctrl_c
 from .options import open_source
 
 
@@ -107,6 +107,7 @@ def localize(
         stop.set()
         loc.interrupt()
 
+    stop_signals_like_ctrl_c()  # SIGTERM and SIGHUP call on_ctrl_c too
     previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
     warned = _warn_frames(console, loc.events, 0)

@@ -55,6 +55,7 @@ def run_killing(town, cache_root, which: str, after: int = 3):
         )
 
 
+@pytest.mark.slow  # four 14-scan runs: ~40 s per block on 2 cores
 @pytest.mark.parametrize("which", ["S2M", "RPE"])
 def test_a_child_killed_once_is_restarted_and_the_replay_stays_deterministic(town, cache_root, which):
     first = run_killing(town, cache_root, which)

@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from ..core.config import Config
+from ..core.errors import LidarlocError
 from ..core.localizer import Interrupted, Localizer
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
@@ -114,6 +115,7 @@ def localize(
     n_before = len(loc.records)  # a branch starts with the recorded run's
     clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
     t_start = time.perf_counter()
+    failure: str | None = None  # a block's failure that stopped the run (written into the summary)
     try:
         console.print(
             title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)"
@@ -136,6 +138,9 @@ def localize(
                     snap = loc.step()
                 except Interrupted:
                     break
+                except LidarlocError as exc:  # one line naming the block: results up to the last scan
+                    failure = str(exc)
+                    raise
                 if writer is not None:
                     writer.on_scan(loc, snap)
                 warned = _warn_frames(console, loc.events, warned)
@@ -159,6 +164,8 @@ def localize(
         n_new = len(loc.records) - n_before
         summary = summarize_run(loc, wall, lags[:n_new] if realtime else None, cpu_used, preset=preset)
         summary["interrupted"] = interrupted
+        if failure is not None:
+            summary["stopped_by"] = failure
         if getattr(loc, "branch_of", None) is not None:
             summary["branch_of"] = loc.branch_of
         try:

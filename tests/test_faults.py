@@ -3,6 +3,7 @@ core/failures.py): a child process killed mid-run is restarted once and the run 
 run every time in the replay clock); one killed at every start stops the run with one line; an
 exception in a thread names its block."""
 
+import json
 import os
 import signal
 import threading
@@ -72,40 +73,49 @@ def test_a_child_killed_once_is_restarted_and_the_replay_stays_deterministic(tow
     assert np.array_equal(first[2], second[2])
 
 
-def test_a_child_killed_at_every_start_stops_the_run_with_one_line(town, cache_root):
+def test_a_child_killed_at_every_start_stops_the_run_with_one_line(town, cache_root, tmp_path):
+    """As ``lidarloc run`` runs it (app/headless.py): one line naming the block, and the results
+    of every scan finished before are written, with what stopped the run."""
+    import io
+
+    from lidarloc.app.headless import localize
+    from rich.console import Console
+
     loc = make(town, cache_root)
+    loc.run(2)
+    stop = threading.Event()
+    killed: set[int] = set()
+
+    def killer():  # kills every S2M child it sees, the restarted ones as soon as they start
+        while not stop.is_set():
+            pid = loc.s2m.matcher.pid
+            if pid not in killed:
+                killed.add(pid)
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+            stop.wait(0.005)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    t0 = time.monotonic()
     try:
-        loc.run(2)
-        stop = threading.Event()
-        killed: set[int] = set()
-
-        def killer():  # kills every S2M child it sees, the restarted ones as soon as they start
-            while not stop.is_set():
-                pid = loc.s2m.matcher.pid
-                if pid not in killed:
-                    killed.add(pid)
-                    try:
-                        os.kill(pid, signal.SIGKILL)
-                    except ProcessLookupError:
-                        pass
-                stop.wait(0.005)
-
-        thread = threading.Thread(target=killer, daemon=True)
-        thread.start()
-        t0 = time.monotonic()
         with pytest.raises(BlockError, match=r"^S2M: the S2M process died again right after its restart") as err:
-            loc.run()
+            localize(loc, tmp_path, Console(file=io.StringIO()))
+    finally:
         stop.set()
         thread.join()
-        assert time.monotonic() - t0 < HANG_BOUND_S
-        assert isinstance(err.value, LidarlocError) and "\n" not in str(err.value)
-        assert err.value.block == "S2M"
-        assert len(killed) == 2  # the first child and its one restart
-        assert len(loc.records) >= 2  # what was finished before stays
-        with pytest.raises(LidarlocError, match="restart to continue"):
-            loc.step()
-    finally:
         loc.close()
+    assert time.monotonic() - t0 < HANG_BOUND_S
+    assert isinstance(err.value, LidarlocError) and "\n" not in str(err.value)
+    assert err.value.block == "S2M"
+    assert len(killed) == 2  # the first child and its one restart
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["stopped_by"] == str(err.value) and not summary["interrupted"]
+    rows = (tmp_path / "scans.csv").read_text().splitlines()
+    assert len(rows) - 1 == len(loc.records) >= 2  # every scan finished before is written
+    assert any(e["kind"] == "error" for e in json.loads((tmp_path / "events.json").read_text()))
 
 
 def test_an_exception_in_a_block_is_one_line_naming_it():

@@ -304,6 +304,7 @@ def run_bench(
     """``runs`` seeded runs (seeds 0…runs−1) of ``cfg`` on ``spec`` into ``out_dir``; returns the
     aggregate summary. ``preset``: the named configuration ``cfg`` came from (recorded);
     ``record``: each run records itself into its folder (``runs/seed_NNN/recording``)."""
+    stop_signals_like_ctrl_c()  # from the start: preparing the cache can take minutes
     check_runs(runs, workers, executor)
     plan = Plan(out_dir, spec, cfg, runs, preset, record=record)
     prepare_cache(spec, cfg, cache_root)

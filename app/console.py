@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import resource
+import signal
 import sys
+import threading
 from typing import NoReturn
 
 import typer
@@ -68,3 +70,31 @@ def _fmt(value) -> str:
 def peak_rss_mb() -> float:
     """This process's peak resident memory so far (MB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
+#: The signals that stop a command the way Ctrl-C does: a terminal's Ctrl-C, ``kill`` and a
+#: service manager (SIGTERM), a closed terminal or SSH session (SIGHUP).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _as_ctrl_c(signum, frame) -> None:
+    """SIGTERM / SIGHUP: whatever Ctrl-C does at this moment (the command's own SIGINT handler,
+    else Python's KeyboardInterrupt)."""
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler) and handler is not _as_ctrl_c:
+        handler(signum, frame)
+    else:
+        raise KeyboardInterrupt
+
+
+def stop_signals_like_ctrl_c() -> None:
+    """Make SIGTERM and SIGHUP stop this process exactly as Ctrl-C would, whichever SIGINT handler
+    a command installs later, and make Ctrl-C work in a process started in the background (a
+    shell without job control starts it with SIGINT ignored). Call it once, early, from the main
+    thread; elsewhere it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_IGN, None):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    for sig in STOP_SIGNALS[1:]:
+        signal.signal(sig, _as_ctrl_c)

@@ -3,7 +3,7 @@
 Every run records its steps into ``--out``'s ``recording/`` folder unless told not to
 (:mod:`lidarloc.core.runs.recording`); a branch of a recorded run (:mod:`lidarloc.app.branch`) goes
 through the same loop. Ctrl-C stops after the scan in progress and still writes everything
-computed so far. The source's notes (a bag's dropped scans, a folder without times) are printed
+computed so far; SIGTERM and SIGHUP do the same. The source's notes (a bag's dropped scans, a folder without times) are printed
 before the run, and a map and scans found to be in different frames are warned about as soon as
 the localizer says so.
 """
@@ -19,11 +19,12 @@ from rich.console import Console
 from rich.markup import escape
 
 from ..core.config import Config
+from ..core.errors import LidarlocError
 from ..core.localizer import Interrupted, Localizer
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
-from .console import progress_bar
+from .console import progress_bar, stop_signals_like_ctrl_c
 from .options import open_source
 
 
@@ -107,12 +108,14 @@ def localize(
         stop.set()
         loc.interrupt()
 
+    stop_signals_like_ctrl_c()  # SIGTERM and SIGHUP call on_ctrl_c too
     previous = signal.signal(signal.SIGINT, on_ctrl_c) if _main_thread() else None
     cpu_start = loc.cpu_seconds()
     warned = _warn_frames(console, loc.events, 0)
     n_before = len(loc.records)  # a branch starts with the recorded run's
     clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
     t_start = time.perf_counter()
+    failure: str | None = None  # a block's failure that stopped the run (written into the summary)
     try:
         console.print(
             title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)"
@@ -135,6 +138,9 @@ def localize(
                     snap = loc.step()
                 except Interrupted:
                     break
+                except LidarlocError as exc:  # one line naming the block: results up to the last scan
+                    failure = str(exc)
+                    raise
                 if writer is not None:
                     writer.on_scan(loc, snap)
                 warned = _warn_frames(console, loc.events, warned)
@@ -158,6 +164,8 @@ def localize(
         n_new = len(loc.records) - n_before
         summary = summarize_run(loc, wall, lags[:n_new] if realtime else None, cpu_used, preset=preset)
         summary["interrupted"] = interrupted
+        if failure is not None:
+            summary["stopped_by"] = failure
         if getattr(loc, "branch_of", None) is not None:
             summary["branch_of"] = loc.branch_of
         try:

@@ -5,12 +5,15 @@ Entries are directories under the cache root (``$LIDARLOC_CACHE``, default ``~/.
 ``--cache`` on the CLI): a prior map per sequence and map configuration, and beside it the
 tables derived from that map (lookup tables, BEV pyramids, recorded odometry). Every entry and
 file is written under a temporary name and renamed into place, so a crash, Ctrl-C or a killed
-child process never leaves a half-written one, and readers never see one.
+child process never leaves a half-written one, and readers never see one. An entry found
+unreadable all the same (cut short by an older version, a foreign file put in its place) is built
+again, and the user is told (:func:`cache_rebuilt`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 import tempfile
@@ -68,10 +71,49 @@ def atomic_write_file(final: Path, write: Callable[[Path], None]) -> None:
     tmp = Path(name)
     try:
         write(tmp)
+        os.chmod(tmp, _new_file_mode())  # mkstemp's 0600 would hide a run's results from others
         os.replace(tmp, final)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+#: Where a cache entry found unreadable is reported; without a configured handler Python's
+#: last-resort handler prints the bare message on stderr (what the command line shows).
+log = logging.getLogger("lidarloc.cache")
+
+
+def cache_rebuilt(directory: Path, why: str) -> None:
+    """Tell the user that the cache entry ``directory`` was unreadable (cut short by a crash
+    before atomic writes, written by another version, replaced by a foreign file) and is being
+    built again."""
+    log.warning("lidarloc: warning: %s: unreadable cache entry (%s); building it again", directory, why)
+
+
+def check_points(points, name: str):
+    """``points`` as a cache keeps them: a finite (N, 3) float array, else ValueError."""
+    import numpy as np
+
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind != "f":
+        raise ValueError(f"{name}: {points.dtype} array of shape {points.shape}, not (N, 3) floats")
+    if not np.isfinite(points).all():
+        raise ValueError(f"{name}: non-finite coordinates")
+    return points
+
+
+def _new_file_mode() -> int:
+    """The mode ``open()`` gives a new file: 0666 less the process's umask (read from /proc:
+    setting it to read it back is not thread-safe)."""
+    umask = 0o022
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    umask = int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o666 & ~umask
 
 
 def file_identity(path) -> str:

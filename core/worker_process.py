@@ -13,22 +13,58 @@ a best-effort block (S2M) then only gets the CPU the real-time blocks (PF, RPE) 
 
 Wire protocol (stdin → child, child → stdout): one length-prefixed pickle per message (protocol
 5). A request is any picklable object; the reply is ``("ok", value)`` or ``("error", message)``.
+
+A child that dies (killed, out of memory, a crash in C++) fails the call in flight at once with
+:class:`WorkerDied` (its pipe closes), and :attr:`WorkerProcess.alive` says so between calls.
+:meth:`WorkerProxy.revive` starts a new child in its place, once: a restarted child that dies
+again before it answered anything is a :class:`~lidarloc.core.failures.BlockError` (something
+kills it at every start, or its set-up cannot work), and the run stops. A child never outlives its
+parent: it exits when its parent's pipe closes, and a thread of its own ends it within
+``PARENT_POLL_S`` when the parent is gone (killed with SIGKILL, its pipe still held open by a
+sibling), so no orphan keeps computing and writing into a broken pipe.
 """
 
 from __future__ import annotations
 
 import os
 import pickle
+import signal
 import struct
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
+
+from .failures import BlockError
 
 _LEN = struct.Struct("<Q")
 _STOP = "__stop__"
 _PING = "__ping__"  # answered by the serving loop itself, once the handler is built
+#: How often a child checks that its parent is still there (seconds).
+PARENT_POLL_S = 0.25
+
+
+class WorkerDied(RuntimeError):
+    """The child process is gone (killed, crashed, out of memory): the call in flight, and every
+    later one, can never be answered. ``worker`` is the :class:`WorkerProcess` that died."""
+
+    def __init__(self, message: str, worker: WorkerProcess | None = None):
+        super().__init__(message)
+        self.worker = worker
+
+
+def exit_words(code: int | None) -> str:
+    """How a process ended, in words: "killed by SIGKILL", "exit code 1"."""
+    if code is None:
+        return "its pipe closed"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
 
 
 def _read_exact(stream, n: int) -> bytes:
@@ -43,7 +79,13 @@ def _read_exact(stream, n: int) -> bytes:
 
 def _send(stream, obj: Any) -> None:
     data = pickle.dumps(obj, protocol=5)
-    stream.write(_LEN.pack(len(data)) + data)
+    view = memoryview(_LEN.pack(len(data)) + data)
+    # An unbuffered pipe's write may take only part of a large message when a signal arrives
+    # mid-way (Ctrl-C, SIGTERM, a debugger attaching): the rest must follow, or the child waits
+    # for it forever while the parent waits for the answer.
+    while view:
+        written = stream.write(view)
+        view = view[written if written is not None else 0 :]
     stream.flush()
 
 
@@ -79,10 +121,40 @@ class WorkerProcess:
                 status, value = _receive(self._proc.stdout)
                 self._answered = True
             except (BrokenPipeError, EOFError, OSError, ValueError):  # ValueError: pipe closed by close()
-                raise RuntimeError(f"{self.name} process exited (code {self._proc.poll()})") from None
+                raise WorkerDied(f"{self.name} process exited ({self.exit_words()})", self) from None
         if status == "error":
             raise RuntimeError(value)
         return value
+
+    @property
+    def alive(self) -> bool:
+        """Whether the child is still running (a cheap check: no call is made). A child that has
+        exited but is not reaped yet counts as dead: ``poll()`` alone says "running" while another
+        thread waits for it, and the answer would depend on that thread's timing."""
+        if self._proc.poll() is not None:
+            return False
+        try:
+            with open(f"/proc/{self._proc.pid}/stat") as f:
+                state = f.read().rsplit(")", 1)[1].split()[0]
+        except FileNotFoundError:
+            return False
+        except (OSError, IndexError):  # no /proc (not Linux): poll() has the last word
+            return True
+        return state not in ("Z", "X")
+
+    @property
+    def answered(self) -> bool:
+        """Whether the child has answered a call (its set-up is over)."""
+        return self._answered
+
+    def exit_words(self) -> str:
+        """How the child ended (:func:`exit_words`), once it has (waits up to a second for a
+        child whose pipe closed to be reaped)."""
+        try:
+            code = self._proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        return exit_words(code)
 
     def wait_ready(self) -> None:
         """Block until the child has finished its set-up (a set-up failure raises here)."""
@@ -159,11 +231,68 @@ class WorkerProcess:
 class WorkerProxy:
     """Base of a block's parent-side object: starts the child process running ``module`` with
     the set-up message ``init`` (it prepares while the caller goes on), and gives the members
-    every block shares. Subclasses add the block's own calls on top of ``_worker.call``."""
+    every block shares. Subclasses add the block's own calls on top of ``_worker.call``.
+    ``block`` names the localizer's block the child serves, in errors (default: ``name``)."""
 
-    def __init__(self, module: str, init: Any, name: str):
+    def __init__(self, module: str, init: Any, name: str, block: str | None = None):
+        self._spec = (module, init, name)
+        self.name = name
+        self.block = block or name
         self._worker = WorkerProcess(module, init, name)
         self._worker.start()
+        self._revive_lock = threading.Lock()
+        self.restarts = 0  # children started in place of a dead one
+        self.restarted_at: float | None = None  # time.monotonic() of the last restart
+
+    @property
+    def alive(self) -> bool:
+        """Whether the current child is running."""
+        return self._worker.alive
+
+    def revive(self, died: WorkerProcess | None = None) -> str | None:
+        """Start a new child in place of the current one if it died (or if it is ``died``, the one
+        a :class:`WorkerDied` names); returns what happened in words, or None when there was
+        nothing to do (it runs, or ``died`` was replaced already). The new child sets up in the
+        background, as the first did. Raises :class:`~lidarloc.core.failures.BlockError` when the
+        child that died was itself a restart that never answered: it died again at once."""
+        with self._revive_lock:
+            old = self._worker
+            if died is not None and died is not old:
+                return None
+            if died is None and old.alive:
+                return None
+            how = old.exit_words()
+            if self.restarts and not old.answered:
+                raise BlockError(
+                    f"{self.block}: the {self.name} process died again right after its restart ({how}); "
+                    "the run stops here",
+                    self.block,
+                )
+            old.close()
+            self._worker = WorkerProcess(*self._spec)
+            self._worker.start()
+            self.restarts += 1
+            self.restarted_at = time.monotonic()
+            return f"the {self.name} process died ({how}); a new one was started"
+
+    def ensure_alive(self) -> str | None:
+        """:meth:`revive` if the child died; what happened in words, or None."""
+        return None if self._worker.alive else self.revive()
+
+    def wait_ready_reviving(self) -> str | None:
+        """:meth:`wait_ready`, starting a new child once if the first dies in its set-up; what
+        happened in words, or None. A failed set-up (not a death) raises ``RuntimeError``."""
+        try:
+            self.wait_ready()
+            return None
+        except WorkerDied as exc:
+            words = self.revive(exc.worker)
+        try:
+            self.wait_ready()
+        except WorkerDied as exc:
+            self.revive(exc.worker)  # raises: died again at once
+            raise
+        return words
 
     def wait_ready(self) -> None:
         """Block until the child has finished its set-up (a set-up failure raises ``RuntimeError``)."""
@@ -213,10 +342,37 @@ def lower_priority(nice: int) -> None:
         pass
 
 
+def _exit_with_parent() -> None:
+    """A daemon thread that ends this process when its parent is gone (see the module docstring);
+    its parent is then init or a subreaper, so ``getppid`` changes."""
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="lidarloc-parent-watch", daemon=True).start()
+
+
 def serve(make_handler: Callable[[Any], Callable[[Any], Any]]) -> None:
     """The child side: read the set-up message, build the handler from it, then answer requests
     until the parent says stop or goes away. An exception in the handler is sent back as a
-    one-line error and the loop goes on (the parent decides what a failure means)."""
+    one-line error and the loop goes on (the parent decides what a failure means). A parent gone
+    mid-request ends the child quietly: nobody is left to read a traceback."""
+    _exit_with_parent()
+    # Ctrl-C reaches the parent, which stops its children in order; a SIGINT sent to a child
+    # alone ends it without a traceback (the parent then sees it exit).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    try:
+        _serve(make_handler)
+    except (OSError, EOFError):
+        # the parent closed the pipe: it no longer wants an answer. _exit, not return: the
+        # interpreter's exit would flush the broken pipe again and print that it failed.
+        os._exit(0)
+
+
+def _serve(make_handler: Callable[[Any], Callable[[Any], Any]]) -> None:
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     # Anything the handler prints must not corrupt the protocol stream.
     sys.stdout = sys.stderr

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import shutil
+import signal
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
@@ -34,7 +35,7 @@ from ...core.config import Config, update_from_dict
 from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir, summarize_run, write_run
 from ...core.sequences.factory import SourceSpec, open_sequence
-from ..console import progress_bar
+from ..console import progress_bar, stop_signals_like_ctrl_c
 from .common import is_town
 from .localize_report import write_report
 
@@ -253,15 +254,31 @@ def run_tasks(fn, tasks: dict, workers: int, on_done, executor: str = "process",
         return
     # spawn, not fork: the parent may have started OpenMP threads (numba), which do not survive
     # a fork; a failed run cancels the queued ones instead of running them all.
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    stop_signals_like_ctrl_c()  # SIGTERM / SIGHUP stop the benchmark as Ctrl-C does
+    pool = ProcessPoolExecutor(
+        max_workers=workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_ignores_ctrl_c
+    )
     try:
         futures = {pool.submit(fn, *args): key for key, args in tasks.items()}
         for fut in as_completed(futures):
             on_done(futures[fut], fut.result())
     except BaseException:
+        # Ctrl-C, a signal or a failed run: the runs in progress are thrown away, so their
+        # processes end now (they would otherwise run on, orphaned, into a closed pipe).
+        workers_left = list(getattr(pool, "_processes", {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
+        for proc in workers_left:
+            proc.terminate()
+        for proc in workers_left:
+            proc.join(timeout=5)
         raise
     pool.shutdown(wait=True)
+
+
+def _worker_ignores_ctrl_c() -> None:
+    """A benchmark's worker process leaves Ctrl-C to its parent, which ends it (no traceback from
+    every worker; the parent writes what finished)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def check_runs(runs: int, workers: int, executor: str = "process") -> None:
@@ -287,6 +304,7 @@ def run_bench(
     """``runs`` seeded runs (seeds 0…runs−1) of ``cfg`` on ``spec`` into ``out_dir``; returns the
     aggregate summary. ``preset``: the named configuration ``cfg`` came from (recorded);
     ``record``: each run records itself into its folder (``runs/seed_NNN/recording``)."""
+    stop_signals_like_ctrl_c()  # from the start: preparing the cache can take minutes
     check_runs(runs, workers, executor)
     plan = Plan(out_dir, spec, cfg, runs, preset, record=record)
     prepare_cache(spec, cfg, cache_root)

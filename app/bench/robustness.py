@@ -33,7 +33,7 @@ from rich.console import Console
 from ...core.config import TOWN_SENSORS, Config, load_config
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
-from ..console import progress_bar
+from ..console import progress_bar, stop_signals_like_ctrl_c
 from .common import DATA_ENV, REAL_DRIVE, REAL_DRIVE_DATE, data_dir, real_drive, require_town
 from .localize import (
     Plan,
@@ -259,6 +259,7 @@ def run_robustness(
     from .robustness_report import write_cell_table
 
     console = console or Console(stderr=True)
+    stop_signals_like_ctrl_c()  # from the start: preparing the cache can take minutes
     check_runs(runs, workers)
     require_town(town, "robustness", "the built-in town's drive in a changed world")
     check_overrides(overrides)

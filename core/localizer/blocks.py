@@ -11,11 +11,10 @@ from concurrent.futures import wait as wait_futures
 import numpy as np
 
 from ..errors import LidarlocError
+from ..failures import BlockError, block_failure
 from ..rules.integrity import fits_clearly_better
 
-
-class BlockError(LidarlocError):
-    """A localizer block (thread) raised; the run stops with this one-line message."""
+__all__ = ["BlockError", "BlocksMixin", "Interrupted", "INTERRUPT_POLL_S"]
 
 
 class Interrupted(LidarlocError):
@@ -45,7 +44,11 @@ class BlocksMixin:
         velocity, angular_velocity = twist_from_relative_pose(*step)
         return deskew(scan, sweep_offsets(scan, self._sweep_period), velocity, angular_velocity)
 
-    def _wait(self, future: Future, block: str, k: int, what: str | None = None):
+    def _wait(self, future: Future, block: str, k: int, what: str | None = None, recover: tuple = ()):
+        """The result of ``future`` (a block's work for scan k), waiting for it unless
+        ``interrupt()`` comes first. A failure is recorded as an ``error`` event, refuses further
+        steps, and is raised as one line naming the block (:class:`BlockError`); exceptions of
+        the types in ``recover`` are raised as they are, for the caller to handle."""
         if not future.done():
             self._waiting = (
                 what or (f"KISS-ICP's registration of scan {k}" if block == "RPE" else block),
@@ -60,14 +63,28 @@ class BlocksMixin:
             self._waiting = None
         try:
             return future.result()
-        except LidarlocError:
+        except recover:
             raise
         except Exception as exc:  # a block's failure surfaces once, clearly, in the caller's thread
-            self._event(k, "error", f"{block}: {exc}")
+            error = exc if isinstance(exc, LidarlocError) else block_failure(block, exc, f" at scan {k}")
+            self._event(k, "error", str(error))
             # The step that saw it is half done (the PF already weighted scan k): refuse further
             # steps rather than silently repeat or skip work.
-            self._failed = f"{block} block failed at scan {k}: {type(exc).__name__}: {exc}"
-            raise BlockError(self._failed) from exc
+            self._failed = str(error)
+            raise error from exc
+
+    def _step_failed(self, exc: Exception) -> Exception:
+        """What ``step()`` raises for ``exc``: an error the user can fix as it is; a block's failure
+        (a BlockError, or any other exception of the step's own work — the PF, the rules — as
+        one line naming the PF) recorded as an ``error`` event, refusing further steps like
+        :meth:`_wait` (the step is half done)."""
+        if isinstance(exc, LidarlocError) and not isinstance(exc, BlockError):
+            return exc
+        error = exc if isinstance(exc, BlockError) else block_failure("PF", exc, f" at scan {self.k}")
+        if self._failed is None:
+            self._event(self.k, "error", str(error))
+            self._failed = str(error)
+        return error
 
     def _reinitialize(
         self, region=None, pose=None, k: int | None = None, why: str = "re-initialised", speed: float | None = None

@@ -304,9 +304,11 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         for worker in (self.s2m.matcher, self.odometry.process):
             if isinstance(worker, WorkerProxy):
                 try:
-                    worker.wait_ready()
+                    words = worker.wait_ready_reviving()  # a child killed in its set-up: once more
                 except RuntimeError as exc:
-                    raise BlockError(str(exc)) from None
+                    raise BlockError(f"{worker.block}: {exc}", worker.block) from None
+                if words is not None:
+                    self._event(self.k, "restarted", f"{worker.block}: {words}")
 
     def cpu_seconds(self) -> dict:
         """CPU time used so far by the blocks' processes, in seconds: ``main`` (this process: the
@@ -378,11 +380,18 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                 del self.events[events_before:]
                 self.s2m.job = job_before
                 raise
+            except Exception as exc:
+                error = self._step_failed(exc)
+                if error is exc:
+                    raise
+                raise error from exc
 
     def _process_next_scan(self) -> Snapshot:
         """The body of step(), with the lock held."""
         self._swap_rebuilt_tables()
         k = self.k
+        if hasattr(self.s2m, "check_matcher"):  # a dead S2M child: cancel its match, start another
+            self.s2m.check_matcher(k)
         scan = self.seq.scan(k)
         t = self.seq.timestamp(k)
         dt = self.cfg.pf.dt if self._prev_t is None else max(t - self._prev_t, 1e-3)
@@ -416,6 +425,8 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         if self.s2m_status(k)[0] == "ready" and k == self.cfg.s2m.join_at_scan > 0:
             self._event(k, "s2m_ready", f"held back until scan {k} (s2m.join_at_scan)")
         step_dist, yaw_odom = self.odometry.motion(k)
+        for j, words in self.odometry.take_notices():  # KISS-ICP's child restarted (feed.py)
+            self._event(j, "restarted", f"RPE: {words}")
         confirmed = self.integrity.confirmed_since if self.integrity.required else None
         outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom, confirmed)
         reinit = relocalized

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import Cached, atomic_write_dir
+from ..cache import Cached, atomic_write_dir, cache_rebuilt
 from ..config import S2MConfig
 from ..errors import LidarlocError
 
@@ -190,8 +190,8 @@ def load_or_build_pyramid(
     if directory is not None and (directory / "pyramid.json").is_file():
         try:
             return Cached(BEVPyramid.load(directory), directory, True)
-        except LidarlocError:
-            pass  # unreadable entry: rebuild it below
+        except LidarlocError as exc:  # rebuilt below
+            cache_rebuilt(directory, str(exc).split(": ", 1)[-1])
     t0 = time.perf_counter()
     pyramid = BEVPyramid.build(prior_map.points_bev, s2m_cfg.match_resolution, s2m_cfg.binary_cells, cell_value)
     pyramid.meta["build_seconds"] = time.perf_counter() - t0

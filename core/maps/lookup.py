@@ -57,7 +57,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from ..cache import Cached, atomic_write_dir
+from ..cache import Cached, atomic_write_dir, cache_rebuilt
 from ..errors import DataError, LidarlocError
 from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_CODE  # noqa: F401  (BRICK_* and MISS_CODE: the table's format, read by the kernels)
 from .distance_transform import build_bricks
@@ -286,8 +286,8 @@ def load_or_build_lookup(
         if (directory / "lookup.json").is_file():
             try:
                 return Cached(LookupTable.load(directory), directory, True)
-            except DataError:
-                pass  # unreadable entry: rebuild below (the exact key is overwritten)
+            except DataError as exc:  # rebuilt below (the exact key is overwritten)
+                cache_rebuilt(directory, str(exc).split(": ", 1)[-1])
     t0 = time.perf_counter()
     table = LookupTable.build(prior_map.points, resolution, d_max, progress=progress)
     build_s = time.perf_counter() - t0

@@ -22,8 +22,9 @@ Memory
     the whole cloud as float64;
     .npz members cannot be read in parts and are loaded whole.
 
-Points that are not finite (NaN/inf: an organised cloud's missing returns) are dropped and
-counted; a map with no finite point is an error. Only x, y, z are read; other fields
+Points that are not finite (NaN/inf: an organised cloud's missing returns) or lie beyond 10⁸ m
+(no place on Earth; a damaged file's garbage) are dropped and counted; a map with no point left
+is an error. A file numpy cannot parse is one line, whatever numpy raised. Only x, y, z are read; other fields
 (intensity, rgb, normals, padding) are skipped.
 """
 
@@ -58,7 +59,7 @@ class MapCloud:
     origin: np.ndarray  # (3,) float64, the local frame's origin in the file's frame
     path: Path
     n_read: int  # points in the file
-    n_dropped_nonfinite: int  # of which not finite (dropped)
+    n_dropped_nonfinite: int  # of which not finite or beyond MAX_COORD_M (dropped)
 
     def world_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Min and max per axis in the file's frame (float64)."""
@@ -123,6 +124,19 @@ def read_map(path, progress: Callable[[int, int], None] | None = None, chunk_poi
         ) from None
 
 
+#: Coordinates beyond this (metres) are no place on Earth in any map frame (UTM northings stay
+#: below 10⁷ m, ECEF below 6.4·10⁶ m): such a point is dropped like a NaN one, instead of
+#: overflowing the map's float32 local frame or stretching its extent over light-years.
+MAX_COORD_M = 1.0e8
+UNUSABLE = "NaN, infinite or beyond 10⁸ m"
+
+
+def _usable(xyz: np.ndarray) -> np.ndarray:
+    """Which rows of ``xyz`` are points a map can hold (finite, within ``MAX_COORD_M``)."""
+    with np.errstate(invalid="ignore"):
+        return (np.abs(xyz) <= MAX_COORD_M).all(axis=1)  # NaN compares False
+
+
 def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
     if source.n == 0:
         raise DataError(f"{path}: the map holds no points")
@@ -132,14 +146,14 @@ def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
     if bounds is None:
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for xyz in source.iterate():
-            good = xyz[np.isfinite(xyz).all(axis=1)]
+            good = xyz[_usable(xyz)]
             if len(good):
                 lo, hi = np.minimum(lo, good.min(axis=0)), np.maximum(hi, good.max(axis=0))
             done += len(xyz)
             if progress is not None:
                 progress(done, total)
         if not np.isfinite(lo).all():
-            raise DataError(f"{path}: the map has no finite point (all {source.n:,} are NaN or infinite)")
+            raise DataError(f"{path}: the map has no finite point within 10⁸ m (all {source.n:,} are {UNUSABLE})")
         bounds = (lo, hi)
     origin = choose_origin(*bounds)
     out = np.empty((source.n, 3), dtype=np.float32)
@@ -148,7 +162,7 @@ def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
         n_read += len(xyz)
         if n_read > source.n:
             raise DataError(f"{path}: more points than its header says ({source.n:,})")
-        good = xyz[np.isfinite(xyz).all(axis=1)]
+        good = xyz[_usable(xyz)]
         good -= origin
         out[k : k + len(good)] = good
         k += len(good)
@@ -158,7 +172,7 @@ def _assemble(path: Path, source: _Chunks, progress) -> MapCloud:
     if n_read < source.n:
         raise DataError(f"{path}: truncated: {n_read:,} of the {source.n:,} points its header says")
     if k == 0:
-        raise DataError(f"{path}: the map has no finite point (all {n_read:,} are NaN or infinite)")
+        raise DataError(f"{path}: the map has no finite point within 10⁸ m (all {n_read:,} are {UNUSABLE})")
     if k < len(out):
         # shrinks the allocation in place (no second copy of a large map)
         out.resize((k, 3), refcheck=False)
@@ -398,6 +412,11 @@ def _las_chunks(path: Path, chunk_points: int) -> _Chunks:
     return _Chunks(n, iterate, bounds)
 
 
+def _not_valid(path: Path, kind: str, exc: Exception) -> str:
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{path}: not a valid {kind} file ({detail[:200]})"
+
+
 def _numpy_chunks(path: Path, chunk_points: int) -> _Chunks:
     if path.suffix.lower() == ".npy":
         with open(path, "rb") as f:
@@ -408,26 +427,34 @@ def _numpy_chunks(path: Path, chunk_points: int) -> _Chunks:
                     (2, 0): np.lib.format.read_array_header_2_0,
                 }.get(version)
                 shape, fortran, dtype = read_header(f) if read_header else ((), True, np.dtype(object))
-            except ValueError as exc:
-                raise DataError(f"{path}: not a valid .npy file ({exc})".splitlines()[0]) from None
+            except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, TokenError, …
+                raise DataError(_not_valid(path, ".npy", exc)) from None
             offset = f.tell()
         if len(shape) == 2 and shape[1] >= 3 and not fortran and dtype.kind in "fiu" and not dtype.hasobject:
             # rows read straight from the file: a memory map would count the whole file as resident
             return _binary_chunks(path, offset, shape[0], np.dtype((dtype, (shape[1],))), None, chunk_points)
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        try:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        except Exception as exc:  # cut short, a header numpy cannot parse
+            raise DataError(_not_valid(path, ".npy", exc)) from None
     else:
-        with np.load(path, allow_pickle=False) as npz:
-            keys = list(npz.keys())
-            if "points" in keys:
-                key = "points"
-            elif len(keys) == 1:
-                key = keys[0]
-            else:
-                raise DataError(
-                    f"{path}: no array named 'points' and {len(keys)} arrays "
-                    f"({', '.join(keys) or 'none'}): name the map's array 'points'"
-                )
-            arr = npz[key]
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                keys = list(npz.keys())
+                if "points" in keys:
+                    key = "points"
+                elif len(keys) == 1:
+                    key = keys[0]
+                else:
+                    raise DataError(
+                        f"{path}: no array named 'points' and {len(keys)} arrays "
+                        f"({', '.join(keys) or 'none'}): name the map's array 'points'"
+                    )
+                arr = npz[key]
+        except DataError:
+            raise
+        except Exception as exc:  # a damaged zip or array inside: any of a dozen types
+            raise DataError(_not_valid(path, ".npz", exc)) from None
     if arr.ndim != 2 or arr.shape[1] < 3 or not np.issubdtype(arr.dtype, np.number):
         raise DataError(f"{path}: expected an (N, ≥3) numeric array of points, got shape {arr.shape} {arr.dtype}")
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from ..cache import Cached, atomic_write_dir, default_cache_root
+from ..cache import Cached, atomic_write_dir, cache_rebuilt, check_points, default_cache_root
 from ..config import MapConfig
 from ..errors import DataError, LidarlocError
 from ..o3d import open3d
@@ -240,8 +240,8 @@ class PriorMap:
     def load(cls, directory: Path, meta: dict) -> PriorMap:
         bev = directory / BEV_FILE
         return cls(
-            points=np.load(directory / "map_points.npy"),
-            points_bev=np.load(bev) if bev.is_file() else None,
+            points=check_points(np.load(directory / "map_points.npy"), "map_points.npy"),
+            points_bev=check_points(np.load(bev), BEV_FILE) if bev.is_file() else None,
             voxel_size=float(meta["map"]["voxel_size"]),
             source=meta.get("source", ""),
             origin=np.asarray(meta.get("origin", (0.0, 0.0, 0.0)), dtype=np.float64),
@@ -368,8 +368,8 @@ def load_or_build_map(
         try:
             meta = json.loads(meta_path.read_text())
             prior = PriorMap.load(directory, meta)
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable entry: rebuild it below
+        except (OSError, ValueError, KeyError, TypeError) as exc:  # rebuilt below
+            cache_rebuilt(directory, f"{type(exc).__name__}: {exc}")
         else:
             if prior.points_bev is None and road_removal:
                 prior = load_or_build_road_removed(prior, directory, cfg)
@@ -412,13 +412,13 @@ def load_or_build_road_removed(
         try:
             return PriorMap(
                 points=prior.points,
-                points_bev=np.load(path),
+                points_bev=check_points(np.load(path), BEV_FILE),
                 voxel_size=prior.voxel_size,
                 source=prior.source,
                 origin=prior.origin,
             )
-        except (OSError, ValueError):
-            pass  # unreadable: compute it again below
+        except (OSError, ValueError) as exc:  # computed again below
+            cache_rebuilt(path, f"{type(exc).__name__}: {exc}")
     done = remove_road(prior, cfg, progress)
     tmp = directory / f".{BEV_FILE}.{os.getpid()}.{threading.get_ident()}.tmp.npy"
     try:

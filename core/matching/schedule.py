@@ -14,6 +14,13 @@ particle's log-likelihood: see :func:`~.landing.write_unless_weight_drops`).
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
 ``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
 
+A dead S2M child (killed, out of memory) is found at the start of the next step
+(:meth:`S2MScheduler.check_matcher`) or by the landing of the match it was running, whichever
+comes first: the match in flight is cancelled, a new child starts (its set-up runs in the
+background, and the next match waits for it), and a ``restarted`` event says so. Only the
+localizer's thread restarts it, at those two points, so in the replay clock a child killed
+between the same two scans gives the same run every time.
+
 Resuming a recorded run (:mod:`lidarloc.core.runs.branch`): ``recorded(started_at, start_pose, s2m_cfg,
 level)`` may return the outcome a recorded run's matcher gave for exactly that match; it then
 stands in for running the matcher. The matcher is a deterministic function of the scan (fixed by
@@ -45,7 +52,9 @@ from ..geometry import pose_matrix, pose_to_xyz_ypr
 from ..odometry.feed import OdometryFeed
 from ..rules.integrity import VERDICT_TEXT, Verdict, judge
 from ..snapshot import S2MView
+from ..worker_process import WorkerDied
 from .landing import landed_view, write_unless_weight_drops
+from .matchers import MatcherMixin
 from .worker import S2MProcess
 
 # Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
@@ -75,7 +84,7 @@ class S2MJob:
     # judged against (core/rules/integrity.py)
 
 
-class S2MScheduler:
+class S2MScheduler(MatcherMixin):
     """Starts, lands and cancels the localizer's S2M matches.
 
     ``cfg`` is the localizer's live configuration (read at every decision). Matches run on
@@ -91,7 +100,7 @@ class S2MScheduler:
         map_dir: Path,
         bounds: tuple,
         pool: ThreadPoolExecutor,
-        wait: Callable[[Future, str, int], Any],
+        wait: Callable[..., Any],
         event: Callable[[int, str, str], None],
         start_matcher: bool = True,
     ):
@@ -115,6 +124,7 @@ class S2MScheduler:
         self.recorded: Callable[[int, np.ndarray, Any, bool], Any] | None = None
         self.last_landing: tuple[int, S2MJob, Any] | None = None  # (scan, job, raw outcome)
         self.verdict: Verdict | None = None  # what the match that landed at the last step said
+        self._restarts_seen = 0  # the matcher's restarts already reported (check_matcher)
         self.restart()
 
     def restart(self) -> None:
@@ -129,18 +139,6 @@ class S2MScheduler:
         self.last: S2MView | None = None  # the last match that landed
         self.last_landing = None
         self.verdict = None
-
-    def start_matcher(self) -> None:
-        """Start the matcher unless it runs already (the S2M child process loads the cached map and
-        pyramid and builds its GICP target while the caller goes on)."""
-        if self.matcher is not None:
-            return
-        if self.cfg.localize.s2m_process:
-            self.matcher = S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, self._nice())
-        else:
-            from .s2m import ScanToMapMatcher
-
-            self.matcher = ScanToMapMatcher(self._prior_map, self._pyramid, self.cfg.s2m, self.cfg.map)
 
     @property
     def acceptance(self) -> float:
@@ -354,7 +352,13 @@ class S2MScheduler:
         elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
             return None  # real time: land at a scan after the match finished (see there)
         self.job = None
-        outcome = self._wait(job.future, "S2M", k, f"the S2M match started at scan {job.started_at}")
+        what = f"the S2M match started at scan {job.started_at}"
+        try:
+            outcome = self._wait(job.future, "S2M", k, what, recover=(WorkerDied,))
+        except WorkerDied as exc:  # its child died after this step's check_matcher
+            self.job = job
+            self._matcher_died(k, exc.worker)
+            return None
         self.last_landing = (k, job, outcome)
         self.n_landed += 1
         accepted = bool(outcome.accepted)
@@ -457,38 +461,3 @@ class S2MScheduler:
             job.deferrals += 1
             return False
         return True  # registered (or failed: the landing reports it)
-
-    # ------------------------------------------------------------------------ the matcher
-    def _nice(self) -> int:
-        """The S2M process's priority offset for the current clock (see s2m.replay_process_nice)."""
-        return self.cfg.s2m.replay_process_nice if self.cfg.localize.clock == "replay" else 0
-
-    def follow_clock(self, k: int) -> None:
-        """After a clock change: a process niced for replay cannot be raised back (that needs
-        privileges), so real time gets a fresh one at nice 0 (the match in flight is cancelled
-        at scan k). The old one finishes its match on the S2M thread, which then closes it; the
-        caller does not wait."""
-        nice = self._nice()
-        # same nice, or back to replay (a higher priority there changes no result): keep it
-        if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
-            return
-        self.cancel(k, "clock changed: new S2M process")
-        old, self.matcher = self.matcher, S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, nice)
-        self._retired_matchers.append(old)  # close() kills it if its match is still running
-        self._pool.submit(old.close)
-
-    def use_pyramid(self, k: int, pyramid) -> None:
-        """A rebuilt BEV pyramid (new d_m) from now on; the match in flight is cancelled at scan k."""
-        self.cancel(k, "map pyramid rebuilt")
-        self._pyramid = pyramid
-        if self.matcher is not None and not isinstance(self.matcher, S2MProcess):
-            # (the S2M process reloads it from the cache itself)
-            from .s2m import ScanToMapMatcher
-
-            self.matcher = ScanToMapMatcher(self._prior_map, pyramid, self.cfg.s2m, self.cfg.map)
-
-    def close_processes(self) -> None:
-        """Close the S2M child processes (a busy one is killed: its match would be thrown away)."""
-        for matcher in [self.matcher, *self._retired_matchers]:
-            if isinstance(matcher, S2MProcess):
-                matcher.close()

@@ -14,11 +14,21 @@ before it (the recorded ones: KISS-ICP's local map and its adaptive threshold ne
 history; ten scans of the town are ~60 m of road) and anchored at the recorded pose of the first of
 them, so that its poses continue in the recorded run's odometry frame. In real time the rules read
 the newest odometry finished in time, a choice of timing: ``used_plan`` repeats the recorded run's.
+
+A KISS-ICP child that dies (killed, out of memory) is replaced on the RPE thread, before the
+registration that finds it dead or that it failed: the new KISS-ICP is warmed up on the
+``WARMUP_SCANS`` scans before that scan and anchored at the first of them, exactly as a resumed
+run's, so the odometry goes on in the same frame and no match in flight loses its carry-forward.
+What happened is in :meth:`OdometryFeed.take_notices` for the localizer's events. A restart
+depends only on the scan whose registration found the child dead, so in the replay clock a run
+killed between the same two scans gives the same trajectory every time. A new child that dies
+again before it answered anything stops the run (:meth:`~lidarloc.core.worker_process.WorkerProxy.revive`).
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -29,8 +39,14 @@ import numpy as np
 
 from ..config import Config
 from ..geometry import euler_zyx
+from ..worker_process import WorkerDied
 from .rpe import RelativePoseEstimator
 from .worker import KissICPProcess
+
+#: Registrations of one scan tried before its failure stops the run: the first, and one after
+#: each of up to two restarts of a child that died after answering (one that dies again at once
+#: stops the run at its restart).
+REGISTRATION_ATTEMPTS = 3
 
 #: Scans a resumed run's KISS-ICP registers before the first scan it has no recorded pose for.
 WARMUP_SCANS = 10
@@ -83,6 +99,8 @@ class OdometryFeed:
         self.live_from: int | None = None  # the first scan KISS-ICP registered after the known ones
         # real time: scan → the odometry scan the recorded run's rules read at it (timing chose it)
         self.used_plan: dict[int, int] | None = None
+        self._notices: list[tuple[int, str]] = []  # (scan, what happened): restarts of the child
+        self._notices_lock = threading.Lock()
 
     @property
     def recorded(self) -> bool:
@@ -124,8 +142,15 @@ class OdometryFeed:
             return KissICP(kiss_config(100.0, 2.5, None))
         if self.process is None:
             self.process = KissICPProcess()
-        else:
+            return self.process
+        words = self.process.ensure_alive()  # a fresh one has seen nothing: no reset needed
+        if words is not None:
+            self._notice(self.origin, words)
+            return self.process
+        try:
             self.process.reset()
+        except WorkerDied as exc:
+            self._notice(self.origin, self.process.revive(exc.worker))
         return self.process
 
     def _warmed_up_icp(self, rpe: RelativePoseEstimator, k: int) -> AnchoredICP:
@@ -133,13 +158,38 @@ class OdometryFeed:
         ``WARMUP_SCANS`` scans before k that the odometry holds, and reports its poses in their
         frame (anchored at the first of them)."""
         self.live_from = k
+        return self._warm_up(self._fresh_icp(), rpe, k)
+
+    def _warm_up(self, icp, rpe: RelativePoseEstimator, k: int) -> AnchoredICP:
+        """``icp`` (fresh) after registering the up to ``WARMUP_SCANS`` scans before k that the
+        odometry holds, reporting its poses in their frame (anchored at the first of them)."""
         held = {j: pose for j, pose, *_ in rpe.entries()}
         window = [j for j in range(max(self.origin, k - WARMUP_SCANS), k) if j in held]
-        icp = self._fresh_icp()
         for j in window:
             pts = np.ascontiguousarray(np.asarray(self.scan_source(j))[:, :3], dtype=np.float64)
             icp.register_frame(pts, np.zeros(0))
         return AnchoredICP(icp, held[window[0]] if window else np.eye(4))
+
+    # ------------------------------------------------------------------------ a child that died
+    def _notice(self, k: int, words: str | None) -> None:
+        if words:
+            with self._notices_lock:
+                self._notices.append((int(k), words))
+
+    def take_notices(self) -> list[tuple[int, str]]:
+        """What happened to the KISS-ICP child since the last call: (scan, words) per restart."""
+        with self._notices_lock:
+            out, self._notices = self._notices, []
+        return out
+
+    def _revive(self, rpe: RelativePoseEstimator, k: int, died=None) -> None:
+        """The RPE thread, before registering scan k: a new KISS-ICP child in place of the dead
+        one, warmed up on the scans before k (see the module docstring). Raises BlockError when
+        the child died again at once."""
+        words = self.process.revive(died)
+        self._notice(k, words)
+        if words is not None and rpe.live_icp is not None:
+            rpe.live_icp = self._warm_up(self.process, rpe, k)
 
     # ------------------------------------------------------------------------ resuming
     def checkpoint(self) -> dict[str, np.ndarray]:
@@ -202,7 +252,17 @@ class OdometryFeed:
 
     def _add(self, rpe, k, scan, t):
         t0 = time.perf_counter()
-        rpe.add(k, scan, t)
+        process = self.process if rpe.registers(k) else None
+        for attempt in range(REGISTRATION_ATTEMPTS):
+            try:
+                if process is not None and not process.alive:
+                    self._revive(rpe, k)
+                rpe.add(k, scan, t)
+                break
+            except WorkerDied as exc:
+                if attempt + 1 == REGISTRATION_ATTEMPTS:
+                    raise
+                self._revive(rpe, k, exc.worker)
         self.last_ms = (time.perf_counter() - t0) * 1000.0
 
     def wait_registered(self, k: int) -> None:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import Cached, atomic_write_dir
+from ..cache import Cached, atomic_write_dir, cache_rebuilt
 from ..geometry import euler_zyx, inv_pose, wrap_angle
 from .kiss import KISS_CONVERGENCE, kiss_config
 from .worker import KissICPProcess
@@ -84,6 +84,20 @@ class RelativePoseEstimator:
         self._latest: int | None = None
 
     # ------------------------------------------------------------------------------- writer
+    def registers(self, k: int) -> bool:
+        """Whether :meth:`add` of scan k runs the ICP (no recorded or known pose for it)."""
+        return self._recorded is None and (self._known is None or int(k) not in self._known)
+
+    @property
+    def live_icp(self):
+        """The ICP that registers scans (None before a resumed run's first unknown scan); the
+        writer may replace it between two :meth:`add` calls (a restarted KISS-ICP child)."""
+        return self._icp
+
+    @live_icp.setter
+    def live_icp(self, icp) -> None:
+        self._icp = icp
+
     def add(self, k: int, scan_points: np.ndarray, timestamp: float) -> np.ndarray:
         """Register scan k (indices must increase) and return its odometry pose T_odom←k."""
         k = int(k)
@@ -224,9 +238,13 @@ def load_or_build_odometry(seq, map_dir, progress=None) -> Cached[np.ndarray]:
     directory = Path(map_dir) / f"odometry-kiss-{KISS_CONVERGENCE:g}"
     path = directory / "poses.npy"
     if path.is_file():
-        poses = np.load(path)
-        if poses.shape == (len(seq), 4, 4):
+        try:
+            poses = np.load(path)
+            if poses.shape != (len(seq), 4, 4) or not np.isfinite(poses).all():
+                raise ValueError(f"{poses.shape} poses, not ({len(seq)}, 4, 4) finite ones")
             return Cached(poses, directory, True)
+        except (OSError, ValueError) as exc:  # recomputed below
+            cache_rebuilt(directory, f"{type(exc).__name__}: {exc}")
     icp = KissICPProcess()
     try:
         rpe = RelativePoseEstimator(max_buffer=2, icp=icp)

@@ -40,7 +40,7 @@ def _make_handler(config_args: tuple):
 class KissICPProcess(WorkerProxy):
     def __init__(self, max_range: float = 100.0, min_range: float = 2.5, voxel_size: float | None = None):
         args = (float(max_range), float(min_range), None if voxel_size is None else float(voxel_size))
-        super().__init__("lidarloc.core.odometry.worker", args, "KISS-ICP")
+        super().__init__("lidarloc.core.odometry.worker", args, "KISS-ICP", block="RPE")
         self.last_pose = np.eye(4)
 
     def register_frame(self, points: np.ndarray, timestamps=None) -> None:

@@ -10,20 +10,29 @@ beside the estimate in the same frame and format (``groundtruth_*.txt``) so
 ``evo_ape kitti groundtruth_kitti.txt trajectory_kitti.txt`` compares like with like; the
 summary's ``ape_rmse_m`` and ``rpe_rmse_m`` are evo's own figures on the TUM files once written
 (:mod:`lidarloc.core.trajectory_errors`).
+
+Every file is written under a temporary name and renamed into place
+(:func:`~lidarloc.core.cache.atomic_write_file`): a run killed at any moment leaves each file
+complete or absent, never cut short. A write that fails (disk full, no permission) is one line
+naming the file (:func:`writing`), and the files written before it stay as they were.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import errno
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..cache import atomic_write_file
 from ..errors import LidarlocError
 from ..geometry import wrap_angle
 from .metrics import ScanLog, compute_metrics, confidence_metrics
@@ -33,12 +42,39 @@ if TYPE_CHECKING:
     from ..localizer import Localizer
 
 
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """A failed write of ``path`` as one line naming it (exit 2 on the command line): disk full,
+    no permission, a read-only file system."""
+    try:
+        yield
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+        if exc.errno == errno.ENOSPC:
+            why += " (files written before it are intact)"
+        raise LidarlocError(f"{path}: cannot write it: {why}") from None
+
+
+def _write_text(path: Path, fill) -> None:
+    """``fill(file)`` into ``path``, atomically (see the module docstring)."""
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as f:
+            fill(f)
+
+    with writing(Path(path)):
+        atomic_write_file(Path(path), write)
+
+
 def write_kitti(path: Path, poses: np.ndarray, digits: int = 6) -> None:
     """KITTI rows with ``digits`` decimals in the mantissa (6: local frames; 12 keeps a
     micrometre at UTM's 4·10⁶ m)."""
-    with open(path, "w") as f:
+
+    def fill(f):
         for T in poses:
             f.write(" ".join(f"{v:.{digits}e}" for v in np.asarray(T)[:3, :4].reshape(-1)) + "\n")
+
+    _write_text(path, fill)
 
 
 def in_map_frame(poses: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
@@ -50,19 +86,22 @@ def in_map_frame(poses: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
 
 
 def write_tum(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
-    with open(path, "w") as f:
+    def fill(f):
         for t, T in zip(times, poses):
             q = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_quat()  # x, y, z, w (TUM order)
             x, y, z = np.asarray(T)[:3, 3]
             f.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
 
+    _write_text(path, fill)
+
 
 def write_records_csv(path: Path, records: list) -> None:
     if not records:
-        path.write_text("")
+        _write_text(path, lambda f: None)
         return
     names = [f.name for f in dataclasses.fields(records[0])]
-    with open(path, "w", newline="") as f:
+
+    def fill(f):
         w = csv.writer(f)
         w.writerow(names)
         for r in records:
@@ -79,9 +118,12 @@ def write_records_csv(path: Path, records: list) -> None:
                     row.append(v)
             w.writerow(row)
 
+    _write_text(path, fill)
+
 
 def write_events(path: Path, events: list) -> None:
-    path.write_text(json.dumps([dataclasses.asdict(e) for e in events], indent=1))
+    text = json.dumps([dataclasses.asdict(e) for e in events], indent=1)
+    _write_text(path, lambda f: f.write(text))
 
 
 def json_safe(value):
@@ -100,9 +142,8 @@ def json_safe(value):
 
 
 def write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(json_safe(data), indent=2))
-    tmp.replace(path)
+    text = json.dumps(json_safe(data), indent=2)
+    _write_text(path, lambda f: f.write(text))
 
 
 def make_out_dir(out: Path) -> None:
@@ -116,7 +157,7 @@ def write_run(loc: Localizer, out: Path, summary: dict) -> None:
     """Every file of a run: trajectories (and the ground truth when the source has it), the
     per-scan CSV, the events, and ``summary.json`` last, with evo's APE and RPE of the written
     trajectories added to ``summary``."""
-    out.mkdir(parents=True, exist_ok=True)
+    make_out_dir(out)
     recs = loc.records
     times = np.array([r.time for r in recs])
     origin = np.asarray(loc.prior_map.origin, dtype=np.float64)

@@ -46,14 +46,16 @@ def read_scan_file(path: Path) -> np.ndarray:
     if suffix == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise DataError(f"{path}: unreadable .npy ({exc})") from None
+        except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, TokenError, …
+            detail = " ".join(str(exc).split()) or type(exc).__name__
+            raise DataError(f"{path}: unreadable .npy ({detail[:200]})") from None
         if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
             raise DataError(
                 f"{path}: a .npy scan must be a numeric (N, 3) or (N, ≥4) array; got {arr.dtype} {arr.shape}"
             )
         out = np.zeros((len(arr), 4), dtype=np.float32)
-        out[:, : min(arr.shape[1], 4)] = arr[:, :4]
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, refused by validate_scan
+            out[:, : min(arr.shape[1], 4)] = arr[:, :4]
         return out
     from ..o3d import open3d
 

@@ -168,14 +168,16 @@ class Recording:
             out = []
             f = self.path / "events.jsonl"
             if f.is_file():
-                for line in f.read_text(encoding="utf-8").splitlines():
+                # a damaged byte must not cost the events before it (a UnicodeDecodeError did)
+                for line in f.read_text(encoding="utf-8", errors="replace").splitlines():
                     try:
                         d = json.loads(line)
-                    except ValueError:
-                        break  # a line cut short by a crash: the steps after it are not complete
-                    if d["step"] >= self.n:
-                        break
-                    out.append((int(d["step"]), Event(int(d["scan"]), str(d["kind"]), str(d.get("detail", "")))))
+                        if d["step"] >= self.n:
+                            break
+                        event = Event(int(d["scan"]), str(d["kind"]), str(d.get("detail", "")))
+                        out.append((int(d["step"]), event))
+                    except (ValueError, KeyError, TypeError, AttributeError):
+                        break  # a line cut short by a crash (or damaged): the steps after it are not complete
             self._events = out
         return self._events
 

@@ -26,6 +26,7 @@ from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
 from .camera import TabCameras, start_pose
 from .controls import ParameterControls, ParticleControls
+from .faults import BlockFailed, FaultReporter
 from .history import History
 from .layers import LayerFolder
 from .panel import build_panel
@@ -108,6 +109,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
         )
         self._syncing = False  # set while the viewer itself writes GUI values
+        self.display_faults = FaultReporter(
+            "viewer display", lambda line: self.show_message(line, error=True, everyone=True)
+        )
+        self.on_finished: Callable[[], None] | None = None  # called when playing reached the end (a loop)
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
@@ -270,6 +275,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self._on_player_error,
                 speed=None if speed == "max" else float(speed),
                 clock=live["clock"],
+                on_finished=self._finished,
             )
         self.player.start()
         for h in (
@@ -339,10 +345,22 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         the old run, drop it."""
         loc = self.localizer
         if snap is loc.snapshot():
-            self.travel.on_step(loc, snap)
+            try:
+                self.travel.on_step(loc, snap)
+            except Exception as exc:  # the player pauses with one line naming the recorder
+                raise BlockFailed("recorder", exc) from exc
             for sink in self.sinks:
-                sink.on_step(loc, snap)
+                try:
+                    sink.on_step(loc, snap)
+                except Exception as exc:
+                    raise BlockFailed(getattr(sink, "block", type(sink).__name__), exc) from exc
             self.publish(snap)
+
+    def _finished(self) -> None:
+        """Playing reached the end of the sequence (player thread): the owner's ``on_finished``
+        (``loop``: restart and play again)."""
+        if self.on_finished is not None and not self.stopping:
+            self.on_finished()
 
     def wake(self) -> None:
         """Have the display thread update soon (any thread)."""
@@ -366,8 +384,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self._stopping.wait(wait)
             try:
                 self.update_display()
-            except Exception:  # one bad frame must not end the display thread
-                traceback.print_exc(file=sys.stderr)
+            except Exception as exc:  # one line (once per distinct failure); the thread and server live on
+                self.display_faults.report(exc, "the viewer keeps serving and the filter keeps playing")
+            else:
+                self.display_faults.clear()
             self._last_update = time.perf_counter()
 
     def update_display(self, force_plots: bool = False) -> float:

@@ -110,3 +110,9 @@ class Playback:
         self.player.rebase()
         self.publish(self.localizer.snapshot())
         self.show_message(f"restarted from scan 0 with seed {seed}")
+
+    def play_again(self) -> None:
+        """At the end of the sequence, from the player thread (``serve(loop=True)``): restart with
+        the same seed and play on; the restart is recorded as a new run, as the Restart button's is."""
+        self.restart()
+        self.play()

@@ -67,6 +67,7 @@ class ViewerHandle:
         if owned:
             loc.interrupt()
         self.viewer.stop()
+        self.viewer.close_gui()
         self.server.stop()
         for sink in self.viewer.sinks:
             sink.stop()

@@ -51,3 +51,32 @@ def bench_soak(
         client=not no_client,
     )
     show_bench_result("soak", result, as_json)
+
+
+@bench_app.command("clients")
+@with_source()
+def bench_clients(
+    tabs: Annotated[int, typer.Option("--tabs", min=1, help="Browser tabs open at once.")] = 5,
+    phase_s: Annotated[float, typer.Option("--phase-s", min=5.0, help="Seconds per phase.")] = 45.0,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """The live viewer in real time with no client, --tabs headless Chromium tabs, one more tab
+    connecting and disconnecting in a loop, and a slow client: the filter's rate, the server-side
+    update and memory per phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per
+    connection, a slow client slows nothing."""
+    from ...core.localizer import Localizer
+    from ..bench.clients import run as run_bench
+    from ..options import open_source
+
+    cfg = config_from(config, set_, preset=preset)
+    loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
+    try:
+        result = run_bench(loc, tabs=tabs, phase_s=phase_s)
+    finally:
+        loc.close()
+    show_bench_result("clients", result, as_json)

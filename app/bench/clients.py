@@ -115,6 +115,20 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
     }
 
 
+def _open_tab(browser, handle):
+    """A new tab on the viewer, returned once the server counts its connection (the page's
+    canvas may still be laying out in software WebGL)."""
+    before = set(handle.server.get_clients())
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(handle.url, timeout=LOAD_TIMEOUT_MS)
+    deadline = time.perf_counter() + LOAD_TIMEOUT_MS / 1000
+    while not set(handle.server.get_clients()) - before:
+        if time.perf_counter() > deadline:
+            raise TimeoutError(f"a tab did not connect to the viewer within {LOAD_TIMEOUT_MS / 1000:.0f} s")
+        page.wait_for_timeout(100)  # lets Playwright's event loop run while the page connects
+    return page
+
+
 def run(loc, tabs: int = 5, phase_s: float = 45.0) -> dict:
     """The phases above on a ready Localizer ``loc`` (closed by the caller)."""
     from playwright.sync_api import sync_playwright
@@ -138,18 +152,12 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0) -> dict:
             phases.append(_phase(viewer, updates, "no client", phase_s))
             pages = []
             for _ in range(tabs):
-                page = browser.new_page()
-                page.goto(handle.url, timeout=LOAD_TIMEOUT_MS)
-                page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT_MS)
-                pages.append(page)
+                pages.append(_open_tab(browser, handle))
             phases.append(_phase(viewer, updates, f"{tabs} tabs", phase_s))
 
             def churn():
                 nonlocal connects
-                page = browser.new_page()
-                page.goto(handle.url, timeout=LOAD_TIMEOUT_MS)
-                page.wait_for_selector("canvas", timeout=LOAD_TIMEOUT_MS)
-                page.close()
+                _open_tab(browser, handle).close()
                 connects += 1
 
             churned = _phase(viewer, updates, f"{tabs} tabs + one connecting and disconnecting", phase_s, during=churn)

@@ -84,3 +84,17 @@ def test_remove_runs_never_leaves_the_runs_folder(runs_root, tmp_path):
     outside = fake_run(tmp_path / "elsewhere" / "run", 0.1, 9000)
     runs = find_runs(tmp_path / "elsewhere")
     assert remove_runs(runs, runs_root) == [] and outside.exists()
+
+
+def test_the_viewers_recorder_keeps_its_runs_folder_to_the_budget(runs_root):
+    from lidarloc.app.viewer.recorder import Budget, Recorder
+
+    notices = []
+    rec = Recorder(
+        runs_root / "2026-01-04T10-00-00", spec=None, budget=Budget(runs_root, 3, None), on_notice=notices.append
+    )
+    removed = rec.keep_to_budget()
+    # the two oldest go (the branch's original stays while its branch exists; the live run stays)
+    assert [p.name for p in removed] == ["run", "run-2"] and rec.removed == removed
+    assert len(notices) == 1 and "removed 2 oldest run(s)" in notices[0]
+    assert rec.keep_to_budget() == [] and len(notices) == 1  # within the budget: nothing more said

@@ -17,7 +17,9 @@ the clients compete with the viewer they measure.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -138,7 +140,8 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0) -> dict:
 
     if not CHROMIUM.exists():
         raise RuntimeError("bench clients needs /usr/bin/chromium (apt-get install -y chromium)")
-    handle = serve(loc, port=0, autoplay=False)
+    with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout carries --json
+        handle = serve(loc, port=0, autoplay=False)
     viewer = handle.viewer
     updates: list = []
     _timed(viewer, updates)

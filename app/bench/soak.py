@@ -194,6 +194,7 @@ def run(
                     "load_1min": round(load_avg(), 2),
                 }
             )
+            _write_csv(out_dir / "soak.csv", rows[-1:], append=len(rows) > 1)  # a soak cut short keeps its samples
             next_t += sample_s
             time.sleep(max(0.0, min(next_t, end) - time.perf_counter()))
         crashed = proc.poll() is not None
@@ -215,7 +216,6 @@ def run(
             os.kill(pid, signal.SIGKILL)
         except OSError:
             pass
-    _write_csv(out_dir / "soak.csv", rows)
     first_loop_s = out.loops[0]["t_s"] if out.loops else None
     _plot(out_dir / "soak.png", rows, first_loop_s)
     hours = (rows[-1]["t_s"] - ready_s) / 3600.0 if rows else 0.0
@@ -264,10 +264,11 @@ def _alive(pids: set[int]) -> list[int]:
     return alive
 
 
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    with open(path, "w", newline="") as f:
+def _write_csv(path: Path, rows: list[dict], append: bool = False) -> None:
+    with open(path, "a" if append else "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=FIELDS)
-        w.writeheader()
+        if not append:
+            w.writeheader()
         w.writerows(rows)
 
 

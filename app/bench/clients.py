@@ -5,7 +5,8 @@ each other, ``phase_s`` seconds each: no client; five headless Chromium tabs; th
 tab that connects, waits for the page and disconnects in a loop; the five and a slow client (a
 websocket that reads one message a second). Per phase: the filter's scans per second and late
 scans (the player's counts), the server-side display update (median, p95 ms: the whole
-``update_display`` on the display thread), this process's RSS. ``rss_mb_per_connection`` is the
+``update_display`` on the display thread, for the updates that drew a new snapshot), this
+process's RSS. ``rss_mb_per_connection`` is the
 RSS growth over the connect/disconnect phase divided by its connections.
 Targets: the real-time rate kept, the update ≤ 20 ms, no memory growth per connection, a slow
 client slows nothing (viser keeps only the newest message per scene node for it).
@@ -80,7 +81,8 @@ def _timed(viewer, out: list) -> None:
     def update_display(force_plots: bool = False) -> float:
         t0 = time.perf_counter()
         ms = inner(force_plots)
-        out.append((time.perf_counter() - t0) * 1000.0)
+        if ms > 0:  # a new snapshot drawn (the display also wakes for progress and play-state changes)
+            out.append((time.perf_counter() - t0) * 1000.0)
         return ms
 
     setattr(viewer, "update_display", update_display)  # noqa: B010  (this viewer only)

@@ -170,7 +170,7 @@ def run(
     out = _Output(proc, t0)
     rows: list[dict] = []
     seen: dict = {}
-    tree_pids: set[int] = set()
+    tree_pids: set[tuple[int, float]] = set()  # (pid, start time): a pid alone may be reused
     client_handle, client_note = None, "none"
     try:
         if not out.ready.wait(start_timeout_s) or proc.poll() is not None or out.url is None:
@@ -183,7 +183,7 @@ def run(
         while time.perf_counter() < end and proc.poll() is None:
             now = time.perf_counter()
             s = sample(proc.pid)
-            tree_pids |= {p.pid for p in _tree(proc.pid)[1]}
+            tree_pids |= _identities(_tree(proc.pid)[1])
             on_disk, _ = _written_mb(record_dir, seen)
             rows.append(
                 {
@@ -211,10 +211,10 @@ def run(
             proc.wait()
         stop_s = time.perf_counter() - stop_t
     orphans = _alive(tree_pids)
-    for pid in orphans:  # do not leave them behind the benchmark either
+    for p in orphans:  # do not leave them behind the benchmark either (the very process: pid and start time)
         try:
-            os.kill(pid, signal.SIGKILL)
-        except OSError:
+            p.kill()
+        except Exception:  # gone meanwhile
             pass
     first_loop_s = out.loops[0]["t_s"] if out.loops else None
     _plot(out_dir / "soak.png", rows, first_loop_s)
@@ -251,15 +251,30 @@ def run(
     }
 
 
-def _alive(pids: set[int]) -> list[int]:
+def _identities(procs) -> set[tuple[int, float]]:
+    import psutil
+
+    out = set()
+    for p in procs:
+        try:
+            out.add((p.pid, p.create_time()))
+        except psutil.Error:  # ended meanwhile
+            pass
+    return out
+
+
+def _alive(seen: set[tuple[int, float]]) -> list:
+    """The processes of the demo's tree still running: the same pid and the same start time (on a
+    shared machine a pid freed during a long soak is soon another user's process)."""
     import psutil
 
     alive = []
-    for pid in pids:
+    for pid, started in seen:
         try:
-            if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
-                alive.append(pid)
-        except psutil.NoSuchProcess:
+            p = psutil.Process(pid)
+            if p.create_time() == started and p.status() != psutil.STATUS_ZOMBIE:
+                alive.append(p)
+        except psutil.Error:
             pass
     return alive
 

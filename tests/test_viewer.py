@@ -387,3 +387,31 @@ def test_status_shows_the_scans_confidence_and_warns_while_it_is_low(viewer):
     assert "low confidence" not in status(replace(low, localized=False))
     # and the viewer passes the localizer's own floor
     assert "low confidence" in v.status_markdown(low)
+
+
+def test_a_failing_display_says_one_line_and_the_filter_plays_on(viewer, capfd):
+    v, loc = viewer.viewer, viewer.localizer
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no such layer")
+
+    v.scene.draw = broken
+    v.controls.step.value = True
+    wait_for(lambda: v.display_faults.count >= 1, what="the display's failure")
+    v.controls.step.value = True
+    wait_for(lambda: v.player.idle and loc.k == 2, what="the filter stepping on")
+    wait_for(lambda: v.display_faults.count >= 2, what="the second frame failing")
+    line = "viewer display failed: RuntimeError: no such layer; the viewer keeps serving and the filter keeps playing"
+    assert v.message == line
+    err = capfd.readouterr().err
+    assert err.count(line) == 1 and "Traceback" not in err  # said once, however many frames fail
+
+
+def test_play_again_loops_the_drive(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    ends = []
+    v.on_finished = lambda: (ends.append(loc.k), v.play_again() if len(ends) < 2 else None)
+    v.controls.speed.value = "max"
+    v.controls.play.value = True
+    wait_for(lambda: len(ends) == 2, timeout=120, what="two ends of the drive")
+    assert ends == [loc.n_scans, loc.n_scans] and not v.step_failed

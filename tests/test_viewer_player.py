@@ -137,3 +137,47 @@ def test_player_reports_how_far_behind_the_sensor_clock_it_is():
         assert player.achieved_rate() <= 1 / 0.25 * 1.01
     finally:
         player.stop()
+
+
+def test_player_loops_counts_late_scans_and_names_a_failing_block():
+    """At the end of the sequence ``on_finished`` runs (here: start again, a loop); the late-scan
+    counts are per call; a failing display/recorder pauses playback with one line naming it."""
+    from lidarloc.app.viewer.faults import BlockFailed
+
+    loc, errors, loops = InstantSteps(n=5), [], []
+
+    def again():
+        loops.append(loc.k)
+        if len(loops) < 3:
+            loc.k = 0
+            player.play()
+
+    player = Player(loc, lambda s: None, errors.append, speed=None, on_finished=again)
+    player.start()
+    try:
+        player.play()
+        wait_for(lambda: len(loops) == 3, what="three loops")
+        assert loops == [5, 5, 5] and not errors
+        counts = player.take_counts()
+        assert counts["steps"] == 15 and counts["late"] == 0  # replay clock: nothing is late
+        assert player.take_counts()["steps"] == 0
+    finally:
+        player.stop()
+
+    def failing(snap):
+        if snap == 3:
+            raise BlockFailed("recorder", OSError("No space left on device"))
+
+    loc2, errors2 = InstantSteps(), []
+    p2 = Player(loc2, failing, errors2.append, speed=None)
+    p2.start()
+    try:
+        p2.play()
+        wait_for(lambda: errors2, what="the recorder's failure")
+        assert not p2.playing and loc2.k == 3
+        assert errors2 == [
+            "recorder failed after scan 2: OSError: No space left on device; playback paused "
+            "(the filter's results up to that scan stand)"
+        ]
+    finally:
+        p2.stop()

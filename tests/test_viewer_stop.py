@@ -87,3 +87,31 @@ def test_ctrl_c_stops_the_demo_within_a_second_under_load(cache_root):
             proc.wait()
     assert proc.returncode == 0
     assert stop_s <= STOP_S, f"Ctrl-C took {stop_s:.2f} s"
+
+
+@pytest.mark.timeout(300)
+def test_a_closed_terminal_stops_view_as_ctrl_c_does_and_leaves_no_process_behind(cache_root):
+    """SIGHUP (the terminal closed) and SIGTERM (a service manager) stop the viewer in order; its
+    child processes go with it. Bound to every interface, it first says who can reach it."""
+    import psutil
+
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record"]
+    cmd += ["--host", "0.0.0.0", "--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
+    )
+    q = _lines(proc)
+    try:
+        _wait_for_line(q, "warning: --host 0.0.0.0: anyone who can reach port", timeout=240)
+        _wait_for_line(q, "ready:", timeout=240)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert children  # the odometry and S2M processes
+        proc.send_signal(signal.SIGHUP)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0
+    gone, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, f"left behind: {[p.pid for p in alive]}"

@@ -1,4 +1,5 @@
-"""``lidarloc run``, ``inspect``, ``compare``, ``export``, ``demo`` and ``view``: a run, its why, its results, the viewer."""
+"""``lidarloc run``, ``inspect``, ``compare`` and ``export``: a run, its why, its results (the viewer's commands are in
+:mod:`.viewing`)."""
 
 from __future__ import annotations
 
@@ -17,11 +18,9 @@ from ..options import (
     InitOpt,
     JsonOpt,
     PresetOpt,
-    ScansOpt,
     SetOpt,
     config_from,
     given,
-    source_spec,
     with_source,
 )
 from .groups import app
@@ -242,158 +241,3 @@ def export(
         result.update(export_run(run, out, console=err, cache_root=cache, scans=not no_scans))
     if as_json:
         emit_json(result)
-
-
-# -------------------------------------------------------------------------------------- viewer
-def _serve(
-    spec,
-    cfg,
-    host,
-    port,
-    cache,
-    open_browser,
-    autoplay=False,
-    record_dir=None,
-    preset=None,
-    record=True,
-    foxglove_port=None,
-):
-    from ..viewer.serve import serve_until_interrupted
-
-    serve_until_interrupted(
-        spec,
-        cfg,
-        host=host,
-        port=port,
-        cache_root=cache,
-        console=err,
-        open_browser=open_browser,
-        autoplay=autoplay,
-        record_dir=record_dir,
-        preset=preset,
-        record=record,
-        foxglove_port=foxglove_port,
-    )
-
-
-HostOpt = Annotated[str, typer.Option("--host", help="Interface to bind (default loopback only).")]
-PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]
-AutoplayOpt = Annotated[
-    bool,
-    typer.Option(
-        "--autoplay",
-        help="Start playing as soon as the localizer is ready (default: when the first browser tab opens).",
-    ),
-]
-RecordDirOpt = Annotated[
-    Path | None,
-    typer.Option(
-        "--record-dir",
-        help="Folder for the runs the viewer plays, each start, restart and branch in a folder of its own "
-        "(default: a new runs/<date-time> folder under the cache directory).",
-    ),
-]
-NoRecordViewOpt = Annotated[
-    bool,
-    typer.Option(
-        "--no-record",
-        help="Do not record what the viewer plays (no disk use; the timeline and Branch from here are then off).",
-    ),
-]
-FoxglovePortOpt = Annotated[
-    int | None,
-    typer.Option(
-        "--foxglove-port",
-        min=0,
-        help="Also stream the live run to Foxglove (Open connection → Foxglove WebSocket "
-        "ws://HOST:PORT), in the channels of export --foxglove.",
-    ),
-]
-RunOpt = Annotated[
-    list[Path] | None,
-    typer.Option(
-        "--run",
-        help="Open a recorded run folder instead of localizing (repeat once to compare two runs of the same "
-        "source side by side); the map and scans come from the source the run names.",
-    ),
-]
-
-
-@app.command()
-def demo(
-    host: HostOpt = "127.0.0.1",
-    port: PortOpt = 8080,
-    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    scans: ScansOpt = None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    cache: CacheOpt = None,
-    open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-    autoplay: AutoplayOpt = False,
-    record_dir: RecordDirOpt = None,
-    no_record: NoRecordViewOpt = False,
-    foxglove_port: FoxglovePortOpt = None,
-):
-    """The live demo on the built-in town: browse to the printed URL."""
-    cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(
-        source_spec(town_seed=cfg.town.seed, scans=scans),
-        cfg,
-        host,
-        port,
-        cache,
-        open_browser,
-        autoplay,
-        record_dir=record_dir,
-        preset=preset,
-        record=not no_record,
-        foxglove_port=foxglove_port,
-    )
-
-
-@app.command()
-@with_source()
-def view(
-    host: HostOpt = "127.0.0.1",
-    port: PortOpt = 8080,
-    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
-    init: InitOpt = None,
-    spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    cache: CacheOpt = None,
-    open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
-    autoplay: AutoplayOpt = False,
-    record_dir: RecordDirOpt = None,
-    no_record: NoRecordViewOpt = False,
-    run: RunOpt = None,
-    foxglove_port: FoxglovePortOpt = None,
-):
-    """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
-    if run:
-        from ..viewer.runs import serve_runs
-
-        if foxglove_port is not None:
-            raise LidarlocError(
-                "--foxglove-port streams a live run; for a recorded run: lidarloc export RUN "
-                "--foxglove OUT.mcap, and open that file in Foxglove"
-            )
-
-        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
-        return
-    cfg = config_from(config, set_, seed=seed, preset=preset)
-    _serve(
-        replace(spec, init=init),
-        cfg,
-        host,
-        port,
-        cache,
-        open_browser,
-        autoplay,
-        record_dir=record_dir,
-        preset=preset,
-        record=not no_record,
-        foxglove_port=foxglove_port,
-    )

@@ -26,6 +26,7 @@ from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
 from .camera import TabCameras, start_pose
 from .controls import ParameterControls, ParticleControls
+from .faults import BlockFailed, FaultReporter
 from .history import History
 from .layers import LayerFolder
 from .panel import build_panel
@@ -87,6 +88,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         )
         self.owns_localizer = False
         self._display_lock = threading.RLock()  # one display update at a time (update_display)
+        # GUI writes from callbacks and messages hold the gate; close_gui() takes it before the
+        # server stops, so nothing is queued on a stopped server (viser warns of each such write)
+        self._gui_gate = threading.RLock()
+        self.closed = False
         self.sinks: list = []  # more consumers of each step played (the Foxglove stream)
         self._autoplay = autoplay
         self._start_lock = threading.Lock()
@@ -108,6 +113,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
         )
         self._syncing = False  # set while the viewer itself writes GUI values
+        self.display_faults = FaultReporter(
+            "viewer display", lambda line: self.show_message(line, error=True, everyone=True)
+        )
+        self.on_finished: Callable[[], None] | None = None  # called when playing reached the end (a loop)
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
@@ -130,7 +139,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
     def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True) -> None:
         """Run a GUI action; a refused value or any failure becomes a visible message, never a
         dead callback thread or a crashed server."""
-        if self._syncing:
+        if self._syncing or self.closed:
             return
         client = getattr(event, "client", None)
         # messages the action shows go to this tab as notifications too (show_message)
@@ -140,7 +149,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 raise LidarlocError(
                     self.replay_only or "the localizer is still starting (map and tables are being built)"
                 )
-            action()
+            with self._gui_gate:
+                if self.closed:
+                    return
+                action()
         except LidarlocError as exc:
             self.show_message(f"refused: {exc}", error=True, client=client)
         except Exception as exc:  # keep the server alive and say what went wrong
@@ -169,13 +181,22 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         user looks: to ``client``, else to the tab whose action is being handled, or to every
         open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start).
         ``title``: the notification's (default: from the kind of message)."""
+        with self._gui_gate:
+            if self.closed:  # the server has stopped (or is stopping): nobody would see it
+                return
+            self._show_message(text, error, client, everyone, title)
+
+    def _show_message(self, text: str, error: bool, client, everyone: bool, title: str | None) -> None:
         self._message = text
         self.controls.message.content = error_markdown(text) if error else text
         self.controls.message.visible = bool(text)
         if not text:
             return
         client = client if client is not None else getattr(self._acting, "client", None)
-        tabs = [client] if client is not None else (list(self.server.get_clients().values()) if everyone else [])
+        open_tabs = self.server.get_clients()
+        tabs = [client] if client is not None else (list(open_tabs.values()) if everyone else [])
+        # a tab that closed meanwhile gets nothing (viser warns of a write to a closed connection)
+        tabs = [t for t in tabs if t.client_id in open_tabs]
         if title is None:
             title = (
                 "lidarloc" if not error else "lidarloc: refused" if text.startswith("refused") else "lidarloc: error"
@@ -270,6 +291,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self._on_player_error,
                 speed=None if speed == "max" else float(speed),
                 clock=live["clock"],
+                on_finished=self._finished,
             )
         self.player.start()
         for h in (
@@ -339,10 +361,22 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         the old run, drop it."""
         loc = self.localizer
         if snap is loc.snapshot():
-            self.travel.on_step(loc, snap)
+            try:
+                self.travel.on_step(loc, snap)
+            except Exception as exc:  # the player pauses with one line naming the recorder
+                raise BlockFailed("recorder", exc) from exc
             for sink in self.sinks:
-                sink.on_step(loc, snap)
+                try:
+                    sink.on_step(loc, snap)
+                except Exception as exc:
+                    raise BlockFailed(getattr(sink, "block", type(sink).__name__), exc) from exc
             self.publish(snap)
+
+    def _finished(self) -> None:
+        """Playing reached the end of the sequence (player thread): the owner's ``on_finished``
+        (``loop``: restart and play again)."""
+        if self.on_finished is not None and not self.stopping:
+            self.on_finished()
 
     def wake(self) -> None:
         """Have the display thread update soon (any thread)."""
@@ -366,15 +400,20 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self._stopping.wait(wait)
             try:
                 self.update_display()
-            except Exception:  # one bad frame must not end the display thread
-                traceback.print_exc(file=sys.stderr)
+            except Exception as exc:  # one line (once per distinct failure); the thread and server live on
+                self.display_faults.report(exc, "the viewer keeps serving and the filter keeps playing")
+            else:
+                self.display_faults.clear()
             self._last_update = time.perf_counter()
 
     def update_display(self, force_plots: bool = False) -> float:
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
         on the scene and status (the per-scan cost). Updates are serialised: the display thread and
         a caller (a test, the timeline) never interleave, so the newest state is what stays shown."""
-        with self._display_lock:
+        # the gate first, as GUI actions take it (one of them may update the display): one order
+        with self._gui_gate, self._display_lock:
+            if self.closed:
+                return 0.0
             return self._update_display(force_plots)
 
     def _update_display(self, force_plots: bool) -> float:
@@ -425,3 +464,15 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             traceback.print_exc(file=sys.stderr)
         if self._display.is_alive():
             self._display.join(timeout=STOP_WAIT_S)
+
+    def close_gui(self, timeout: float = STOP_WAIT_S) -> None:
+        """No GUI write from now on: waits (bounded) for a callback's or the display's write in
+        flight, so that the server can stop after it. Called by the handle right before the server
+        stops; a write after that would be queued on a closed connection and lost."""
+        got_gate = self._gui_gate.acquire(timeout=timeout)
+        got_display = self._display_lock.acquire(timeout=timeout)
+        self.closed = True
+        if got_display:
+            self._display_lock.release()
+        if got_gate:
+            self._gui_gate.release()

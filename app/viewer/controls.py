@@ -120,9 +120,10 @@ class ParameterControls:
         return si
 
 
-def whole_number(handle, what: str, minimum: int) -> int:
-    """The value of a number field, checked to be a whole number ≥ ``minimum``."""
+def whole_number(handle, what: str, minimum: int, maximum: int = 2**32 - 1) -> int:
+    """The value of a number field, checked on the server (a page can send anything) to be a whole
+    number from ``minimum`` to ``maximum``."""
     v = handle.value
-    if not (isinstance(v, (int, float)) and math.isfinite(v) and float(v).is_integer() and v >= minimum):
-        raise LidarlocError(f"{what} must be a whole number ≥ {minimum}, got {v}")
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and float(v).is_integer() and minimum <= v <= maximum):
+        raise LidarlocError(f"{what} must be a whole number from {minimum} to {maximum}, got {v}")
     return int(v)

@@ -49,6 +49,12 @@ def _same(a, b) -> bool:
     return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
 
 
+#: Upper limits of the page's fields (display units) where the localizer's rule only says "> 0":
+#: far beyond any sensible setting, low enough that a value sent by a modified page cannot make
+#: the localizer build a lookup table or search a region the size of a continent.
+PAGE_MAX = {"d_max": 100.0, "sigma": 100.0, "region_x": 5000.0, "region_y": 5000.0, Q_STD.key: 1e4}
+
+
 class ParamForm:
     """The numbers of the Parameters folder (display units) against what the localizer was last
     given: which of them changed, and what they are in SI units."""
@@ -87,9 +93,19 @@ class ParamForm:
 
     @staticmethod
     def to_si(changed: dict) -> dict:
-        """Display values → the localizer's units; a whole number is checked to be one."""
+        """Display values → the localizer's units. Checked here, on the server, whatever the page
+        sent (a modified page can send anything): a finite number, a whole one where it must be,
+        and below :data:`PAGE_MAX` where the localizer's own rule has no upper limit."""
         si: dict = {}
         for key, v in changed.items():
+            values = list(v) if key == Q_STD.key else [v]
+            for x in values:
+                if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+                    label = "Q" if key == Q_STD.key else LIVE_PARAMS[key].label
+                    raise LidarlocError(f"{label} must be a finite number, got {x!r}")
+                if abs(x) > PAGE_MAX.get(key, math.inf):
+                    label = "Q" if key == Q_STD.key else LIVE_PARAMS[key].label
+                    raise LidarlocError(f"{label} must be at most {PAGE_MAX[key]:g} here, got {x:g}")
             if key == Q_STD.key:
                 si[key] = q_from_gui(v)
                 continue

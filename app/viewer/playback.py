@@ -7,6 +7,7 @@ import viser
 from ...core.errors import LidarlocError
 from .controls import whole_number
 from .keys import add_shortcuts
+from .style import SPEEDS
 
 
 class Playback:
@@ -85,6 +86,8 @@ class Playback:
 
     def _apply_speed(self) -> None:
         v = self.controls.speed.value
+        if v not in SPEEDS:  # checked here: a modified page can send any text
+            raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {v!r}")
         if self.player is None:  # a recorded run's playback reads it when Play is pressed
             return
         self.player.set_speed(None if v == "max" else float(v))
@@ -92,6 +95,8 @@ class Playback:
 
     def _apply_clock(self) -> None:
         clock = self.controls.clock.value
+        if clock not in ("replay", "realtime"):
+            raise LidarlocError(f"clock must be replay or realtime, got {clock!r}")
         self.localizer.set_params(clock=clock)
         self.player.set_clock(clock)
         self.controls.speed.disabled = clock == "realtime"
@@ -110,3 +115,9 @@ class Playback:
         self.player.rebase()
         self.publish(self.localizer.snapshot())
         self.show_message(f"restarted from scan 0 with seed {seed}")
+
+    def play_again(self) -> None:
+        """At the end of the sequence, from the player thread (``serve(loop=True)``): restart with
+        the same seed and play on; the restart is recorded as a new run, as the Restart button's is."""
+        self.restart()
+        self.play()

@@ -7,7 +7,9 @@ Pacing. In the "replay" clock the next scan is due one speed-interval after the 
 started (or immediately at "max" speed). In the "realtime" clock scan k is due when as much wall
 time has passed as the sequence's timestamps say since the scan playback (re)started from, so a
 10 Hz drive plays at 10 Hz; a localizer slower than that simply runs behind (scans are not dropped:
-which scans to skip is the localizer's business, not the player's).
+which scans to skip is the localizer's business, not the player's). A step that starts more than
+one scan period after its scan arrived is *late* (the next scan was already there): the player
+counts them (:meth:`Player.take_counts`), which is what a long run in a loop reports per loop.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
+from .faults import block_of, describe
 from .style import RATE_WINDOW_S
 
 CLOCKS = ("replay", "realtime")
@@ -53,7 +56,8 @@ class Player:
     """Drives a Localizer on a background thread.
 
     ``on_snapshot`` is called on the player thread with every snapshot ``step()`` returns;
-    ``on_error`` with a one-line message when a step fails (playback then pauses, the thread lives on).
+    ``on_error`` with a one-line message when a step fails (playback then pauses, the thread lives on);
+    ``on_finished`` (optional) on the player thread when playing reached the end of the sequence.
     """
 
     def __init__(
@@ -64,10 +68,16 @@ class Player:
         *,
         speed: float | None = 10.0,
         clock: str = "replay",
+        on_finished: Callable[[], None] | None = None,
     ):
         self._loc = localizer
         self._on_snapshot = on_snapshot
         self._on_error = on_error
+        self._on_finished = on_finished
+        self._period: float | None = None  # the sequence's median scan interval (late scans)
+        self._late = 0  # realtime steps that started over one scan period after their scan arrived
+        self._max_lag = 0.0
+        self._counted = 0  # steps counted since take_counts
         self._cond = threading.Condition()
         self._playing = False
         self._steps_pending = 0
@@ -155,6 +165,15 @@ class Player:
             return len(t) / window
         return None
 
+    def take_counts(self) -> dict:
+        """Steps made, late steps and the largest lag (s) since the last call (or the start); the
+        counts start again from zero. Late: a real-time step that started more than one scan
+        period after its scan arrived."""
+        with self._cond:
+            out = {"steps": self._counted, "late": self._late, "max_lag_s": round(self._max_lag, 3)}
+            self._counted, self._late, self._max_lag = 0, 0, 0.0
+        return out
+
     @property
     def lag_s(self) -> float | None:
         """Real-time clock, while playing: how long after its scan arrived (on the sensor clock,
@@ -226,8 +245,25 @@ class Player:
         due = self._anchor[0] + (float(stamps[k]) - self._anchor[1])
         return max(0.0, now - due)
 
+    def _scan_period(self) -> float:
+        if self._period is None:
+            stamps = np.asarray(self._loc.seq.timestamps, float)
+            steps = np.diff(stamps)
+            steps = steps[steps > 0]
+            self._period = float(np.median(steps)) if steps.size else 0.1
+        return self._period
+
+    def _count(self) -> None:
+        """A step started: count it, and whether it was late. Called with the lock held."""
+        self._counted += 1
+        if self._lag is not None:
+            self._max_lag = max(self._max_lag, self._lag)
+            if self._lag > self._scan_period():
+                self._late += 1
+
     def _run(self) -> None:
         while True:
+            finished = False
             with self._cond:
                 while True:
                     if self._stopping:
@@ -237,6 +273,9 @@ class Player:
                         if self._playing:
                             self._playing = False
                             self._cond.notify_all()
+                            finished = self._on_finished is not None
+                            if finished:
+                                break
                         self._cond.wait()
                         continue
                     if self._steps_pending:
@@ -249,9 +288,18 @@ class Player:
                         self._cond.wait(wait)
                         continue
                     self._cond.wait()
-                self._busy = True
-                self._last_start = time.perf_counter()
-                self._lag = self._start_lag(self._last_start)
+                if not finished:
+                    self._busy = True
+                    self._last_start = time.perf_counter()
+                    self._lag = self._start_lag(self._last_start)
+                    self._count()
+            if finished:
+                # outside the lock: the callback may restart and play again (a loop)
+                try:
+                    self._on_finished()
+                except Exception as exc:  # the player lives on, paused at the end
+                    self._on_error(f"playback: restarting at the end failed: {type(exc).__name__}: {exc}")
+                continue
             try:
                 snapshot = self._loc.step()
             except LidarlocError as exc:
@@ -266,8 +314,11 @@ class Player:
             if snapshot is not None:
                 try:
                     self._on_snapshot(snapshot)
-                except Exception:  # a display bug must not stop the localizer
-                    traceback.print_exc(file=sys.stderr)
+                except Exception as exc:  # one line naming the block; the run pauses after its last complete scan
+                    self._fail(
+                        f"{block_of(exc)} failed after scan {getattr(snapshot, 'scan_index', self._loc.k - 1)}: {describe(exc)}; playback paused "
+                        "(the filter's results up to that scan stand)"
+                    )
             with self._cond:
                 self._busy = False
                 self.steps_done += 1

@@ -8,6 +8,10 @@ A step is appended on the player thread right after ``Localizer.step()`` returne
 :attr:`Recorder.lock`; the viewer's controls that change the filter between steps (restart,
 reset, kidnap, parameters) take the same lock, so a step's resume data is the state it left.
 A failure to write (disk full, folder removed) stops the recording with a message; playback goes on.
+
+With a :class:`Budget` the runs root is kept under it (:mod:`.budget`): at each new run and every
+``Budget.every_s`` seconds the oldest runs are removed, never the one recording. A run that alone
+outgrows ``max_bytes`` stops recording with a message saying so; the filter plays on.
 """
 
 from __future__ import annotations
@@ -16,11 +20,14 @@ import datetime as _dt
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from ...core.cache import default_cache_root
 from ...core.errors import LidarlocError
 from ...core.runs.recording import RecordingWriter
+from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB, _scan_folder, enforce
+from .faults import one_line
 from .recorded import RecordedRun
 
 
@@ -40,14 +47,39 @@ def _unique(path: Path) -> Path:
     return path.with_name(f"{path.name}-{i}")
 
 
+@dataclass(frozen=True)
+class Budget:
+    """How much of the disk the viewer's runs may take: the runs under ``root`` (the cache's
+    ``runs/`` or ``--record-dir``), at most ``keep_runs`` of them and ``max_bytes`` in all (None:
+    no limit of that kind), checked every ``every_s`` seconds while recording."""
+
+    root: Path
+    keep_runs: int | None = DEFAULT_KEEP_RUNS
+    max_bytes: float | None = DEFAULT_MAX_RECORD_GB * 1e9
+    every_s: float = 30.0
+
+
 class Recorder:
     """One :class:`~lidarloc.core.runs.recording.RecordingWriter` per run the viewer starts.
 
     ``spec``: the source options the localizer's sequence was opened with (the recording names
     them, so that the run can be reopened); ``on_failure(message)``: writing stopped."""
 
-    def __init__(self, root: Path, spec, preset: str | None = None, on_failure: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        root: Path,
+        spec,
+        preset: str | None = None,
+        on_failure: Callable[[str], None] | None = None,
+        budget: Budget | None = None,
+        on_notice: Callable[[str], None] | None = None,
+    ):
         self.root = Path(root)
+        self.budget = budget
+        self.removed: list[Path] = []  # runs the budget removed, oldest first
+        self._on_notice = on_notice or (lambda message: None)
+        self._budget_stop = threading.Event()
+        self._budget_thread: threading.Thread | None = None
         self.spec = spec
         self.preset = preset
         self.lock = threading.RLock()
@@ -89,7 +121,47 @@ class Recorder:
             self.runs.append(path)
             self._loc = loc
             self._t0 = time.perf_counter()
-            return path
+        if self.budget is not None:
+            self.keep_to_budget()
+            if self._budget_thread is None:
+                self._budget_thread = threading.Thread(target=self._watch_budget, name="lidarloc-budget", daemon=True)
+                self._budget_thread.start()
+        return path
+
+    def keep_to_budget(self) -> list[Path]:
+        """Remove the oldest runs beyond the budget (never the one recording); a recording that
+        alone outgrew it stops. Returns the folders removed."""
+        b = self.budget
+        if b is None:
+            return []
+        current = self.run_dir
+        removed = [r.path for r in enforce(b.root, b.keep_runs, b.max_bytes, protect=[current] if current else [])]
+        self.removed += removed
+        if removed:
+            self._on_notice(f"recording budget: removed {len(removed)} oldest run(s), the newest of them {removed[-1]}")
+        if b.max_bytes is not None and current is not None and self.writer is not None:
+            size = _scan_folder(current).bytes
+            if size > b.max_bytes:
+                with self.lock:
+                    if self.writer is not None and self.run_dir == current:
+                        self._fail(
+                            f"recording stopped at step {self.n}: this run alone reached the recording budget "
+                            f"({b.max_bytes / 1e9:.3g} GB); the filter plays on (raise --max-record-gb to keep more)"
+                        )
+        return removed
+
+    def _watch_budget(self) -> None:
+        b = self.budget
+        while b is not None and not self._budget_stop.wait(b.every_s):
+            try:
+                self.keep_to_budget()
+            except Exception as exc:  # one line; the recording itself goes on
+                self._on_failure(f"recording budget check failed: {one_line(exc)}")
+
+    def stop(self) -> None:
+        """Close the current run and stop checking the budget."""
+        self._budget_stop.set()
+        self.close()
 
     def on_scan(self, loc, snap) -> bool:
         """Append the step ``snap`` of ``loc`` (player thread); False if it was not recorded (another

@@ -25,7 +25,8 @@ from ...core.sequences.factory import SourceSpec
 from ..console import progress_bar
 from ..options import open_source
 from .app import Viewer
-from .recorder import Recorder, default_record_root
+from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB
+from .recorder import Budget, Recorder, default_record_root
 from .style import SPEEDS
 
 
@@ -66,6 +67,7 @@ class ViewerHandle:
         if owned:
             loc.interrupt()
         self.viewer.stop()
+        self.viewer.close_gui()
         self.server.stop()
         for sink in self.viewer.sinks:
             sink.stop()
@@ -113,6 +115,7 @@ def serve(
     preset: str | None = None,
     cache_root: Path | None = None,
     foxglove_port: int | None = None,
+    budget: Budget | None = None,
 ) -> ViewerHandle:
     """Start the viewer and return at once.
 
@@ -130,6 +133,7 @@ def serve(
     ``cache_root``: where a branch finds the map's tables.
     ``foxglove_port``: also stream every step played to Foxglove clients on this port (on
     ``host``; 0: any free port), see :mod:`.foxglove_live`; the handle's ``foxglove_url`` says where.
+    ``budget``: keep the recordings' root under it (:class:`~.recorder.Budget`; None: no limit).
     """
     if speed not in SPEEDS:
         raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {speed!r}")
@@ -148,6 +152,8 @@ def serve(
                     spec,
                     preset,
                     on_failure=lambda message: viewer.show_message(message, error=True, everyone=True),
+                    budget=budget,
+                    on_notice=viewer.show_message,
                 )
             )
         if foxglove_port is not None:
@@ -210,11 +216,17 @@ def serve_until_interrupted(
     preset: str | None = None,
     record: bool = True,
     foxglove_port: int | None = None,
+    loop: bool = False,
+    keep_runs: int | None = DEFAULT_KEEP_RUNS,
+    max_record_gb: float | None = DEFAULT_MAX_RECORD_GB,
 ) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
     ``runs/<date-time>`` folder under the cache root), which is printed; with ``record`` False
-    nothing is (``--no-record``: the timeline and Branch from here are then off)."""
+    nothing is (``--no-record``: the timeline and Branch from here are then off). The runs under
+    ``record_dir`` (default: the cache's ``runs/``) are kept to ``keep_runs`` and ``max_record_gb``,
+    oldest removed first. ``loop``: at the end of the drive start again (a line per loop says how
+    many scans were late). Ctrl-C, SIGTERM and SIGHUP all stop it the same way."""
     seq = open_source(spec, cfg, console)  # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
@@ -237,11 +249,17 @@ def serve_until_interrupted(
             ready.set()
 
     stop = threading.Event()
-    # Ctrl-C sets an event instead of raising wherever the main thread happens to be; installed
-    # before the server starts so an early Ctrl-C also shuts down in order.
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    # Ctrl-C, a service manager's SIGTERM and a closed terminal's SIGHUP set an event instead of
+    # raising wherever the main thread happens to be; installed before the server starts so an
+    # early signal also shuts down in order (child processes are closed by handle.stop()).
+    previous = _on_stop_signals(lambda *_: stop.set())
     try:
         root = None if not record else record_dir if record_dir is not None else default_record_root(cache_root)
+        budget = None
+        if root is not None and (keep_runs is not None or max_record_gb is not None):
+            runs_root = record_dir if record_dir is not None else root.parent
+            max_bytes = None if max_record_gb is None else max_record_gb * 1e9
+            budget = Budget(runs_root, keep_runs, max_bytes)
         handle = serve(
             factory,
             host=host,
@@ -253,11 +271,23 @@ def serve_until_interrupted(
             preset=preset,
             cache_root=cache_root,
             foxglove_port=foxglove_port,
+            budget=budget,
         )
     except BaseException:
-        signal.signal(signal.SIGINT, previous)
+        _restore_signals(previous)
         raise
+    if loop:
+        handle.viewer.on_finished = _looper(handle.viewer, console)
     console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+    if host not in LOOPBACK:
+        console.print(
+            f"warning: --host {host}: anyone who can reach port {handle.port} can drive the localizer and "
+            "read the map (there is no password; on a shared machine keep the default 127.0.0.1 and use an "
+            "SSH tunnel)",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
     if handle.foxglove_url is not None:
         console.print(
             f"Foxglove: open connection → Foxglove WebSocket {handle.foxglove_url}", markup=False, highlight=False
@@ -299,7 +329,46 @@ def serve_until_interrupted(
             )
         stop.wait()
     finally:
-        signal.signal(signal.SIGINT, previous)
-        console.print("stopping viewer")
+        _restore_signals(previous)
+        try:
+            console.print("stopping viewer")
+        except (OSError, ValueError):  # SIGHUP: the terminal is gone; stop all the same
+            pass
         handle.stop()
         release_at_exit()
+
+
+#: Hosts that only this machine reaches: no warning.
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+STOP_SIGNALS = tuple(s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None)
+
+
+def _on_stop_signals(handler) -> dict:
+    return {s: signal.signal(s, handler) for s in STOP_SIGNALS}
+
+
+def _restore_signals(previous: dict) -> None:
+    for s, h in previous.items():
+        signal.signal(s, h)
+
+
+def _looper(viewer: Viewer, console: Console) -> Callable[[], None]:
+    """``--loop``: at the end of the drive, one line with the loop's scans, late scans and largest
+    lag (what ``bench soak`` reads), then play it again."""
+    loops = [0]
+
+    def again() -> None:
+        loops[0] += 1
+        c = viewer.player.take_counts() if viewer.player is not None else {}
+        try:
+            console.print(
+                f"loop {loops[0]}: {c.get('steps', 0)} scans, {c.get('late', 0)} late, "
+                f"largest lag {c.get('max_lag_s', 0.0)} s",
+                markup=False,
+                highlight=False,
+            )
+        except (OSError, ValueError):
+            pass
+        viewer.play_again()
+
+    return again

@@ -129,7 +129,8 @@ class TimeTravel:
         """The viewer stops: the scan and replay threads too, and the recording is closed."""
         self._replay_stop.set()
         self._scans.stop()
-        self.close()
+        if self.recorder is not None:
+            self.recorder.stop()
 
     # ================================================================== what is on screen
     @property

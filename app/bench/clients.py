@@ -1,0 +1,207 @@
+"""``lidarloc bench clients``: the live viewer with many browser tabs and bad clients.
+
+The viewer runs in this process on the real-time clock, the drive in a loop; the phases follow
+each other, ``phase_s`` seconds each: no client; five headless Chromium tabs; the five and a sixth
+tab that connects, waits for the page and disconnects in a loop; the five and a slow client (a
+websocket that reads one message a second). Per phase: the filter's scans per second and late
+scans (the player's counts), the server-side display update (median, p95 ms: the whole
+``update_display`` on the display thread, for the updates that drew a new snapshot), this
+process's RSS. ``rss_mb_per_connection`` is the
+RSS growth over the connect/disconnect phase divided by its connections.
+Targets: the real-time rate kept, the update ≤ 20 ms, no memory growth per connection, a slow
+client slows nothing (viser keeps only the newest message per scene node for it).
+
+The tabs are Debian's Chromium through Playwright (the soak opens its one tab with the same
+flags); WebGL is software-rendered (no GPU), so a tab costs CPU of its own: on a 2-core machine
+the clients compete with the viewer they measure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .common import load_avg, machine, rss_mb
+
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--headless",
+]
+
+
+CHROMIUM = Path("/usr/bin/chromium")
+LOAD_TIMEOUT_MS = 120_000
+
+
+class _SlowClient:
+    """A websocket client on a slow link: reads one message per ``every_s`` seconds."""
+
+    def __init__(self, port: int, every_s: float = 1.0):
+        import viser
+        from websockets.sync.client import connect
+
+        self.ws = connect(
+            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=30
+        )
+        self.read = 0
+        self._stop = threading.Event()
+        self._every = every_s
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        try:
+            while not self._stop.wait(self._every):
+                self.ws.recv(timeout=5)
+                self.read += 1
+        except Exception:  # closed at the end of the phase
+            pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self.ws.close()
+        self._thread.join(timeout=5)
+
+
+def _timed(viewer, out: list) -> None:
+    """Time every display update of ``viewer`` (the display thread's calls) into ``out`` (ms)."""
+    inner = viewer.update_display
+
+    def update_display(force_plots: bool = False) -> float:
+        t0 = time.perf_counter()
+        ms = inner(force_plots)
+        if ms > 0:  # a new snapshot drawn (the display also wakes for progress and play-state changes)
+            out.append((time.perf_counter() - t0) * 1000.0)
+        return ms
+
+    setattr(viewer, "update_display", update_display)  # noqa: B010  (this viewer only)
+
+
+def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dict:
+    """Run for ``seconds`` (``during()`` called in a loop meanwhile): the phase's figures."""
+    updates.clear()
+    viewer.player.take_counts()
+    rss0, t0 = rss_mb(), time.perf_counter()
+    loops = 0
+    while time.perf_counter() - t0 < seconds:
+        if during is not None:
+            during()
+            loops += 1
+        else:
+            time.sleep(0.5)
+    elapsed = time.perf_counter() - t0
+    counts = viewer.player.take_counts()
+    ms = np.array(updates) if updates else np.array([np.nan])
+    return {
+        "phase": name,
+        "seconds": round(elapsed, 1),
+        "scans_per_s": round(counts["steps"] / elapsed, 2),
+        "late_scans": counts["late"],
+        "max_lag_s": counts["max_lag_s"],
+        "update_ms_median": round(float(np.nanmedian(ms)), 1),
+        "update_ms_p95": round(float(np.nanpercentile(ms, 95)), 1),
+        "updates": len(updates),
+        "rss_mb_start": round(rss0, 1),
+        "rss_mb_end": round(rss_mb(), 1),
+        "loops": loops,
+        "load_1min": round(load_avg(), 2),
+    }
+
+
+def _open_tab(browser, handle):
+    """A new tab on the viewer, returned once the server counts its connection (the page's
+    canvas may still be laying out in software WebGL)."""
+    before = set(handle.server.get_clients())
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    page.goto(handle.url, timeout=LOAD_TIMEOUT_MS)
+    deadline = time.perf_counter() + LOAD_TIMEOUT_MS / 1000
+    while not set(handle.server.get_clients()) - before:
+        if time.perf_counter() > deadline:
+            page.close()
+            raise TimeoutError(f"a tab did not connect to the viewer within {LOAD_TIMEOUT_MS / 1000:.0f} s")
+        page.wait_for_timeout(100)  # lets Playwright's event loop run while the page connects
+    return page
+
+
+def run(loc, tabs: int = 5, phase_s: float = 45.0) -> dict:
+    """The phases above on a ready Localizer ``loc`` (closed by the caller)."""
+    from playwright.sync_api import sync_playwright
+
+    from ..viewer.serve import serve
+
+    if not CHROMIUM.exists():
+        raise RuntimeError("bench clients needs /usr/bin/chromium (apt-get install -y chromium)")
+    with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout carries --json
+        handle = serve(loc, port=0, autoplay=False)
+    viewer = handle.viewer
+    updates: list = []
+    _timed(viewer, updates)
+    viewer.on_finished = viewer.play_again
+    loc.set_params(clock="realtime")
+    viewer.player.set_clock("realtime")
+    phases, connects, failed, pages = [], 0, 0, []
+    try:
+        viewer.play()
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+            phases.append(_phase(viewer, updates, "no client", phase_s))
+            for _ in range(tabs):
+                try:
+                    pages.append(_open_tab(browser, handle))
+                except TimeoutError:  # said in the result: the phases run with the tabs that got through
+                    failed += 1
+            tab_failures = failed
+            phases.append(_phase(viewer, updates, f"{len(pages)} tabs", phase_s))
+
+            def churn():
+                nonlocal connects
+                nonlocal failed
+                try:
+                    _open_tab(browser, handle).close()
+                    connects += 1
+                except TimeoutError:  # counted: on a saturated machine a tab may not get through
+                    failed += 1
+
+            churned = _phase(viewer, updates, f"{tabs} tabs + one connecting and disconnecting", phase_s, during=churn)
+            churned["connects"] = connects
+            churned["connects_timed_out"] = failed - tab_failures
+            phases.append(churned)
+            slow = _SlowClient(handle.port)
+            try:
+                slowed = _phase(viewer, updates, f"{tabs} tabs + a slow client (1 message/s)", phase_s)
+                slowed["slow_client_read"] = slow.read
+            finally:
+                slow.close()
+            phases.append(slowed)
+            for page in pages:
+                page.close()
+            browser.close()
+    finally:
+        handle.stop()
+    base = phases[0]["scans_per_s"]
+    growth = churned["rss_mb_end"] - churned["rss_mb_start"]
+    return {
+        "phases": phases,
+        "tabs": tabs,
+        "tabs_connected": len(pages),
+        "phase_s": phase_s,
+        "realtime_scans_per_s": round(1.0 / float(np.median(np.diff(np.asarray(loc.seq.timestamps, float)))), 2),
+        "rate_kept_with_tabs": min(p["scans_per_s"] for p in phases[1:]) >= 0.95 * base,
+        "update_ms_median_max": max(p["update_ms_median"] for p in phases),
+        "rss_mb_per_connection": round(growth / connects, 2) if connects else None,
+        "targets": {"update_ms_median": 20.0, "rss_mb_per_connection": 0.0},
+        "load_average_1min": round(load_avg(), 2),
+        "machine": machine(),
+        "pid": os.getpid(),
+    }

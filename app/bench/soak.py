@@ -1,0 +1,313 @@
+"""``lidarloc bench soak``: a long run of the live viewer, to see that it keeps working.
+
+A real ``lidarloc demo`` (``view SOURCE`` with a source) is started in a child process with
+``--autoplay --loop`` on the real-time clock, recording on (into the soak's own folder, kept to
+the viewer's default budget), with one headless Chromium tab attached (Playwright; without it the
+soak runs with no client and says so). Every ``sample_s`` seconds the process tree is sampled:
+resident memory (the viewer and its child processes), open file descriptors, the viewer's
+threads, its child processes, and the recordings' size. Each loop's line (``loop N: S scans,
+L late, …``) gives the late scans: a step that started over one scan period after its scan arrived.
+
+Growth is measured from the first sample after the first loop ended (warm-up: caches filled, the
+map drawn, the first recording opened) to the last sample. ``recording_mb_per_hour`` is what was
+written per hour (each run folder at the largest size it was seen with), whatever the budget
+removed since. After the stop, any process of the tree still alive is an orphan.
+Targets: RSS growth ≤ 50 MB after the first loop, fds / threads / children constant, no late
+scans beyond the first loop's.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ...core.errors import LidarlocError
+from .common import load_avg, machine
+
+_URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
+_LOOP = re.compile(r"^loop (\d+): (\d+) scans, (\d+) late, largest lag ([0-9.]+) s")
+FIELDS = ("t_s", "rss_mb", "viewer_rss_mb", "fds", "threads", "children", "recording_mb", "loops", "load_1min")
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+class _Output:
+    """The demo's console, read on a thread: the URL, ``ready:``, each loop's line."""
+
+    def __init__(self, proc: subprocess.Popen, t0: float):
+        self.url: str | None = None
+        self.ready = threading.Event()
+        self.loops: list[dict] = []
+        self.tail: list[str] = []
+        self._t0 = t0
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc) -> None:
+        for line in proc.stdout:
+            line = line.rstrip()
+            self.tail = (self.tail + [line])[-8:]
+            m = _URL.search(line)
+            if self.url is None and m:
+                self.url = m.group(1)
+            if line.startswith("ready:") or "the first scan failed" in line:
+                self.ready.set()
+            m = _LOOP.match(line)
+            if m:
+                self.loops.append(
+                    {
+                        "loop": int(m.group(1)),
+                        "scans": int(m.group(2)),
+                        "late": int(m.group(3)),
+                        "max_lag_s": float(m.group(4)),
+                        "t_s": round(time.perf_counter() - self._t0, 1),
+                    }
+                )
+        self.ready.set()  # the demo ended: nobody waits for it any longer
+
+
+def _tree(pid: int):
+    import psutil
+
+    root = psutil.Process(pid)
+    return root, root.children(recursive=True)
+
+
+def sample(pid: int) -> dict:
+    """The process tree of ``pid`` now: RSS (all, and the viewer's own), fds, threads, children."""
+    import psutil
+
+    root, kids = _tree(pid)
+    rss, fds = root.memory_info().rss, root.num_fds()
+    for k in kids:
+        try:
+            rss += k.memory_info().rss
+            fds += k.num_fds()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return {
+        "rss_mb": round(rss / 1e6, 1),
+        "viewer_rss_mb": round(root.memory_info().rss / 1e6, 1),
+        "fds": fds,
+        "threads": root.num_threads(),
+        "children": len(kids),
+    }
+
+
+def _written_mb(record_dir: Path, seen: dict) -> tuple[float, float]:
+    """(size on disk now, written in all) in MB: each run folder counted at its largest size."""
+    from ..viewer.budget import find_runs
+
+    runs = find_runs(record_dir)
+    for r in runs:
+        seen[r.path] = max(seen.get(r.path, 0), r.bytes)
+    return sum(r.bytes for r in runs) / 1e6, sum(seen.values()) / 1e6
+
+
+def _open_client(url: str):
+    """One headless Chromium tab on the viewer (None, with the reason, without Playwright or Chromium)."""
+    if not CHROMIUM.exists():
+        return None, "no /usr/bin/chromium"
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        return None, "Python Playwright not installed"
+    from .clients import CHROMIUM_ARGS
+
+    pw = sync_playwright().start()
+    browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+    page = browser.new_page()
+    page.goto(url, timeout=120_000)
+    return (pw, browser, page), "one headless Chromium tab"
+
+
+def _close_client(client) -> None:
+    if client is None:
+        return
+    pw, browser, _ = client
+    try:
+        browser.close()
+    finally:
+        pw.stop()
+
+
+def growth(rows: list[dict], since_s: float | None, key: str) -> float | None:
+    """Last sample minus the first one at or after ``since_s`` (None: too few samples)."""
+    after = [r for r in rows if since_s is None or r["t_s"] >= since_s]
+    if len(after) < 2:
+        return None
+    return round(after[-1][key] - after[0][key], 1)
+
+
+def run(
+    command: list[str],
+    minutes: float,
+    out_dir: Path,
+    sample_s: float = 10.0,
+    cache: str | None = None,
+    client: bool = True,
+    start_timeout_s: float = 900.0,
+) -> dict:
+    """Soak ``lidarloc <command>`` (``demo`` or ``view`` and its source options) for ``minutes``
+    after it is ready; samples into ``out_dir/soak.csv``, a plot into ``out_dir/soak.png``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record_dir = out_dir / "runs"
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", *command, "--autoplay", "--loop", "--port", "0"]
+    cmd += ["--record-dir", str(record_dir), "--set", "localize.clock=realtime"]
+    cmd += ["--cache", cache] if cache else []
+    env = dict(os.environ, COLUMNS="200")
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env, start_new_session=True
+    )
+    out = _Output(proc, t0)
+    rows: list[dict] = []
+    seen: dict = {}
+    tree_pids: set[tuple[int, float]] = set()  # (pid, start time): a pid alone may be reused
+    client_handle, client_note = None, "none"
+    try:
+        if not out.ready.wait(start_timeout_s) or proc.poll() is not None or out.url is None:
+            raise LidarlocError(f"lidarloc {command[0]} did not become ready: " + " | ".join(out.tail))
+        ready_s = time.perf_counter() - t0
+        if client:
+            client_handle, client_note = _open_client(out.url)
+        end = time.perf_counter() + 60.0 * minutes
+        next_t = time.perf_counter()
+        while time.perf_counter() < end and proc.poll() is None:
+            now = time.perf_counter()
+            s = sample(proc.pid)
+            tree_pids |= _identities(_tree(proc.pid)[1])
+            on_disk, _ = _written_mb(record_dir, seen)
+            rows.append(
+                {
+                    "t_s": round(now - t0, 1),
+                    **s,
+                    "recording_mb": round(on_disk, 1),
+                    "loops": len(out.loops),
+                    "load_1min": round(load_avg(), 2),
+                }
+            )
+            _write_csv(out_dir / "soak.csv", rows[-1:], append=len(rows) > 1)  # a soak cut short keeps its samples
+            next_t += sample_s
+            time.sleep(max(0.0, min(next_t, end) - time.perf_counter()))
+        crashed = proc.poll() is not None
+        _, written = _written_mb(record_dir, seen)
+    finally:
+        _close_client(client_handle)
+        stop_t = time.perf_counter()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)  # what a service manager sends: it must stop as Ctrl-C does
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        stop_s = time.perf_counter() - stop_t
+    orphans = _alive(tree_pids)
+    for p in orphans:  # do not leave them behind the benchmark either (the very process: pid and start time)
+        try:
+            p.kill()
+        except Exception:  # gone meanwhile
+            pass
+    first_loop_s = out.loops[0]["t_s"] if out.loops else None
+    _plot(out_dir / "soak.png", rows, first_loop_s)
+    hours = (rows[-1]["t_s"] - ready_s) / 3600.0 if rows else 0.0
+    after = out.loops[1:]
+    return {
+        "minutes": minutes,
+        "client": client_note,
+        "ready_s": round(ready_s, 1),
+        "loops": len(out.loops),
+        "loop_lines": out.loops,
+        "samples": len(rows),
+        "first_loop_end_s": first_loop_s,
+        "rss_mb_after_first_loop": next((r["rss_mb"] for r in rows if first_loop_s and r["t_s"] >= first_loop_s), None),
+        "rss_growth_mb": growth(rows, first_loop_s, "rss_mb") if first_loop_s else None,
+        "viewer_rss_growth_mb": growth(rows, first_loop_s, "viewer_rss_mb") if first_loop_s else None,
+        "fd_growth": growth(rows, first_loop_s, "fds") if first_loop_s else None,
+        "thread_growth": growth(rows, first_loop_s, "threads") if first_loop_s else None,
+        "children_growth": growth(rows, first_loop_s, "children") if first_loop_s else None,
+        "late_scans_first_loop": out.loops[0]["late"] if out.loops else None,
+        "late_scans_after_first_loop": sum(x["late"] for x in after) if after else None,
+        "recording_mb_per_hour": round(written / hours, 1) if hours > 0 else None,
+        "recording_mb_on_disk": rows[-1]["recording_mb"] if rows else None,
+        "crashed": crashed,
+        "stop_s": round(stop_s, 2),
+        "exit_code": proc.returncode,
+        "orphans_after_stop": len(orphans),
+        "targets": {"rss_growth_mb": 50.0, "fd_growth": 0, "thread_growth": 0, "children_growth": 0},
+        "load_average_1min": round(load_avg(), 2),
+        "load_average_max": max((r["load_1min"] for r in rows), default=None),
+        "machine": machine(),
+        "csv": str(out_dir / "soak.csv"),
+        "plot": str(out_dir / "soak.png"),
+    }
+
+
+def _identities(procs) -> set[tuple[int, float]]:
+    import psutil
+
+    out = set()
+    for p in procs:
+        try:
+            out.add((p.pid, p.create_time()))
+        except psutil.Error:  # ended meanwhile
+            pass
+    return out
+
+
+def _alive(seen: set[tuple[int, float]]) -> list:
+    """The processes of the demo's tree still running: the same pid and the same start time (on a
+    shared machine a pid freed during a long soak is soon another user's process)."""
+    import psutil
+
+    alive = []
+    for pid, started in seen:
+        try:
+            p = psutil.Process(pid)
+            if p.create_time() == started and p.status() != psutil.STATUS_ZOMBIE:
+                alive.append(p)
+        except psutil.Error:
+            pass
+    return alive
+
+
+def _write_csv(path: Path, rows: list[dict], append: bool = False) -> None:
+    with open(path, "a" if append else "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS)
+        if not append:
+            w.writeheader()
+        w.writerows(rows)
+
+
+def _plot(path: Path, rows: list[dict], first_loop_s: float | None) -> None:
+    if not rows:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = [r["t_s"] / 60.0 for r in rows]
+    fig, axes = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
+    for ax, key, label in zip(
+        axes,
+        ("rss_mb", "fds", "threads", "children", "recording_mb"),
+        ("RSS, viewer + children (MB)", "open fds", "viewer threads", "child processes", "recordings on disk (MB)"),
+        strict=True,
+    ):
+        ax.plot(t, [r[key] for r in rows])
+        ax.set_ylabel(label, fontsize=8)
+        if first_loop_s is not None:
+            ax.axvline(first_loop_s / 60.0, color="grey", linestyle=":", linewidth=1)
+    axes[-1].set_xlabel("minutes since launch (dotted: end of the first loop)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,82 @@
+"""``lidarloc bench soak``: the live viewer over a long run (memory, descriptors, threads, child
+processes, recordings, late scans)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ..options import SOURCE_CHOICE, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, given, with_source
+from .bench_costs import show_bench_result
+from .groups import bench_app
+
+
+@bench_app.command("soak")
+@with_source()
+def bench_soak(
+    ctx: typer.Context,
+    minutes: Annotated[float, typer.Option("--minutes", min=0.1, help="How long to play after the start.")] = 120.0,
+    sample_s: Annotated[float, typer.Option("--sample-s", min=1.0, help="Seconds between samples.")] = 10.0,
+    out: Annotated[Path, typer.Option("--out", help="Folder for soak.csv, soak.png and the recordings.")] = Path(
+        "out/bench-soak"
+    ),
+    no_client: Annotated[bool, typer.Option("--no-client", help="No headless browser tab.")] = False,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """Play `lidarloc demo` (`view` with a source) in real time in a loop for --minutes, a headless
+    browser tab attached and recording on; sample its memory, descriptors, threads, child processes
+    and recordings every --sample-s seconds. Targets: RSS growth ≤ 50 MB after the first loop,
+    constant descriptors / threads / children, no late scans beyond the first loop's."""
+    from ..bench.common import config_args, source_args
+    from ..bench.soak import run as run_bench
+
+    config_from(config, set_, preset=preset)
+    if given(ctx, SOURCE_CHOICE + ("map",)):
+        command = ["view", *source_args(spec)]
+    else:
+        command = ["demo"] + (["--scans", str(spec.scans)] if spec.scans is not None else [])
+    result = run_bench(
+        command + config_args(config, set_, preset),
+        minutes,
+        out,
+        sample_s=sample_s,
+        cache=None if cache is None else str(cache),
+        client=not no_client,
+    )
+    show_bench_result("soak", result, as_json)
+
+
+@bench_app.command("clients")
+@with_source()
+def bench_clients(
+    tabs: Annotated[int, typer.Option("--tabs", min=1, help="Browser tabs open at once.")] = 5,
+    phase_s: Annotated[float, typer.Option("--phase-s", min=5.0, help="Seconds per phase.")] = 45.0,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """The live viewer in real time with no client, --tabs headless Chromium tabs, one more tab
+    connecting and disconnecting in a loop, and a slow client: the filter's rate, the server-side
+    update and memory per phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per
+    connection, a slow client slows nothing."""
+    from ...core.localizer import Localizer
+    from ..bench.clients import run as run_bench
+    from ..options import open_source
+
+    cfg = config_from(config, set_, preset=preset)
+    loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
+    try:
+        result = run_bench(loc, tabs=tabs, phase_s=phase_s)
+    finally:
+        loc.close()
+    show_bench_result("clients", result, as_json)

@@ -1,0 +1,143 @@
+"""The viewer's recordings under a budget: at most ``keep_runs`` run folders and ``max_bytes`` on
+disk under the runs root (the cache's ``runs/`` or ``--record-dir``), the oldest removed first.
+
+A run folder is any folder holding a recording (``recording/index.json``): the viewer's ``run``,
+``run-2``, …, ``branch-scan-K`` inside each start's ``<date-time>`` folder. "Oldest" is the last
+time a run was written to. Never removed: the runs the caller protects (the one recording now),
+the runs they branch from (a branch reads its first steps from its original), and any run written
+to in the last ``LIVE_S`` seconds (another viewer may be recording it right now).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+#: A run written to this recently may be another viewer's live recording: never pruned.
+LIVE_S = 120.0
+#: Defaults of ``view`` / ``demo``: a day of looping the town's drive stays well under them.
+DEFAULT_KEEP_RUNS = 50
+DEFAULT_MAX_RECORD_GB = 5.0
+INDEX = Path("recording") / "index.json"
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """One recorded run on disk: its folder, its size, when it was last written, its steps."""
+
+    path: Path
+    bytes: int
+    written: float  # newest file modification time (s since the epoch)
+    steps: int
+    branch_of: Path | None  # the run a branch reads its first steps from
+
+    @property
+    def mb(self) -> float:
+        return self.bytes / 1e6
+
+
+def _scan_folder(path: Path) -> RunFolder:
+    size, newest = 0, 0.0
+    for f in path.rglob("*"):
+        try:
+            st = f.lstat()
+        except OSError:  # removed meanwhile (a writer's temporary file)
+            continue
+        if f.is_file():
+            size += st.st_size
+        newest = max(newest, st.st_mtime)
+    steps = 0
+    try:
+        steps = (path / "recording" / "steps.bin").stat().st_size // 8
+    except OSError:
+        pass
+    branch_of = None
+    try:
+        meta = json.loads((path / INDEX).read_text()).get("meta", {})
+        origin = (meta.get("branch_of") or {}).get("run")
+        branch_of = Path(origin) if origin else None
+    except (OSError, ValueError, AttributeError):  # a damaged index: the run is still listed and prunable
+        pass
+    return RunFolder(path, size, newest, int(steps), branch_of)
+
+
+def find_runs(root: Path) -> list[RunFolder]:
+    """Every recorded run under ``root`` (up to three folders deep), oldest first."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    found = []
+    for depth in ("*", "*/*", "*/*/*"):
+        for index in root.glob(f"{depth}/{INDEX.as_posix()}"):
+            found.append(_scan_folder(index.parent.parent))
+    return sorted(found, key=lambda r: (r.written, str(r.path)))
+
+
+def total_bytes(runs: list[RunFolder]) -> int:
+    return sum(r.bytes for r in runs)
+
+
+def plan_prune(
+    runs: list[RunFolder],
+    keep_runs: int | None,
+    max_bytes: float | None,
+    protect: Iterable[Path] = (),
+    now: float | None = None,
+) -> list[RunFolder]:
+    """The runs to remove, oldest first, until at most ``keep_runs`` are left and they take at
+    most ``max_bytes`` (either None: no limit of that kind); protected, live and branched-from
+    runs are kept even if the budget is then still exceeded."""
+    now = time.time() if now is None else now
+    keep = {Path(p).resolve() for p in protect}
+    keep |= {r.path.resolve() for r in runs if now - r.written < LIVE_S}
+    # a branch reads its first steps from its original: an original stays while a branch of it
+    # exists (a branch is newer than its original, so the original would otherwise go first)
+    keep |= {r.branch_of.resolve() for r in runs if r.branch_of is not None}
+    count, size = len(runs), total_bytes(runs)
+    remove = []
+    for r in runs:  # oldest first
+        over = (keep_runs is not None and count > keep_runs) or (max_bytes is not None and size > max_bytes)
+        if not over:
+            break
+        if r.path.resolve() in keep:
+            continue
+        remove.append(r)
+        count -= 1
+        size -= r.bytes
+    return remove
+
+
+def remove_runs(runs: list[RunFolder], root: Path) -> list[RunFolder]:
+    """Delete the run folders (and the start folders they leave empty under ``root``); returns
+    those removed (a folder that could not be removed is skipped)."""
+    root = Path(root).resolve()
+    removed = []
+    for r in runs:
+        path = r.path.resolve()
+        if root not in path.parents:  # never anything outside the runs root
+            continue
+        try:
+            shutil.rmtree(path)
+        except OSError:
+            continue
+        removed.append(r)
+        parent = path.parent
+        while parent != root and root in parent.parents:
+            try:
+                parent.rmdir()  # only if empty
+            except OSError:
+                break
+            parent = parent.parent
+    return removed
+
+
+def enforce(
+    root: Path, keep_runs: int | None, max_bytes: float | None, protect: Iterable[Path] = ()
+) -> list[RunFolder]:
+    """Prune ``root`` to the budget now; returns the runs removed."""
+    runs = find_runs(root)
+    return remove_runs(plan_prune(runs, keep_runs, max_bytes, protect), root)

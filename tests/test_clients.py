@@ -1,0 +1,32 @@
+"""A client on a slow link does not slow the filter: a websocket that reads one message a second
+is connected while the viewer plays and draws every step; the player and the display go on at
+their own pace, and the slow client is still connected (its updates were dropped, not queued for
+the filter to wait on)."""
+
+from __future__ import annotations
+
+import time
+
+from helpers import wait_for
+from lidarloc.app.bench.clients import _SlowClient, _timed
+
+
+def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):
+    v, loc = viewer.viewer, viewer.localizer
+    updates: list = []
+    _timed(v, updates)
+    slow = _SlowClient(viewer.port, every_s=1.0)
+    try:
+        v.controls.s2m_enabled.value = False  # the filter alone: its pace is the one that matters here
+        v.controls.speed.value = "max"
+        t0 = time.perf_counter()
+        v.controls.play.value = True
+        wait_for(lambda: loc.k >= 12, timeout=120, what="12 scans played")
+        played_s = time.perf_counter() - t0
+        wait_for(lambda: len(updates) >= 5, what="display updates meanwhile")
+        # the slow client read a message a second at most: far fewer than the updates sent to it
+        assert slow.read <= played_s + 2
+        assert not v.step_failed and v.display_faults.count == 0
+    finally:
+        slow.close()
+    assert sorted(updates)[len(updates) // 2] < 1000.0  # the median update did not wait on the slow client

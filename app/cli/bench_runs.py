@@ -273,3 +273,53 @@ def bench_peers(
             progress=progress,
         )
     show_bench_result("peers", result, as_json)
+
+
+@bench_app.command("city")
+@with_source()
+def bench_city(
+    global_scans: Annotated[
+        int, typer.Option("--global-scans", min=1, help="Scans along the city's drive matched against the whole city.")
+    ] = 200,
+    peer_scans: Annotated[
+        int, typer.Option("--peer-scans", min=0, help="Of those, how many FPFH + RANSAC registers (seconds each).")
+    ] = 20,
+    tile_m: Annotated[float, typer.Option("--tile-m", help="Side of the lookup table's tiles (m).")] = 400.0,
+    whole_map: Annotated[
+        bool, typer.Option("--whole-map/--no-whole-map", help="Also today's whole-map search on the same scans.")
+    ] = True,
+    seed: SeedOpt = None,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """lidarloc holding a city (by default the 4 × 4 km city, a 10-minute drive through it):
+    the tiled tables' build and cache size, a later start and the memory a drive keeps resident
+    (in a fresh process), and the exact tiled global search beside the whole-map search and
+    FPFH + RANSAC. --set town.extent_m=E (or any source option) measures another city."""
+    from ..bench.city import run as run_bench
+
+    overrides = ["town.extent_m=4000", "town.n_scans=6000", *(set_ or [])]
+    cfg = config_from(config, overrides, seed=seed, preset=preset)
+    with progress_bar() as bar:
+        tasks: dict = {}
+
+        def progress(what, fraction):
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=1.0)
+            bar.update(tasks[what], completed=fraction)
+
+        result = run_bench(
+            spec,
+            cfg,
+            cache_root=cache,
+            global_scans=global_scans,
+            peer_scans=peer_scans,
+            tile_m=tile_m,
+            whole_map=whole_map,
+            progress=progress,
+        )
+    show_bench_result("city", result, as_json)

@@ -57,6 +57,9 @@ class PFConfig:
     d_max: float = 5.0  # m, distance cap of the likelihood
     sigma: float = 0.5  # m, likelihood scale
     lookup_resolution: float = 0.25  # m, δ of the nearest-distance lookup table
+    # m, side of the lookup table's tiles; 0 = one table over the whole map. A city's map: tiles
+    # (rounded to whole 48 m build tiles at δ = 0.25 m) mapped in around the particles only
+    lookup_tile_m: float = 0.0
     q_std: tuple = PAPER_Q_STD  # process-noise standard deviations, SI units, see PAPER_Q_STD
     dt: float = 0.1  # s, used when a sequence has no timestamps
     v_max: float = 15.0  # m/s, initial speeds are uniform in [0, v_max]
@@ -258,6 +261,7 @@ class Config:
             (self.pf.d_max > 0, "pf.d_max must be > 0"),
             (self.pf.sigma > 0, "pf.sigma must be > 0"),
             (self.pf.lookup_resolution > 0, "pf.lookup_resolution must be > 0"),
+            (self.pf.lookup_tile_m >= 0, "pf.lookup_tile_m must be ≥ 0 (0 = one table)"),
             (len(self.pf.q_std) == 11, "pf.q_std must have 11 entries"),
             (all(q >= 0 and math.isfinite(q) for q in self.pf.q_std), "pf.q_std entries must be finite and ≥ 0"),
             (0 < self.pf.resample_threshold <= 1, "pf.resample_threshold must be in (0, 1]"),

@@ -406,6 +406,12 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         rng = np.random.default_rng([self.cfg.seed, k, 1])
         prepared = prepare_scan(scan, self.cfg.pf, rng)
         self.pf.predict(dt)
+        if self.world.tiles is not None:  # a tiled map: the tiles under the particles and their scan
+            reach = float(np.linalg.norm(prepared[:, :3], axis=1).max()) if len(prepared) else 0.0
+            table = self.world.tiles.follow(self.pf.states, reach)
+            if table is not self.lookup:
+                self.lookup = table
+                self.pf.set_lookup(table)
         self.pf.update(prepared)
         pf_s = time.perf_counter() - t0
         s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there)

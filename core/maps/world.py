@@ -17,8 +17,10 @@ import numpy as np
 
 from ..config import Config
 from .bev import BEVPyramid, load_or_build_pyramid
+from .follow import TileFollower
 from .lookup import LookupTable, load_or_build_lookup
 from .mapping import PriorMap, load_or_build_map
+from .tiled_lookup import TiledLookup
 
 
 @dataclass
@@ -31,6 +33,7 @@ class World:
     map_dir: Path
     lookup: LookupTable | None = None
     pyramid: BEVPyramid | None = None
+    tiles: TileFollower | None = None
 
     @property
     def origin(self) -> np.ndarray:
@@ -68,7 +71,16 @@ def open_world(
     if on_map is not None:
         on_map(prior_map)
     world = World(prior_map, map_dir)
-    if lookup:
+    if lookup and cfg.pf.lookup_tile_m > 0:
+        report("lookup", 0.0)
+        tiled = TiledLookup.load_or_build(
+            prior_map.points, map_dir / "tiles-lookup", map_dir.name, cfg.pf.lookup_resolution, cfg.pf.d_max,
+            cfg.pf.lookup_tile_m, progress=lambda f: report("lookup", f),
+        )  # fmt: skip
+        # until the particles are there: the whole map (a start may be spread over all of it)
+        world.tiles = TileFollower(tiled)
+        world.lookup = world.tiles.follow(np.asarray(prior_map.bounds)[:, :2], 0.0)
+    elif lookup:
         report("lookup", 0.0)
         world.lookup = load_or_build_lookup(
             prior_map, map_dir, cfg.pf.lookup_resolution, cfg.pf.d_max, progress=lambda f: report("lookup", f)

@@ -642,14 +642,24 @@ def _search(
     if keep < 0:
         raise LidarlocError(f"keep_candidates must be ≥ 0, got {keep}")
     t0 = time.perf_counter()
+    B = scan_cells(scan_xy, pyramid.resolution)
+    cx, cy = angle_cells(pyramid, B, angles, anchor)
+    return search_cells(pyramid, cx, cy, anchor, angles, k_lo, k_hi, beat, exhaustive, keep, t0)
+
+
+def search_cells(
+    pyramid, cx, cy, anchor, angles, k_lo, k_hi, beat=-1.0, exhaustive=False, keep: int = N_CANDIDATES, t0=None
+) -> MatchResult:
+    """The search of :func:`match` for scan cells already placed on the pyramid's L0 grid (``cx``,
+    ``cy`` per angle at translation 0, as :func:`angle_cells` places them): the tiled global
+    search places them once on the city's grid and shifts them by whole cells into each tile."""
+    t0 = time.perf_counter() if t0 is None else t0
     dense_upto = DENSE_UPTO
     prep = _prepared(pyramid, dense_upto)
-    B = scan_cells(scan_xy, pyramid.resolution)
     d = pyramid.resolution
     kx_lo, ky_lo = int(k_lo[0]), int(k_lo[1])
     kx_hi, ky_hi = int(k_hi[0]), int(k_hi[1])
     region = (anchor[0] + kx_lo * d, anchor[1] + ky_lo * d, anchor[0] + kx_hi * d, anchor[1] + ky_hi * d)
-    cx, cy = angle_cells(pyramid, B, angles, anchor)
     keep = int(keep)
     if exhaustive:
         score, r, kx, ky, ts, tr, tx, ty, m = _exhaustive(prep.L0, cx, cy, kx_lo, kx_hi, ky_lo, ky_hi, keep)
@@ -695,7 +705,7 @@ def _search(
     common = dict(
         nodes_expanded=int(nodes),
         ms=ms,
-        n_points=len(B),
+        n_points=int(cx.shape[1]),
         region=region,
         n_angles=len(angles),
         candidates=candidates,

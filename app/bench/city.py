@@ -1,0 +1,201 @@
+"""``lidarloc bench city``: lidarloc holding a city — the tiled tables' build, a later start, the
+memory a drive keeps resident, and the exact global search over the whole city beside the
+whole-map search and open3d's FPFH + RANSAC on the same scans and map.
+
+Global matches are M3RSM's 2D optimum (no GICP), judged against the truth: within 2 m and 5°.
+The whole-map search runs where its pyramid fits in memory (always, up to a 6 km city at 1 m
+cells: 144 MB of L0); FPFH + RANSAC runs on ``peer_scans`` of the same scans (seconds each).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...core.config import Config
+from ...core.maps.bev import load_or_build_pyramid
+from ...core.maps.mapping import flat_surface_mask, load_or_build_map, range_filter
+from ...core.maps.tiled_bev import TiledBEV
+from ...core.maps.tiled_lookup import TiledLookup
+from ...core.matching import m3rsm
+from ...core.matching.tiled_search import match_global_tiled
+from ...core.o3d import open3d
+from ...core.sequences.factory import SourceSpec
+from .common import load_avg, machine, median, open_source, rss_mb
+
+SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
+ROAD_REMOVAL_VOXEL = 0.3  # as the scan-to-map matcher prepares a scan
+
+
+def prepare(scan: np.ndarray, cfg: Config) -> np.ndarray:
+    """The scan's road-removed points (sensor frame), as the scan-to-map matcher prepares them."""
+    pts = range_filter(np.asarray(scan)[:, :3].astype(np.float64), cfg.map)
+    o3d = open3d()
+    down = np.asarray(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(ROAD_REMOVAL_VOXEL).points
+    )
+    return down[~flat_surface_mask(down, cfg.map)] if len(down) >= 3 else down
+
+
+def judge(x: float, y: float, yaw: float, truth: np.ndarray) -> tuple[bool, float]:
+    """(within 2 m and 5°, metres off) of a 2D pose against a 4 × 4 true pose."""
+    if not math.isfinite(x):
+        return False, math.inf
+    m = math.hypot(x - truth[0, 3], y - truth[1, 3])
+    dyaw = abs((yaw - math.atan2(truth[1, 0], truth[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
+    return m <= SUCCESS_M and math.degrees(dyaw) <= SUCCESS_DEG, m
+
+
+def _tables(prior, map_dir: Path, cfg: Config, tile_m: float, bev_tile_m: float, progress):
+    key = map_dir.name
+    lookup = TiledLookup.load_or_build(
+        prior.points, map_dir / "tiles-lookup", key, cfg.pf.lookup_resolution, cfg.pf.d_max, tile_m,
+        progress=lambda f: progress("lookup tiles", f),
+    )  # fmt: skip
+    bev = TiledBEV.load_or_build(
+        prior.points_bev, map_dir / "tiles-bev", key, cfg.s2m.match_resolution, bev_tile_m,
+        "binary" if cfg.s2m.binary_cells else None, progress=lambda f: progress("pyramid tiles", f),
+    )  # fmt: skip
+    return lookup, bev
+
+
+def run(
+    spec: SourceSpec,
+    cfg: Config,
+    cache_root: Path | None = None,
+    global_scans: int = 200,
+    peer_scans: int = 20,
+    tile_m: float = 400.0,
+    bev_tile_m: float = 256.0,
+    whole_map: bool = True,
+    progress=None,
+) -> dict:
+    report = progress or (lambda what, f: None)
+    seq = open_source(spec, cfg, "city", need_poses=True)
+    t0 = time.perf_counter()
+    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
+    map_meta = json.loads((map_dir / "meta.json").read_text()) if (map_dir / "meta.json").is_file() else {}
+    map_load_s = time.perf_counter() - t0
+    lookup, bev = _tables(prior, map_dir, cfg, tile_m, bev_tile_m, report)
+    build = {
+        "map": map_meta.get("build_seconds"),
+        "lookup": lookup.index.get("build_seconds"),
+        "pyramid": bev.index.get("build_seconds"),
+    }
+    out: dict = {
+        "source": seq.name,
+        "machine": machine(),
+        "load_avg_start": load_avg(),
+        "map_points": int(len(prior.points)),
+        "map_points_road_removed": int(len(prior.points_bev)) if prior.points_bev is not None else 0,
+        "tile_m": lookup.tile_m,
+        "bev_tile_m": bev.tile_cells * bev.resolution,
+        "build_parts_s": build,
+        "build_s": sum(v for v in build.values() if v is not None),
+        "map_load_s": map_load_s,
+        "cache_mb": (_dir_bytes(map_dir)) / 1e6,
+        "tiles_mb": (lookup.cache_bytes + bev.cache_bytes) / 1e6,
+    }
+    rng = np.random.default_rng(cfg.seed)
+    idx = sorted(int(k) for k in rng.choice(len(seq), min(global_scans, len(seq)), replace=False))
+    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value if whole_map else None
+    rows = []
+    for j, k in enumerate(idx):
+        truth, scan = seq.pose(k), prepare(seq.scan(k), cfg)
+        row = {"scan": k}
+        if j == 0:  # numba's kernels compiled off the clock
+            match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
+            if pyramid is not None:
+                m3rsm.match_global(pyramid, scan[:, :2], cfg.s2m.angle_step)
+        res = match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
+        row["tiled_ms"], (row["tiled_success"], row["tiled_err_m"]) = res.ms, judge(res.x, res.y, res.yaw, truth)
+        row["tiled_tiles_searched"] = res.nodes_per_level[0] if res.nodes_per_level else 0
+        if pyramid is not None:
+            whole = m3rsm.match_global(pyramid, scan[:, :2], cfg.s2m.angle_step)
+            row["whole_ms"], (row["whole_success"], _) = whole.ms, judge(whole.x, whole.y, whole.yaw, truth)
+            row["same_as_whole"] = bool(whole.score == res.score)
+        rows.append(row)
+        report("global matches", (j + 1) / len(idx))
+    out["global_scans"] = len(rows)
+    out["global_match_ms_median"] = median(r["tiled_ms"] for r in rows)
+    out["global_success"] = float(np.mean([r["tiled_success"] for r in rows]))
+    out["global_failed_scans"] = [
+        {"scan": r["scan"], "err_m": r["tiled_err_m"]} for r in rows if not r["tiled_success"]
+    ]
+    out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in rows)
+    if pyramid is not None:
+        out["whole_map_ms_median"] = median(r["whole_ms"] for r in rows)
+        out["whole_map_success"] = float(np.mean([r["whole_success"] for r in rows]))
+        out["tiled_score_equals_whole_map"] = float(np.mean([r["same_as_whole"] for r in rows]))
+    else:
+        out["whole_map_ms_median"] = out["whole_map_success"] = None
+    out.update(_peers(seq, prior, cfg, idx[:peer_scans], report) if peer_scans > 0 else {})
+    out.update(_probe(seq, lookup, bev, cfg, idx))
+    out["localize_success"] = None  # `bench localize` on a city drive: not measured by this command
+    out["load_avg_end"] = load_avg()
+    out["rss_bench_mb"] = rss_mb()
+    out["rows"] = rows
+    return out
+
+
+def _dir_bytes(directory: Path) -> int:
+    return sum(p.stat().st_size for p in Path(directory).rglob("*") if p.is_file())
+
+
+def _peers(seq, prior, cfg: Config, idx: list[int], report) -> dict:
+    from .peers_global import FeatureMap
+
+    features = FeatureMap(prior.points)
+    ok, ms = [], []
+    for j, k in enumerate(idx):
+        truth, pts = seq.pose(k), range_filter(seq.scan(k), cfg.map)[:, :3]
+        t = time.perf_counter()
+        T = features.ransac(pts, cfg.seed + j)
+        ms.append((time.perf_counter() - t) * 1e3)
+        yaw = math.atan2(T[1, 0], T[0, 0])
+        ok.append(judge(T[0, 3], T[1, 3], yaw, truth)[0] if np.isfinite(T).all() else False)
+        report("FPFH + RANSAC", (j + 1) / len(idx))
+    return {
+        "fpfh_ransac_scans": len(idx),
+        "fpfh_ransac_ms_median": median(ms),
+        "fpfh_ransac_success": float(np.mean(ok)) if ok else None,
+        "fpfh_map_build_s": features.build_s,
+    }
+
+
+def _probe(seq, lookup: TiledLookup, bev: TiledBEV, cfg: Config, idx: list[int]) -> dict:
+    """Start and resident memory in a fresh process (see :mod:`.city_probe`)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        poses = np.array([seq.pose(k)[:3, 3] for k in range(0, len(seq), 5)])
+        np.save(Path(tmp) / "poses.npy", poses)
+        np.save(Path(tmp) / "scan.npy", prepare(seq.scan(idx[0]), cfg)[:, :2])
+        args = {
+            "poses": str(Path(tmp) / "poses.npy"),
+            "scan": str(Path(tmp) / "scan.npy"),
+            "lookup_dir": str(lookup.directory),
+            "lookup_key": lookup.index["key"],
+            "bev_dir": str(bev.directory),
+            "bev_key": bev.index["key"].split("|bev|")[0],
+            "bev_res": bev.resolution,
+            "bev_tile_m": bev.tile_cells * bev.resolution,
+            "angle_step": cfg.s2m.angle_step,
+        }
+        done = subprocess.run(
+            [sys.executable, "-m", "lidarloc.app.bench.city_probe", json.dumps(args)], capture_output=True, text=True
+        )
+    if done.returncode != 0:
+        return {"start_s": None, "rss_tracking_mb": None, "probe_error": done.stderr.strip().splitlines()[-1:]}
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    return {
+        "start_s": got["start_s"],
+        "rss_tracking_mb": got["rss_peak_mb"],
+        "tracking_windows": got["windows"],
+        "window_mb": got["window_mb"],
+    }

@@ -1,0 +1,60 @@
+"""The tiled BEV pyramid (core/maps/tiled_bev.py) and the exact global search over it
+(core/matching/tiled_search.py): the coarse levels are the whole pyramid's, and the search returns
+the whole-map branch and bound's pose and score, for small and large tiles."""
+
+import math
+
+import numpy as np
+import pytest
+from lidarloc.core.config import load_config
+from lidarloc.core.errors import DataError
+from lidarloc.core.maps.tiled_bev import TiledBEV
+from lidarloc.core.maps.world import open_world
+from lidarloc.core.matching.m3rsm import match_global
+from lidarloc.core.matching.tiled_search import match_global_tiled
+from lidarloc.core.sequences.town import TownSequence
+
+STEP = 5.0 * math.pi / 180.0
+
+
+@pytest.fixture(scope="module")
+def town(cache_root):
+    seq = TownSequence(seed=3, extent_m=150.0, n_scans=40)
+    world = open_world(seq.map_source, load_config(), cache_root, lookup=False)
+    scans = [seq.scan(i)[:, :2] for i in (0, 39)]
+    return world, scans
+
+
+@pytest.mark.parametrize("tile_m", [16.0, 64.0])
+def test_coarse_levels_are_the_pyramids(town, tmp_path, tile_m):
+    world, _ = town
+    bev = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, tile_m)
+    assert bev.shape == world.pyramid.shape and np.array_equal(bev.origin, world.pyramid.origin)
+    for i, coarse in enumerate(bev.coarse[:2]):
+        assert np.array_equal(coarse, world.pyramid.levels[bev.tile_level + i])
+    whole = bev.window(0, 0, *bev.shape)
+    assert np.array_equal(whole.levels[0], world.pyramid.levels[0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tile_m", [16.0, 64.0])
+def test_tiled_search_finds_the_whole_map_optimum(town, tmp_path, tile_m):
+    world, scans = town
+    bev = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, tile_m)
+    assert bev.ntx * bev.nty > 1
+    for scan in scans:
+        whole = match_global(world.pyramid, scan, STEP)
+        tiled = match_global_tiled(bev, scan, STEP)
+        assert tiled.score == whole.score
+        assert (tiled.x, tiled.y, tiled.yaw) == (whole.x, whole.y, whole.yaw)
+        assert tiled.candidates[0, 3] == whole.score
+
+
+def test_a_damaged_pyramid_tile_is_a_one_line_error(town, tmp_path):
+    world, _ = town
+    bev = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, 32.0)
+    victim = max(tmp_path.glob("t*.L0.npy"), key=lambda p: p.stat().st_size)
+    victim.write_bytes(victim.read_bytes()[:-8])
+    again = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, 32.0)
+    with pytest.raises(DataError, match="truncated tile file"):
+        again.window(0, 0, *bev.shape)

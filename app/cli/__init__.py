@@ -8,7 +8,7 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import fail
-from . import bench_costs, bench_runs, maps, runs  # noqa: F401  (they register their commands)
+from . import bench_costs, bench_runs, maps, runs, sweeps  # noqa: F401  (they register their commands)
 from .groups import app
 
 

@@ -28,3 +28,23 @@ def fake_run(run_dir: str, a: float, b: float, seed: int, work_s: float = 0.0, f
     tmp.write_text(json.dumps(summary))
     os.replace(tmp, folder / "summary.json")
     return summary
+
+
+def fake_localize(spec_d, cfg_d, seed, cache_root, run_dir, numba_threads, preset=None, record=False) -> dict:
+    """A seeded "run" whose RMSE after localization is lowest at pf.sigma = 1 and which fires
+    falsely above pf.sigma = 2.5: summary.json and scans.csv as a real run writes them."""
+    sigma = float(cfg_d["pf"]["sigma"])
+    rng = np.random.default_rng([seed, int(1e6 * sigma)])
+    false_fire = sigma > 2.5
+    rmse = (sigma - 1.0) ** 2 + 0.1 + 0.01 * rng.random()
+    folder = Path(run_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    error = 9.0 if false_fire else rmse
+    (folder / "scans.csv").write_text(f"scan,localized,error_m\n0,0,20.0\n1,1,{error:f}\n2,1,{error:f}\n")
+    summary = {"seed": seed, "rmse_after_localized_m": rmse, "false_fire": false_fire, "metrics": {}}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    return summary
+
+
+def no_prepare(spec_d, cfg_d, cache, threads) -> None:
+    """The fake runs need no map."""

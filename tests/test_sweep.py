@@ -115,3 +115,25 @@ def test_grid_is_parsed_and_checked():
     ):
         with pytest.raises(LidarlocError, match=message):
             parse_grid(bad)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["sweep", "--grid", "pf.sigmx=1,2"], "unknown key 'pf.sigmx'"),
+        (["sweep", "--grid", "pf.sigma=1", "--ray", "nowhere"], "--ray nowhere"),
+        (["tune", "--param", "pf.sigma=3:1"], "LOW < HIGH"),
+    ],
+)
+def test_bad_sweep_and_tune_options_are_one_line(tmp_path, args, needle):
+    env = {"LIDARLOC_CACHE": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin"}
+    r = subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *args, "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], r.stderr

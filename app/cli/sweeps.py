@@ -10,7 +10,7 @@ import typer
 from ..console import emit_json, err
 from ..options import CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, with_source
 from ..sweep.cluster import RAY_HELP
-from .groups import app
+from .groups import app, bench_app
 
 _KEYS = (
     "The keys are the configuration's (docs/configuration.md), e.g. pf.sigma, pf.d_max, pf.n_particles, s2m.region_x."
@@ -105,3 +105,89 @@ def _print_summary(summary: dict, keys: list[str], out: Path) -> None:
         markup=False,
     )
     err.print(f"runs.csv, combinations.csv, plots/ and each run's recording in {out}", highlight=False, markup=False)
+
+
+@app.command("tune")
+@with_source()
+def tune(
+    param: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--param",
+            metavar="KEY=LOW:HIGH",
+            help=f"A searched entry and its range (repeatable; integer bounds search integers). {_KEYS}",
+        ),
+    ] = None,
+    trials: Annotated[int, typer.Option("--trials", help="Settings tried (the starting settings are the first).")] = 60,
+    runs: Annotated[int, typer.Option("--runs", help="Seeds per trial (0…N−1), the same for every trial.")] = 3,
+    out: Annotated[Path, typer.Option("--out", help="Folder of the trials and the results.")] = Path("out/tune"),
+    ray: RayOpt = None,
+    workers: WorkersOpt = None,
+    world: WorldOpt = "lived-in",
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """Search the settings that localize best: the lowest median RMSE after localization with every seed localized and no false fire.
+
+    Optuna's TPE through Ray Tune (a local Ray instance unless --ray names a cluster); a trial whose seed fails, or whose RMSE is already worse than most, is stopped early. Writes trials.csv, best.yaml (for --config), importance.png and tune.json, and compares the best with the starting settings."""
+    from ..sweep.sweep import Settings
+    from ..sweep.tune import parse_params, run_tune
+
+    params = parse_params(param)
+    settings = Settings(spec, config, tuple(set_ or ()), preset, world, cache)
+    summary = run_tune(settings, params, trials, runs, _workers(workers, ray), out, ray=ray)
+    if as_json:
+        emit_json(summary)
+        return
+    base, best = summary["defaults"]["trial"], summary["best"]
+    err.print(
+        f"{summary['trials']} trials, {summary['met']} met every seed, {summary['stopped_early']} stopped early",
+        highlight=False,
+    )
+    if base is not None:
+        rmse = base["rmse_median"]
+        err.print(
+            f"starting settings {summary['defaults']['settings']}: "
+            + (f"RMSE after {rmse:.3f} m" if base["met"] else "did not meet every seed"),
+            highlight=False,
+            markup=False,
+        )
+    if best is None:
+        err.print("best: no trial met every seed", highlight=False)
+    else:
+        gain = summary["improvement_m"]
+        err.print(
+            f"best {summary['best_settings']}: RMSE after {best['rmse_median']:.3f} m"
+            + ("" if gain is None else f" ({gain:.3f} m lower than the starting settings')")
+            + f" → {out / 'best.yaml'}",
+            highlight=False,
+            markup=False,
+        )
+    err.print(f"trials.csv, importance.png and tune.json in {out}", highlight=False, markup=False)
+
+
+@bench_app.command("sweep")
+def bench_sweep(
+    runs: Annotated[int, typer.Option("--runs", min=1, help="Runs in the sweep.")] = 16,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Runs at a time.")] = 2,
+    run_s: Annotated[float, typer.Option("--run-s", min=0.1, help="CPU seconds of each run.")] = 20.0,
+    as_json: JsonOpt = False,
+):
+    """A sweep's scheduling overhead on Ray beside the process pool: the same runs of fixed CPU work on both."""
+    from ..sweep.overhead import measure
+
+    result = measure(runs, workers, run_s)
+    if as_json:
+        emit_json(result)
+        return
+    err.print(
+        f"{runs} runs of {run_s:g} s CPU on {workers} workers: process pool {result['pool_wall_s']:.1f} s, "
+        f"Ray {result['ray_wall_s']:.1f} s ({result['ray_over_pool']:.3f}×; Ray's start {result['ray_start_s']:.1f} s "
+        f"apart); overhead {result['overhead_per_run_s']:.2f} s per run = "
+        f"{100 * result['overhead_share_of_run']:.1f} % of a run (load {result['load_1min']:.1f})",
+        highlight=False,
+    )

@@ -62,7 +62,18 @@ def _heatmap(path: Path, keys: list[str], combos: list[dict], plt) -> None:
             grid[ys.index(c[keys[1]]), xs.index(c[keys[0]])] = np.nan if v is None else v
         im = ax.imshow(grid, cmap=cmap, vmin=lim[0], vmax=lim[1], origin="lower", aspect="auto")
         for (j, i), v in np.ndenumerate(grid):
-            ax.text(i, j, "–" if np.isnan(v) else f"{v:.2f}", ha="center", va="center", fontsize=8)
+            # white on the dark end of the colour map, black on the light end
+            shade = 0.5 if np.isnan(v) else float(im.norm(v))
+            dark = shade > 0.6 if cmap == "viridis_r" else False
+            ax.text(
+                i,
+                j,
+                "–" if np.isnan(v) else f"{v:.2f}",
+                ha="center",
+                va="center",
+                fontsize=8,
+                color="white" if dark else "black",
+            )
         ax.set_xticks(range(len(xs)), [str(x) for x in xs])
         ax.set_yticks(range(len(ys)), [str(y) for y in ys])
         ax.set_xlabel(keys[0])

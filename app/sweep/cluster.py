@@ -52,20 +52,27 @@ def connect(address: str | None, workers: int) -> None:
     if ray.is_initialized():
         return
     local = address in (None, "local")
-    try:
-        if local:
-            ray.init(
-                num_cpus=workers,
-                include_dashboard=False,
-                object_store_memory=OBJECT_STORE_BYTES,
-                log_to_driver=False,
-                logging_level=logging.WARNING,
-            )
-        else:
-            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise LidarlocError(f"--ray {address or 'local'}: could not join Ray ({first})") from None
+    # Ray gives its raylet 30 s to register: on a machine loaded far beyond its cores a local start
+    # can miss that once (measured at load 38 on 2 cores), so a local start is tried twice
+    for attempt in range(2 if local else 1):
+        try:
+            if local:
+                ray.init(
+                    num_cpus=workers,
+                    include_dashboard=False,
+                    object_store_memory=OBJECT_STORE_BYTES,
+                    log_to_driver=False,
+                    logging_level=logging.WARNING,
+                )
+            else:
+                ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+            return
+        except Exception as exc:  # Ray raises bare Exceptions for a start that timed out
+            ray.shutdown()
+            if attempt == 0 and local:
+                continue
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise LidarlocError(f"--ray {address or 'local'}: could not join Ray ({first})") from None
 
 
 def cluster_cpus() -> int:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from rich.console import Console
 
+from ...core.errors import LidarlocError
 from .executor import Run, execute
 
 
@@ -37,7 +38,7 @@ def _sweep(out: Path, runs: int, workers: int, run_s: float, ray: str | None) ->
     plan = [Run((i,), f"run {i}", str(out / f"run_{i:03d}"), (str(out / f"run_{i:03d}"), run_s)) for i in range(runs)]
     own: list[float] = []
     t0 = time.perf_counter()
-    execute(
+    tally = execute(
         burn,
         {"run": list(range(runs))},
         plan,
@@ -47,6 +48,8 @@ def _sweep(out: Path, runs: int, workers: int, run_s: float, ray: str | None) ->
         ray_dir=out / "ray",
         console=Console(file=open(os.devnull, "w")),
     )
+    if not tally.finished:
+        raise LidarlocError(f"the sweep on {'Ray' if ray else 'the process pool'} did not finish: no figures")
     return time.perf_counter() - t0, own
 
 

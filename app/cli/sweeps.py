@@ -81,13 +81,13 @@ def sweep(
     if as_json:
         emit_json(summary)
     else:
-        _print_summary(summary, list(g.axes), out)
+        _print_summary(summary, list(g.axes), out, recorded=not no_record)
     if tally.interrupted:
         err.print(f"interrupted: run the same command again to resume ({summary['done']} of {summary['runs']} done)")
         raise typer.Exit(130)
 
 
-def _print_summary(summary: dict, keys: list[str], out: Path) -> None:
+def _print_summary(summary: dict, keys: list[str], out: Path, recorded: bool) -> None:
     for c in summary["combinations"]:
         setting = " ".join(f"{k}={c[k]}" for k in keys)
         rmse = c["rmse_after_localized_m_median"]
@@ -104,7 +104,8 @@ def _print_summary(summary: dict, keys: list[str], out: Path) -> None:
         highlight=False,
         markup=False,
     )
-    err.print(f"runs.csv, combinations.csv, plots/ and each run's recording in {out}", highlight=False, markup=False)
+    where = "runs.csv, combinations.csv, plots/" + (" and each run's recording" if recorded else "")
+    err.print(f"{where} in {out}", highlight=False, markup=False)
 
 
 @app.command("tune")

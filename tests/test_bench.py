@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from lidarloc.core.config import Config
 from lidarloc.core.sequences.factory import SourceSpec
+from ray_local import ray_local  # noqa: F401  (a fixture: the Ray tests share one local instance)
 
 SCANS = 25
 
@@ -77,8 +78,7 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_matches_process_pool(tmp_path):
-    pytest.importorskip("ray", reason="Ray is an optional extra (pip install 'lidarloc[ray]')")
+def test_ray_matches_process_pool(tmp_path, ray_local):
     from lidarloc.app.bench.localize import run_bench
 
     spec = SourceSpec(scans=12)

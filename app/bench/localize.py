@@ -321,18 +321,10 @@ def run_bench(
 
 
 def _run_ray(fn, tasks: dict, workers: int, address: str | None, on_done) -> None:
-    try:
-        import ray  # pyright: ignore[reportMissingImports]  (an optional extra)
-    except ImportError:
-        raise LidarlocError("--executor ray needs Ray: pip install 'lidarloc[ray]'") from None
-    if not ray.is_initialized():
-        ray.init(
-            address=address,
-            num_cpus=None if address else workers,
-            include_dashboard=False,
-            log_to_driver=False,
-            ignore_reinit_error=True,
-        )
+    from ..sweep.cluster import connect, import_ray
+
+    connect(address or "local", workers)  # a local instance: no dashboard, a small object store
+    ray = import_ray()
     remote = ray.remote(num_cpus=1)(fn)
     refs = {remote.remote(*args): key for key, args in tasks.items()}
     pending = list(refs)

@@ -34,6 +34,9 @@ from ...core.config import TOWN_SENSORS, Config, load_config
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
 from ..console import progress_bar, stop_signals_like_ctrl_c
+from ..sweep.cluster import check_address
+from ..sweep.executor import Run, execute
+from ..sweep.world import ensure_world, mark_ready
 from .common import DATA_ENV, REAL_DRIVE, REAL_DRIVE_DATE, data_dir, real_drive, require_town
 from .localize import (
     Plan,
@@ -252,15 +255,18 @@ def run_robustness(
     cache_root: Path | None = None,
     console: Console | None = None,
     record: bool = False,
+    ray: str | None = None,
 ) -> dict:
     """Run the ``matrix`` (``runs`` seeds per cell) on the town ``town`` and, with ``real`` (None:
     where its data is present), on the real drive; write the cells' directories and the report
-    into ``out_dir``; returns the summary (summary.json)."""
+    into ``out_dir``; returns the summary (summary.json). The runs go through the sweep's executor:
+    a local process pool, or Ray Tune trials with ``ray`` (:mod:`lidarloc.app.sweep.cluster`)."""
     from .robustness_report import write_cell_table
 
     console = console or Console(stderr=True)
     stop_signals_like_ctrl_c()  # from the start: preparing the cache can take minutes
     check_runs(runs, workers)
+    check_address(ray)
     require_town(town, "robustness", "the built-in town's drive in a changed world")
     check_overrides(overrides)
     if town.scans is None:
@@ -303,25 +309,62 @@ def run_robustness(
     threads = numba_threads_for(workers)
     t0 = time.perf_counter()
     _prepare(todo_cells, plans, worlds, cache_root, cache, workers, threads)
-    with progress_bar(transient=False) as bar:
-        task = bar.add_task(
-            f"robustness: {len(cells)} cells", total=len(cells) * runs, completed=len(cells) * runs - total
+    runs_ = cell_runs(cells, plans, runs, cache, threads)
+
+    def done(run, summary):
+        name, seed = run.point
+        plan = plans[name]
+        plan.summaries[seed] = summary
+        if len(plan.summaries) == plan.runs:
+            plan.report(plots=False)  # a finished cell is readable while others run
+
+    axes = {"cell": [c.name for c in cells], "seed": list(range(runs))}
+    tally = execute(
+        run_one,
+        axes,
+        runs_,
+        workers,
+        on_done=done,
+        label=f"robustness: {len(cells)} cells",
+        ray=ray,
+        ray_dir=out_dir / "ray",
+        console=console,
+    )
+    if tally.interrupted or tally.failed:
+        raise LidarlocError(
+            f"robustness: {len(tally.failed)} runs failed"
+            + (
+                f" (first: {next(iter(tally.failed.items()))[0]}: {next(iter(tally.failed.values()))})"
+                if tally.failed
+                else ""
+            )
+            + ("; interrupted" if tally.interrupted else "")
+            + f"; run the same command again to resume ({tally.kept + tally.done} of {tally.total} done)"
         )
-        tasks = {
-            (name, seed): args for name, plan in plans.items() for seed, args in plan.tasks(cache, threads).items()
-        }
-
-        def done(key, summary):
-            name, seed = key
-            plan = plans[name]
-            plan.summaries[seed] = summary
-            if len(plan.summaries) == plan.runs:
-                plan.report(plots=False)  # a finished cell is readable while others run
-            bar.advance(task)
-
-        run_tasks(run_one, tasks, workers, done)
     aggs = {name: plan.report(plots=False) for name, plan in plans.items()}
     return write_cell_table(out_dir, cells, aggs, matrix, town, real_spec, runs, time.perf_counter() - t0)
+
+
+def cell_runs(cells: list[Cell], plans: dict, runs: int, cache: str | None, threads: int) -> list[Run]:
+    """One executor Run per cell × seed (the finished ones too: the executor keeps them), each
+    with its world made sure of on the machine that runs it (a Ray cluster's node without the
+    cache builds it there, once)."""
+    out = []
+    for cell in cells:
+        plan = plans[cell.name]
+        for seed in range(runs):
+            run_dir = str(plan.out_dir / "runs" / f"seed_{seed:03d}")
+            args = (plan.spec_d, plan.cfg_d, seed, cache, run_dir, threads, plan.preset, plan.record)
+            out.append(
+                Run(
+                    point=(cell.name, seed),
+                    label=f"{cell.name} seed {seed}",
+                    run_dir=run_dir,
+                    args=args,
+                    before=(ensure_world, (plan.spec_d, plan.cfg_d, cache, threads)),
+                )
+            )
+    return out
 
 
 def _prepare(
@@ -342,9 +385,10 @@ def _prepare(
             plan = plans[cell.name]
             prepare_cache(plan.spec, plan.cfg, cache_root, label=cell.name)
     rest = {w: next(c for c in todo_cells if c.world == w) for w in worlds[1:]}
-    if not rest:
-        return
-    with progress_bar() as bar:
-        task = bar.add_task("preparing the worlds' scans and odometry", total=len(rest))
-        tasks = {w: (plans[c.name].spec_d, plans[c.name].cfg_d, cache, threads) for w, c in rest.items()}
-        run_tasks(prepare_one, tasks, workers, lambda key, _: bar.advance(task))
+    if rest:
+        with progress_bar() as bar:
+            task = bar.add_task("preparing the worlds' scans and odometry", total=len(rest))
+            tasks = {w: (plans[c.name].spec_d, plans[c.name].cfg_d, cache, threads) for w, c in rest.items()}
+            run_tasks(prepare_one, tasks, workers, lambda key, _: bar.advance(task))
+    for cell in todo_cells:  # every cell's world is in this machine's cache now
+        mark_ready(plans[cell.name].spec_d, plans[cell.name].cfg_d, cache)

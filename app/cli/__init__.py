@@ -8,7 +8,7 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import fail
-from . import admin, bench_costs, bench_live, bench_runs, maps, runs, viewing  # noqa: F401  (they register their commands)
+from . import admin, bench_costs, bench_live, bench_runs, maps, runs, sweeps, viewing  # noqa: F401  (they register their commands)
 from .groups import app
 
 

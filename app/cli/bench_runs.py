@@ -11,6 +11,7 @@ from ..console import emit_json, err, progress_bar
 from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, config_from, with_source
 from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 from .groups import bench_app
+from .sweeps import RayOpt
 
 
 @bench_app.command("localize")
@@ -113,6 +114,7 @@ def bench_robustness(
         ),
     ] = None,
     record: RecordBenchOpt = False,
+    ray: RayOpt = None,
     as_json: JsonOpt = False,
     spec=None,
     config: ConfigOpt = None,
@@ -137,6 +139,7 @@ def bench_robustness(
         cache_root=cache,
         console=err,
         record=record,
+        ray=ray,
     )
     if as_json:
         emit_json(summary)

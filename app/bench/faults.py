@@ -1,6 +1,6 @@
 """How fast a run notices a killed child process and goes on (target: within 1 s).
 
-``python -m lidarloc.app.bench.faults [--scans N] [--repeats R] [--json]``: the built-in town's
+``lidarloc bench faults [--scans N] [--repeats R] [--json]``: the built-in town's
 first ``scans`` scans in the real-time clock (a sensor's pace: a step every scan interval); after
 a third of them the S2M or the KISS-ICP child is killed with SIGKILL, and the time from the kill
 to the start of its replacement is taken (the ``restarted`` event is recorded then). The run must then finish every scan.
@@ -9,8 +9,6 @@ Medians over ``repeats`` kills per block, with the 1-minute load average.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import signal
 import time
@@ -62,20 +60,3 @@ def run(scans: int = 45, repeats: int = 3, cache_root=None) -> dict:
     out["load_avg"] = [round(load_start, 1), round(load_avg(), 1)]
     out["machine"] = machine()
     return out
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m lidarloc.app.bench.faults", description=__doc__.split("\n")[0])
-    parser.add_argument("--scans", type=int, default=45)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--json", action="store_true")
-    args = parser.parse_args()
-    try:
-        result = run(args.scans, args.repeats)
-    except LidarlocError as exc:
-        raise SystemExit(f"lidarloc: error: {exc}") from None
-    print(json.dumps(result, indent=2) if args.json else result)
-
-
-if __name__ == "__main__":
-    main()

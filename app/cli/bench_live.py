@@ -80,3 +80,18 @@ def bench_clients(
     finally:
         loc.close()
     show_bench_result("clients", result, as_json)
+
+
+@bench_app.command("faults")
+def bench_faults(
+    scans: Annotated[int, typer.Option("--scans", min=10, help="Scans of the built-in town played per kill.")] = 45,
+    repeats: Annotated[int, typer.Option("--repeats", min=1, help="Kills per child process (S2M, KISS-ICP).")] = 3,
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """A child process killed mid-run (SIGKILL): how fast the run notices it and goes on with a new one.
+
+    The built-in town in the real-time clock; a third of the way in, the S2M or the KISS-ICP child is killed; the time from the kill to its replacement's start (the run's `restarted` event). Target: within 1 s."""
+    from ..bench.faults import run
+
+    show_bench_result("faults", run(scans, repeats, cache), as_json)

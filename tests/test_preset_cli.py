@@ -41,8 +41,13 @@ WITH_PRESET = {
             "filter",
             "peers",
             "integrity",
+            "soak",
+            "clients",
+            "city",
         )
     ],
+    ("sweep",),
+    ("tune",),
 }
 
 

@@ -22,7 +22,7 @@ def test_tune_beats_the_starting_settings_and_stops_failing_trials(tmp_path, ray
     summary = run_tune(
         settings,
         params,
-        trials=8,
+        trials=6,
         runs=2,
         workers=2,
         out_dir=tmp_path / "tune",

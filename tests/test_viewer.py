@@ -180,6 +180,7 @@ def test_reset_global_point_and_rectangle(viewer):
 
     class Client:
         camera = Camera()
+        client_id = -1  # no open tab has it: the viewer sends this one no notification
 
     class Rect:
         client = Client()

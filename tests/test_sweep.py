@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 from helpers import wait_for
-from lidarloc.app.sweep.executor import Run, execute
+from lidarloc.app.sweep.bookkeeping import Run
+from lidarloc.app.sweep.executor import execute
 from lidarloc.app.sweep.grid import parse_grid
 from lidarloc.core.errors import LidarlocError
 from ray_local import TESTS, ray_local  # noqa: F401  (a fixture)

@@ -34,8 +34,9 @@ from ...core.config import TOWN_SENSORS, Config, load_config
 from ...core.errors import LidarlocError
 from ...core.sequences.factory import SourceSpec
 from ..console import progress_bar, stop_signals_like_ctrl_c
+from ..sweep.bookkeeping import Run
 from ..sweep.cluster import check_address
-from ..sweep.executor import Run, execute
+from ..sweep.executor import execute
 from ..sweep.world import ensure_world, mark_ready
 from .common import DATA_ENV, REAL_DRIVE, REAL_DRIVE_DATE, data_dir, real_drive, require_town
 from .localize import (

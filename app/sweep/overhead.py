@@ -18,7 +18,8 @@ from pathlib import Path
 from rich.console import Console
 
 from ...core.errors import LidarlocError
-from .executor import Run, execute
+from .bookkeeping import Run
+from .executor import execute
 
 
 def burn(run_dir: str, seconds: float) -> dict:

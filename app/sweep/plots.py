@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .results import PLOTTED, _median
+#: the run figures plotted against each swept entry
+PLOTTED = ("rmse_after_localized_m", "success", "consistency_2sigma", "pf_ms_median")
+
+
+def median_or_none(values) -> float | None:
+    """The median of the values that are not None (None when there are none)."""
+    vals = [float(v) for v in values if v is not None]
+    return float(np.median(vals)) if vals else None
 
 
 def _num(v) -> float | None:
@@ -32,7 +39,7 @@ def write_plots(folder: Path, keys: list[str], rows: list[dict], combos: list[di
                 ys = [_num(r[metric]) for r in done if r[key] == v]
                 ys = [y for y in ys if y is not None]
                 ax.plot([i] * len(ys), ys, "o", color="tab:blue", alpha=0.4, ms=4)
-            med = [_median(_num(r[metric]) for r in done if r[key] == v) for v in values]
+            med = [median_or_none(_num(r[metric]) for r in done if r[key] == v) for v in values]
             ax.plot(range(len(values)), [np.nan if m is None else m for m in med], "-", color="tab:red")
             ax.set_xticks(range(len(values)), [str(v) for v in values])
             ax.set_xlabel(key)

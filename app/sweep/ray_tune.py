@@ -2,7 +2,7 @@
 (``ray/`` in the sweep's folder) and its resume (``Tuner.restore``) — not a scheduler of our own.
 
 Each trial is one point of the grid; its function calls the sweep's run function through
-:func:`.executor.call_run`, so a trial of a finished run returns at once and a run that raises is a
+:func:`.bookkeeping.call_run`, so a trial of a finished run returns at once and a run that raises is a
 trial that reports the error (Ray's own trial error is kept for what kills the worker: a lost node,
 an out-of-memory kill; Ray then retries the trial). A callback in this process keeps the progress
 bar and hands each summary to the sweep as it arrives.
@@ -17,8 +17,8 @@ from pathlib import Path
 
 from ray import tune  # pyright: ignore[reportMissingImports]  (an optional extra: see cluster.import_ray)
 
+from .bookkeeping import WORKER_DIED, Board, Run, Tally, call_run, is_done, read_error
 from .cluster import connect
-from .executor import WORKER_DIED, Board, Run, Tally, call_run, is_done, read_error
 
 # a trial that dies with its worker (a lost node, a kill) is tried again this many times
 RAY_RETRIES = 2

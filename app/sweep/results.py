@@ -15,13 +15,13 @@ import csv
 import json
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from ...core.runs.metrics import METRIC_KEYS
 from ..bench.localize_report import _within_5m_to_end
-from .executor import DONE_FILE, Run, Tally, read_error
+from .bookkeeping import DONE_FILE, Run, Tally, read_error
 from .grid import Grid, typed
+from .plots import median_or_none, write_plots
 
 RUN_FIELDS = (
     *METRIC_KEYS,
@@ -38,7 +38,6 @@ RUN_FIELDS = (
     "scans",
 )
 MEDIANS = ("rmse_after_localized_m", "consistency_2sigma", *METRIC_KEYS, "pf_ms_median", "s2m_ms_median")
-PLOTTED = ("rmse_after_localized_m", "success", "consistency_2sigma", "pf_ms_median")
 
 
 def run_row(keys: list[str], point: tuple, run_dir: str) -> dict:
@@ -60,11 +59,6 @@ def run_row(keys: list[str], point: tuple, run_dir: str) -> dict:
     return row
 
 
-def _median(values) -> float | None:
-    vals = [float(v) for v in values if v is not None]
-    return float(np.median(vals)) if vals else None
-
-
 def _share(values) -> float | None:
     vals = [bool(v) for v in values if v is not None]
     return sum(vals) / len(vals) if vals else None
@@ -83,7 +77,7 @@ def combination_rows(keys: list[str], rows: list[dict]) -> list[dict]:
         row.update(runs=len(rs), done=len(done), failed=sum(r["status"] == "failed" for r in rs))
         row["success"] = _share(r["success"] for r in done)
         row["false_fire"] = _share(r["false_fire"] for r in done)
-        row.update({f"{m}_median": _median(r[m] for r in done) for m in MEDIANS})
+        row.update({f"{m}_median": median_or_none(r[m] for r in done) for m in MEDIANS})
         row["met"] = bool(done) and len(done) == len(rs) and all(r["success"] and not r["false_fire"] for r in done)
         out.append(row)
     return out
@@ -144,8 +138,6 @@ def write_results(out_dir: Path, grid: Grid, planned: list[Run], settings, tally
     else:
         (out_dir / "best.yaml").unlink(missing_ok=True)
     if plots:
-        from .plots import write_plots
-
         write_plots(out_dir / "plots", keys, rows, combos)
     summary = {
         "grid": grid.to_dict(),

@@ -25,7 +25,8 @@ from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir
 from ...core.sequences.factory import SourceSpec
 from ..bench.localize import _spec_dict, code_fingerprint, numba_threads_for, prepare_cache, run_one
-from .executor import Run, Tally, execute
+from .bookkeeping import Run, Tally
+from .executor import execute
 from .grid import Grid, check_grid
 from .results import write_results
 from .world import ensure_world, mark_ready

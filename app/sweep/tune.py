@@ -26,7 +26,7 @@ from pathlib import Path
 from ...core.errors import LidarlocError
 from ..bench.localize import _spec_dict, numba_threads_for, run_one
 from ..bench.localize_report import _within_5m_to_end
-from .executor import Run, call_run
+from .bookkeeping import Run, call_run
 from .results import overrides_dict, settings_yaml, write_table
 from .world import ensure_world
 

@@ -75,3 +75,17 @@ def test_a_localized_step_far_from_the_truth_is_a_false_fire(opened):
 def test_never_confirmed_gives_no_time(opened):
     out = watch(opened, FakeRecording([0] * 6, [50] * 6), timeout=0.2)
     assert out["s2m_confirmed_s"] is None and out["false_fire"] is False
+
+
+def test_a_demo_that_never_gets_ready_and_never_prints_is_stopped(tmp_path, monkeypatch):
+    import sys
+
+    from lidarloc.app.bench import startup
+    from lidarloc.core.errors import LidarlocError
+
+    silent = tmp_path / "silent"
+    silent.write_text("#!/bin/sh\nexec sleep 120\n")
+    silent.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(silent))
+    with pytest.raises(LidarlocError, match="did not become ready"):
+        startup._one_start(["demo"], str(tmp_path / "cache"), timeout_s=1.0)

@@ -83,6 +83,11 @@ def _one_start(args: list[str], cache: str, timeout_s: float, watch: bool = Fals
     env = dict(os.environ, COLUMNS="200")
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env)
+    # a demo that neither prints "ready:" nor exits would block the read below forever: past the
+    # timeout it is killed, which ends its output and the read
+    watchdog = threading.Timer(timeout_s + (CONFIRM_TIMEOUT_S if watch else 0.0), proc.kill)
+    watchdog.daemon = True
+    watchdog.start()
     url_s = ready_s = None
     http_status = None
     run_dir = None
@@ -110,6 +115,7 @@ def _one_start(args: list[str], cache: str, timeout_s: float, watch: bool = Fals
             threading.Thread(target=lambda: [None for _ in proc.stdout], daemon=True).start()
             watched = first_steps(run_dir, t0, CONFIRM_TIMEOUT_S, proc)
     finally:
+        watchdog.cancel()
         proc.send_signal(signal.SIGINT)
         try:
             proc.wait(timeout=10)

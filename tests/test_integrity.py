@@ -234,3 +234,27 @@ def test_a_drive_that_ends_before_s2m_joins_is_not_counted_as_a_failed_recovery(
     assert s["recovery_scans_max"] is None  # the s2m-at-50 run that never recovered still counts
     del done[("town", "s2m-at-50", 0)]
     assert summarize(done, {}, 1.0)["recovery_scans_max"] == 4
+
+
+def test_the_rules_floor_waits_for_a_vehicle_standing_still():
+    from types import SimpleNamespace
+
+    from lidarloc.app.bench.integrity import floor_figures
+    from lidarloc.core.config import LocalizeConfig
+
+    def drive(stand_until: int, n: int = 80):
+        rows, x = [], 0.0
+        for k in range(n):
+            if k > stand_until:
+                x += 1.0  # 1 m per scan
+            error = 40.0 if k < 5 else 0.2  # the estimate is right from scan 5 on
+            rows.append(SimpleNamespace(scan=k, error_m=error, gt_x=x, gt_y=0.0, gt_yaw=0.0))
+        return rows
+
+    cfg = LocalizeConfig()  # a window of 10 scans, 10 m driven or 30° turned
+    moving = floor_figures(drive(-1), 0, cfg)
+    assert moving == {"estimate_recovery": 5, "rule_floor": 15}  # 10 m driven from scan 5 to 15
+    standing = floor_figures(drive(40), 0, cfg)
+    assert standing == {"estimate_recovery": 5, "rule_floor": 50}  # still until 40, then 10 m
+    wrong = [SimpleNamespace(scan=k, error_m=40.0, gt_x=float(k), gt_y=0.0, gt_yaw=0.0) for k in range(30)]
+    assert floor_figures(wrong, 0, cfg) == {"estimate_recovery": None, "rule_floor": None}

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from ...core.config import Config, load_config, update_from_dict
+from ...core.config import Config, LocalizeConfig, load_config, update_from_dict
 from ...core.errors import LidarlocError
 from ...core.rules.truth import FALSE_FIRE_M
 from ...core.runs.results import make_out_dir, summarize_run, write_json, write_run
@@ -113,7 +113,7 @@ def run_case(
                 loc.move_estimate(-MOVED_M * math.sin(yaw), MOVED_M * math.cos(yaw))
             loc.step()
         summary = summarize_run(loc, time.perf_counter() - t0)
-        figures = case_figures(loc.records, loc.events, at)
+        figures = case_figures(loc.records, loc.events, at, cfg.localize)
     out = Path(run_dir)
     write_run(loc, out, summary)
     figures.update(
@@ -123,12 +123,16 @@ def run_case(
     return figures
 
 
-def case_figures(records: list, events: list, at: int) -> dict:
+def case_figures(records: list, events: list, at: int, localize: LocalizeConfig | None = None) -> dict:
     """A run's integrity figures from its per-scan records and events, the disturbance at scan
-    ``at`` (see the module docstring); None where the run has no truth."""
+    ``at`` (see the module docstring); None where the run has no truth. ``localize``: the rule's
+    settings, for the rule's floor (the defaults when None)."""
+    localize = localize or LocalizeConfig()
     err = {r.scan: r.error_m for r in records}
     if not any(v is not None for v in err.values()):
         return {
+            "estimate_recovery": None,
+            "rule_floor": None,
             "false_fires": None,
             "wrong_green": None,
             "noticed": None,
@@ -151,6 +155,7 @@ def case_figures(records: list, events: list, at: int) -> dict:
     # a run resumed after a kidnap numbers its scans from where the vehicle landed
     first = after[0].scan if after else at
     return {
+        **floor_figures(after, first, localize),
         "false_fires": false_fires,
         "wrong_green": wrong_green,
         "noticed": None if honest is None else (honest - first if after else None),
@@ -159,6 +164,64 @@ def case_figures(records: list, events: list, at: int) -> dict:
         "relocalizations": len(moves),
         "spurious_relocalizations": spurious,
     }
+
+
+def floor_figures(after: list, first: int, localize: LocalizeConfig) -> dict:
+    """How soon the filter could have said "localized" at all after the disturbance at scan
+    ``first`` (``after``: the records from there on, with truth).
+
+    ``estimate_recovery``: scans until the estimate is within 5 m of the truth and stays so for
+    the rule's window (``min_consecutive`` scans), whether or not the rule fired. ``rule_floor``:
+    the fewest scans after the disturbance at which the paper's rule could fire once the estimate
+    had recovered: its window of ``min_consecutive`` scans must end there and the vehicle must have
+    driven ``min_moved`` or turned ``min_turned`` since the window began (by the truth). A vehicle
+    standing at a junction moves the floor: no recovery can be counted sooner than it."""
+    none = {"estimate_recovery": None, "rule_floor": None}
+    n_window = max(1, int(localize.min_consecutive))
+    ok = [r.error_m is not None and r.error_m <= FALSE_FIRE_M for r in after]
+    start = next((i for i in range(len(after) - n_window + 1) if all(ok[i : i + n_window])), None)
+    if start is None or any(r.gt_x is None or r.gt_yaw is None for r in after[start:]):
+        return none
+    path, yaw0 = 0.0, float(after[start].gt_yaw)
+    floor = None
+    for i in range(start + 1, len(after)):
+        a, b = after[i - 1], after[i]
+        path += math.hypot(b.gt_x - a.gt_x, b.gt_y - a.gt_y)
+        turned = abs((b.gt_yaw - yaw0 + math.pi) % (2 * math.pi) - math.pi)
+        if i - start + 1 >= n_window and (path >= localize.min_moved or turned >= localize.min_turned):
+            floor = after[i].scan - first
+            break
+    return {"estimate_recovery": after[start].scan - first, "rule_floor": floor}
+
+
+def figures_from_run_dir(run_dir: Path, figures: dict, localize: LocalizeConfig | None = None) -> dict:
+    """``figures`` (a kept ``integrity.json``) with the rule's floor added from the run's own
+    ``scans.csv`` where they lack it (runs kept from before the floor was counted)."""
+    if "rule_floor" in figures:
+        return figures
+    import csv
+    from types import SimpleNamespace
+
+    rows = []
+    with open(run_dir / "scans.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+
+            def num(key):
+                return None if row.get(key) in (None, "") else float(row[key])
+
+            rows.append(
+                SimpleNamespace(
+                    scan=int(row["scan"]),
+                    error_m=num("error_m"),
+                    gt_x=num("gt_x"),
+                    gt_y=num("gt_y"),
+                    gt_yaw=num("gt_yaw"),
+                )
+            )
+    at = int(figures["disturbance_scan"])
+    after = [r for r in rows if r.scan >= at]
+    first = after[0].scan if after else at
+    return {**figures, **floor_figures(after, first, localize or LocalizeConfig())}
 
 
 # ------------------------------------------------------------------------------ look-alike start
@@ -283,7 +346,9 @@ def run_integrity(
                 run_dir = out_dir / src.name / case / f"seed_{seed:03d}"
                 kept = run_dir / "integrity.json"
                 if kept.is_file():  # resumed: a finished run is kept
-                    done[(src.name, case, seed)] = json.loads(kept.read_text())
+                    done[(src.name, case, seed)] = figures_from_run_dir(
+                        run_dir, json.loads(kept.read_text()), cfg.localize
+                    )
                     continue
                 tasks[(src.name, case, seed)] = (_spec_dict(spec), cfg_d, case, seed, cache, str(run_dir), threads)
     with progress_bar(transient=False) as bar:
@@ -330,17 +395,22 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
             "recovery_scans_max": None
             if any(v is None for v in recoveries) or not recoveries
             else int(max(recoveries)),
+            "estimate_recovery_scans_max": _max_known([r.get("estimate_recovery") for r in joined]),
+            "rule_floor_scans_max": _max_known([r.get("rule_floor") for r in joined]),
+            "recovery_beyond_floor_max": _max_known([_beyond_floor(r) for r in joined]),
             "said_lost": sum(1 for r in runs if r["lost_after"] is not None),
             "relocalizations": _total([r["relocalizations"] for r in runs]),
             "spurious_relocalizations": _total([r["spurious_relocalizations"] for r in runs]),
             "per_world": {
                 key[0] + (f" seed {key[2]}" if key[2] else ""): {
-                    k: done[key][k]
+                    k: done[key].get(k)
                     for k in (
                         "false_fires",
                         "wrong_green",
                         "noticed",
                         "recovery",
+                        "estimate_recovery",
+                        "rule_floor",
                         "lost_after",
                         "relocalizations",
                         "spurious_relocalizations",
@@ -359,12 +429,35 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
         if not join_recoveries or any(v is None for v in join_recoveries)
         else int(max(join_recoveries)),
         "recovery_target_scans": RECOVERY_TARGET_SCANS,
+        # where the vehicle stood still, the paper's rule (10 m driven or 30° turned) could not
+        # fire within the target at all: these say how soon the estimate came back and how long
+        # the rule took beyond its own floor
+        "estimate_recovery_scans_max": _max_known(
+            [done[k].get("estimate_recovery") for k in done if k[1] in joins and not _s2m_never_joined(k[1], done[k])]
+        ),
+        "rule_floor_scans_max": _max_known(
+            [done[k].get("rule_floor") for k in done if k[1] in joins and not _s2m_never_joined(k[1], done[k])]
+        ),
+        "recovery_beyond_floor_max": _max_known(
+            [_beyond_floor(done[k]) for k in done if k[1] in joins and not _s2m_never_joined(k[1], done[k])]
+        ),
         "wrong_green_scans": _total([c["wrong_green_scans"] for c in per_case.values()]),
         "runs": len(done),
         "elapsed_s": round(elapsed_s, 1),
         "lookalikes": lookalikes,
         "cases": per_case,
     }
+
+
+def _max_known(values: list) -> int | None:
+    known = [v for v in values if v is not None]
+    return int(max(known)) if known else None
+
+
+def _beyond_floor(figures: dict) -> int | None:
+    """Scans the rule took to fire beyond its floor (None: no recovery or no floor)."""
+    recovery, floor = figures.get("recovery"), figures.get("rule_floor")
+    return None if recovery is None or floor is None else recovery - floor
 
 
 def _s2m_never_joined(case: str, figures: dict) -> bool:
@@ -382,17 +475,23 @@ def report_markdown(summary: dict) -> str:
         "",
         f"{summary['runs']} runs. False fires: {v(summary['false_fires'])}; spurious relocalizations: "
         f"{v(summary['spurious_relocalizations'])}; the slowest recovery after S2M joined: "
-        f"{v(summary['recovery_scans_max'])} scans (target ≤ {summary['recovery_target_scans']}).",
+        f"{v(summary['recovery_scans_max'])} scans (target ≤ {summary['recovery_target_scans']}); the estimate "
+        f"itself within 5 m after {v(summary.get('estimate_recovery_scans_max'))} scans at most; the rule's own "
+        f"floor (the scans it needs to see the vehicle drive 10 m or turn 30° once the estimate is right) up to "
+        f"{v(summary.get('rule_floor_scans_max'))} scans, and the rule fired at most "
+        f"{v(summary.get('recovery_beyond_floor_max'))} scans after its floor.",
         "",
         "| case | runs | false fires | scans green & wrong | noticed within (scans) | recovered "
-        "| recovery median / max (scans) | said lost | relocalized (spurious) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| recovery median / max (scans) | estimate within 5 m, max (scans) | rule's floor, max (scans) "
+        "| said lost | relocalized (spurious) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in summary["cases"].items():
         lines.append(
             f"| {name} | {c['runs']} | {v(c['false_fires'])} | {v(c['wrong_green_scans'])} | "
             f"{v(c['noticed_scans_max'])} | "
             f"{c['recovered']}/{c['runs'] - c['s2m_never_joined']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
+            f"{v(c.get('estimate_recovery_scans_max'))} | {v(c.get('rule_floor_scans_max'))} | "
             f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) |"
         )
     if summary["lookalikes"]:
@@ -411,6 +510,11 @@ def report_markdown(summary: dict) -> str:
         "first scan localized within 5 m of the truth; max '–': a run never recovered. A run whose drive "
         "ends before S2M would join has nothing to recover from: it is left out of recovered (x/y counts "
         "the others) and only shows that the filter alone never turns green.",
+        "- estimate within 5 m: scans from the disturbance until the estimate is within 5 m of the truth "
+        "and stays so for the rule's window, whether or not the rule fired.",
+        "- rule's floor: the fewest scans from the disturbance at which the paper's rule could fire once the "
+        "estimate was right (a window of 10 scans in which the vehicle drove 10 m or turned 30°, by the "
+        "truth); a vehicle standing at a junction raises it, and no recovery can be counted sooner.",
         "- scans green & wrong: scans called localized more than 5 m from the truth, from the disturbance on.",
         "- noticed within: the most scans, over runs, from the disturbance until the filter was no longer "
         "green and wrong (right again, or not claiming to be localized).",

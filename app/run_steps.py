@@ -37,7 +37,16 @@ MAP_POINTS = 400_000
 
 #: event kinds a log reader should not miss (warning) and the ones that are failures (error)
 WARN_EVENTS = frozenset(
-    {"loss", "false_positive", "confidence_low", "frame_mismatch", "relocalized", "kidnap", "s2m_rejected"}
+    {
+        "loss",
+        "false_positive",
+        "unconfirmed",
+        "confidence_low",
+        "frame_mismatch",
+        "relocalized",
+        "kidnap",
+        "s2m_rejected",
+    }
 )
 ERROR_EVENTS = frozenset({"false_fire", "error"})
 

@@ -26,7 +26,8 @@ from .geometry import pose_to_xyz_ypr
 class Event:
     scan: int  # scan index at which it happened
     kind: str  # "localized", "false_positive", "loss", "relocalized", "false_fire", "reset",
-    # "kidnap", "tracking", "confidence_low", "s2m_started", "s2m_accepted",
+    # "kidnap", "tracking", "confidence_low", "unconfirmed" (localized withdrawn: S2M no
+    # longer confirms the estimate), "s2m_started", "s2m_accepted",
     # "s2m_rejected", "s2m_cancelled", "s2m_ready", "error" (see EVENT_KINDS)
     detail: str = ""
 

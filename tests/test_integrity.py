@@ -138,6 +138,40 @@ def test_a_poor_fit_is_judged_against_the_recent_baseline_and_a_long_one_is_a_lo
     assert integ.poor_fit_scans == 0
 
 
+def test_a_share_of_the_scan_no_longer_fitting_is_a_poor_fit():
+    cfg = Config()
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    for k in range(FIT_MIN_SAMPLES + 5):  # a VLP-16's correct estimate: 83 % of the points fit
+        integ.note_fit(k, True, 0.83, 0.9)
+    assert integ.poor_fit(0.76, 0.9) is None  # a truck hides some of the scan
+    assert "inlier share 0.60 against 0.83" in integ.poor_fit(0.60, 1.5)  # moved 60 m: residual not yet 2×
+
+
+def test_a_doubt_the_whole_map_check_does_not_clear_withdraws_localized():
+    cfg = Config()
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    far = judge("local", True, False, _pose(20.0, 0.0), _pose(0.0, 0.0), 200, 100, cfg)
+    for i in range(DISAGREEMENTS_FOR_CHECK):
+        assert integ.note_verdict(20 + i, far) is None
+    assert "did not agree" in integ.check_due(23, localized=True)
+    integ.check_started(23)
+    assert integ.doubt is not None
+    look_alike = judge("check", True, False, _pose(80.0, 0.0), _pose(0.0, 0.0), 110, 100, cfg)
+    why = integ.note_verdict(25, look_alike)
+    assert why is not None and "did not agree" in why and "look-alike" in why
+    # a periodic check carries no doubt: its look-alike changes nothing
+    assert integ.check_due(80, localized=True) == f"every {cfg.s2m.global_check_interval} scans"
+    integ.check_started(80)
+    assert integ.doubt is None and integ.note_verdict(82, look_alike) is None
+    # a doubt the check clears: no withdrawal
+    integ.want_check(100, "inlier share 0.60 against 0.83 lately")
+    integ.check_started(100)
+    agrees = judge("check", False, True, _pose(0.0, 0.0), _pose(0.0, 0.0), 300, 300, cfg)
+    assert integ.note_verdict(102, agrees) is None and integ.doubt is None
+
+
 def test_far_poses_must_fit_clearly_better_in_3d():
     assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))  # 80 m off: 1.1 m vs 0.15 m
     assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))  # a VLP-16 look-alike
@@ -247,8 +281,9 @@ def test_the_rules_floor_waits_for_a_vehicle_standing_still():
         for k in range(n):
             if k > stand_until:
                 x += 1.0  # 1 m per scan
-            error = 40.0 if k < 5 else 0.2  # the estimate is right from scan 5 on
-            rows.append(SimpleNamespace(scan=k, error_m=error, gt_x=x, gt_y=0.0, gt_yaw=0.0))
+            error = 40.0 if k < 5 else 0.2  # the estimate is right from scan 5 on …
+            std = 30.0 if k < 5 else 1.0  # … where the filter converged
+            rows.append(SimpleNamespace(scan=k, error_m=error, std_x=std, std_y=std, gt_x=x, gt_y=0.0, gt_yaw=0.0))
         return rows
 
     cfg = LocalizeConfig()  # a window of 10 scans, 10 m driven or 30° turned
@@ -256,5 +291,17 @@ def test_the_rules_floor_waits_for_a_vehicle_standing_still():
     assert moving == {"estimate_recovery": 5, "rule_floor": 15}  # 10 m driven from scan 5 to 15
     standing = floor_figures(drive(40), 0, cfg)
     assert standing == {"estimate_recovery": 5, "rule_floor": 50}  # still until 40, then 10 m
-    wrong = [SimpleNamespace(scan=k, error_m=40.0, gt_x=float(k), gt_y=0.0, gt_yaw=0.0) for k in range(30)]
+
+    # right all along (S2M joining late on a filter that had found the truth alone): no floor
+    def row(k, error):
+        return SimpleNamespace(scan=k, error_m=error, std_x=1.0, std_y=1.0, gt_x=float(k), gt_y=0.0, gt_yaw=0.0)
+
+    right = [row(k, 0.2) for k in range(60)]
+    assert floor_figures(right, 30, cfg) == {"estimate_recovery": 0, "rule_floor": 0}
+    # … unless the rule's streak started again (a false positive at scan 28): 10 m driven from there
+    assert floor_figures(right, 30, cfg, resets={28}) == {"estimate_recovery": 0, "rule_floor": 8}
+    # a filter converged 8 m off whose estimate slid onto the truth at 35: its running streak counts
+    slid = [row(k, 8.0 if k < 35 else 0.5) for k in range(60)]
+    assert floor_figures(slid, 30, cfg) == {"estimate_recovery": 5, "rule_floor": 5}
+    wrong = [row(k, 40.0) for k in range(30)]
     assert floor_figures(wrong, 0, cfg) == {"estimate_recovery": None, "rule_floor": None}

@@ -140,6 +140,8 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
             "lost_after": None,
             "relocalizations": sum(e.kind == "relocalized" for e in events),
             "spurious_relocalizations": None,
+            "withdrawals": sum(e.kind == "unconfirmed" for e in events),
+            "spurious_withdrawals": None,
         }
     onsets = [e.scan for e in events if e.kind == "localized"]
     false_fires = sum(1 for k in onsets if err.get(k) is not None and err[k] > FALSE_FIRE_M)
@@ -152,10 +154,12 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
     lost = next((e.scan for e in events if e.kind == "loss" and e.scan >= at), None)
     moves = [e.scan for e in events if e.kind == "relocalized"]
     spurious = sum(1 for k in moves if err.get(k - 1) is not None and err[k - 1] <= FALSE_FIRE_M)
+    withdrawals = [e.scan for e in events if e.kind == "unconfirmed"]
+    spurious_withdrawals = sum(1 for k in withdrawals if err.get(k - 1) is not None and err[k - 1] <= FALSE_FIRE_M)
     # a run resumed after a kidnap numbers its scans from where the vehicle landed
     first = after[0].scan if after else at
     return {
-        **floor_figures(after, first, localize),
+        **floor_figures(records, first, localize, {e.scan for e in events if e.kind in STREAK_RESETS}),
         "false_fires": false_fires,
         "wrong_green": wrong_green,
         "noticed": None if honest is None else (honest - first if after else None),
@@ -163,65 +167,79 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
         "lost_after": None if lost is None else lost - first,
         "relocalizations": len(moves),
         "spurious_relocalizations": spurious,
+        "withdrawals": len(withdrawals),
+        "spurious_withdrawals": spurious_withdrawals,
     }
 
 
-def floor_figures(after: list, first: int, localize: LocalizeConfig) -> dict:
-    """How soon the filter could have said "localized" at all after the disturbance at scan
-    ``first`` (``after``: the records from there on, with truth).
+#: events after which the rule's streak starts again (see core/rules/paper.py, core/localizer)
+STREAK_RESETS = ("false_positive", "loss", "relocalized", "unconfirmed", "reset", "kidnap")
 
-    ``estimate_recovery``: scans until the estimate is within 5 m of the truth and stays so for
-    the rule's window (``min_consecutive`` scans), whether or not the rule fired. ``rule_floor``:
-    the fewest scans after the disturbance at which the paper's rule could fire once the estimate
-    had recovered: its window of ``min_consecutive`` scans must end there and the vehicle must have
-    driven ``min_moved`` or turned ``min_turned`` since the window began (by the truth). A vehicle
-    standing at a junction moves the floor: no recovery can be counted sooner than it."""
+
+def floor_figures(records: list, first: int, localize: LocalizeConfig, resets: set | frozenset = frozenset()) -> dict:
+    """How soon the filter could have said "localized" at all after the disturbance at scan
+    ``first`` (``records``: the run's per-scan records, with truth; ``resets``: the scans of events
+    that restart the rule's streak, :data:`STREAK_RESETS`).
+
+    ``estimate_recovery``: scans from the disturbance until the estimate is within 5 m of the
+    truth and stays so for the rule's window (``min_consecutive`` scans), whether or not the rule
+    fired. ``rule_floor``: the fewest scans after the disturbance at which the paper's rule could
+    fire with that estimate: a streak of at least ``min_consecutive`` scans with the filter's std
+    below ``std_threshold`` (it may have begun before the estimate was right, but not before the
+    last reset) over which the vehicle drove ``min_moved`` or turned ``min_turned`` (by the
+    truth), ending no sooner than the estimate was right. A vehicle standing at a junction
+    raises the floor: no recovery can be counted sooner."""
     none = {"estimate_recovery": None, "rule_floor": None}
     n_window = max(1, int(localize.min_consecutive))
-    ok = [r.error_m is not None and r.error_m <= FALSE_FIRE_M for r in after]
-    start = next((i for i in range(len(after) - n_window + 1) if all(ok[i : i + n_window])), None)
-    if start is None or any(r.gt_x is None or r.gt_yaw is None for r in after[start:]):
+    ok = [r.error_m is not None and r.error_m <= FALSE_FIRE_M for r in records]
+    at = next((i for i, r in enumerate(records) if r.scan >= first), len(records))
+    right = next((i for i in range(at, len(records) - n_window + 1) if all(ok[i : i + n_window])), None)
+    if right is None:
         return none
-    path, yaw0 = 0.0, float(after[start].gt_yaw)
+
+    def small(r) -> bool:
+        return max(r.std_x, r.std_y) < localize.std_threshold
+
+    start = right
+    while start > 0 and records[start].scan not in resets and small(records[start - 1]):
+        start -= 1  # the streak that was running when the estimate came right
+    if any(r.gt_x is None or r.gt_yaw is None for r in records[start:]):
+        return none
+    path, yaw0 = 0.0, float(records[start].gt_yaw)
     floor = None
-    for i in range(start + 1, len(after)):
-        a, b = after[i - 1], after[i]
+    for i in range(start + 1, len(records)):
+        a, b = records[i - 1], records[i]
         path += math.hypot(b.gt_x - a.gt_x, b.gt_y - a.gt_y)
         turned = abs((b.gt_yaw - yaw0 + math.pi) % (2 * math.pi) - math.pi)
-        if i - start + 1 >= n_window and (path >= localize.min_moved or turned >= localize.min_turned):
-            floor = after[i].scan - first
+        if i >= right and i - start + 1 >= n_window and (path >= localize.min_moved or turned >= localize.min_turned):
+            floor = max(0, records[i].scan - first)
             break
-    return {"estimate_recovery": after[start].scan - first, "rule_floor": floor}
+    return {"estimate_recovery": max(0, records[right].scan - first), "rule_floor": floor}
 
 
 def figures_from_run_dir(run_dir: Path, figures: dict, localize: LocalizeConfig | None = None) -> dict:
-    """``figures`` (a kept ``integrity.json``) with the rule's floor added from the run's own
-    ``scans.csv`` where they lack it (runs kept from before the floor was counted)."""
-    if "rule_floor" in figures:
-        return figures
+    """``figures`` (a kept ``integrity.json``) with the rule's floor counted again from the run's
+    own ``scans.csv`` and ``events.json`` (a kept run may predate how the floor is counted)."""
     import csv
     from types import SimpleNamespace
 
-    rows = []
+    def num(row: dict, key: str) -> float | None:
+        return None if row.get(key) in (None, "") else float(row[key])
+
     with open(run_dir / "scans.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-
-            def num(key):
-                return None if row.get(key) in (None, "") else float(row[key])
-
-            rows.append(
-                SimpleNamespace(
-                    scan=int(row["scan"]),
-                    error_m=num("error_m"),
-                    gt_x=num("gt_x"),
-                    gt_y=num("gt_y"),
-                    gt_yaw=num("gt_yaw"),
-                )
+        rows = [
+            SimpleNamespace(
+                scan=int(row["scan"]),
+                **{key: num(row, key) for key in ("error_m", "std_x", "std_y", "gt_x", "gt_y", "gt_yaw")},
             )
+            for row in csv.DictReader(fh)
+        ]
+    events = json.loads((run_dir / "events.json").read_text())
+    events = events if isinstance(events, list) else events.get("events", [])
+    resets = {int(e["scan"]) for e in events if e.get("kind") in STREAK_RESETS}
     at = int(figures["disturbance_scan"])
-    after = [r for r in rows if r.scan >= at]
-    first = after[0].scan if after else at
-    return {**figures, **floor_figures(after, first, localize or LocalizeConfig())}
+    first = next((r.scan for r in rows if r.scan >= at), at)
+    return {**figures, **floor_figures(rows, first, localize or LocalizeConfig(), resets)}
 
 
 # ------------------------------------------------------------------------------ look-alike start
@@ -401,6 +419,8 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
             "said_lost": sum(1 for r in runs if r["lost_after"] is not None),
             "relocalizations": _total([r["relocalizations"] for r in runs]),
             "spurious_relocalizations": _total([r["spurious_relocalizations"] for r in runs]),
+            "withdrawals": _total([r.get("withdrawals") for r in runs]),
+            "spurious_withdrawals": _total([r.get("spurious_withdrawals") for r in runs]),
             "per_world": {
                 key[0] + (f" seed {key[2]}" if key[2] else ""): {
                     k: done[key].get(k)
@@ -414,6 +434,8 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
                         "lost_after",
                         "relocalizations",
                         "spurious_relocalizations",
+                        "withdrawals",
+                        "spurious_withdrawals",
                     )
                 }
                 for key in sorted(done)
@@ -425,6 +447,8 @@ def summarize(done: dict, lookalikes: dict, elapsed_s: float) -> dict:
     return {
         "false_fires": _total([c["false_fires"] for c in per_case.values()]),
         "spurious_relocalizations": _total([c["spurious_relocalizations"] for c in per_case.values()]),
+        "withdrawals": _total([c["withdrawals"] for c in per_case.values()]),
+        "spurious_withdrawals": _total([c["spurious_withdrawals"] for c in per_case.values()]),
         "recovery_scans_max": None
         if not join_recoveries or any(v is None for v in join_recoveries)
         else int(max(join_recoveries)),
@@ -474,7 +498,8 @@ def report_markdown(summary: dict) -> str:
         "# Integrity: never green while wrong",
         "",
         f"{summary['runs']} runs. False fires: {v(summary['false_fires'])}; spurious relocalizations: "
-        f"{v(summary['spurious_relocalizations'])}; the slowest recovery after S2M joined: "
+        f'{v(summary["spurious_relocalizations"])}; "localized" withdrawn {v(summary["withdrawals"])} times '
+        f"({v(summary['spurious_withdrawals'])} of a correct estimate); the slowest recovery after S2M joined: "
         f"{v(summary['recovery_scans_max'])} scans (target ≤ {summary['recovery_target_scans']}); the estimate "
         f"itself within 5 m after {v(summary.get('estimate_recovery_scans_max'))} scans at most; the rule's own "
         f"floor (the scans it needs to see the vehicle drive 10 m or turn 30° once the estimate is right) up to "
@@ -483,8 +508,8 @@ def report_markdown(summary: dict) -> str:
         "",
         "| case | runs | false fires | scans green & wrong | noticed within (scans) | recovered "
         "| recovery median / max (scans) | estimate within 5 m, max (scans) | rule's floor, max (scans) "
-        "| said lost | relocalized (spurious) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| said lost | relocalized (spurious) | withdrawn (spurious) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in summary["cases"].items():
         lines.append(
@@ -492,7 +517,8 @@ def report_markdown(summary: dict) -> str:
             f"{v(c['noticed_scans_max'])} | "
             f"{c['recovered']}/{c['runs'] - c['s2m_never_joined']} | {v(c['recovery_scans_median'])} / {v(c['recovery_scans_max'])} | "
             f"{v(c.get('estimate_recovery_scans_max'))} | {v(c.get('rule_floor_scans_max'))} | "
-            f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) |"
+            f"{c['said_lost']} | {v(c['relocalizations'])} ({v(c['spurious_relocalizations'])}) | "
+            f"{v(c['withdrawals'])} ({v(c['spurious_withdrawals'])}) |"
         )
     if summary["lookalikes"]:
         lines += [
@@ -516,6 +542,8 @@ def report_markdown(summary: dict) -> str:
         "estimate was right (a window of 10 scans in which the vehicle drove 10 m or turned 30°, by the "
         "truth); a vehicle standing at a junction raises it, and no recovery can be counted sooner.",
         "- scans green & wrong: scans called localized more than 5 m from the truth, from the disturbance on.",
+        '- withdrawn: "localized" taken back because S2M no longer confirmed the estimate (spurious: the '
+        "estimate was within 5 m).",
         "- noticed within: the most scans, over runs, from the disturbance until the filter was no longer "
         "green and wrong (right again, or not claiming to be localized).",
         "",

@@ -19,6 +19,7 @@ MARKED_EVENTS = (
     "false_fire",
     "false_positive",
     "loss",
+    "unconfirmed",
     "relocalized",
     "reset",
     "kidnap",

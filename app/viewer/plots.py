@@ -24,7 +24,7 @@ from .style import CURSOR_COLOR, PLOT_MAX_POINTS
 # events marked on the curves: (label, colour, the event kinds)
 RUN_MARKS = (
     ("localized", "#5be35b", ("localized",)),
-    ("lost / false positive", "#ff5a5a", ("loss", "false_positive")),
+    ("lost / false positive / unconfirmed", "#ff5a5a", ("loss", "false_positive", "unconfirmed")),
     ("false fire (truth > 5 m)", "#ff2a2a", ("false_fire",)),
     ("reset / kidnap / relocalized", "#ffffff", ("reset", "kidnap", "relocalized")),
 )

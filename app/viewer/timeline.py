@@ -26,7 +26,7 @@ from .recorded import RecordedRun
 PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE = "◀ event", "◀", "▶", "event ▶", "Live"
 BUTTONS = (PREV_EVENT, BACK, FORWARD, NEXT_EVENT, LIVE)
 
-_RUN_EVENTS = ("localized", "false_fire", "false_positive", "loss", "relocalized", "kidnap", "reset")
+_RUN_EVENTS = ("localized", "false_fire", "false_positive", "loss", "unconfirmed", "relocalized", "kidnap", "reset")
 _S2M_EVENTS = ("s2m_accepted", "s2m_rejected")
 #: the event buttons' filter: its choices and the event kinds each stops at. S2M verdicts come
 #: every few scans, so the default leaves them out: "event ▶" then goes to what changed the run.
@@ -34,7 +34,7 @@ EVENT_FILTERS = {
     "all but S2M": _RUN_EVENTS,
     "localized": ("localized",),
     "false fire": ("false_fire",),
-    "loss": ("loss", "false_positive"),
+    "loss": ("loss", "false_positive", "unconfirmed"),
     "relocalized": ("relocalized",),
     "kidnap": ("kidnap",),
     "reset": ("reset",),

@@ -417,10 +417,16 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there)
         verdict = self.s2m.verdict
         relocalized = verdict is not None and verdict.kind == "relocalize"
-        if verdict is not None:
-            self.integrity.note_verdict(k, verdict)
+        withdrawn = None if verdict is None else self.integrity.note_verdict(k, verdict)
         if relocalized:
             self._relocalize(k, verdict)
+        elif withdrawn is not None and self.rules.localized:
+            # green means both blocks agree: not any more (see core/rules/integrity.py)
+            self._event(k, "unconfirmed", f"no longer localized: {withdrawn}")
+            self.rules.reset()
+            if self.pf.n != self.cfg.pf.n_particles:  # tracking mode ends: the full filter searches again
+                self.s2m.cancel(k, "no longer localized: particle indices change")
+                self.pf.set_n_particles(self.cfg.pf.n_particles)
         t1 = time.perf_counter()
         # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
         est = self.pf.estimate()

@@ -249,24 +249,28 @@ def integrity_summary(events: list, records: list) -> dict:
     """How far the filter's word can be trusted (:mod:`lidarloc.core.rules.integrity`):
     ``relocalizations`` (the whole-map check moved the filter), ``spurious_relocalizations``
     (of those, the ones whose estimate was within the metrics' 5 m of the truth on the scan
-    before: a correct estimate overturned) and ``localized_wrong_scans`` (scans the rule called
-    localized while the truth was more than 5 m away). The last two need truth (else None)."""
+    before: a correct estimate overturned), ``withdrawals`` ("localized" withdrawn because S2M no
+    longer confirmed the estimate) and ``spurious_withdrawals`` (of a correct estimate), and
+    ``localized_wrong_scans`` (scans the rule called localized while the truth was more than 5 m
+    away). The spurious counts and the wrong scans need truth (else None)."""
     from ..rules.truth import FALSE_FIRE_M
 
     by_scan = {r.scan: r for r in records}
     has_truth = any(r.error_m is not None for r in records)
+
+    def right_before(k: int) -> bool:
+        r = by_scan.get(k - 1)
+        return r is not None and r.error_m is not None and r.error_m <= FALSE_FIRE_M
+
     moves = [e.scan for e in events if e.kind == "relocalized"]
-    spurious = sum(
-        1
-        for k in moves
-        if by_scan.get(k - 1) is not None
-        and by_scan[k - 1].error_m is not None
-        and by_scan[k - 1].error_m <= FALSE_FIRE_M
-    )
+    spurious = sum(1 for k in moves if right_before(k))
+    withdrawals = [e.scan for e in events if e.kind == "unconfirmed"]
     wrong = sum(1 for r in records if r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)
     return {
         "relocalizations": len(moves),
         "spurious_relocalizations": spurious if has_truth else None,
+        "withdrawals": len(withdrawals),
+        "spurious_withdrawals": sum(1 for k in withdrawals if right_before(k)) if has_truth else None,
         "localized_wrong_scans": wrong if has_truth else None,
     }
 

@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from ...core.errors import LidarlocError
+from ..viewer.token_gate import TOKEN_ENV
 from .common import load_avg, machine
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
@@ -163,6 +164,7 @@ def run(
     cmd += ["--record-dir", str(record_dir), "--set", "localize.clock=realtime"]
     cmd += ["--cache", cache] if cache else []
     env = dict(os.environ, COLUMNS="200")
+    env.pop(TOKEN_ENV, None)  # the bench's own loopback viewer: its client brings no token
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env, start_new_session=True

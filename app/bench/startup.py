@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import LidarlocError
+from ..viewer.token_gate import TOKEN_ENV
 from .common import load_avg, machine
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
@@ -81,6 +82,7 @@ def _one_start(args: list[str], cache: str, timeout_s: float, watch: bool = Fals
     """One start of the demo; with ``watch`` it runs on until S2M confirmed (``first_steps``)."""
     cmd = [sys.executable, "-m", "lidarloc.app.cli", *args, "--autoplay", "--port", "0", "--cache", cache]
     env = dict(os.environ, COLUMNS="200")
+    env.pop(TOKEN_ENV, None)  # the bench's own loopback viewer: its client brings no token
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1, env=env)
     # a demo that neither prints "ready:" nor exits would block the read below forever: past the

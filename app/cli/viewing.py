@@ -23,6 +23,7 @@ from ..options import (
     with_source,
 )
 from ..viewer.budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB
+from ..viewer.token_gate import token_from
 from .groups import app
 
 
@@ -42,6 +43,7 @@ def _serve(
     loop=False,
     keep_runs=DEFAULT_KEEP_RUNS,
     max_record_gb=DEFAULT_MAX_RECORD_GB,
+    token=None,
 ):
     from ..viewer.serve import serve_until_interrupted
 
@@ -61,6 +63,7 @@ def _serve(
         loop=loop,
         keep_runs=None if keep_runs == 0 else keep_runs,
         max_record_gb=None if max_record_gb == 0 else max_record_gb,
+        token=token,
     )
 
 
@@ -69,7 +72,17 @@ HostOpt = Annotated[
     typer.Option(
         "--host",
         help="Interface to bind (default loopback only). Any other (0.0.0.0) lets anyone who can reach the port "
-        "drive the localizer and read the map.",
+        "drive the localizer and read the map, unless --token is given.",
+    ),
+]
+TokenOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--token",
+        help="Let only browsers that bring this token use the viewer (letters, digits, - and _; auto: a random "
+        "one). The printed URL carries it; open that URL once and the browser remembers it. Also read from "
+        "the LIDARLOC_VIEWER_TOKEN environment variable, which other users cannot see in ps.",
+        show_default=False,
     ),
 ]
 LoopOpt = Annotated[
@@ -158,8 +171,10 @@ def demo(
     loop: LoopOpt = False,
     keep_runs: KeepRunsOpt = DEFAULT_KEEP_RUNS,
     max_record_gb: MaxRecordGbOpt = DEFAULT_MAX_RECORD_GB,
+    token: TokenOpt = None,
 ):
     """The live demo on the built-in town: browse to the printed URL."""
+    token = token_from(token)  # a bad token fails before anything starts
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(
         source_spec(town_seed=cfg.town.seed, scans=scans),
@@ -176,6 +191,7 @@ def demo(
         loop=loop,
         keep_runs=keep_runs,
         max_record_gb=max_record_gb,
+        token=token,
     )
 
 
@@ -200,8 +216,10 @@ def view(
     loop: LoopOpt = False,
     keep_runs: KeepRunsOpt = DEFAULT_KEEP_RUNS,
     max_record_gb: MaxRecordGbOpt = DEFAULT_MAX_RECORD_GB,
+    token: TokenOpt = None,
 ):
     """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
+    token = token_from(token)  # a bad token fails before anything starts
     if run:
         from ..viewer.runs import serve_runs
 
@@ -211,7 +229,7 @@ def view(
                 "--foxglove OUT.mcap, and open that file in Foxglove"
             )
 
-        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err)
+        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err, token=token)
         return
     cfg = config_from(config, set_, seed=seed, preset=preset)
     _serve(
@@ -229,4 +247,5 @@ def view(
         loop=loop,
         keep_runs=keep_runs,
         max_record_gb=max_record_gb,
+        token=token,
     )

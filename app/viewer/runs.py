@@ -27,7 +27,8 @@ from ...core.errors import LidarlocError
 from ...core.runs import recording
 from .recorded import RecordedRun
 from .recorder import Recorder, default_record_root
-from .serve import ViewerHandle, release_at_exit
+from .serve import ViewerHandle, announce, release_at_exit
+from .token_gate import resolve_token, start_server
 from .travel import RunContext
 
 REPLAY_ONLY = "a recorded run: play or move the timeline, or Branch from here to continue it with a live filter"
@@ -93,11 +94,13 @@ def open_runs(
     cache_root: Path | None = None,
     open_browser: bool = False,
     record_to: Path | None = None,
+    token: str | None = None,
 ) -> ViewerHandle:
     """Start a viewer on one or two recorded runs and return at once (the runs are read first: a
-    bad folder or a moved source raises before any server starts)."""
+    bad folder or a moved source raises before any server starts). ``token``: as :func:`.serve.serve`'s."""
     from .app import Viewer
 
+    token = resolve_token(token)
     dirs = [Path(d) for d in run_dirs]
     if not dirs:
         raise LidarlocError("view --run needs a run folder")
@@ -114,7 +117,7 @@ def open_runs(
                 f"{dirs[1]} is a run of another sequence than {dirs[0]} "
                 f"({other.rec.meta.get('source_description')} vs {run.meta.get('source_description')})"
             )
-    server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
+    server = start_server(token, host=host, port=port, label="lidarloc", verbose=False)
     try:
         viewer = Viewer(server, autoplay=False)
         viewer.cache_root = cache_root
@@ -131,7 +134,7 @@ def open_runs(
     except BaseException:
         server.stop()
         raise
-    handle = ViewerHandle(viewer, server, host)
+    handle = ViewerHandle(viewer, server, host, token)
     if open_browser:
         import webbrowser
 
@@ -146,14 +149,16 @@ def serve_runs(
     cache_root: Path | None = None,
     open_browser: bool = False,
     console: Console | None = None,
+    token: str | None = None,
 ) -> None:
-    """``lidarloc view --run DIR [--run DIR2]``: serve recorded runs until Ctrl-C."""
+    """``lidarloc view --run DIR [--run DIR2]``: serve recorded runs until Ctrl-C (``token``: as
+    :func:`.serve.serve`'s)."""
     console = console or Console(stderr=True)
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        handle = open_runs(run_dirs, host, port, cache_root, open_browser)
-        console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
+        handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token)
+        announce(handle, host, console)
         run = handle.viewer.travel.timeline.run
         console.print(
             f"showing {run.n} recorded scans of {run.path}; branches are recorded under "

@@ -28,17 +28,19 @@ from .app import Viewer
 from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB
 from .recorder import Budget, Recorder, default_record_root
 from .style import SPEEDS
+from .token_gate import resolve_token, start_server, with_token
 
 
 class ViewerHandle:
     """What :func:`serve` returns: where the viewer is, and how to stop it."""
 
-    def __init__(self, viewer: Viewer, server: viser.ViserServer, host: str):
+    def __init__(self, viewer: Viewer, server: viser.ViserServer, host: str, token: str | None = None):
         self.viewer = viewer
         self.server = server
         self.port = int(server.get_port())
+        self.token = token  # the viewer's token (--token), None without one
         shown = "localhost" if host in ("0.0.0.0", "::") else host
-        self.url = f"http://{shown}:{self.port}"
+        self.url = with_token(f"http://{shown}:{self.port}", token)  # what a browser opens
         self.foxglove_url: str | None = None  # where the Foxglove stream is (serve's foxglove_port)
         self._stopped = threading.Event()
 
@@ -116,6 +118,7 @@ def serve(
     cache_root: Path | None = None,
     foxglove_port: int | None = None,
     budget: Budget | None = None,
+    token: str | None = None,
 ) -> ViewerHandle:
     """Start the viewer and return at once.
 
@@ -134,12 +137,15 @@ def serve(
     ``foxglove_port``: also stream every step played to Foxglove clients on this port (on
     ``host``; 0: any free port), see :mod:`.foxglove_live`; the handle's ``foxglove_url`` says where.
     ``budget``: keep the recordings' root under it (:class:`~.recorder.Budget`; None: no limit).
+    ``token``: answer only requests that carry it (``auto``: a random one), see :mod:`.token_gate`;
+    the handle's ``url`` has it.
     """
     if speed not in SPEEDS:
         raise LidarlocError(f"speed must be one of {', '.join(SPEEDS)}, got {speed!r}")
     if not (isinstance(localizer_or_factory, Localizer) or callable(localizer_or_factory)):
         raise LidarlocError("serve() needs a Localizer or a callable that returns one")
-    server = viser.ViserServer(host=host, port=port, label="lidarloc", verbose=False)
+    token = resolve_token(token)
+    server = start_server(token, host=host, port=port, label="lidarloc", verbose=False)
     viewer = None
     try:
         viewer = Viewer(server, autoplay=autoplay, speed=speed)
@@ -196,7 +202,7 @@ def serve(
                 viewer.startup_failed(f"{type(exc).__name__}: {exc}")
 
         threading.Thread(target=build, name="lidarloc-build", daemon=True).start()
-    handle = ViewerHandle(viewer, server, host)
+    handle = ViewerHandle(viewer, server, host, token)
     handle.foxglove_url = next((sink.url for sink in viewer.sinks if hasattr(sink, "url")), None)
     if open_browser:
         threading.Thread(target=webbrowser.open, args=(handle.url,), daemon=True).start()
@@ -219,6 +225,7 @@ def serve_until_interrupted(
     loop: bool = False,
     keep_runs: int | None = DEFAULT_KEEP_RUNS,
     max_record_gb: float | None = DEFAULT_MAX_RECORD_GB,
+    token: str | None = None,
 ) -> None:
     """``lidarloc demo`` / ``view``: playback starts when the first browser tab is open, or at
     once with ``autoplay``. Every run played is recorded under ``record_dir`` (default: a new
@@ -226,7 +233,9 @@ def serve_until_interrupted(
     nothing is (``--no-record``: the timeline and Branch from here are then off). The runs under
     ``record_dir`` (default: the cache's ``runs/``) are kept to ``keep_runs`` and ``max_record_gb``,
     oldest removed first. ``loop``: at the end of the drive start again (a line per loop says how
-    many scans were late). Ctrl-C, SIGTERM and SIGHUP all stop it the same way."""
+    many scans were late). ``token``: the viewer answers only browsers that bring it (the printed
+    URL has it). Ctrl-C, SIGTERM and SIGHUP all stop it the same way."""
+    token = resolve_token(token)  # a bad token fails before anything starts
     seq = open_source(spec, cfg, console)  # bad paths fail here, before any server starts
     bar = progress_bar(transient=True)
     task = bar.add_task("preparing", total=100)
@@ -272,22 +281,14 @@ def serve_until_interrupted(
             cache_root=cache_root,
             foxglove_port=foxglove_port,
             budget=budget,
+            token=token,
         )
     except BaseException:
         _restore_signals(previous)
         raise
     if loop:
         handle.viewer.on_finished = _looper(handle.viewer, console)
-    console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)")
-    if host not in LOOPBACK:
-        console.print(
-            f"warning: --host {host}: anyone who can reach port {handle.port} can drive the localizer and "
-            "read the map (there is no password; on a shared machine keep the default 127.0.0.1 and use an "
-            "SSH tunnel)",
-            markup=False,
-            highlight=False,
-            soft_wrap=True,
-        )
+    announce(handle, host, console)
     if handle.foxglove_url is not None:
         console.print(
             f"Foxglove: open connection → Foxglove WebSocket {handle.foxglove_url}", markup=False, highlight=False
@@ -340,6 +341,27 @@ def serve_until_interrupted(
 
 #: Hosts that only this machine reaches: no warning.
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def announce(handle: ViewerHandle, host: str, console: Console) -> None:
+    """The viewer's URL (with its token, if any) and, bound beyond the loopback, who can reach it."""
+    console.print(f"[bold green]lidarloc viewer:[/bold green] {handle.url}  (Ctrl-C to stop)", soft_wrap=True)
+    if host in LOOPBACK:
+        return
+    if handle.token is None:
+        line = (
+            f"warning: --host {host}: anyone who can reach port {handle.port} can drive the localizer and "
+            "read the map (there is no password; on a shared machine keep the default 127.0.0.1 and use an "
+            "SSH tunnel, or add --token auto)"
+        )
+    else:
+        line = (
+            f"--host {host}: only a browser given the URL above (its token) can open the viewer; the "
+            "connection is not encrypted, so anyone watching the network can read the token"
+        )
+    console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
 STOP_SIGNALS = tuple(s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None)
 
 

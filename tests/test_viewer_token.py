@@ -14,7 +14,11 @@ import pytest
 from helpers import make_localizer
 
 TOKEN = "s3cret-Token_0123456789"
-COOKIE = f"lidarloc_token={TOKEN}"
+
+
+def cookie(port: int, token: str = TOKEN) -> str:
+    """The token's cookie as the browser sends it to the viewer on ``port``."""
+    return f"lidarloc_token_{port}={token}"
 
 
 def get(port: int, path: str = "/", headers: dict | None = None):
@@ -75,14 +79,17 @@ def test_a_page_request_without_the_token_is_refused_with_a_short_note(gated):
 
 def test_the_printed_url_opens_the_page_and_sets_the_cookie(gated):
     assert gated.url == f"http://127.0.0.1:{gated.port}/?token={TOKEN}"
-    status, cookie, body = get(gated.port, f"/?token={TOKEN}")
+    status, set_cookie, body = get(gated.port, f"/?token={TOKEN}")
     assert status == 200 and b"<html" in body.lower()
-    assert cookie is not None
-    parts = [p.strip() for p in cookie.split(";")]
-    assert parts[0] == COOKIE and {"HttpOnly", "SameSite=Strict", "Path=/"} <= set(parts[1:])
+    assert set_cookie is not None
+    parts = [p.strip() for p in set_cookie.split(";")]
+    assert parts[0] == cookie(gated.port) and {"HttpOnly", "SameSite=Strict", "Path=/"} <= set(parts[1:])
     # the cookie alone then opens it (what the browser sends from then on)
-    status, _, body = get(gated.port, "/", {"Cookie": f"other=1; {COOKIE}"})
+    status, _, body = get(gated.port, "/", {"Cookie": f"other=1; {cookie(gated.port)}"})
     assert status == 200 and b"<html" in body.lower()
+    # another viewer's cookie on the same host (another port) does not
+    status, _, body = get(gated.port, "/", {"Cookie": cookie(gated.port + 1)})
+    assert status in (401, 403)
 
 
 @pytest.mark.parametrize(
@@ -91,11 +98,11 @@ def test_the_printed_url_opens_the_page_and_sets_the_cookie(gated):
         (f"/?token={TOKEN[:-1]}", None),
         (f"/?token={TOKEN}x", None),
         ("/?token=", None),
-        ("/", {"Cookie": f"lidarloc_token={TOKEN[:-1]}"}),
+        ("/", {"Cookie": f"lidarloc_token={TOKEN}"}),  # without the port
         ("/", {"Cookie": f"not_lidarloc_token={TOKEN}"}),
         ("/", {"Authorization": f"Bearer {TOKEN}"}),
     ],
-    ids=["short", "longer", "empty", "wrong-cookie", "other-cookie", "header"],
+    ids=["short", "longer", "empty", "portless-cookie", "other-cookie", "header"],
 )
 def test_a_wrong_token_is_refused(gated, path, headers):
     status, cookie, body = get(gated.port, path, headers)
@@ -106,12 +113,12 @@ def test_a_wrong_token_is_refused(gated, path, headers):
 def test_a_websocket_without_the_cookie_is_refused_and_gets_nothing(gated):
     clients_before = len(gated.server.get_clients())
     assert ws_connect(gated.port) in (401, 403)
-    assert ws_connect(gated.port, {"Cookie": f"lidarloc_token={TOKEN[:-1]}"}) in (401, 403)
+    assert ws_connect(gated.port, {"Cookie": cookie(gated.port, TOKEN[:-1])}) in (401, 403)
     assert len(gated.server.get_clients()) == clients_before  # never became a client
 
 
 def test_a_websocket_with_the_cookie_is_accepted_and_gets_the_scene(gated):
-    ws = ws_connect(gated.port, {"Cookie": COOKIE})
+    ws = ws_connect(gated.port, {"Cookie": cookie(gated.port)})
     assert not isinstance(ws, int), f"refused with {ws}"
     with ws:
         assert len(ws.recv(timeout=10)) > 0  # viser's first messages
@@ -278,7 +285,7 @@ def test_the_printed_url_opens_the_viewer_in_a_browser_and_the_bare_one_does_not
         assert page.query_selector("canvas") is None
         page.goto(gated.url, timeout=LOAD_TIMEOUT)  # the printed URL: the websocket brings the cookie
         page.wait_for_function(status_shown, timeout=LOAD_TIMEOUT)
-        assert any(c["name"] == "lidarloc_token" and c["httpOnly"] for c in context.cookies())
+        assert any(c["name"] == f"lidarloc_token_{gated.port}" and c["httpOnly"] for c in context.cookies())
         fresh = browser.new_context()  # another browser: no cookie
         try:
             other = fresh.new_page()

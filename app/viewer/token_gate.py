@@ -1,6 +1,7 @@
 """The viewer's optional token (``--token``): with one, the server answers only requests that
-carry it, as ``?token=…`` in the URL (the printed URL has it) or as the ``lidarloc_token`` cookie
-that such a request sets. The browser's websocket upgrade to the same origin sends that cookie
+carry it, as ``?token=…`` in the URL (the printed URL has it) or as the ``lidarloc_token_PORT``
+cookie that such a request sets (named by the port: browsers share a host's cookies across its
+ports, so two viewers on one machine keep a cookie each). The browser's websocket upgrade to the same origin sends that cookie
 (the page's own script adds no query parameter to it), so the page keeps working while a request
 without the token gets a short refusal and a websocket without it is never opened: no scene, no
 GUI message ever reaches it.
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
 
 #: Where the token may come from instead of the command line (so that it is not shown by ``ps``).
 TOKEN_ENV = "LIDARLOC_VIEWER_TOKEN"
-COOKIE = "lidarloc_token"
+COOKIE = "lidarloc_token"  # … followed by "_" and the server's port
 AUTO = "auto"
 _URLSAFE = re.compile(r"[A-Za-z0-9_-]+")
 REFUSAL = (
@@ -80,15 +81,20 @@ def with_token(url: str, token: str | None) -> str:
     return url if token is None else f"{url}/?token={token}"
 
 
-def _presented(request: Any) -> tuple[list[str], bool]:
-    """The tokens a request carries (its query's ``token`` values, its ``lidarloc_token`` cookies)
-    and whether one came in the query."""
+def cookie_name(port: int) -> str:
+    """The token's cookie for the viewer on ``port``."""
+    return f"{COOKIE}_{int(port)}"
+
+
+def _presented(request: Any, cookie: str) -> tuple[list[str], bool]:
+    """The tokens a request carries (its query's ``token`` values, its ``cookie`` cookies) and
+    whether one came in the query."""
     query = parse_qs(urlsplit(request.path).query).get("token", [])
     cookies = []
     for header in request.headers.get_all("Cookie"):
         for part in header.split(";"):
             name, eq, val = part.strip().partition("=")
-            if eq and name == COOKIE:
+            if eq and name == cookie:
                 cookies.append(val.strip().strip('"'))
     return query + cookies, bool(query)
 
@@ -105,10 +111,11 @@ def _gate(token: str, delegate: Callable[..., Any] | None) -> Callable[..., Any]
     (viser's own: its page for HTTP, None for a websocket upgrade), adding the cookie to the
     answer of a request that brought the token in its URL."""
     expected = token.encode("ascii")
-    cookie = f"{COOKIE}={token}; HttpOnly; SameSite=Strict; Path=/"
 
     def process_request(connection: Any, request: Any) -> Any:
-        candidates, in_query = _presented(request)
+        name = cookie_name(connection.local_address[1])
+        cookie = f"{name}={token}; HttpOnly; SameSite=Strict; Path=/"
+        candidates, in_query = _presented(request, name)
         if not _matches(expected, candidates):
             return connection.respond(http.HTTPStatus.FORBIDDEN, REFUSAL)
         response = None if delegate is None else delegate(connection, request)

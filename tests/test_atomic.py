@@ -149,3 +149,31 @@ def test_a_damaged_odometry_cache_is_rebuilt(tmp_path, caplog, damage, monkeypat
     assert not again.cached and again.value.shape == (3, 4, 4)
     assert "unreadable cache entry" in caplog.text
     assert rpe.load_or_build_odometry(Seq(), tmp_path).cached
+
+
+@pytest.mark.parametrize("damage", ["truncate", "foreign"])
+def test_a_damaged_map_cache_is_rebuilt_and_the_user_told(tmp_path, caplog, damage):
+    """The prior map's points and its road-removed copy, cut short or replaced by another array:
+    found, built again from the drive, reported, and the same map as before."""
+    from lidarloc.core.config import load_config
+    from lidarloc.core.maps.world import open_world
+    from lidarloc.core.sequences.town import TownSequence
+
+    seq = TownSequence(seed=3, extent_m=150.0, n_scans=40)
+    cfg = load_config()
+    first = open_world(seq.map_source, cfg, tmp_path, lookup=False, pyramid=False).prior_map
+    (directory,) = [d for d in tmp_path.iterdir() if (d / "map_points.npy").is_file()]
+    for name in ("map_points.npy", "map_points_bev.npy"):
+        path = directory / name
+        if damage == "truncate":
+            path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+        else:
+            np.save(path, np.zeros((5, 2)))  # a readable array of the wrong shape
+    with caplog.at_level(logging.WARNING, logger="lidarloc.cache"):
+        again = open_world(seq.map_source, cfg, tmp_path, lookup=False, pyramid=False).prior_map
+    assert "unreadable cache entry" in caplog.text and directory.name in caplog.text
+    assert np.array_equal(again.points, first.points) and np.array_equal(again.points_bev, first.points_bev)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lidarloc.cache"):  # rewritten whole: read as it is
+        third = open_world(seq.map_source, cfg, tmp_path, lookup=False, pyramid=False).prior_map
+    assert "unreadable" not in caplog.text and np.array_equal(third.points, first.points)

@@ -75,7 +75,7 @@ def test_tile_sizes_are_whole_build_tiles():
         tile_cells_for(0.0, 0.25)
 
 
-def test_damaged_or_foreign_tiles_are_detected_and_rebuilt(town):
+def test_damaged_or_foreign_tiles_are_detected_and_rebuilt(town, caplog):
     pts, mono, _, d = town
     files = sorted(d.glob("t*.bricks.npy"), key=lambda p: p.stat().st_size)
     big, other = files[-1], files[-2]
@@ -85,9 +85,12 @@ def test_damaged_or_foreign_tiles_are_detected_and_rebuilt(town):
     other.write_bytes(bytes(data))
     again = TiledLookup.load_or_build(pts, d, "town-3", RES, D_MAX, 50.0)
     q = np.random.default_rng(2).uniform(pts.min(axis=0) - 1, pts.max(axis=0) + 1, (200_000, 3))
-    assert np.array_equal(again.query(q), mono.query(q))
+    with caplog.at_level("WARNING", logger="lidarloc.cache"):
+        assert np.array_equal(again.query(q), mono.query(q))
     names = {f"t{tx}_{ty}" for tx, ty in again.rebuilt}
     assert names == {big.name.split(".")[0], other.name.split(".")[0]}
+    told = [r.getMessage() for r in caplog.records if "unreadable cache entry" in r.getMessage()]
+    assert len(told) == 2 and all(any(n in m for m in told) for n in names)  # the user is told, per tile
     # rewritten: a third opening rebuilds nothing
     third = TiledLookup.load_or_build(pts, d, "town-3", RES, D_MAX, 50.0)
     assert np.array_equal(third.query(q), mono.query(q)) and third.rebuilt == []

@@ -50,11 +50,28 @@ def test_tiled_search_finds_the_whole_map_optimum(town, tmp_path, tile_m):
         assert tiled.candidates[0, 3] == whole.score
 
 
-def test_a_damaged_pyramid_tile_is_a_one_line_error(town, tmp_path):
+def test_a_damaged_pyramid_tile_is_rebuilt_and_the_user_told(town, tmp_path, caplog):
     world, _ = town
-    bev = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, 32.0)
+    xy = world.prior_map.points_bev
+    bev = TiledBEV.load_or_build(xy, tmp_path, "town-3", 1.0, 32.0)
     victim = max(tmp_path.glob("t*.L0.npy"), key=lambda p: p.stat().st_size)
+    victim.write_bytes(victim.read_bytes()[:-8])  # truncated
+    other = sorted(tmp_path.glob("t*.L0.npy"), key=lambda p: p.stat().st_size)[-2]
+    data = bytearray(other.read_bytes())  # the right size, another table's content
+    data[-64:] = bytes(64)
+    other.write_bytes(bytes(data))
+    again = TiledBEV.load_or_build(xy, tmp_path, "town-3", 1.0, 32.0)
+    with caplog.at_level("WARNING", logger="lidarloc.cache"):
+        whole = again.window(0, 0, *bev.shape)
+    assert np.array_equal(whole.levels[0], world.pyramid.levels[0])  # as built from the map
+    assert {f"t{tx}_{ty}" for tx, ty in again.rebuilt} == {victim.name.split(".")[0], other.name.split(".")[0]}
+    told = [r.getMessage() for r in caplog.records if "unreadable cache entry" in r.getMessage()]
+    assert len(told) == 2 and any(victim.name.split(".")[0] in m for m in told)
+    # rewritten: the next opening reads it as it is
+    third = TiledBEV.load_or_build(xy, tmp_path, "town-3", 1.0, 32.0)
+    assert np.array_equal(third.window(0, 0, *bev.shape).levels[0], world.pyramid.levels[0]) and third.rebuilt == []
+    # without the map's points a damaged tile is a one-line error naming the file
     victim.write_bytes(victim.read_bytes()[:-8])
-    again = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, 32.0)
+    blind = TiledBEV(tmp_path, third.index, third.coarse)
     with pytest.raises(DataError, match="truncated tile file"):
-        again.window(0, 0, *bev.shape)
+        blind.window(0, 0, *bev.shape)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import atomic_write_file
+from ..cache import atomic_write_file, cache_rebuilt
 from ..errors import DataError, LidarlocError
 from .bev import DEFAULT_CELL_VALUE, BEVPyramid, _cell_values, max_pool2
 from .tile_cache import cache_bytes, open_tile, read_index, tile_name, write_index, write_tile
@@ -39,7 +39,9 @@ def tile_level_for(tile_m: float, resolution: float) -> int:
 class TiledBEV:
     """A BEV pyramid stored as L0 tiles in ``directory`` with its coarse levels in memory."""
 
-    def __init__(self, directory: Path, index: dict, coarse: list[np.ndarray], max_open: int = 64):
+    def __init__(
+        self, directory: Path, index: dict, coarse: list[np.ndarray], max_open: int = 64, xy: np.ndarray | None = None
+    ):
         self.directory = Path(directory)
         self.index = index
         self.resolution = float(index["resolution"])
@@ -52,6 +54,8 @@ class TiledBEV:
         self.coarse = coarse  # levels tile_level, tile_level + 1, … of the whole pyramid
         self.max_open = int(max_open)
         self.loaded = 0  # tiles mapped in since opening (what a search descended into)
+        self.xy = xy  # the road-removed map's points, kept to rebuild a tile whose file is damaged
+        self.rebuilt: list[tuple[int, int]] = []  # tiles rebuilt since opening (damaged files)
         self._open: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
 
     @property
@@ -72,11 +76,33 @@ class TiledBEV:
             try:
                 l0 = open_tile(self.directory, name, entry)["L0"]
             except DataError as exc:
-                raise DataError(f"{exc}; delete {self.directory} to rebuild the city's pyramid") from None
+                if self.xy is None:
+                    raise DataError(f"{exc}; delete {self.directory} to rebuild the city's pyramid") from None
+                cache_rebuilt(self.directory / name, str(exc))
+                l0 = self._rebuild(tx, ty)
         self.loaded += 1
         self._open[key] = l0
         while len(self._open) > self.max_open:
             self._open.popitem(last=False)
+        return l0
+
+    def _rebuild(self, tx: int, ty: int) -> np.ndarray:
+        """L0 of tile (tx, ty) counted again from the map's points, written back in place."""
+        assert self.xy is not None
+        t = self.tile_cells
+        lo_i = np.round(self.origin / self.resolution).astype(np.int64)
+        shape = self._tile_shape(tx, ty)
+        counts = np.zeros(shape, np.int64)
+        for a in range(0, len(self.xy), _CHUNK):  # the same cells as _build
+            idx = np.floor(np.asarray(self.xy[a : a + _CHUNK, :2], np.float64) / self.resolution).astype(np.int64)
+            idx -= lo_i + np.array([tx * t, ty * t])
+            inside = (idx[:, 0] >= 0) & (idx[:, 0] < shape[0]) & (idx[:, 1] >= 0) & (idx[:, 1] < shape[1])
+            np.add.at(counts, (idx[inside, 0], idx[inside, 1]), 1)
+        l0 = np.ascontiguousarray(_cell_values(counts, self.cell_value))
+        name = tile_name(tx, ty)
+        self.index["tiles"][name] = write_tile(self.directory, name, {"L0": l0})
+        write_index(self.directory, self.index)
+        self.rebuilt.append((tx, ty))
         return l0
 
     def _tile_shape(self, tx: int, ty: int) -> tuple[int, int]:
@@ -119,8 +145,8 @@ class TiledBEV:
         progress: Callable[[float], None] | None = None,
     ) -> TiledBEV:
         """The tiled pyramid of the road-removed map's ``xy`` cached in ``directory`` for ``key``,
-        or built there. A damaged tile is a one-line error (the directory is then rebuilt by
-        deleting it)."""
+        or built there. A tile whose file is found damaged when it is first read is counted again
+        from ``xy`` and rewritten (the user is told)."""
         cell_value = cell_value or DEFAULT_CELL_VALUE
         level = tile_level_for(tile_m, resolution)
         full_key = f"{key}|bev|d{resolution:.6g}|{cell_value}|t{level}|v{_FORMAT}"
@@ -130,14 +156,14 @@ class TiledBEV:
             try:
                 with np.load(directory / "coarse.npz") as data:
                     coarse = [np.asarray(data[f"L{i}"], np.float32) for i in range(index["n_coarse"])]
-                return cls(directory, index, coarse)
-            except (OSError, ValueError, KeyError):
-                pass  # rebuilt below
+                return cls(directory, index, coarse, xy=xy)
+            except (OSError, ValueError, KeyError) as exc:
+                cache_rebuilt(directory, f"{type(exc).__name__}: {exc}")  # rebuilt below
         t0 = time.perf_counter()
         index, coarse = _build(xy, directory, full_key, float(resolution), level, cell_value, progress)
         index["build_seconds"] = time.perf_counter() - t0
         write_index(directory, index)
-        return cls(directory, index, coarse)
+        return cls(directory, index, coarse, xy=xy)
 
 
 def _build(xy, directory: Path, key: str, resolution: float, level: int, cell_value: str, progress):

@@ -33,6 +33,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
+from ..cache import cache_rebuilt
 from ..errors import DataError, LidarlocError
 from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_CODE
 from .distance_transform import _TILE, _tile_bricks
@@ -147,6 +148,7 @@ class TiledLookup:
         except DataError as exc:
             if self.points is None:
                 raise DataError(f"{exc}; rebuild the map's tables (the map points are needed)") from None
+            cache_rebuilt(self.directory / tile_name(tx, ty), str(exc))
             arrays = self._rebuild(tx, ty)
         self._open[key] = arrays
         while len(self._open) > self.max_open:

@@ -279,3 +279,111 @@ def test_the_viewers_recorder_reports_a_write_that_failed_after_the_last_step(tm
     assert rec.on_scan(loc, snap)
     rec.close(None)
     assert len(messages) == 1 and "recording stopped" in messages[0] and "cannot write" in messages[0]
+
+
+# ------------------------------------------------------------------------------ segments
+def _segmented(folder):
+    """A run written in three segments by the writer's ``next_segment`` (steps 0–3, 4–6, 7–9), as
+    the viewer writes one under a size budget: an event per step, an S2M match landed at step 2
+    (the later segments start with it), the fake's checkpoints every other row of a segment.
+    Returns the live snapshots."""
+    import dataclasses
+
+    from lidarloc.core.snapshot import Event, S2MView
+
+    cfg = Config()
+    loc = _FakeLocalizer(cfg)
+    view = S2MView(
+        started_at=1,
+        landed_at=2,
+        accepted=True,
+        score=1.0,
+        start_score=0.5,
+        pose=np.eye(4),
+        scan_world=np.ones((5, 3), np.float32),
+        region=(0.0, 0.0, 1.0, 1.0),
+        ms=3.0,
+    )
+    w = RecordingWriter(folder, SourceSpec(), cfg, [0] * 12)
+    snaps = []
+    for k in range(10):
+        if k in (4, 7):
+            w = w.next_segment()
+            assert w.first_step == k and w.path == folder / "recording" / "segments" / f"{k:09d}"
+        loc.steps += 1
+        loc.events.append(Event(k, "localized" if k == 5 else "s2m_accepted", f"at {k}"))
+        snap = dataclasses.replace(_snap(k), s2m=view if k >= 2 else None, particles=np.full((3, 11), float(k)))
+        w.on_scan(loc, snap)
+        snaps.append(snap)
+    w.flush()
+    # the writer counts its bytes as it goes: the segment's size on disk
+    assert abs(w.bytes - recording.segments.folder_bytes(w.path)) < 2048
+    w.close({"scans": 10})
+    return snaps
+
+
+def test_a_run_in_segments_reads_as_one_recording(tmp_path):
+    snaps = _segmented(tmp_path)
+    rec = recording.open(tmp_path)
+    assert rec.n == 10 and rec.first_step == 0 and rec.dropped == 0
+    np.testing.assert_array_equal(rec.scan_index, np.arange(10))
+    for i in (0, 3, 4, 9):
+        np.testing.assert_array_equal(rec.particles(i), snaps[i].particles.astype(np.float32))
+    assert [(s, e.scan) for s, e in rec.events] == [(k, k) for k in range(10)]
+    # the match landed once; the later segments' first steps show it as the earlier one does
+    assert rec.s2m_steps == [2] and rec.s2m(1) is None
+    assert all(rec.s2m(i).landed_at == 2 for i in (2, 4, 7, 9))
+    # every segment starts with a checkpoint: any step can be resumed from one at or before it
+    assert rec.resume_steps("checkpoint") == [0, 2, 4, 6, 7, 9]
+    assert rec.meta["summary"] == {"scans": 10} and rec.meta["first_step"] == 0
+    assert recording.segments.window(tmp_path / "recording") == (0, 0, 10)
+
+
+def test_a_dropped_segment_leaves_the_window_and_a_cut_at_any_moment_opens(tmp_path):
+    import shutil
+
+    from lidarloc.core.runs.recording import segments
+
+    snaps = _segmented(tmp_path / "run")
+    top = tmp_path / "run" / "recording"
+    # the budget drops the first segment: its commit log first, then its files (its index stays)
+    segments.drop_commit(top)
+    rec = recording.open(tmp_path / "run")
+    assert rec.n == 6 and rec.first_step == 4 and rec.dropped == 4 and rec.events_dropped == 4
+    segments.remove_files(top, first=True)
+    assert sorted(p.name for p in top.iterdir()) == ["index.json", "segments", "steps.bin"]
+    rec = recording.open(tmp_path / "run")
+    assert rec.n == 6 and rec.first_step == 4
+    np.testing.assert_array_equal(rec.scan_index, np.arange(4, 10))
+    np.testing.assert_array_equal(rec.particles(0), snaps[4].particles.astype(np.float32))
+    assert [(s, e.scan) for s, e in rec.events] == [(k - 4, k) for k in range(4, 10)]
+    assert rec.s2m_steps == [] and rec.s2m(0).landed_at == 2  # the view the window starts with
+    assert rec.resume_steps("checkpoint")[0] == 0
+    assert segments.window(top) == (0, 4, 10)
+    with pytest.raises(RecordingError, match="already there"):  # no new recording over what is left
+        RecordingWriter(tmp_path / "run", SourceSpec(), Config(), [0] * 12)
+
+    def cut(name):
+        case = tmp_path / name
+        shutil.copytree(tmp_path / "run", case)
+        return case / "recording" / "segments"
+
+    # a drop cut short: the next segment's commit log emptied, its files still there
+    seg = cut("drop-cut")
+    segments.drop_commit(seg / "000000004")
+    rec = recording.open(seg.parents[1])
+    assert (rec.n, rec.first_step) == (3, 7)
+    # a new segment cut before its index was written, or before its first step
+    seg = cut("start-cut")
+    (seg / "000000010").mkdir()
+    assert (recording.open(seg.parents[1]).n, recording.open(seg.parents[1]).first_step) == (6, 4)
+    shutil.copy(seg / "000000007" / "index.json", seg / "000000010" / "index.json")
+    (seg / "000000010" / "steps.bin").write_bytes(b"")
+    assert recording.open(seg.parents[1]).n == 6
+    # a step cut short in the newest segment: the window ends at the step before it
+    seg = cut("step-cut")
+    with open(seg / "000000007" / "particles.bin", "r+b") as f:
+        f.truncate(f.seek(0, 2) - 10)
+    rec = recording.open(seg.parents[1])
+    assert (rec.n, rec.first_step) == (5, 4)
+    np.testing.assert_array_equal(rec.scan_index, np.arange(4, 9))

@@ -149,6 +149,8 @@ def test_truth_alarm_is_notified_once_per_onset(viewer, monkeypatch):
 class _Run:
     """The part of a RecordedRun the timeline reads, with the events it is given."""
 
+    first_kept = 0  # a whole recording (no rolling window)
+
     def __init__(self, n, events):
         self.n, self._events = n, events
 

@@ -42,12 +42,14 @@ def _row(r: RunFolder) -> dict:
         "mb": round(r.mb, 1),
         "written": _dt.datetime.fromtimestamp(r.written).isoformat(timespec="seconds"),
         "branch_of": None if r.branch_of is None else str(r.branch_of),
+        "window": None if r.window is None else list(r.window),
     }
 
 
 @runs_app.command("list")
 def list_runs(dir_: DirOpt = None, cache: CacheOpt = None, as_json: JsonOpt = False):
-    """The recorded runs, oldest first: folder, steps, size, when last written."""
+    """The recorded runs, oldest first: folder, steps, size, when last written; a run that kept a
+    rolling window of its newest steps under the recording budget says which steps it holds."""
     root = _root(dir_, cache)
     runs = find_runs(root)
     if as_json:
@@ -58,7 +60,8 @@ def list_runs(dir_: DirOpt = None, cache: CacheOpt = None, as_json: JsonOpt = Fa
         return
     for r in runs:
         row = _row(r)
-        typer.echo(f"{row['written']}  {r.steps:6d} steps  {r.mb:9.1f} MB  {r.path}")
+        window = "" if r.window is None else f"  (rolling window: steps {r.window[0]}–{r.window[1]})"
+        typer.echo(f"{row['written']}  {r.steps:6d} steps  {r.mb:9.1f} MB  {r.path}{window}")
     typer.echo(f"{len(runs)} runs, {total_bytes(runs) / 1e6:.1f} MB under {root}")
 
 

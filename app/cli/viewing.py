@@ -108,7 +108,8 @@ MaxRecordGbOpt = Annotated[
         "--max-record-gb",
         min=0.0,
         help="Keep the recorded runs under this many GB in all, oldest removed first; a run that alone reaches "
-        "it stops recording (the filter plays on); 0: no limit.",
+        "it keeps recording its newest steps as a rolling window (its oldest ones are dropped; the page says "
+        "so once); 0: no limit.",
     ),
 ]
 PortOpt = Annotated[int, typer.Option("--port", help="Port for the viewer.")]

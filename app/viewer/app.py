@@ -425,7 +425,8 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             t0 = time.perf_counter()
             step = self.travel.timeline.step
             with self.server.atomic():
-                self.scene.draw(snap, self.history, cut=None if shown is None or step is None else step + 1)
+                cut = None if shown is None or step is None else max(step + 1 - self.history.first_step, 0)
+                self.scene.draw(snap, self.history, cut=cut)
             self._drawn = snap
             if snap.scan_index >= 0:
                 self.first_scan_shown.set()

@@ -1,6 +1,9 @@
 """The viewer's recordings under a budget: at most ``keep_runs`` run folders and ``max_bytes`` on
 disk under the runs root (the cache's ``runs/`` or ``--record-dir``), the oldest removed first.
 
+A run that alone outgrows the size budget keeps a rolling window of its newest steps (see
+:mod:`.recorder`); here it counts as any run, with the steps it holds.
+
 A run folder is any folder holding a recording (``recording/index.json``): the viewer's ``run``,
 ``run-2``, …, ``branch-scan-K`` inside each start's ``<date-time>`` folder. "Oldest" is the last
 time a run was written to. Never removed: the runs the caller protects (the one recording now),
@@ -17,6 +20,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...core.runs.recording import segments
+
 #: A run written to this recently may be another viewer's live recording: never pruned.
 LIVE_S = 120.0
 #: Defaults of ``view`` / ``demo``: a day of looping the town's drive stays well under them.
@@ -27,13 +32,15 @@ INDEX = Path("recording") / "index.json"
 
 @dataclass(frozen=True)
 class RunFolder:
-    """One recorded run on disk: its folder, its size, when it was last written, its steps."""
+    """One recorded run on disk: its folder, its size, when it was last written, its steps (the
+    ones on disk) and, for a run kept as a rolling window, the window's steps."""
 
     path: Path
     bytes: int
     written: float  # newest file modification time (s since the epoch)
     steps: int
     branch_of: Path | None  # the run a branch reads its first steps from
+    window: tuple[int, int] | None = None  # (first, last) step kept, where the budget dropped the first
 
     @property
     def mb(self) -> float:
@@ -50,11 +57,13 @@ def _scan_folder(path: Path) -> RunFolder:
         if f.is_file():
             size += st.st_size
         newest = max(newest, st.st_mtime)
-    steps = 0
-    try:
-        steps = (path / "recording" / "steps.bin").stat().st_size // 8
-    except OSError:
-        pass
+    steps, window = 0, None
+    held = segments.window(path / INDEX.parent)
+    if held is not None:
+        start, first, end = held
+        steps = end - first
+        if first > start and end > first:
+            window = (first, end - 1)
     branch_of = None
     try:
         meta = json.loads((path / INDEX).read_text()).get("meta", {})
@@ -62,7 +71,7 @@ def _scan_folder(path: Path) -> RunFolder:
         branch_of = Path(origin) if origin else None
     except (OSError, ValueError, AttributeError):  # a damaged index: the run is still listed and prunable
         pass
-    return RunFolder(path, size, newest, int(steps), branch_of)
+    return RunFolder(path, size, newest, int(steps), branch_of, window)
 
 
 def find_runs(root: Path) -> list[RunFolder]:

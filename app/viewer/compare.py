@@ -35,13 +35,16 @@ ROWS = (
 
 def window_figures(cols: dict, start: int) -> dict:
     """The table's figures of one run from its per-step ``cols`` (``error``, ``localized``,
-    ``pf_ms`` of steps 0 … end − 1, :meth:`RecordedRun.columns`): A–E over all of them, the rest
-    over the steps from ``start`` on."""
+    ``pf_ms`` of steps ``first`` … end − 1, :meth:`RecordedRun.columns`): A–E over all of them
+    (none where a rolling window dropped the first steps: they count from step 0), the rest over
+    the steps from ``start`` on."""
+    first = int(cols.get("first", 0))
     err = np.asarray(cols["error"], float)
     loc = np.asarray(cols["localized"], bool)
     if not len(err):
         return {}
-    metrics = compute_metrics(ScanLog(loc, err))
+    metrics = compute_metrics(ScanLog(loc, err)) if first == 0 else {}
+    start = max(start - first, 0)
     e, lo = err[start:], loc[start:]
     known = lo & np.isfinite(e)
     onset = lo & ~np.r_[loc[start - 1] if start > 0 else False, lo[:-1]]
@@ -83,18 +86,24 @@ def summary_table(runs: list[tuple[str, dict]], colours=(), caption: str = "") -
 def compare_markdown(primary, reference, labels: tuple[str, str], colours=(None, None)) -> str:
     """The Compare folder's content for two :class:`~lidarloc.app.viewer.recorded.RecordedRun`:
     each run's steps from where ``primary`` branched (0 for two separate runs) to its newest."""
-    start = int(primary.first_step) if primary.parent is not None else 0
+    start = int(primary.start) if primary.parent is not None else 0
     a, b = primary.columns(), reference.columns()
+    ends = [c["first"] + len(c["error"]) for c in (a, b)]
     spans = ", ".join(
-        f"{label} {start}…{n - 1}" if n > start else f"{label} none yet"
-        for label, n in ((labels[0], len(a["error"])), (labels[1], len(b["error"])))
+        f"{label} {max(start, c['first'])}…{n - 1}" if n > max(start, c["first"]) else f"{label} none yet"
+        for label, c, n in ((labels[0], a, ends[0]), (labels[1], b, ends[1]))
     )
     where = f"after the branch point, steps from {start}" if start else "steps from 0"
-    caption = f"<small>{where} ({spans}); A–E count from step 0</small>"
+    window = (
+        "; a rolling window dropped the first steps of a run (the recording budget): A–E need them"
+        if a["first"] or b["first"]
+        else ""
+    )
+    caption = f"<small>{where} ({spans}); A–E count from step 0{window}</small>"
     return summary_table(
         [
-            (labels[0], window_figures(a, min(start, len(a["error"])))),
-            (labels[1], window_figures(b, min(start, len(b["error"])))),
+            (labels[0], window_figures(a, min(start, ends[0]))),
+            (labels[1], window_figures(b, min(start, ends[1]))),
         ],
         colours=colours,
         caption=caption,

@@ -65,6 +65,7 @@ class History:
 
     def _alloc(self, cap: int) -> None:
         self.n = 0
+        self.first_step = 0  # the run's step of row 0 (a recorded rolling window's first)
         self.scan = np.zeros(cap, np.int64)
         # std: max(std_x, std_y) weighted (m); spread: the cloud's unweighted one; error: |est − truth|
         # (m); along/cross/vertical (m), heading (rad): see error_components; s2m_ms: the last landed
@@ -129,6 +130,7 @@ class History:
             self.gt[:n] = series["gt"]
             self.marks = list(series["marks"])
             self.events = [e for _, e in (events or [])][-200:]
+            self.first_step = int(series.get("first", 0))
             self.version += 1
 
     def _fill(self, i: int, snap: Snapshot) -> None:

@@ -8,15 +8,22 @@ and the sizes of the field files: about a millisecond).
 A branch records only its own steps (``meta["first_step"]`` on, ``meta["branch_of"]`` naming the
 original run and the step it branched after); its steps before that are read from the original,
 so a branch scrubs, plots and draws from scan 0 like any run.
+
+A run kept as a rolling window under the recording budget (:mod:`.recorder`) holds its steps
+from :attr:`RecordedRun.first_kept` on: a step index stays the run's own step number, the steps
+before the window read as "dropped by the recording budget", and the series and events start at
+the window (``series()["first"]`` says where).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from pathlib import Path
 
 import numpy as np
 
+from ...core.geometry import transform_points
 from ...core.runs import recording
 from ...core.snapshot import Snapshot
 from .history import MARKED_EVENTS, SERIES, cloud_spread, error_components
@@ -38,10 +45,11 @@ class RecordedRun:
         self._rec = recording.open(path)
         self.path: Path = self._rec.run_dir
         self.meta = self._rec.meta
-        self.first_step = int(self.meta.get("first_step", 0) or 0)
+        #: the run's first own step (a branch: the step after its branch point)
+        self.start = int(self.meta.get("first_step", 0) or 0)
         self.parent: RecordedRun | None = None
         branch = self.meta.get("branch_of")
-        if branch and self.first_step > 0:
+        if branch and self.start > 0:
             self.parent = RecordedRun(branch["run"], seq)
         self._snap: tuple[int, Snapshot] | None = None
 
@@ -52,32 +60,62 @@ class RecordedRun:
         return self._rec
 
     @property
+    def first_step(self) -> int:
+        """The step the run's own recording holds first (``start``, unless a rolling window
+        dropped the steps before)."""
+        return self._rec.first_step
+
+    @property
+    def first_kept(self) -> int:
+        """The first step that can be read: 0, or the first of a rolling window (the steps before
+        were dropped by the recording budget, here or in a branch's original)."""
+        if self._rec.dropped > 0:
+            return self._rec.first_step
+        return self.parent.first_kept if self.parent is not None else self.start
+
+    @property
     def n(self) -> int:
-        """Steps known so far, the original's before a branch included."""
-        return self.first_step + self._rec.n
+        """Steps known so far, the original's before a branch included (a step index: the run's
+        step after the last one recorded)."""
+        return self._rec.first_step + self._rec.n
 
     def refresh(self) -> int:
         """Re-open a recording still being written; returns the steps now known."""
         with self._lock:
             if self.live:
                 self._rec = recording.open(self._rec.path)
+                self._snap = None
             return self.n
 
+    def dropped(self, i: int) -> recording.RecordingError:
+        return recording.RecordingError(
+            f"step {i} was dropped by the recording budget (this run keeps a rolling window of steps "
+            f"{self.first_kept}…{self.n - 1})"
+        )
+
     def _locate(self, i: int) -> tuple[recording.Recording, int]:
-        """(recording, its own step) of step i."""
+        """(recording, its own row) of step i."""
         if i < 0:
             raise recording.RecordingError(f"step {i} is outside the recording (0…{self.n - 1})")
-        if i < self.first_step and self.parent is not None:
-            return self.parent._locate(i)
         if i >= self.n:
             self.refresh()
-        return self._rec, i - self.first_step
+        if i < self.first_kept:
+            raise self.dropped(i)
+        if i < self.start and self.parent is not None:
+            return self.parent._locate(i)
+        return self._rec, i - self._rec.first_step
 
     def snapshot(self, i: int) -> Snapshot:
         """Step i with its scan recomputed from the source (a ray-cast or a file read and the
-        filter's voxel subsample: the slow part, tens of milliseconds)."""
-        rec, j = self._locate(i)
-        return rec.snapshot(j, self.seq)
+        filter's voxel subsample: the slow part, tens of milliseconds, done outside the lock)."""
+        with self._lock:  # what it reads of the recording (the window may move meanwhile)
+            rec, j = self._locate(i)
+            snap = rec.snapshot(j, None)
+            if self.seq is None:
+                return snap
+            rec.field("scan_voxel")  # read now: the scan below needs it
+        scan = transform_points(snap.mean_pose, rec.prepared_scan(j, self.seq)).astype(np.float32)
+        return dataclasses.replace(snap, scan_world=scan)
 
     def figures(self, i: int) -> Snapshot:
         """Step i without its scan: particles, estimate, S2M match, status figures (a few ms; the
@@ -91,8 +129,9 @@ class RecordedRun:
             return snap
 
     def scan_of(self, i: int) -> int:
-        rec, j = self._locate(i)
-        return int(rec.scan_index[j])
+        with self._lock:
+            rec, j = self._locate(i)
+            return int(rec.scan_index[j])
 
     # ------------------------------------------------------------------ events
     def events(self) -> list[tuple[int, object]]:
@@ -100,54 +139,61 @@ class RecordedRun:
         with self._lock:
             if self.live:  # a button asks: the events up to the newest recorded step
                 self.refresh()
-            own = [(self.first_step + s if s >= 0 else s, e) for s, e in self._rec.events]
+            rec = self._rec
+            if rec.dropped > 0:  # a rolling window: its events only (-1: after the last dropped step)
+                return [(rec.first_step + s, e) for s, e in rec.events]
+            own = [(self.start + s if s >= 0 else s, e) for s, e in rec.events]
             if self.parent is None:
                 return own
-            before = [(s, e) for s, e in self.parent.events() if s < self.first_step]
+            before = [(s, e) for s, e in self.parent.events() if s < self.start]
             return before + [(s, e) for s, e in own if s >= 0]
 
     def event_steps(self, kinds=TIMELINE_EVENTS) -> np.ndarray:
         """Sorted steps at which an event of ``kinds`` happened (an event before the first scan
-        counts at step 0)."""
-        steps = {max(s, 0) for s, e in self.events() if e.kind in kinds}
+        counts at step 0, one before a rolling window at its first step)."""
+        first = self.first_kept
+        steps = {max(s, first) for s, e in self.events() if e.kind in kinds}
         return np.array(sorted(steps), np.int64)
 
     # ------------------------------------------------------------------ series
     def columns(self, upto: int | None = None) -> dict:
-        """``error``, ``localized`` and ``pf_ms`` of steps 0 … ``upto`` − 1 (default: all; the
-        original's before a branch): what the Compare table reads, a few fields, no particles."""
+        """``error``, ``localized`` and ``pf_ms`` of steps ``first`` … ``upto`` − 1 (default: all;
+        ``first``: 0, or a rolling window's first step; the original's before a branch): what the
+        Compare table reads, a few fields, no particles."""
         with self._lock:
             n = self.n if upto is None else min(int(upto), self.n)
-            own_n = max(n - self.first_step, 0)
             rec = self._rec
+            own_n = max(n - rec.first_step, 0)
             own = {
                 "error": rec.field("error_m", rec.n)[:own_n].astype(float),
                 "localized": rec.field("localized", rec.n)[:own_n].astype(bool),
                 "pf_ms": rec.field("pf_ms", rec.n)[:own_n].astype(float),
             }
-            if self.parent is None or self.first_step == 0:
-                return own
-            head = self.parent.columns(min(n, self.first_step))
-            return {k: np.concatenate([head[k], own[k]]) for k in own}
+            if self.parent is None or rec.first_step == 0 or rec.dropped > 0:
+                return {**own, "first": rec.first_step}
+            head = self.parent.columns(min(n, self.start))
+            return {**{k: np.concatenate([head[k], own[k]]) for k in own}, "first": head["first"]}
 
     def series(self, upto: int | None = None) -> dict:
-        """The per-scan figures of steps 0 … ``upto`` − 1 (default: all), keyed as
-        :meth:`History.arrays` (plus ``est``/``gt`` positions and ``step``), for the plots and
-        trajectories."""
+        """The per-scan figures of steps ``first`` … ``upto`` − 1 (default: all; ``first``: 0, or a
+        rolling window's first step), keyed as :meth:`History.arrays` (plus ``est``/``gt``
+        positions, ``step`` and ``first``), for the plots and trajectories."""
         with self._lock:
             n = self.n if upto is None else min(int(upto), self.n)
-            if self.parent is not None and self.first_step > 0:
-                head = self.parent.series(min(n, self.first_step))
-                own = _series(
-                    self._rec, max(n - self.first_step, 0), self.first_step, s2m_before=_last_finite(head["s2m_ms"])
-                )
+            rec = self._rec
+            if self.parent is not None and self.start > 0 and rec.dropped == 0:
+                head = self.parent.series(min(n, self.start))
+                own = _series(rec, max(n - self.start, 0), self.start, s2m_before=_last_finite(head["s2m_ms"]))
                 out = {
                     k: (np.concatenate([head[k], own[k]]) if isinstance(own[k], np.ndarray) else head[k] + own[k])
                     for k in own
                 }
                 out["marks"] = head["marks"] + own["marks"]
+                out["first"] = head["first"]
                 return out
-            return _series(self._rec, n, 0)
+            out = _series(rec, max(n - rec.first_step, 0), rec.first_step)
+            out["first"] = rec.first_step
+            return out
 
 
 def _last_finite(a: np.ndarray) -> float:

@@ -11,6 +11,9 @@ source and scan count): their steps are compared one for one.
 
 "Branch from here" works on a recorded run too: it continues from the step on the timeline in a
 live localizer, recorded under a new ``runs/<date-time>`` folder of the cache root.
+
+A run the viewer kept as a rolling window under its recording budget opens at the window's first
+step; the timeline covers the window only.
 """
 
 from __future__ import annotations
@@ -160,9 +163,14 @@ def serve_runs(
         handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token)
         announce(handle, host, console)
         run = handle.viewer.travel.timeline.run
+        first = run.first_kept
+        held = (
+            f"steps {first}…{run.n - 1} (a rolling window: the recording budget dropped the steps before)"
+            if first > 0
+            else f"{run.n} recorded scans"
+        )
         console.print(
-            f"showing {run.n} recorded scans of {run.path}; branches are recorded under "
-            f"{handle.viewer.travel.recorder.root}",
+            f"showing {held} of {run.path}; branches are recorded under {handle.viewer.travel.recorder.root}",
             markup=False,
             highlight=False,
             soft_wrap=True,

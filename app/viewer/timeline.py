@@ -6,7 +6,10 @@ few scans) with a list of them, "Live" back to the newest step, and "Branch from
 It keeps which step is on screen (``step``; None: live, the newest snapshot) and tells the viewer
 when the user moves it (``on_move``); the viewer pauses playback and draws that step from the
 recording (and plays on when the user goes back to live, if the move had paused it). While live,
-the slider follows the newest recorded step. The viewer's own writes to the
+the slider follows the newest recorded step. A run kept as a rolling window under the recording
+budget holds only its newest steps: the slider's lower end follows the window's first step (a
+step on screen that the window left behind moves up with it), and ◀ or ◀ event there says the
+earlier steps were dropped by the recording budget. The viewer's own writes to the
 slider (following the live run) do not count as moves: they are made with a thread-local flag up,
 and viser runs an assigned value's callbacks on the assigning thread.
 """
@@ -78,6 +81,7 @@ class Timeline:
         self.step: int | None = None  # the step on screen; None: live
         self.live_available = True  # False for a finished recording (view --run): no live run
         self._n = 0
+        self._first = 0  # the first step the recording still holds (a rolling window's)
         self._listed_at = 0.0
         with gui.add_folder("Timeline", order=order):
             self.where = gui.add_markdown("No recording yet")
@@ -112,36 +116,51 @@ class Timeline:
         with self._lock:
             self.run = run
             self.live_available = live_available
-            self.step = None if live_available else (0 if run is not None and run.n else None)
+            self.step = None if live_available else (run.first_kept if run is not None and run.n else None)
             self._n = 0
+            self._first = 0
         self.sync()
 
     @property
     def n(self) -> int:
-        """Steps the slider covers."""
+        """Steps the slider covers: it ends at step ``n`` − 1."""
         return self._n
 
-    def sync(self, n: int | None = None) -> None:
-        """Bring the slider up to date with the recording's ``n`` steps (the display thread, after
-        each recorded step); while live it follows the newest one."""
+    @property
+    def first(self) -> int:
+        """The slider's first step: 0, or a rolling window's first step."""
+        return self._first
+
+    def sync(self, n: int | None = None, first: int | None = None) -> None:
+        """Bring the slider up to date with the recording's steps ``first`` … ``n`` − 1 (the
+        display thread, after each recorded step); while live it follows the newest one."""
         run = self.run
         if n is None:
             n = 0 if run is None else run.n
+        if first is None:
+            first = 0 if run is None else run.first_kept
+        first = min(first, max(n - 1, 0))
         with self._lock:
-            grew = n != self._n
-            self._n = n
+            grew = n != self._n or first != self._first
+            self._n, self._first = n, first
+            if self.step is not None and self.step < first:
+                self.step = first  # the window left the step on screen behind
             step = self.step
         with self._writing():
             s = self.slider
             if grew:
-                top = max(n - 1, 1)
+                top = max(n - 1, first + 1)
+                if s.max < top:  # widen first: the value must stay within min … max
+                    s.max = top
+                if s.min != first:
+                    s.min = first
                 if s.max != top:
                     s.max = top
-                if s.disabled != (n < 2):
-                    s.disabled = n < 2
+                if s.disabled != (n - first < 2):
+                    s.disabled = n - first < 2
             value = (n - 1 if step is None else step) if n else 0
-            if s.value != max(value, 0):
-                s.value = max(value, 0)
+            if s.value != max(value, first):
+                s.value = max(value, first)
             if self.branch.disabled != (n == 0):
                 self.branch.disabled = n == 0
         self._describe()
@@ -149,7 +168,7 @@ class Timeline:
             self.list_events()
 
     def _describe(self) -> None:
-        run, step, n = self.run, self.step, self._n
+        run, step, n, first = self.run, self.step, self._n, self._first
         if run is None or n == 0:
             text = "No recorded scan yet"
         else:
@@ -159,7 +178,11 @@ class Timeline:
             except LidarlocError:
                 scan = shown
             where = "live" if step is None else ("recorded" if self.live_available else "recorded run")
-            text = f"**Scan {scan}** · step {shown} of 0…{n - 1} · {where}"
+            text = f"**Scan {scan}** · step {shown} of {first}…{n - 1} · {where}"
+            if first > 0:
+                text += (
+                    f"<br><small>rolling window: the steps before {first} were dropped by the recording budget</small>"
+                )
         if self.where.content != text:
             self.where.content = text
 
@@ -196,10 +219,16 @@ class Timeline:
         self._require()
         return self._n - 1 if self.step is None else self.step
 
+    def dropped_error(self) -> LidarlocError:
+        return LidarlocError(
+            f"the steps before {self._first} were dropped by the recording budget (this run keeps a rolling "
+            f"window of steps {self._first}…{self._n - 1})"
+        )
+
     def go(self, step: int) -> int:
         """Show recorded ``step`` (clamped to the recording); returns it."""
         self._require()
-        step = int(np.clip(step, 0, self._n - 1))
+        step = int(np.clip(step, self._first, self._n - 1))
         with self._lock:
             self.step = step
         self.sync()
@@ -207,7 +236,10 @@ class Timeline:
         return step
 
     def back(self) -> int:
-        return self.go(self.current() - 1)
+        cur = self.current()
+        if cur <= self._first and self._first > 0:
+            raise self.dropped_error()
+        return self.go(cur - 1)
 
     def forward(self) -> int:
         """One step later; past the newest recorded step, live again (if there is a live run),
@@ -240,8 +272,13 @@ class Timeline:
     def prev_event(self) -> int:
         run, cur = self._require(), self.current()
         steps = run.event_steps(self.event_kinds)
-        earlier = steps[steps < cur]
+        earlier = steps[(steps < cur) & (steps >= self._first)]
         if not earlier.size:
+            if self._first > 0:
+                raise LidarlocError(
+                    f"no earlier {self._what()} in the recording's rolling window (the steps before "
+                    f"{self._first} were dropped by the recording budget)"
+                )
             raise LidarlocError(f"no earlier {self._what()} in the recording")
         return self.go(int(earlier[-1]))
 

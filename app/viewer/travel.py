@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import LidarlocError
+from ...core.runs.recording import RecordingError
 from ...core.snapshot import Snapshot
 from .compare import compare_markdown
 from .recorded import RecordedRun
@@ -168,6 +169,7 @@ class TimeTravel:
         The step's figures come at once; its scan, recomputed from the source, on the scan
         thread: until it is there the scene shows no scan (never another step's), then the
         display draws the step again with it."""
+        self._follow_recording()  # a rolling window may have left the step on screen behind
         step, run = self.timeline.step, self.timeline.run
         if step is None or run is None:
             return None
@@ -175,16 +177,34 @@ class TimeTravel:
         full = self._full
         if full is not None and full[0] == key:
             return full[1]
-        quick = run.figures(step)
+        try:
+            quick = run.figures(step)
+        except RecordingError:
+            if step >= run.first_kept:
+                raise
+            return None  # dropped just now: the next update shows the window's first step
         if run.seq is not None and self._pending != key:
             self._pending = key
             self._scans.submit(
                 "scan",
                 lambda: run.snapshot(step),
                 done=lambda snap: self._scan_ready(key, snap),
-                failed=lambda message: self.v.show_message(f"scan of step {step}: {message}", error=True),
+                failed=lambda message: self._scan_failed(run, step, message),
             )
         return quick
+
+    def _scan_failed(self, run: RecordedRun, step: int, message: str) -> None:
+        if step >= run.first_kept:  # else the window moved past it meanwhile: the timeline follows
+            self.v.show_message(f"scan of step {step}: {message}", error=True)
+
+    def _follow_recording(self) -> None:
+        """The slider follows the live run's recording: its newest step and the first one a
+        rolling window keeps."""
+        tl = self.timeline
+        if tl.run is not None and tl.live_available and self.recorder is not None and self.recorder.run is tl.run:
+            n, first = self.recorder.n, self.recorder.first_kept
+            if n != tl.n or first != tl.first:
+                tl.sync(n, first)
 
     def _scan_ready(self, key: tuple, snap: Snapshot) -> None:
         self._full = (key, snap)
@@ -203,10 +223,7 @@ class TimeTravel:
         """Display thread, after each update: the slider follows the recording, the second run
         shows the same step, the plots' cursor sits on the scan on screen."""
         tl = self.timeline
-        if tl.run is not None and tl.live_available and self.recorder is not None and self.recorder.run is tl.run:
-            n = self.recorder.n
-            if n != tl.n:
-                tl.sync(n)
+        self._follow_recording()
         self._draw_reference(tl.current() if tl.run is not None and tl.n else None, cut=tl.step is not None)
         if (
             self.reference is not None
@@ -232,7 +249,7 @@ class TimeTravel:
         if tl.run is None or tl.n == 0:
             raise LidarlocError("nothing recorded to play")
         if tl.current() >= tl.n - 1:
-            tl.go(0)  # played to the end: from the start again
+            tl.go(tl.first)  # played to the end: from the start again (a rolling window's first step)
         self._replay_stop = threading.Event()
         interval = 1.0 / (30.0 if speed == "max" else float(speed))
         self._replay = threading.Thread(
@@ -311,24 +328,29 @@ class TimeTravel:
     def _draw_reference(self, step: int | None, cut: bool = False) -> None:
         """The second run's particles and estimate at the step on screen (or its last one); with
         ``cut`` (scrubbing) its trajectory ends there too."""
-        ref = self.reference
-        if ref is None or step is None or ref.n == 0:
+        ref, series = self.reference, self._ref_series
+        if ref is None or series is None or step is None or ref.n == 0:
             return
         i = min(step, ref.n - 1)
         key = (self._ref_version, i, cut)
         if key == self._ref_drawn:
             return
         self._ref_drawn = key
-        est = self._ref_series["est"]
-        upto = i + 1 if cut else len(est)
+        est = series["est"]
+        upto = int(np.searchsorted(series["step"], i, side="right")) if cut else len(est)
         connected = np.ones(upto, bool)
         if upto:
             connected[0] = False
         self.ref_line.sync(self._ref_version, est[:upto], connected)
-        rec, j = ref._locate(i)
-        P = rec.particles(j)
+        if i < ref.first_kept:  # a rolling window dropped that step of the second run
+            for node in self._ref_nodes.values():
+                node.visible = False
+            return
+        with ref._lock:
+            rec, j = ref._locate(i)
+            P = rec.particles(j)
+            pose = rec.mean_pose[j]
         xyz = np.ascontiguousarray(P[:, :3], np.float32)
-        pose = rec.mean_pose[j]
         scene = self.v.server.scene
         layers = self.v.scene.layers
         dots = self._ref_nodes.get("particles")
@@ -409,7 +431,8 @@ class TimeTravel:
         try:
             original = run
             rec, j = run._locate(step)
-            branch_of = {"run": str(rec.run_dir), "step": int(j)}
+            # the step counted from the original recording's start: it stays put if its window moves
+            branch_of = {"run": str(rec.run_dir), "step": int(j) + rec.dropped}
             v.switch_to(
                 loc,
                 head=original.series(step + 1),
@@ -448,5 +471,6 @@ def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
         raise LidarlocError(
             "branching is not available in this installation (lidarloc.core.runs.branch missing)"
         ) from None
-    rec, j = run._locate(step)
-    return open_branch(rec, j, overrides=overrides or None, seq=run.seq, cache_root=cache_root)
+    with run._lock:
+        rec, j = run._locate(step)
+    return open_branch(rec, j + rec.dropped, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

@@ -27,6 +27,13 @@ for the scans the branch reaches, then a live KISS-ICP warmed up on the scans be
 (:data:`~lidarloc.core.odometry.feed.WARMUP_SCANS`); each match reuses a recorded outcome where the rule
 above allows, else runs for real.
 
+A run the viewer kept as a rolling window of its newest steps (``--max-record-gb``, see
+:mod:`lidarloc.core.runs.recording.segments`) branches from any step it kept: each of its
+segments starts with a checkpoint, so the nearest one at or before the step is always there. The
+branch's history (events, per-scan records, trajectory: what its plots and summary read) then
+starts at the window's first step; a step that was dropped is refused with one line saying which
+steps the window holds.
+
 Overrides: ``section.key=value`` strings as ``--set`` takes them, or a dict of live parameters
 (:data:`~lidarloc.core.config.LIVE_PARAMS` keys, SI units). Live ones go through
 ``Localizer.set_params`` (effective from the next scan, as in the viewer); the others are written
@@ -70,14 +77,22 @@ def checkpoint_for(rec: Recording, step: int) -> int:
 
 
 def check_step(rec: Recording, step) -> int:
+    """The row of ``rec`` that holds its step ``step`` (counted from the recording's start: the
+    row itself unless a rolling window dropped the first steps)."""
     if isinstance(step, bool) or not isinstance(step, (int, np.integer)):
         raise LidarlocError(f"branch step must be a whole number, got {step!r}")
     step = int(step)
     if rec.n == 0:
         raise RecordingError(f"{rec.path}: the recording has no complete step to branch from")
-    if not 0 <= step < rec.n:
-        raise LidarlocError(f"step {step} is outside the recording (0…{rec.n - 1})")
-    return step
+    first, last = rec.dropped, rec.dropped + rec.n - 1
+    if 0 <= step < first:
+        raise LidarlocError(
+            f"step {step} was dropped by the recording budget: this run keeps a rolling window of "
+            f"steps {first}…{last}; branch from one of those"
+        )
+    if not first <= step <= last:
+        raise LidarlocError(f"step {step} is outside the recording ({first}…{last})")
+    return step - first
 
 
 def open_branch(
@@ -89,15 +104,17 @@ def open_branch(
     progress: Callable[[str, float], None] | None = None,
 ):
     """A :class:`~lidarloc.core.localizer.Localizer` in the state of the recorded run ``rec`` (a
-    Recording or a run folder) right after its step ``step`` (0-based row of the recording), with
-    ``overrides`` applied (module docstring). ``seq``: the run's sequence if already open (else
+    Recording or a run folder) right after its step ``step`` (0-based, counted from the
+    recording's first step: its row, unless a rolling window dropped the first steps, see
+    :mod:`~lidarloc.core.runs.recording.segments`), with ``overrides`` applied (module docstring). ``seq``: the run's sequence if already open (else
     rebuilt from the source the recording names; a moved source is a one-line error naming the path
     it expected). ``progress(stage, fraction)`` as for the Localizer, plus stage "replay"."""
     from ..localizer import Localizer
     from . import resume
 
     rec = open_recording(rec)
-    step = check_step(rec, step)
+    asked = int(step) if isinstance(step, (int, np.integer)) and not isinstance(step, bool) else step
+    step = check_step(rec, step)  # the row from here on
     c = checkpoint_for(rec, step)
     data = rec.resume_file(c, "checkpoint")
     where = rec.path / "resume" / f"{c:06d}-checkpoint.npz"
@@ -147,7 +164,7 @@ def open_branch(
         _apply(loc, live, fixed)
         if loc.cfg.s2m.enabled:
             loc.s2m.start_matcher()  # sets up in the background while the branch is looked at
-        loc.branch_of = {"run": str(rec.run_dir), "step": step}
+        loc.branch_of = {"run": str(rec.run_dir), "step": asked}
     except BaseException:
         loc.close()
         raise
@@ -303,8 +320,9 @@ def _restore_history(loc, rec: Recording, c: int, state: dict, seq) -> None:
     """The events, per-scan records, trajectory and snapshot of the recorded steps up to ``c``."""
     from dataclasses import replace
 
-    events, records, trajectory = _parent_history(rec)
-    loc.events = events + [ev for _, ev in rec.events[: int(state["n_events"])]]
+    # a rolling window holds the run's newest steps only: its history starts at the window
+    events, records, trajectory = _parent_history(rec) if rec.dropped == 0 else ([], [], [])
+    loc.events = events + [ev for _, ev in rec.events[: max(int(state["n_events"]) - rec.events_dropped, 0)]]
     loc.records = records + _records(rec, c)
     loc.est_trajectory = trajectory + [rec.mean_pose[i].copy() for i in range(c + 1)]
     snap = rec.snapshot(c, seq)
@@ -332,10 +350,12 @@ def _parent_history(rec: Recording, depth: int = 0) -> tuple[list, list, list]:
         return [], [], []
     try:
         prec = recording.open(parent["run"])
-        step = min(int(parent["step"]), prec.n - 1)
+        step = min(int(parent["step"]) - prec.dropped, prec.n - 1)  # its row
     except (LidarlocError, KeyError, TypeError, ValueError, OSError):
         return [], [], []
-    events, records, trajectory = _parent_history(prec, depth + 1)
+    if step < 0:  # the branch point was dropped from the original's rolling window since
+        return [], [], []
+    events, records, trajectory = _parent_history(prec, depth + 1) if prec.dropped == 0 else ([], [], [])
     events += [ev for s, ev in prec.events if s <= step]
     records += _records(prec, step)
     trajectory += [prec.mean_pose[i].copy() for i in range(step + 1)]

@@ -5,7 +5,7 @@
     rec = recording.open("out/run0")
 """
 
-from . import format
+from . import format, segments
 from .format import FOLDER, INDEX, STEPS, VERSION, RecordingError, ResumePayload
 from .reader import Recording, open
 from .writer import RecordingWriter
@@ -16,6 +16,7 @@ __all__ = [
     "STEPS",
     "VERSION",
     "format",
+    "segments",
     "Recording",
     "RecordingError",
     "RecordingWriter",

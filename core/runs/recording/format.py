@@ -32,6 +32,12 @@ up to its last complete step after a crash:
   A step exists only once its row is there, so a recording cut short (Ctrl-C, a killed process)
   opens up to its last complete step.
 
+- ``segments/FIRST/``: a run kept under a size budget (the viewer's ``--max-record-gb``) goes on
+  in segments, each a recording of this format starting at the run's step ``FIRST``, and drops
+  its oldest segments whole: it keeps a rolling window of its newest steps (:mod:`.segments`
+  describes the layout; :class:`~.reader.Recording` reads the kept steps as one recording whose
+  ``first_step`` says where they start).
+
 The scan itself is not stored: it is a reference to the source the recording names, and
 :meth:`Recording.snapshot` recomputes the prepared scan (the same voxel and random seed as the
 filter used). With ``localize.deskew`` the filter saw the scan de-skewed with the odometry of

@@ -1,5 +1,6 @@
 """Reading a recording back (see :mod:`.format`), up to its last complete step; in a notebook
-too: ``recording.open("out/run0")``."""
+too: ``recording.open("out/run0")``. A run recorded in segments under a size budget
+(:mod:`.segments`) reads as one recording of the steps it kept."""
 
 from __future__ import annotations
 
@@ -12,20 +13,8 @@ import numpy as np
 
 from ...rules.truth import truth_alarm
 from ...snapshot import Event, S2MView, Snapshot
-from .format import (
-    FIELDS,
-    FOLDER,
-    FORMAT,
-    INDEX,
-    LOG_WEIGHTS,
-    PARTICLES,
-    S2M_STATUSES,
-    STEPS,
-    VERSION,
-    RecordingError,
-    load_s2m,
-    named_field,
-)
+from .format import FIELDS, FOLDER, INDEX, LOG_WEIGHTS, PARTICLES, S2M_STATUSES, RecordingError
+from .segments import CARRIED, Part, continuation_folders, kept, read_index
 
 
 def open(path) -> Recording:  # noqa: A001 - the documented name: recording.open(dir)
@@ -35,7 +24,12 @@ def open(path) -> Recording:  # noqa: A001 - the documented name: recording.open
 
 class Recording:
     """A recorded run, read-only (see the module docstring). Per-step fields are attributes
-    (``rec.mean_pose``, ``rec.error_m``, …) of length :attr:`n`."""
+    (``rec.mean_pose``, ``rec.error_m``, …) of length :attr:`n`.
+
+    A run recorded under a size budget may hold only a rolling window of its newest steps
+    (:mod:`.segments`): row 0 is then the run's step :attr:`first_step`, and :attr:`dropped`
+    steps before it are gone. Without a window the rows are the recording's steps from its
+    start (``meta["first_step"]``: 0, or the step after a branch point)."""
 
     def __init__(self, path):
         path = Path(path).expanduser()
@@ -43,55 +37,43 @@ class Recording:
             raise RecordingError(f"{path}: no such run folder")
         if (path / FOLDER / INDEX).is_file():
             path = path / FOLDER
-        index_file = path / INDEX
-        if not index_file.is_file():
+        if not (path / INDEX).is_file():
             raise RecordingError(
                 f"{path}: not a recorded run (no {FOLDER}/{INDEX}; record with lidarloc run, without --no-record)"
             )
-        try:
-            index = json.loads(index_file.read_text())
-        except (OSError, ValueError) as exc:
-            raise RecordingError(f"{index_file}: unreadable recording index ({exc})") from None
-        if not isinstance(index, dict) or index.get("format") != FORMAT:
-            raise RecordingError(f"{index_file}: not a lidarloc recording")
-        if index.get("version") != VERSION:
-            raise RecordingError(
-                f"{index_file}: recording format version {index.get('version')}, this lidarloc reads version {VERSION}"
-            )
         self.path = path
         self.run_dir = path.parent
-        self.meta: dict = index.get("meta", {})
-        self._fields: dict = index.get("fields", {})
-        steps_file = path / STEPS
-        n = steps_file.stat().st_size // 8 if steps_file.is_file() else 0
+        top = Part(path, read_index(path))
+        parts = [top]
+        for folder in continuation_folders(path):
+            if (folder / INDEX).is_file():  # else its start was cut short: no step in it
+                parts.append(Part(folder, read_index(folder)))
+        keep = kept([(p.first_step, p.n) for p in parts])
+        self._parts = [parts[i] for i in keep]
+        self._offsets = [0]
+        for part in self._parts:
+            self._offsets.append(self._offsets[-1] + part.n)
+        self.n = int(self._offsets[-1])
+        #: the run's step of row 0 (where nothing was dropped: the recording's first step)
+        self.first_step = self._parts[0].first_step if self._parts else parts[-1].first_step
+        #: steps dropped from the front by the recording budget (0: the recording is whole)
+        self.dropped = self.first_step - top.first_step
+        #: events of the dropped steps (the events' count a checkpoint names includes them)
+        self.events_dropped = self._parts[0].events_before if self._parts else 0
+        self.meta: dict = dict(top.meta)
+        for key in ("closed", "summary"):  # the newest segment is the one closed last
+            if key in parts[-1].meta:
+                self.meta[key] = parts[-1].meta[key]
+        self._fields: dict = {}
+        for part in self._parts or [top]:
+            for name, info in part.fields.items():
+                self._fields.setdefault(name, info)
         self._cache: dict[str, np.ndarray] = {}
-        try:
-            for name, info in self._fields.items():  # a step counts only if every field has its row
-                if name in (PARTICLES[0], LOG_WEIGHTS[0]):
-                    continue
-                rows = self._rows_on_disk(name, info)
-                n = min(n, info["first_step"] + rows) if rows >= 0 else n
-            if n > 0:  # the particles of the last steps may be cut short too
-                n_rows = min(
-                    self._rows_on_disk(*named_field(self._fields, PARTICLES[0])),
-                    self._rows_on_disk(*named_field(self._fields, LOG_WEIGHTS[0])),
-                )
-                while n > 0 and self.field("particle_rows", n)[n - 1].sum() > n_rows:
-                    n -= 1
-        except (KeyError, TypeError, ValueError) as exc:
-            raise RecordingError(f"{index_file}: corrupt recording index ({exc})") from None
-        self.n = int(n)
-        self._cache.clear()
-        self._s2m_cache: dict[int, S2MView] = {}
-        self._s2m_steps: list[int] | None = None
+        self._s2m_cache: dict[tuple[int, int], S2MView] = {}
+        self._s2m_index: list[tuple[int, int, int]] | None = None
         self._events: list | None = None
 
     # ------------------------------------------------------------------ fields
-    def _rows_on_disk(self, name: str, info: dict) -> int:
-        f = self.path / f"{name}.bin"
-        size = np.dtype(info["dtype"]).itemsize * int(np.prod(info["shape"], dtype=np.int64))
-        return f.stat().st_size // size if f.is_file() else 0
-
     @property
     def field_names(self) -> list[str]:
         return list(self._fields)
@@ -99,24 +81,34 @@ class Recording:
     def field(self, name: str, n: int | None = None) -> np.ndarray:
         """A per-step field as an array of length ``n`` (default: :attr:`n`); steps before the field
         first appeared are NaN (floats) or 0."""
-        n = self.n if n is None else n
+        n = self.n if n is None else min(n, self.n)
         key = f"{name}:{n}"
         if key in self._cache:
             return self._cache[key]
         if name not in self._fields:
             raise RecordingError(f"{self.path}: no field {name!r} in this recording")
-        info = self._fields[name]
-        dtype, shape, first = np.dtype(info["dtype"]), tuple(info["shape"]), int(info["first_step"])
-        count = max(n - first, 0)
-        raw = np.fromfile(self.path / f"{name}.bin", dtype=dtype, count=count * int(np.prod(shape, dtype=np.int64)))
-        arr = raw.reshape((count,) + shape)
-        if first > 0:
-            head = np.full((min(first, n),) + shape, np.nan if dtype.kind == "f" else 0, dtype=dtype)
-            arr = np.concatenate([head, arr])
-        if dtype == np.dtype("|u1") and name in FIELDS:
-            arr = arr.astype(bool)
+        chunks = []
+        for part, offset in zip(self._parts, self._offsets):
+            m = min(part.n, n - offset)
+            if m <= 0:
+                break
+            chunks.append(part.field(name, m) if name in part.fields else self._missing(name, m))
+        if len(chunks) == 1:
+            arr = chunks[0]
+        elif chunks:
+            arr = np.concatenate(chunks)
+        else:
+            arr = self._missing(name, 0)
         self._cache[key] = arr
         return arr
+
+    def _missing(self, name: str, m: int) -> np.ndarray:
+        """``m`` rows of a field a segment does not have: NaN (floats) or 0."""
+        info = self._fields[name]
+        dtype, shape = np.dtype(info["dtype"]), tuple(info["shape"])
+        if dtype == np.dtype("|u1") and name in FIELDS:
+            dtype = np.dtype(bool)
+        return np.full((m,) + shape, np.nan if dtype.kind == "f" else 0, dtype=dtype)
 
     def __getattr__(self, name: str):
         if name.startswith("_"):
@@ -126,31 +118,25 @@ class Recording:
             return self.field(name)
         raise AttributeError(f"Recording has no field or attribute {name!r}")
 
-    def _memmap(self, name: str) -> np.ndarray:
-        if name not in self._cache:
-            dtype, shape = (
-                (np.dtype(PARTICLES[1]), PARTICLES[2]) if name == PARTICLES[0] else (np.dtype(LOG_WEIGHTS[1]), ())
-            )
-            f = self.path / f"{name}.bin"
-            rows = f.stat().st_size // (dtype.itemsize * int(np.prod(shape, dtype=np.int64))) if f.is_file() else 0
-            self._cache[name] = (
-                np.memmap(f, dtype=dtype, mode="r", shape=(rows,) + shape) if rows else np.zeros((0,) + shape, dtype)
-            )
-        return self._cache[name]
-
     def _check(self, i: int) -> int:
         if not -self.n <= i < self.n:
             raise RecordingError(f"step {i} is outside the recording (0…{self.n - 1})")
         return i % self.n
 
+    def _locate(self, i: int) -> tuple[Part, int]:
+        """(segment, its own step) of row i."""
+        i = self._check(i)
+        at = bisect.bisect_right(self._offsets, i) - 1
+        return self._parts[at], i - self._offsets[at]
+
     def particles(self, i: int) -> np.ndarray:
         """(N, 11) float32 particles after step i (see config.STATE_NAMES)."""
-        start, count = self.field("particle_rows")[self._check(i)]
-        return np.asarray(self._memmap(PARTICLES[0])[start : start + count])
+        part, j = self._locate(i)
+        return part.rows(PARTICLES[0], j)
 
     def log_weights(self, i: int) -> np.ndarray:
-        start, count = self.field("particle_rows")[self._check(i)]
-        return np.asarray(self._memmap(LOG_WEIGHTS[0])[start : start + count])
+        part, j = self._locate(i)
+        return part.rows(LOG_WEIGHTS[0], j)
 
     def weights(self, i: int) -> np.ndarray:
         """Normalised float64 weights after step i (from the log-weights: no underflow to all-zero)."""
@@ -163,53 +149,40 @@ class Recording:
     # ------------------------------------------------------------------ events, S2M, summary
     @property
     def events(self) -> list[tuple[int, Event]]:
-        """(step, event) of every event of the recorded steps; step -1: before the first scan."""
+        """(step, event) of every event of the recorded steps; step -1: before the first scan (or,
+        in a rolling window, after the last dropped step)."""
         if self._events is None:
-            out = []
-            f = self.path / "events.jsonl"
-            if f.is_file():
-                # a damaged byte must not cost the events before it (a UnicodeDecodeError did)
-                for line in f.read_text(encoding="utf-8", errors="replace").splitlines():
-                    try:
-                        d = json.loads(line)
-                        if d["step"] >= self.n:
-                            break
-                        event = Event(int(d["scan"]), str(d["kind"]), str(d.get("detail", "")))
-                        out.append((int(d["step"]), event))
-                    except (ValueError, KeyError, TypeError, AttributeError):
-                        break  # a line cut short by a crash (or damaged): the steps after it are not complete
-            self._events = out
+            self._events = [
+                (offset + s, ev) for part, offset in zip(self._parts, self._offsets) for s, ev in part.events
+            ]
         return self._events
+
+    def _s2m_entries(self) -> list[tuple[int, int, int]]:
+        """(row, segment, its own step) of every stored S2M view, sorted; a segment's carried
+        view counts at the row before its first."""
+        if self._s2m_index is None:
+            entries = []
+            for at, (part, offset) in enumerate(zip(self._parts, self._offsets)):
+                entries += [(offset + s, at, s) for s in part.s2m_steps]
+            self._s2m_index = sorted(entries)
+        return self._s2m_index
 
     @property
     def s2m_steps(self) -> list[int]:
         """Steps at which an S2M match landed (listed once: the recording is read as it was opened)."""
-        if self._s2m_steps is None:
-            steps = []
-            for f in (self.path / "s2m").glob("*.json"):
-                try:
-                    step = int(f.stem)
-                except ValueError:
-                    continue
-                if step < self.n:
-                    steps.append(step)
-            self._s2m_steps = sorted(steps)
-        return self._s2m_steps
+        return [row for row, at, s in self._s2m_entries() if s != CARRIED]
 
     def s2m(self, i: int) -> S2MView | None:
         """The last S2M match that landed at or before step i."""
         i = self._check(i)
-        steps = self.s2m_steps
-        at = bisect.bisect_right(steps, i)
-        if at == 0:
+        entries = self._s2m_entries()
+        found = bisect.bisect_right(entries, (i, len(self._parts), 0))
+        if found == 0:
             return None
-        step = steps[at - 1]
-        if step not in self._s2m_cache:
-            try:
-                self._s2m_cache[step] = load_s2m(self.path / "s2m", step)
-            except (OSError, ValueError, KeyError, TypeError) as exc:
-                raise RecordingError(f"{self.path}/s2m/{step:06d}.json: unreadable ({exc})") from None
-        return self._s2m_cache[step]
+        _, at, step = entries[found - 1]
+        if (at, step) not in self._s2m_cache:
+            self._s2m_cache[(at, step)] = self._parts[at].s2m(step)
+        return self._s2m_cache[(at, step)]
 
     @property
     def summary(self) -> dict | None:
@@ -223,25 +196,13 @@ class Recording:
         return self.meta.get("summary")
 
     def resume_steps(self, name: str) -> list[int]:
-        steps = []
-        for f in (self.path / "resume").glob(f"*-{name}.npz"):
-            try:
-                step = int(f.name.split("-", 1)[0])
-            except ValueError:
-                continue
-            if step < self.n:
-                steps.append(step)
-        return sorted(steps)
+        return [offset + s for part, offset in zip(self._parts, self._offsets) for s in part.resume_steps(name)]
 
     def resume_file(self, step: int, name: str) -> dict[str, np.ndarray] | None:
-        f = self.path / "resume" / f"{step:06d}-{name}.npz"
-        if step >= self.n or not f.is_file():
+        if not 0 <= step < self.n:
             return None
-        try:
-            with np.load(f, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise RecordingError(f"{f}: unreadable ({exc})") from None
+        part, j = self._locate(step)
+        return part.resume_file(j, name)
 
     # ------------------------------------------------------------------ source and config
     def source_spec(self):

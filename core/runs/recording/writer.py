@@ -1,5 +1,6 @@
 """Writing a recording (see :mod:`.format`): the localizer's thread gathers copies of a step, a
-thread of the writer's own appends them to disk in order and commits them."""
+thread of the writer's own appends them to disk in order and commits them. A run kept under a
+size budget goes on in segments (:meth:`RecordingWriter.next_segment`, :mod:`.segments`)."""
 
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ from .format import (
     source_dict,
     write_json_atomic,
 )
+from .segments import CARRIED, folder_bytes, segment_folder
 
 
 class RecordingWriter:
@@ -54,16 +56,7 @@ class RecordingWriter:
     ):
         from .... import __version__ as version
 
-        self.path = Path(run_dir) / FOLDER
-        try:
-            self.path.mkdir(parents=True, exist_ok=True)
-            if (self.path / STEPS).exists():
-                raise RecordingError(f"{self.path}: a recording is already there; choose another --out")
-            (self.path / "s2m").mkdir(exist_ok=True)
-            (self.path / "resume").mkdir(exist_ok=True)
-        except OSError as exc:
-            raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
-        self.meta = {
+        meta = {
             "source": source_dict(spec),
             "source_description": spec.describe(),
             "config": cfg.to_dict(),
@@ -77,6 +70,22 @@ class RecordingWriter:
             "first_step": int(first_step),
             "lidarloc_version": version,
         }
+        self._open(Path(run_dir) / FOLDER, meta, None)
+
+    def _open(self, path: Path, meta: dict, top: Path | None) -> None:
+        """Start writing the recording folder ``path`` (``top``: the run's first segment's folder,
+        None: ``path`` is it)."""
+        self.path = path
+        self.top = path if top is None else top
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            if (self.path / STEPS).exists():
+                raise RecordingError(f"{self.path}: a recording is already there; choose another --out")
+            (self.path / "s2m").mkdir(exist_ok=True)
+            (self.path / "resume").mkdir(exist_ok=True)
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot write the recording ({exc.strerror or exc})") from None
+        self.meta = meta
         self.fields: dict[str, dict] = {}
         self._files: dict[str, Any] = {}
         for name, (dtype, shape) in FIELDS.items():
@@ -89,6 +98,7 @@ class RecordingWriter:
         self.n = 0
         self._particle_row = 0
         self._n_events = 0
+        self._events_base = 0  # the first of loc.events this run records (a branch: after the original's)
         self._last_steps: int | None = None
         self._last_scan: int | None = None
         self._last_s2m = None
@@ -97,16 +107,57 @@ class RecordingWriter:
         # copies it hands over; ``committed`` counts the steps on disk (what a reader sees).
         self.committed = 0
         self.writer_cpu_s = 0.0  # the writing thread's CPU time
+        # bytes: what is on disk (counted by the writing thread) and, for the steps handed over but
+        # not written yet, their uncompressed size (each counter has one writer thread)
+        self._base_bytes = folder_bytes(self.path)
+        self._written_bytes = 0
+        self._handed_estimate = 0
+        self._written_estimate = 0
         self._error: RecordingError | None = None
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_STEPS)
         self._committed_changed = threading.Condition()
         self._thread = threading.Thread(target=self._drain, name="lidarloc-recording", daemon=True)
         self._thread.start()
 
+    @property
+    def first_step(self) -> int:
+        """The run's step this writer's first row is."""
+        return int(self.meta["first_step"])
+
+    @property
+    def bytes(self) -> int:
+        """This folder's size on disk once every step handed over is written (an upper bound: the
+        steps still queued count uncompressed)."""
+        return self._base_bytes + self._written_bytes + max(self._handed_estimate - self._written_estimate, 0)
+
+    def next_segment(self) -> RecordingWriter:
+        """Close this writer and return one that records the same run's next steps into a segment
+        of its own (:mod:`.segments`): a recording of the same format starting at the run's step
+        after this one's last, with the events, last scan and S2M view carried over. Its first step
+        gets a checkpoint: the localizer checkpoints a recording's row 0 and every
+        ``CHECKPOINT_EVERY``-th row after it. Raises the
+        writing thread's failure, if it had one (the run's recording then ends here)."""
+        self.close(None)
+        meta = {k: v for k, v in self.meta.items() if k not in ("summary", "closed")}
+        meta["first_step"] = self.first_step + self.n
+        meta["segment"] = {"events_before": self._n_events - self._events_base}
+        nxt = RecordingWriter.__new__(RecordingWriter)
+        nxt._open(segment_folder(self.top, meta["first_step"]), meta, self.top)
+        nxt._n_events, nxt._events_base = self._n_events, self._events_base
+        nxt._last_scan, nxt._last_steps, nxt._last_s2m = self._last_scan, self._last_steps, self._last_s2m
+        if self._last_s2m is not None:  # what the segment's first steps show, until a match lands in it
+            try:
+                save_s2m(nxt.path / "s2m", CARRIED, self._last_s2m)
+            except OSError as exc:
+                nxt.close(None)
+                raise RecordingError(f"{nxt.path}: cannot write the recording ({exc.strerror or exc})") from None
+            nxt._base_bytes = folder_bytes(nxt.path)
+        return nxt
+
     def continue_from(self, loc) -> None:
         """A branch's writer: the events up to ``loc.recorded_events_base``, the last scan and the
         last S2M view ``loc`` already has are the recorded run's; record only what follows."""
-        self._n_events = int(loc.recorded_events_base)
+        self._n_events = self._events_base = int(loc.recorded_events_base)
         self._last_scan = int(loc.snapshot().scan_index)
         self._last_s2m = loc.s2m.last
         self._last_steps = int(loc.steps)
@@ -184,6 +235,8 @@ class RecordingWriter:
             s2m,
             payload,
         )
+        item.estimate = item.size_estimate()
+        self._handed_estimate += item.estimate
         self._queue.put(item)  # blocks while the writing thread is QUEUE_STEPS steps behind
         self._particle_row += n
         self._last_s2m = snap.s2m
@@ -252,17 +305,25 @@ class RecordingWriter:
     def _write_step(self, item: _Step) -> None:
         self._files["particles"].write(item.particles.tobytes())
         self._files["log_weights"].write(item.log_weights.tobytes())
+        size = item.particles.nbytes + item.log_weights.nbytes
         for name, row in item.rows.items():
             self._files[name].write(row)
+            size += len(row)
         for line in item.event_lines:
             self._events.write(line)
+            size += len(line.encode("utf-8"))
         if item.s2m is not None:
             save_s2m(self.path / "s2m", item.index, item.s2m)
+            size += sum(_size(self.path / "s2m" / f"{item.index:06d}{ext}") for ext in (".json", ".f16"))
         if item.payload is not None:
-            self._write_payload(item.index, item.payload)
+            size += self._write_payload(item.index, item.payload)
+        self._written_bytes += size
+        self._written_estimate += item.estimate
 
-    def _write_payload(self, i: int, payload: ResumePayload) -> None:
+    def _write_payload(self, i: int, payload: ResumePayload) -> int:
+        """Write a step's resume payload; returns its bytes on disk."""
         new_field = False
+        size = 0
         for name, value in payload.per_step.items():
             arr = np.asarray(value)
             if name not in self.fields:
@@ -270,13 +331,18 @@ class RecordingWriter:
                     raise RecordingError(f"resume field {name} clashes with a display field")
                 self._declare(name, arr.dtype.newbyteorder("<").str, arr.shape, i)
                 new_field = True
-            self._files[name].write(self._row(name, arr))
+            row = self._row(name, arr)
+            self._files[name].write(row)
+            size += len(row)
         for name, arrays in payload.files.items():
             # a checkpoint (~0.1 MB at 1000 particles) compresses ~10×; a small file is not worth the time
             big = sum(np.asarray(a).nbytes for a in arrays.values()) > COMPRESS_ABOVE_BYTES
-            (np.savez_compressed if big else np.savez)(self.path / "resume" / f"{i:06d}-{name}.npz", **arrays)
+            f = self.path / "resume" / f"{i:06d}-{name}.npz"
+            (np.savez_compressed if big else np.savez)(f, **arrays)
+            size += _size(f)
         if new_field:
             self._write_index()
+        return size
 
     def flush(self) -> None:
         """Wait until every step handed over is on disk (readers see it); raises the writing
@@ -326,3 +392,22 @@ class _Step:
     event_lines: list[str]
     s2m: S2MView | None
     payload: ResumePayload | None
+    estimate: int = 0  # its bytes on disk at most (uncompressed), counted until it is written
+
+    def size_estimate(self) -> int:
+        size = self.particles.nbytes + self.log_weights.nbytes + sum(len(r) for r in self.rows.values())
+        size += sum(len(line) for line in self.event_lines)
+        if self.s2m is not None:  # the scan as float16, the rest as JSON
+            size += 6 * len(self.s2m.scan_world) + 16384
+        if self.payload is not None:
+            size += sum(np.asarray(v).nbytes for v in self.payload.per_step.values())
+            for arrays in self.payload.files.values():
+                size += 1024 + sum(np.asarray(a).nbytes + 256 for a in arrays.values())
+        return size
+
+
+def _size(f: Path) -> int:
+    try:
+        return f.stat().st_size
+    except OSError:
+        return 0

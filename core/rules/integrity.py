@@ -40,10 +40,12 @@ wrong place. Three checks close that gap:
   never fell below 0.90 of its median, an estimate moved 60 m had 0.63–0.71 of it, in every
   sensor's town and on the real drive; the residual ratio overlapped, 1.8–2.0 for both on
   HDL-64E).
-- **Withdrawal**: while localized, a whole-map check asked for by low confidence (a poor fit, or
-  local matches in a row that did not agree) that lands without agreeing with the estimate — a
-  look-alike or no opinion — withdraws "localized" (``unconfirmed`` event): green means that the
-  two blocks agree, and here they do not. The particles stay where they are; S2M searches the
+- **Withdrawal**: while localized, a whole-map check asked for by a poor fit that lands without
+  agreeing with the estimate — a look-alike or no opinion — withdraws "localized"
+  (``unconfirmed`` event): green means that the two blocks agree, and here they do not. Local
+  matches that disagree ask for the check but do not withdraw: over the robustness matrix a
+  VLP-16's local matches disagreed with a correct estimate three times in a row, and its
+  whole-map check found a look-alike (one withdrawal of a correct estimate in 22 runs). The particles stay where they are; S2M searches the
   whole map again as before localization, and the rule must fire again with S2M's word. (A
   check that finds a clearly better pose relocalizes instead; one that agrees clears the doubt.)
 - **Loss** (``localize.lost_after_scans``): while localized, that many scans in a row that fit
@@ -164,6 +166,7 @@ class Integrity:
         self.rejections_in_row = 0
         self.poor_fit_scans = 0
         self.check_reason: str | None = None  # why the next match should search the whole map
+        self.check_doubt = False  # whether that check decides on a doubt (a poor fit)
         self.last_check_at: int | None = None
         self.localized_at: int | None = None
         self.fit_baseline: list[float] = []  # mean residuals of scans that fitted well while localized
@@ -175,6 +178,7 @@ class Integrity:
         "rejections_in_row",
         "poor_fit_scans",
         "check_reason",
+        "check_doubt",
         "last_check_at",
         "localized_at",
         "fit_baseline",
@@ -225,13 +229,15 @@ class Integrity:
         self.localized_at = k
         self.last_check_at = k
 
-    def want_check(self, k: int, why: str) -> None:
-        """Ask for a whole-map check at the next match start (unless one ran just now)."""
+    def want_check(self, k: int, why: str, doubt: bool = False) -> None:
+        """Ask for a whole-map check at the next match start (unless one ran just now). ``doubt``:
+        the check decides whether the estimate keeps its "localized" (a poor fit, see the module
+        docstring)."""
         periodic = self.check_reason == f"every {self.cfg.s2m.global_check_interval} scans"
-        if (self.check_reason is None or periodic) and (
+        if (self.check_reason is None or periodic or (doubt and not self.check_doubt)) and (
             self.last_check_at is None or k - self.last_check_at >= CHECK_COOLDOWN_SCANS
         ):
-            self.check_reason = why  # low confidence decides on the doubt (check_started)
+            self.check_reason, self.check_doubt = why, doubt
 
     def check_due(self, k: int, localized: bool) -> str | None:
         """Why the match starting at scan k should be a whole-map check (None: it should not)."""
@@ -245,9 +251,11 @@ class Integrity:
     def check_started(self, k: int) -> None:
         reason, self.check_reason = self.check_reason, None
         self.last_check_at = k
-        interval = self.cfg.s2m.global_check_interval
-        # a check asked for by low confidence (not the periodic one) decides on the doubt
-        self.doubt = None if reason is None or reason == f"every {interval} scans" else reason
+        # a check asked for by a poor fit decides on the doubt (not the periodic one, nor one
+        # asked for by local disagreements: a VLP-16's local matches disagree with a correct
+        # estimate three times in a row now and then, and its whole-map checks find look-alikes)
+        self.doubt = reason if self.check_doubt else None
+        self.check_doubt = False
 
     # ------------------------------------------------------------------ loss
     def poor_fit(self, inlier_share: float, residual: float | None) -> str | None:
@@ -284,7 +292,7 @@ class Integrity:
             return None
         self.poor_fit_scans += 1
         if self.cfg.s2m.global_check_interval > 0:
-            self.want_check(k, why)
+            self.want_check(k, why, doubt=True)
         if lc.lost_after_scans > 0 and self.poor_fit_scans >= lc.lost_after_scans:
             self.poor_fit_scans = 0
             return (

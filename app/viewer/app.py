@@ -29,6 +29,7 @@ from .controls import ParameterControls, ParticleControls
 from .faults import BlockFailed, FaultReporter
 from .history import History
 from .layers import LayerFolder
+from .minimap import Overview
 from .panel import build_panel
 from .params import ParamForm
 from .playback import Playback
@@ -64,6 +65,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self.history = History()
         self.scene = SceneView(server.scene)
         self.controls = build_panel(server.gui, speed=speed, layers=self.scene.layers)
+        self.overview = Overview(self.controls.overview)
         self.readouts = Readouts(self.controls, self.history)
         self.params = ParamForm(self.controls.params, self.controls.q)
         self.cameras = TabCameras(
@@ -117,6 +119,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             "viewer display", lambda line: self.show_message(line, error=True, everyone=True)
         )
         self.on_finished: Callable[[], None] | None = None  # called when playing reached the end (a loop)
+        self.scene.on_map_tiles = self.wake  # tiles of a city's map were read: the display shows them
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
@@ -240,6 +243,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         if prior_map is self._map_shown:
             return
         self.scene.set_map(prior_map)
+        self.overview.set_map(self.scene.footprint)
         self._map_shown = prior_map
         self.cameras.overview()
         self._wake.set()
@@ -438,11 +442,20 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             self._last_draw = time.perf_counter()
         elif snap is not None:
             self.readouts.update_status(self.status_markdown(snap))  # play/pause state may have changed
+        self._update_map(snap)
         self.travel.after_draw(snap)
         self.readouts.update_plots(force_plots)
         self._sync_play_button()
         self.layers.on_display(self._ready.is_set())
         return ms
+
+    def _update_map(self, snap: Snapshot | None) -> None:
+        """A city's map: the tiles at full density follow the estimate (read on a thread of their
+        own, swapped in here); the overview shows where the particles are (at most once a second,
+        and only when something changed)."""
+        with self.server.atomic():
+            self.scene.follow_map(None if snap is None else snap.mean_pose)
+        self.overview.update(snap, self.scene.near_tiles, time.monotonic())
 
     def _play_state(self) -> str:
         return play_state(self.player, self.localizer)

@@ -15,6 +15,12 @@ from ...core.snapshot import Snapshot
 from .panel import CameraControls, add_camera_folder
 from .scene import SceneView
 
+#: the browser's view distance (m) and its nearest distance drawn, viser's defaults …
+DEFAULT_FAR, DEFAULT_NEAR = 1000.0, 0.01
+#: … the far one moved out to this many times the extent of a map wider than LARGE_MAP_M (m)
+VIEW_DISTANCE_EXTENTS = 3.0
+LARGE_MAP_M = 500.0
+
 
 def _position(snap: Snapshot | None) -> np.ndarray | None:
     """The estimate's position, if there is a finite one."""
@@ -99,17 +105,26 @@ class TabCameras:
 
     # ------------------------------------------------------------------ all tabs
     def overview(self) -> None:
-        """An oblique view of the whole map, for new tabs and for those already open."""
+        """An oblique view of the whole map, for new tabs and for those already open. A map wider
+        than LARGE_MAP_M moves the browser's far clipping plane (1 km by default) out so that the
+        whole map stays in view, and the near one with it (the same depth precision)."""
         center, ext = self.scene.map_center, self.scene.map_extent
         position, look_at = center + np.array([0.0, -0.42 * ext, 0.6 * ext]), center
-        self.server.initial_camera.look_at = tuple(look_at)
-        self.server.initial_camera.position = tuple(position)
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        far = max(DEFAULT_FAR, VIEW_DISTANCE_EXTENTS * ext) if ext > LARGE_MAP_M else DEFAULT_FAR
+        near = DEFAULT_NEAR * far / DEFAULT_FAR
+        initial = self.server.initial_camera
+        initial.look_at = tuple(look_at)
+        initial.position = tuple(position)
+        initial.up = (0.0, 0.0, 1.0)
+        if initial.far != far:
+            initial.far, initial.near = far, near
         # tabs opened while the map was being built still look at the default origin
         for client in self.server.get_clients().values():
             with client.atomic():
                 client.camera.position = position
                 client.camera.look_at = look_at
+                if far != DEFAULT_FAR:
+                    client.camera.far, client.camera.near = far, near
 
     def near(self, pose: np.ndarray, back: float = 45.0, up: float = 35.0) -> None:
         """New tabs, and those open now, look at the vehicle at ``pose`` (4×4) from behind and

@@ -27,6 +27,13 @@ class GroundHeight:
             idx = ((points[:, :2] - lo) / cell).astype(int)
             np.minimum.at(self.grid, (idx[:, 0], idx[:, 1]), points[:, 2])
 
+    @classmethod
+    def from_grid(cls, grid: np.ndarray, origin: np.ndarray, cell: float, z_default: float) -> GroundHeight:
+        """The lowest heights computed elsewhere (a map too big to pass whole: map_tiles)."""
+        g = cls.__new__(cls)
+        g.grid, g.origin, g.cell, g.z_default = grid, origin, float(cell), float(z_default)
+        return g
+
     def at(self, x: float, y: float) -> float:
         i = int((x - self.origin[0]) // self.cell)
         j = int((y - self.origin[1]) // self.cell)

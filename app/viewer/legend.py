@@ -17,6 +17,7 @@ from .style import (
     S2M_ACCEPTED_COLOR,
     S2M_REJECTED_COLOR,
     SCAN_COLOR,
+    TILE_COLOR,
     css,
 )
 from .why_style import RESIDUAL_BAD, RESIDUAL_GOOD, RESIDUAL_MID, SELECTED_COLOR, SURFACE_BEST_COLOR, SURFACE_LUT
@@ -54,6 +55,12 @@ ENTRIES = (
     ),
     ("bev", f"{_swatch(BEV_COLOR)} BEV pyramid level (Layers)"),
     ("reset", f"{_swatch(RESET_COLOR, '□')} where particles were just reset (until the next scan)"),
+    (
+        "overview",
+        f"Overview: the map from above in grey, {_swatch(PARTICLE_HIGH.tolist(), '●')} particles, "
+        f"{_swatch(EST_COLOR)} estimate, {_swatch(GT_COLOR, '□')} truth, {_swatch(TILE_COLOR, '□')} the map's "
+        "tiles drawn at full density (a map too big to draw whole)",
+    ),
     # the Why folder's views
     (
         "residuals",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import viser
 
 from .legend import legend_markdown
@@ -42,6 +43,8 @@ class Controls:
     clock: object = None
     seed: object = None
     restart: object = None
+    # Overview
+    overview: object = None  # the whole map from above (minimap.Overview draws it)
     # Particles
     particles_folder: object = None
     reset: object = None
@@ -91,6 +94,9 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
         c.clock = gui.add_dropdown(CLOCK.label, ("replay", "realtime"), initial_value="replay", hint=CLOCK.hint)
         c.seed = gui.add_number("Seed", 0, step=1)
         c.restart = gui.add_button("Restart from scan 0", icon=viser.Icon.REFRESH, disabled=True)
+    with gui.add_folder("Overview"):
+        # hidden until the map is drawn into it
+        c.overview = gui.add_image(np.zeros((8, 8, 3), np.uint8), format="png", visible=False)
     c.particles_folder = gui.add_folder("Particles")
     with c.particles_folder:
         c.reset = gui.add_button("Reset globally", disabled=True, hint="Re-initialise the particles over the whole map")

@@ -13,6 +13,8 @@ import numpy as np
 from ...core.snapshot import Snapshot
 from .ground import GroundHeight
 from .history import History
+from .map_tiles import TileSettings
+from .minimap import Footprint
 from .scene_map import MapLayers
 from .shapes import (
     ChunkedPolyline,
@@ -23,6 +25,7 @@ from .shapes import (
 )
 from .style import (
     BEST_COLOR,
+    DISPLAY_MAX_POINTS,
     DISPLAY_VOXEL,
     ELLIPSE_COLOR,
     EST_COLOR,
@@ -81,6 +84,16 @@ class SceneView(MapLayers):
         self.gt_line = ChunkedPolyline(scene, "/trajectory/ground_truth", GT_COLOR, 2.0)
         self.est_line = ChunkedPolyline(scene, "/trajectory/estimate", EST_COLOR, 2.0)
         self.display_voxel = DISPLAY_VOXEL
+        self._source_voxel = DISPLAY_VOXEL
+        # a map sent in tiles (scene_map): the tiles, their nodes, and the points sent
+        self._tiled = self._near = None
+        self._near_nodes: dict = {}
+        self._coarse_nodes: dict = {}
+        self._map_points = self._map_bev_points = 0
+        self._max_points = DISPLAY_MAX_POINTS
+        self._tile_settings = TileSettings()
+        self.footprint: Footprint | None = None  # the map from above, for the panel's overview
+        self.on_map_tiles = None  # called (any thread) when tiles were read and wait to be shown
 
     #: the names :meth:`node` answers to, and the attribute holding each node
     _NODES = {

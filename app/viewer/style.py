@@ -28,8 +28,18 @@ REF_PARTICLE_COLOR = (60, 120, 230)
 CURSOR_COLOR = "#ffe14d"  # the plots' marker of the scan on the timeline
 ERROR_CSS = "#ff6b6b"  # refusals and failures in the panel
 
-DISPLAY_VOXEL = 0.5  # m, first try for the displayed map's voxel size …
-DISPLAY_MAX_POINTS = 1_500_000  # … grown until the map fits in this many points
+DISPLAY_VOXEL = 0.5  # m, the displayed map's voxel size: the map is sent whole at it …
+DISPLAY_MAX_POINTS = 1_500_000  # … when that is at most this many points; a bigger map is sent in tiles:
+DISPLAY_BUDGET = 2_000_000  # map points sent to a browser at most, every map layer together
+DISPLAY_TILE_M = 200.0  # m, side of a tile of a map sent in tiles
+COARSE_MAX_POINTS = 500_000  # the coarse layer of the whole map, always sent, at most
+ROAD_REMOVED_MAX_POINTS = 300_000  # the road-removed layer of a map sent in tiles (coarse), at most
+NEAR_TILE_RADIUS_M = 300.0  # m, tiles this close to the estimate at full density, nearest first …
+NEAR_TILE_HYSTERESIS_M = 50.0  # … and, once shown, until this much farther
+NEAR_TILE_UPDATE_S = 1.0  # s, the tiles at full density are revisited at most this often
+MINIMAP_PX = 256  # side of the overview image of the whole map in the panel
+MINIMAP_INTERVAL_S = 1.0  # s, it is redrawn at most this often (and only when something changed)
+TILE_COLOR = (110, 200, 255)  # the overview's outline of the tiles shown at full density
 MIN_DRAW_INTERVAL = 1 / 30  # s, the display refreshes at most this often
 PLOT_INTERVAL = 0.5  # s, the plots at most this often (they resend whole series)
 PLOT_MAX_POINTS = 1500  # longer series are decimated for the plots
@@ -62,11 +72,12 @@ def _height_lut() -> np.ndarray:
 HEIGHT_LUT = _height_lut()
 
 
-def height_colors(z: np.ndarray) -> np.ndarray:
-    """(N,) heights → (N, 3) uint8, the 2nd–98th percentile spread over the ramp."""
+def height_colors(z: np.ndarray, span: tuple[float, float] | None = None) -> np.ndarray:
+    """(N,) heights → (N, 3) uint8, the 2nd–98th percentile (or ``span``: the same ramp for
+    every tile of a map) spread over the ramp."""
     if len(z) == 0:
         return np.zeros((0, 3), np.uint8)
-    lo, hi = np.percentile(z, [2, 98])
+    lo, hi = np.percentile(z, [2, 98]) if span is None else span
     t = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
     return HEIGHT_LUT[(t * 255).astype(np.intp)]
 

@@ -87,7 +87,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             guarded=self._guarded,
             show_message=self.show_message,
             folder_order=self.controls.particles_folder.order + 0.25,
-            gate=self.gui_open,
         )
         self.owns_localizer = False
         self._display_lock = threading.RLock()  # one display update at a time (update_display)
@@ -165,14 +164,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         finally:
             self._acting.client = None
 
-    @contextmanager
-    def gui_open(self):
-        """Hold the GUI gate (see close_gui); True while the GUI may be written, False once the
-        server is stopping. For writes from the viewer's own threads (the why and scrub workers,
-        the map's arrival, a new tab's camera folder)."""
-        with self._gui_gate:
-            yield not self.closed
-
     def _guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
         """``action`` as a GUI callback, run through :meth:`_guard`."""
         return lambda event: self._guard(event, action, needs_localizer)
@@ -249,21 +240,17 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         """Draw the prior map and move every tab's camera onto it, before the localizer is ready
         (the Localizer's ``on_map`` callback, on the thread that builds it: the lookup table and
         pyramid are still to come). :meth:`attach` then leaves the map as it is."""
-        with self.gui_open() as writable:
-            if prior_map is self._map_shown or not writable:
-                return
-            self.scene.set_map(prior_map)
-            self.overview.set_map(self.scene.footprint)
-            self._map_shown = prior_map
-            self.cameras.overview()
+        if prior_map is self._map_shown:
+            return
+        self.scene.set_map(prior_map)
+        self.overview.set_map(self.scene.footprint)
+        self._map_shown = prior_map
+        self.cameras.overview()
         self._wake.set()
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         """A new tab: its camera folder; the first one starts playback when autoplay waits for it."""
-        with self.gui_open() as writable:
-            if not writable:
-                return
-            self.cameras.connect(client)
+        self.cameras.connect(client)
         with self._start_lock:
             self._tab_seen = True
             start = self._autoplay is None and self._ready.is_set() and not self._auto_started

@@ -71,7 +71,7 @@ class TimeTravel:
         self._lock = threading.Lock()
         self._no_recorder_lock = threading.RLock()
         # scrubbing: the scans of recorded steps are recomputed here, the newest asked for only
-        self._scans = LatestOnly("lidarloc-scrub", viewer.gui_open)
+        self._scans = LatestOnly("lidarloc-scrub")
         self._full: tuple | None = None  # ((run id, step), snapshot with its scan)
         self._pending: tuple | None = None
         self._replay: threading.Thread | None = None  # plays a recorded run's timeline

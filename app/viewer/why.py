@@ -54,7 +54,6 @@ class WhyViews:
         guarded: Callable,
         show_message: Callable,
         folder_order: float,
-        gate: Callable | None = None,
     ):
         self.server = server
         self.scene = scene
@@ -66,7 +65,7 @@ class WhyViews:
         self._lock = threading.Lock()
         self._s2m_shown = None
         self._surface_scan: int | None = None  # the scan of the surface drawn or being computed
-        self.worker = LatestOnly("lidarloc-why", gate)
+        self.worker = LatestOnly("lidarloc-why")
         gui = server.gui
         with gui.add_folder("Why", order=folder_order, expand_by_default=False):
             with gui.add_folder("Scan residuals"):

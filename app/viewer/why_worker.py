@@ -7,12 +7,10 @@ in meanwhile — unless it was submitted with ``superseded_ok``: when the surfac
 longer than a scan (a loaded machine at 10 scans/s), dropping each result because the next scan's
 job had arrived left none drawn while playing. Results are delivered under a lock that ``cancel``
 also takes, so once ``cancel`` returns no stale result reaches the scene (a restart must leave
-nothing of the old run); and through the viewer's ``gate`` (taken first, as GUI actions take it
-before anything else), so that none is written after the server stopped."""
+nothing of the old run)."""
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import threading
 import traceback
@@ -22,12 +20,7 @@ from ...core.errors import LidarlocError
 
 
 class LatestOnly:
-    def __init__(
-        self, name: str = "lidarloc-why", gate: Callable[[], contextlib.AbstractContextManager[bool]] | None = None
-    ):
-        """``gate()``: a context in which the GUI may be written, entered as True while it may
-        (the viewer's: its GUI gate held, False once the server is stopping)."""
-        self._gate = gate or (lambda: contextlib.nullcontext(True))
+    def __init__(self, name: str = "lidarloc-why"):
         self._cv = threading.Condition()
         self._deliver = threading.RLock()  # done() may cancel (a restart from a callback)
         self._pending: dict[str, tuple] = {}
@@ -98,12 +91,12 @@ class LatestOnly:
                 except Exception as exc:  # keep the thread alive and say what went wrong
                     traceback.print_exc(file=sys.stderr)
                     result, error = None, f"internal error: {type(exc).__name__}: {exc}"
-                with self._gate() as writable, self._deliver:
+                with self._deliver:
                     with self._cv:
                         current = not self._stopped and (
                             self._ticket.get(kind) == ticket or (superseded_ok and self._epoch.get(kind, 0) == epoch)
                         )
-                    if current and writable:
+                    if current:
                         try:
                             done(result) if error is None else failed(error)
                         except Exception:  # a failed drawing must not end the thread

@@ -42,12 +42,13 @@ wrong place. Three checks close that gap:
   HDL-64E).
 - **Withdrawal**: while localized, a whole-map check asked for by a poor fit that lands without
   agreeing with the estimate — a look-alike or no opinion — withdraws "localized"
-  (``unconfirmed`` event): green means that the two blocks agree, and here they do not. Local
-  matches that disagree ask for the check but do not withdraw: over the robustness matrix a
-  VLP-16's local matches disagreed with a correct estimate three times in a row, and its
-  whole-map check found a look-alike (one withdrawal of a correct estimate in 22 runs). The particles stay where they are; S2M searches the
-  whole map again as before localization, and the rule must fire again with S2M's word. (A
-  check that finds a clearly better pose relocalizes instead; one that agrees clears the doubt.)
+  (``unconfirmed`` event): green means that the two blocks agree, and here they do not. The
+  particles stay where they are; S2M searches the whole map again as before localization, and
+  the rule must fire again with S2M's word. (A check that finds a clearly better pose
+  relocalizes instead; one that agrees clears the doubt.) Local matches that disagree ask for
+  the check but do not withdraw: in the robustness matrix a VLP-16's local matches disagreed
+  with a correct estimate three times in a row and its whole-map check found a look-alike (3 of
+  the 12 VLP-16 cells would have withdrawn a correct estimate).
 - **Loss** (``localize.lost_after_scans``): while localized, that many scans in a row that fit
   poorly, with no whole-map match agreeing with the estimate meanwhile, are a loss (re-initialise
   over the whole map), as the paper's std > 50 m.
@@ -171,7 +172,7 @@ class Integrity:
         self.localized_at: int | None = None
         self.fit_baseline: list[float] = []  # mean residuals of scans that fitted well while localized
         self.share_baseline: list[float] = []  # their inlier shares
-        self.doubt: str | None = None  # why the whole-map check in flight was asked for by low confidence
+        self.doubt: str | None = None  # the poor fit the whole-map check in flight decides on
 
     _STATE = (
         "confirmed_at",
@@ -207,7 +208,7 @@ class Integrity:
 
     def note_verdict(self, k: int, verdict: Verdict) -> str | None:
         """Take a landed match's verdict; returns why "localized" is withdrawn (module docstring:
-        a whole-map check asked for by low confidence did not agree), or None."""
+        a whole-map check asked for by a poor fit did not agree), or None."""
         if verdict.kind == "agrees":
             self.confirmed_at = k
             if verdict.mode in ("global", "check"):

@@ -40,7 +40,7 @@ from rich.console import Console
 from ...core.config import Config, LocalizeConfig, load_config, update_from_dict
 from ...core.errors import LidarlocError
 from ...core.rules.truth import FALSE_FIRE_M
-from ...core.runs.results import make_out_dir, summarize_run, write_json, write_run
+from ...core.runs.results import integrity_summary, make_out_dir, summarize_run, write_json, write_run
 from ...core.sequences.factory import SourceSpec
 from ..console import progress_bar
 from .common import real_drive, require_town
@@ -62,6 +62,8 @@ DEFAULT_SCANS = 300
 LOOKALIKE_MIN_M = 30.0
 #: the ``moved`` case moves the particles this far (m), across the street grid's blocks
 MOVED_M = 60.0
+#: the run summary's counts of relocalizations and withdrawals a case reports as they are
+MOVE_KEYS = ("relocalizations", "spurious_relocalizations", "withdrawals", "spurious_withdrawals")
 #: targets (BENCHMARKS.md): recovery within this many scans of S2M joining
 RECOVERY_TARGET_SCANS = 30
 
@@ -128,6 +130,9 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
     ``at`` (see the module docstring); None where the run has no truth. ``localize``: the rule's
     settings, for the rule's floor (the defaults when None)."""
     localize = localize or LocalizeConfig()
+    # relocalizations and withdrawals, and which were of a correct estimate: as the run's summary counts them
+    counted = integrity_summary(events, records)
+    moves = {key: counted[key] for key in MOVE_KEYS}
     err = {r.scan: r.error_m for r in records}
     if not any(v is not None for v in err.values()):
         return {
@@ -138,10 +143,7 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
             "noticed": None,
             "recovery": None,
             "lost_after": None,
-            "relocalizations": sum(e.kind == "relocalized" for e in events),
-            "spurious_relocalizations": None,
-            "withdrawals": sum(e.kind == "unconfirmed" for e in events),
-            "spurious_withdrawals": None,
+            **moves,
         }
     onsets = [e.scan for e in events if e.kind == "localized"]
     false_fires = sum(1 for k in onsets if err.get(k) is not None and err[k] > FALSE_FIRE_M)
@@ -152,10 +154,6 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
         (r.scan for r in after if not (r.localized and r.error_m is not None and r.error_m > FALSE_FIRE_M)), None
     )
     lost = next((e.scan for e in events if e.kind == "loss" and e.scan >= at), None)
-    moves = [e.scan for e in events if e.kind == "relocalized"]
-    spurious = sum(1 for k in moves if err.get(k - 1) is not None and err[k - 1] <= FALSE_FIRE_M)
-    withdrawals = [e.scan for e in events if e.kind == "unconfirmed"]
-    spurious_withdrawals = sum(1 for k in withdrawals if err.get(k - 1) is not None and err[k - 1] <= FALSE_FIRE_M)
     # a run resumed after a kidnap numbers its scans from where the vehicle landed
     first = after[0].scan if after else at
     return {
@@ -165,10 +163,7 @@ def case_figures(records: list, events: list, at: int, localize: LocalizeConfig 
         "noticed": None if honest is None else (honest - first if after else None),
         "recovery": None if right is None else right - first,
         "lost_after": None if lost is None else lost - first,
-        "relocalizations": len(moves),
-        "spurious_relocalizations": spurious,
-        "withdrawals": len(withdrawals),
-        "spurious_withdrawals": spurious_withdrawals,
+        **moves,
     }
 
 

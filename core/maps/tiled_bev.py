@@ -92,12 +92,7 @@ class TiledBEV:
         t = self.tile_cells
         lo_i = np.round(self.origin / self.resolution).astype(np.int64)
         shape = self._tile_shape(tx, ty)
-        counts = np.zeros(shape, np.int64)
-        for a in range(0, len(self.xy), _CHUNK):  # the same cells as _build
-            idx = np.floor(np.asarray(self.xy[a : a + _CHUNK, :2], np.float64) / self.resolution).astype(np.int64)
-            idx -= lo_i + np.array([tx * t, ty * t])
-            inside = (idx[:, 0] >= 0) & (idx[:, 0] < shape[0]) & (idx[:, 1] >= 0) & (idx[:, 1] < shape[1])
-            np.add.at(counts, (idx[inside, 0], idx[inside, 1]), 1)
+        counts = _count_cells(self.xy, self.resolution, lo_i + np.array([tx * t, ty * t]), shape)
         l0 = np.ascontiguousarray(_cell_values(counts, self.cell_value))
         name = tile_name(tx, ty)
         self.index["tiles"][name] = write_tile(self.directory, name, {"L0": l0})
@@ -166,6 +161,18 @@ class TiledBEV:
         return cls(directory, index, coarse, xy=xy)
 
 
+def _count_cells(xy, resolution: float, first_cell: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Points of ``xy`` per cell of the block of ``shape`` cells starting at cell ``first_cell``
+    (cells floor(xy / resolution), as BEVPyramid.build's lattice); points outside it are left
+    out. One pass in chunks: a city's road-removed map does not fit twice in memory."""
+    counts = np.zeros(shape, np.int64)
+    for a in range(0, len(xy), _CHUNK):
+        idx = np.floor(np.asarray(xy[a : a + _CHUNK, :2], np.float64) / resolution).astype(np.int64) - first_cell
+        inside = (idx[:, 0] >= 0) & (idx[:, 0] < shape[0]) & (idx[:, 1] >= 0) & (idx[:, 1] < shape[1])
+        np.add.at(counts, (idx[inside, 0], idx[inside, 1]), 1)
+    return counts
+
+
 def _build(xy, directory: Path, key: str, resolution: float, level: int, cell_value: str, progress):
     n = len(xy)
     if n == 0:
@@ -178,10 +185,7 @@ def _build(xy, directory: Path, key: str, resolution: float, level: int, cell_va
         lo, hi = np.minimum(lo, idx.min(axis=0)), np.maximum(hi, idx.max(axis=0))
     lo_i = lo.astype(np.int64)
     nx, ny = (hi.astype(np.int64) - lo_i + 1).tolist()
-    counts = np.zeros((nx, ny), np.int64)
-    for a in range(0, n, _CHUNK):
-        idx = np.floor(np.asarray(xy[a : a + _CHUNK, :2], np.float64) / resolution).astype(np.int64) - lo_i
-        np.add.at(counts, (idx[:, 0], idx[:, 1]), 1)
+    counts = _count_cells(xy, resolution, lo_i, (nx, ny))
     l0 = _cell_values(counts, cell_value)
     del counts
     t = 1 << level

@@ -8,17 +8,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-CHROMIUM = Path("/usr/bin/chromium")
+from lidarloc.app.bench.clients import CHROMIUM, CHROMIUM_ARGS  # the benchmarks' browser, as users run it
+
+__all__ = ["ARTIFACTS", "CHROMIUM", "CHROMIUM_ARGS", "JS_SCAN", "LOAD_TIMEOUT", "STEP_TIMEOUT"]
+
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-    "--headless",
-]
 LOAD_TIMEOUT = 90_000  # ms: first load compiles the viewer's shaders in software
 STEP_TIMEOUT = 60_000
 

@@ -30,12 +30,12 @@ from pathlib import Path
 
 from ...core.errors import LidarlocError
 from ..viewer.token_gate import TOKEN_ENV
+from .clients import CHROMIUM, CHROMIUM_ARGS
 from .common import load_avg, machine
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
 _LOOP = re.compile(r"^loop (\d+): (\d+) scans, (\d+) late, largest lag ([0-9.]+) s")
 FIELDS = ("t_s", "rss_mb", "viewer_rss_mb", "fds", "threads", "children", "recording_mb", "loops", "load_1min")
-CHROMIUM = Path("/usr/bin/chromium")
 
 
 class _Output:
@@ -119,7 +119,6 @@ def _open_client(url: str):
         from playwright.sync_api import sync_playwright
     except ImportError:
         return None, "Python Playwright not installed"
-    from .clients import CHROMIUM_ARGS
 
     pw = sync_playwright().start()
     browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)

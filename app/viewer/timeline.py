@@ -82,6 +82,7 @@ class Timeline:
         self.live_available = True  # False for a finished recording (view --run): no live run
         self._n = 0
         self._first = 0  # the first step the recording still holds (a rolling window's)
+        self._written = 0  # the slider value this object wrote last (any other one is a user's move)
         self._listed_at = 0.0
         with gui.add_folder("Timeline", order=order):
             self.where = gui.add_markdown("No recording yet")
@@ -119,7 +120,7 @@ class Timeline:
             self.step = None if live_available else (run.first_kept if run is not None and run.n else None)
             self._n = 0
             self._first = 0
-        self.sync()
+        self.sync(moved=True)
 
     @property
     def n(self) -> int:
@@ -131,23 +132,30 @@ class Timeline:
         """The slider's first step: 0, or a rolling window's first step."""
         return self._first
 
-    def sync(self, n: int | None = None, first: int | None = None) -> None:
+    def sync(self, n: int | None = None, first: int | None = None, *, moved: bool = False) -> None:
         """Bring the slider up to date with the recording's steps ``first`` … ``n`` − 1 (the
-        display thread, after each recorded step); while live it follows the newest one."""
+        display thread, after each recorded step); while live it follows the newest one.
+
+        ``moved``: the step on screen was just set (a move, a new run). Without it the slider's
+        value is left alone when it is not the one written last: a user's drag has set it and its
+        callback, on its way, moves the timeline there; following the newest step over it would
+        make that callback read the newest step instead."""
         run = self.run
         if n is None:
             n = 0 if run is None else run.n
         if first is None:
             first = 0 if run is None else run.first_kept
         first = min(first, max(n - 1, 0))
-        with self._lock:
+        s = self.slider
+        # one writer at a time, from reading the step to writing the value: the step read here is
+        # the one the value shows (a write's own callback returns at once, see _slider_moved)
+        with self._lock, self._writing():
+            seen = s.value
             grew = n != self._n or first != self._first
             self._n, self._first = n, first
             if self.step is not None and self.step < first:
                 self.step = first  # the window left the step on screen behind
             step = self.step
-        with self._writing():
-            s = self.slider
             if grew:
                 top = max(n - 1, first + 1)
                 if s.max < top:  # widen first: the value must stay within min … max
@@ -158,9 +166,11 @@ class Timeline:
                     s.max = top
                 if s.disabled != (n - first < 2):
                     s.disabled = n - first < 2
-            value = (n - 1 if step is None else step) if n else 0
-            if s.value != max(value, first):
-                s.value = max(value, first)
+            value = max((n - 1 if step is None else step) if n else 0, first)
+            if moved or seen == self._written:
+                if s.value != value:
+                    s.value = value
+                self._written = value
             if self.branch.disabled != (n == 0):
                 self.branch.disabled = n == 0
         self._describe()
@@ -198,7 +208,11 @@ class Timeline:
     def _slider_moved(self, event) -> None:
         if getattr(self._own, "active", False):
             return
-        self._guarded(lambda: self.go(int(self.slider.value)), needs_localizer=False)(event)
+        try:
+            self._guarded(lambda: self.go(int(self.slider.value)), needs_localizer=False)(event)
+        finally:
+            if self.slider.value != self._written:  # a refused move: show the timeline's step again
+                self.sync(moved=True)
 
     def _button(self) -> None:
         {
@@ -231,7 +245,7 @@ class Timeline:
         step = int(np.clip(step, self._first, self._n - 1))
         with self._lock:
             self.step = step
-        self.sync()
+        self.sync(moved=True)
         self._on_move(step)
         return step
 
@@ -307,5 +321,5 @@ class Timeline:
             return
         with self._lock:
             self.step = None
-        self.sync()
+        self.sync(moved=True)
         self._on_move(None)

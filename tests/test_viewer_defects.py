@@ -297,3 +297,29 @@ def test_map_is_shown_while_the_tables_are_built_and_sent_once(street, cache_roo
         go.set()
         handle.stop()
     wait_for(lambda: built and built[0].closed, what="localizer closed")
+
+
+# ---------------------------------------------------------------------------------- tabs that close at once
+def test_tabs_that_close_at_once_leave_nothing_behind(viewer):
+    """A tab closed while the server builds its camera folder (a reload, a page opened and shut):
+    no write-to-a-closed-connection warning, and no camera folder kept for it."""
+    import warnings
+
+    handle = viewer
+    assert handle.wait_ready(30)
+    cameras = handle.viewer.cameras
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(30):
+            Tab(handle.port).close()
+        wait_for(lambda: not handle.server.get_clients(), what="every tab gone")
+        wait_for(lambda: not cameras._tabs, what="every tab's camera folder dropped")
+        # one tab that stays: its folder is built and kept
+        tab = Tab(handle.port)
+        try:
+            wait_for(lambda: len(cameras._tabs) == 1, what="the open tab's camera folder")
+        finally:
+            tab.close()
+        wait_for(lambda: not cameras._tabs, what="the last tab's camera folder dropped")
+    closed = [str(w.message) for w in caught if "closed connection" in str(w.message)]
+    assert not closed, closed[0]

@@ -24,7 +24,7 @@ import viser
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
-from .camera import TabCameras, start_pose
+from .camera import TabCameras, start_pose, tab_may_close
 from .controls import ParameterControls, ParticleControls
 from .faults import BlockFailed, FaultReporter
 from .history import History
@@ -198,7 +198,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         client = client if client is not None else getattr(self._acting, "client", None)
         open_tabs = self.server.get_clients()
         tabs = [client] if client is not None else (list(open_tabs.values()) if everyone else [])
-        # a tab that closed meanwhile gets nothing (viser warns of a write to a closed connection)
+        # a tab already closed gets nothing; one closing meanwhile drops it (tab_may_close)
         tabs = [t for t in tabs if t.client_id in open_tabs]
         if title is None:
             title = (
@@ -206,9 +206,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             )
         for tab in tabs:
             try:
-                tab.add_notification(
-                    title, text, color="red" if error else "blue", auto_close_seconds=6.0 if not error else 10.0
-                )
+                with tab_may_close(tab):
+                    tab.add_notification(
+                        title, text, color="red" if error else "blue", auto_close_seconds=6.0 if not error else 10.0
+                    )
             except Exception:  # the tab may have closed meanwhile; the panel message stays
                 pass
 

@@ -4,6 +4,7 @@ The scene is shared by all tabs; cameras are not."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 from collections.abc import Callable
@@ -30,6 +31,16 @@ def _position(snap: Snapshot | None) -> np.ndarray | None:
     return p if np.isfinite(p).all() else None
 
 
+def tab_may_close(client: viser.ClientHandle):
+    """A scope for writes to one tab that may close meanwhile: what it writes after the tab closed is
+    dropped, as viser drops its own removal messages, without the warning meant for writes through
+    forgotten handles (a no-op scope where a viser version has no such scope)."""
+    conn = getattr(client, "_websock_connection", None)
+    buffer = conn.get_message_buffer() if conn is not None and hasattr(conn, "get_message_buffer") else None
+    scope = getattr(buffer, "sanctioned_dead_writes", None)
+    return scope() if scope is not None else contextlib.nullcontext()
+
+
 class TabCameras:
     """The cameras of all open tabs. ``latest`` returns the newest snapshot (or None);
     ``guarded(action, needs_localizer)`` turns an action into a GUI callback that reports
@@ -53,13 +64,23 @@ class TabCameras:
 
     # ------------------------------------------------------------------ tabs
     def connect(self, client: viser.ClientHandle) -> None:
-        """A new tab: its camera folder, each control wired to its move."""
-        tab = add_camera_folder(client.gui, self._order)
-        tab.follow.on_update(self._guarded(lambda: self._follow_toggled(client, tab), needs_localizer=False))
-        tab.top_down.on_click(self._guarded(lambda: self.top_down(client), needs_localizer=False))
-        tab.fit.on_click(self._guarded(lambda: self.whole_map(client), needs_localizer=False))
+        """A new tab: its camera folder, each control wired to its move.
+
+        A tab closed at once (a reload, a test's page) may be gone before or while its folder is
+        built: nothing is built for a tab already gone, and the folder's messages to a tab that
+        closes meanwhile are dropped by viser like its removal messages, without the warning meant
+        for writes through forgotten handles."""
+        with tab_may_close(client):
+            if client.client_id not in self.server.get_clients():
+                return
+            tab = add_camera_folder(client.gui, self._order)
+            tab.follow.on_update(self._guarded(lambda: self._follow_toggled(client, tab), needs_localizer=False))
+            tab.top_down.on_click(self._guarded(lambda: self.top_down(client), needs_localizer=False))
+            tab.fit.on_click(self._guarded(lambda: self.whole_map(client), needs_localizer=False))
         with self._lock:
             self._tabs[client.client_id] = tab
+        if client.client_id not in self.server.get_clients():
+            self.disconnect(client)  # it closed while its folder was built, before or after its own disconnect
 
     def disconnect(self, client: viser.ClientHandle) -> None:
         with self._lock:
@@ -75,7 +96,7 @@ class TabCameras:
             return
         yaw = float(np.arctan2(snap.mean_pose[1][0], snap.mean_pose[0][0]))
         back = np.array([-math.cos(yaw), -math.sin(yaw), 0.0])
-        with client.atomic():
+        with tab_may_close(client), client.atomic():
             client.camera.position = p + 35.0 * back + np.array([0, 0, 25.0])
             client.camera.look_at = p
 
@@ -98,7 +119,7 @@ class TabCameras:
     @staticmethod
     def _look_down(client, target, height: float) -> None:
         target = np.asarray(target, float)
-        with client.atomic():
+        with tab_may_close(client), client.atomic():
             # a hair off vertical keeps the orbit controls' up vector defined; +y stays up on screen
             client.camera.position = target + np.array([0.0, -1e-3 * height, height])
             client.camera.look_at = target
@@ -120,7 +141,7 @@ class TabCameras:
             initial.far, initial.near = far, near
         # tabs opened while the map was being built still look at the default origin
         for client in self.server.get_clients().values():
-            with client.atomic():
+            with tab_may_close(client), client.atomic():
                 client.camera.position = position
                 client.camera.look_at = look_at
                 if far != DEFAULT_FAR:
@@ -140,7 +161,7 @@ class TabCameras:
         self.server.initial_camera.position = tuple(position)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         for client in self.server.get_clients().values():
-            with client.atomic():
+            with tab_may_close(client), client.atomic():
                 client.camera.position = position
                 client.camera.look_at = target
 
@@ -162,7 +183,8 @@ class TabCameras:
                 cam = client.camera
                 shift = p - np.asarray(cam.look_at)
                 if np.linalg.norm(shift) > 1e-3:
-                    cam.position = np.asarray(cam.position) + shift  # moves look_at along
+                    with tab_may_close(client):
+                        cam.position = np.asarray(cam.position) + shift  # moves look_at along
             except (AssertionError, ValueError):  # camera state not reported yet
                 continue
 

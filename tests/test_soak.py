@@ -21,7 +21,8 @@ def test_growth_is_measured_from_the_first_sample_after_the_first_loop():
 @pytest.mark.timeout(400)
 def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):
     command = ["demo", "--scans", "20", "--set", f"town.n_scans={MAPPING_SCANS}"]
-    r = soak.run(command, minutes=0.5, out_dir=tmp_path, sample_s=2.0, cache=str(cache_root), client=False)
+    r = soak.run(command, minutes=0.5, out_dir=tmp_path, sample_s=2.0, cache=str(cache_root), client="socket")
+    assert r["client"] == "one websocket tab"
     assert r["loops"] >= 1 and r["loop_lines"][0]["scans"] == 20, r
     assert not r["crashed"] and r["exit_code"] == 0, r  # SIGTERM stops it as Ctrl-C does
     assert r["orphans_after_stop"] == 0

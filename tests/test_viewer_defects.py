@@ -12,55 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from helpers import make_localizer, wait_for
-
-
-class Tab:
-    """A browser tab as the server sees it: a websocket client speaking viser's protocol that
-    reads (and drops) everything the server sends, and can press a button."""
-
-    def __init__(self, port: int):
-        import msgspec
-        import viser
-        from viser._messages import ViewerCameraMessage
-        from websockets.sync.client import connect
-
-        self.ws = connect(
-            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=10
-        )
-        # viser counts a tab as connected once it reports its camera
-        camera = ViewerCameraMessage(
-            wxyz=(1.0, 0.0, 0.0, 0.0),
-            position=(0.0, 0.0, 10.0),
-            fov=1.0,
-            near=0.01,
-            far=1000.0,
-            image_height=600,
-            image_width=800,
-            look_at=(0.0, 0.0, 0.0),
-            up_direction=(0.0, 0.0, 1.0),
-        )
-        self.ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
-        self._thread = threading.Thread(target=self._drain, daemon=True)
-        self._thread.start()
-
-    def _drain(self):
-        try:
-            for _ in self.ws:
-                pass
-        except Exception:  # closed at the end of the test
-            pass
-
-    def click(self, button) -> None:
-        import msgspec
-        from viser._messages import GuiUpdateMessage
-
-        self.ws.send(
-            msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict())
-        )
-
-    def close(self):
-        self.ws.close()
-        self._thread.join(timeout=2)
+from lidarloc.app.bench.clients import SocketTab as Tab  # a tab as the server sees it
 
 
 def step(v, loc, n: int) -> None:

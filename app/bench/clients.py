@@ -44,16 +44,37 @@ CHROMIUM = Path("/usr/bin/chromium")
 LOAD_TIMEOUT_MS = 120_000
 
 
-class _SlowClient:
-    """A websocket client on a slow link: reads one message per ``every_s`` seconds."""
+class SocketTab:
+    """A tab as the server sees it, without a browser: a websocket client speaking viser's protocol
+    that reports a camera (viser counts a tab as connected from its first camera message) and
+    reads what the server sends — everything as it comes, or one message per ``every_s`` seconds
+    (a client on a slow link). No WebGL: on a machine without a GPU a browser tab's software
+    rendering takes a core of its own; this one costs the server what a tab costs it."""
 
-    def __init__(self, port: int, every_s: float = 1.0):
+    def __init__(self, port: int, every_s: float | None = None, open_timeout_s: float = 30.0):
+        import msgspec
         import viser
+        from viser._messages import ViewerCameraMessage
         from websockets.sync.client import connect
 
         self.ws = connect(
-            f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=30
+            f"ws://127.0.0.1:{port}",
+            subprotocols=[f"viser-v{viser.__version__}"],
+            max_size=None,
+            open_timeout=open_timeout_s,
         )
+        camera = ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0),
+            position=(0.0, 0.0, 10.0),
+            fov=1.0,
+            near=0.01,
+            far=1000.0,
+            image_height=600,
+            image_width=800,
+            look_at=(0.0, 0.0, 0.0),
+            up_direction=(0.0, 0.0, 1.0),
+        )
+        self.ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
         self.read = 0
         self._stop = threading.Event()
         self._every = every_s
@@ -62,11 +83,24 @@ class _SlowClient:
 
     def _loop(self) -> None:
         try:
-            while not self._stop.wait(self._every):
-                self.ws.recv(timeout=5)
-                self.read += 1
-        except Exception:  # closed at the end of the phase
+            if self._every is None:
+                for _ in self.ws:
+                    self.read += 1
+            else:
+                while not self._stop.wait(self._every):
+                    self.ws.recv(timeout=5)
+                    self.read += 1
+        except Exception:  # closed
             pass
+
+    def click(self, button) -> None:
+        """Press a GUI button of the server's, as a browser does."""
+        import msgspec
+        from viser._messages import GuiUpdateMessage
+
+        self.ws.send(
+            msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict())
+        )
 
     def close(self) -> None:
         self._stop.set()
@@ -177,7 +211,7 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0) -> dict:
             churned["connects"] = connects
             churned["connects_timed_out"] = failed - tab_failures
             phases.append(churned)
-            slow = _SlowClient(handle.port)
+            slow = SocketTab(handle.port, every_s=1.0)
             try:
                 slowed = _phase(viewer, updates, f"{tabs} tabs + a slow client (1 message/s)", phase_s)
                 slowed["slow_client_read"] = slow.read

@@ -2,8 +2,10 @@
 
 A real ``lidarloc demo`` (``view SOURCE`` with a source) is started in a child process with
 ``--autoplay --loop`` on the real-time clock, recording on (into the soak's own folder, kept to
-the viewer's default budget), with one headless Chromium tab attached (Playwright; without it the
-soak runs with no client and says so). Every ``sample_s`` seconds the process tree is sampled:
+the viewer's default budget), with one client attached: a headless Chromium tab (Playwright; without it the soak runs with no
+client and says so), or a websocket tab that reads everything the server sends without drawing it
+(``socket``: on a machine without a GPU the browser's software rendering takes a core of its own,
+which on 2 cores makes every scan late whatever the viewer does). Every ``sample_s`` seconds the process tree is sampled:
 resident memory (the viewer and its child processes), open file descriptors, the viewer's
 threads, its child processes, and the recordings' size. Each loop's line (``loop N: S scans,
 L late, …``) gives the late scans: a step that started over one scan period after its scan arrived.
@@ -30,7 +32,7 @@ from pathlib import Path
 
 from ...core.errors import LidarlocError
 from ..viewer.token_gate import TOKEN_ENV
-from .clients import CHROMIUM, CHROMIUM_ARGS
+from .clients import CHROMIUM, CHROMIUM_ARGS, SocketTab
 from .common import load_avg, machine
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
@@ -130,6 +132,9 @@ def _open_client(url: str):
 def _close_client(client) -> None:
     if client is None:
         return
+    if isinstance(client, SocketTab):
+        client.close()
+        return
     pw, browser, _ = client
     try:
         browser.close()
@@ -145,13 +150,16 @@ def growth(rows: list[dict], since_s: float | None, key: str) -> float | None:
     return round(after[-1][key] - after[0][key], 1)
 
 
+CLIENTS = ("chromium", "socket", "none")
+
+
 def run(
     command: list[str],
     minutes: float,
     out_dir: Path,
     sample_s: float = 10.0,
     cache: str | None = None,
-    client: bool = True,
+    client: str = "chromium",
     start_timeout_s: float = 900.0,
 ) -> dict:
     """Soak ``lidarloc <command>`` (``demo`` or ``view`` and its source options) for ``minutes``
@@ -177,8 +185,10 @@ def run(
         if not out.ready.wait(start_timeout_s) or proc.poll() is not None or out.url is None:
             raise LidarlocError(f"lidarloc {command[0]} did not become ready: " + " | ".join(out.tail))
         ready_s = time.perf_counter() - t0
-        if client:
+        if client == "chromium":
             client_handle, client_note = _open_client(out.url)
+        elif client == "socket":
+            client_handle, client_note = SocketTab(int(out.url.rsplit(":", 1)[1].split("/")[0])), "one websocket tab"
         end = time.perf_counter() + 60.0 * minutes
         next_t = time.perf_counter()
         while time.perf_counter() < end and proc.poll() is None:

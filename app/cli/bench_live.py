@@ -22,7 +22,15 @@ def bench_soak(
     out: Annotated[Path, typer.Option("--out", help="Folder for soak.csv, soak.png and the recordings.")] = Path(
         "out/bench-soak"
     ),
-    no_client: Annotated[bool, typer.Option("--no-client", help="No headless browser tab.")] = False,
+    client: Annotated[
+        str,
+        typer.Option(
+            "--client",
+            metavar="chromium|socket|none",
+            help="The tab attached: headless Chromium, a websocket tab that reads everything without "
+            "drawing it (no software WebGL competing for the cores), or none.",
+        ),
+    ] = "chromium",
     as_json: JsonOpt = False,
     spec=None,
     preset: PresetOpt = None,
@@ -30,12 +38,16 @@ def bench_soak(
     set_: SetOpt = None,
     cache: CacheOpt = None,
 ):
-    """Play `lidarloc demo` (`view` with a source) in real time in a loop for --minutes, a headless
-    browser tab attached and recording on; sample its memory, descriptors, threads, child processes
+    """Play `lidarloc demo` (`view` with a source) in real time in a loop for --minutes, one tab attached
+    (--client) and recording on; sample its memory, descriptors, threads, child processes
     and recordings every --sample-s seconds. Targets: RSS growth ≤ 50 MB after the first loop,
     constant descriptors / threads / children, no late scans beyond the first loop's."""
     from ..bench.common import config_args, source_args
+    from ..bench.soak import CLIENTS
     from ..bench.soak import run as run_bench
+
+    if client not in CLIENTS:
+        raise typer.BadParameter(f"{client!r} is not one of {', '.join(CLIENTS)}", param_hint="--client")
 
     config_from(config, set_, preset=preset)
     if given(ctx, SOURCE_CHOICE + ("map",)):
@@ -48,7 +60,7 @@ def bench_soak(
         out,
         sample_s=sample_s,
         cache=None if cache is None else str(cache),
-        client=not no_client,
+        client=client,
     )
     show_bench_result("soak", result, as_json)
 

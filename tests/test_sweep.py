@@ -74,33 +74,87 @@ def test_ray_gives_the_pool_results_and_reports_a_failed_run(tmp_path, ray_local
 
 
 KILLED_SWEEP = """
-import sys
+import os, sys
 sys.path.insert(0, {tests!r})
+os.environ["PYTHONPATH"] = os.pathsep.join(p for p in ({tests!r}, os.environ.get("PYTHONPATH")) if p)
 from pathlib import Path
 from test_sweep import sweep
 if __name__ == "__main__":
-    sweep(Path({out!r}), None, work_s=0.4)
+    sweep(Path({out!r}), {ray!r}, work_s={work_s!r})
 """
+
+
+def _session_pids(sid: int) -> list[int]:
+    """Processes of session ``sid`` that still run (zombies excluded)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":  # state, ppid, pgrp, session
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def session_alive(sid: int) -> bool:
+    return bool(_session_pids(sid))
+
+
+def kill_session(sid: int) -> None:
+    for pid in _session_pids(sid):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def kill_half_way(out: Path, script: Path, ray: str | None, work_s: float) -> int:
+    """Start the 8-run sweep in a process of its own (its own Ray instance with ``ray``), SIGKILL
+    it and everything it started once three runs are done; returns the runs finished."""
+    script.write_text(KILLED_SWEEP.format(tests=TESTS, out=str(out), ray=ray, work_s=work_s))
+    proc = subprocess.Popen([sys.executable, str(script)], start_new_session=True, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: len(list(out.glob("runs/*/*/summary.json"))) >= 3, timeout=300, what="three runs done")
+    finally:
+        # the machine dies half-way: every process of the sweep's session (Ray's workers have
+        # process groups of their own, and a killed driver's workers finish the run they are in)
+        kill_session(proc.pid)
+        proc.wait()
+        wait_for(lambda: not session_alive(proc.pid), timeout=30, what="the session's processes gone")
+    finished = len(list(out.glob("runs/*/*/summary.json")))
+    assert 3 <= finished < 8
+    return finished
 
 
 def test_killed_sweep_resumes_without_doing_a_run_twice(tmp_path):
     out = tmp_path / "sweep"
-    script = tmp_path / "killed.py"
-    script.write_text(KILLED_SWEEP.format(tests=TESTS, out=str(out)))
-    proc = subprocess.Popen([sys.executable, str(script)], start_new_session=True, stderr=subprocess.DEVNULL)
-    try:
-        wait_for(lambda: len(list(out.glob("runs/*/*/summary.json"))) >= 3, timeout=120, what="three runs done")
-    finally:
-        os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its workers, half-way
-        proc.wait()
-    finished = len(list(out.glob("runs/*/*/summary.json")))
-    assert 3 <= finished < 8
+    finished = kill_half_way(out, tmp_path / "killed.py", None, 0.4)
     tally, results = sweep(out, None, work_s=0.4)
     assert (tally.kept, tally.done, tally.failed) == (finished, 8 - finished, {})
     # every run done once: the killed ones' were cut short before their summary
     log = done_log(out)
     assert sorted(log) == sorted(set(log)) and len(log) == 8
     assert all(json.loads(p.read_text())["seed"] in (0, 1) for p in out.glob("runs/*/*/summary.json"))
+
+
+@pytest.mark.slow
+def test_killed_ray_sweep_resumes_without_doing_a_run_twice(tmp_path, ray_local):
+    """On Ray: the killed sweep's Ray Tune experiment is restored (Tuner.restore) on another Ray
+    instance; the runs finished before the kill are not run again, the others once."""
+    out = tmp_path / "sweep"
+    finished = kill_half_way(out, tmp_path / "killed.py", "local", 1.0)
+    trials = out / "ray" / "trials"
+    killed_ids = {p.name.split("_")[2] for p in trials.glob("_trial_*")}  # _trial_<experiment>_<n>_…
+    assert len(killed_ids) == 1
+    tally, results = sweep(out, "local", work_s=0.1)
+    # Ray Tune restored the killed experiment (a fresh one would name its trials anew)
+    assert {p.name.split("_")[2] for p in trials.glob("_trial_*")} == killed_ids
+    assert (tally.kept, tally.done, tally.failed, tally.interrupted) == (finished, 8 - finished, {}, False)
+    assert len(results) == 8 - finished
+    log = done_log(out)
+    assert sorted(log) == sorted(set(log)) and len(log) == 8
+    assert len(list(out.glob("runs/*/*/summary.json"))) == 8
 
 
 def test_grid_is_parsed_and_checked():

@@ -67,6 +67,30 @@ def test_window_reads_as_the_table_and_tiles_are_dropped(town):
     tiled.drop_except(tiled.tiles_over(-20.0, -20.0, 20.0, 20.0))
     assert set(tiled.open_tiles) == set(tiled.tiles_over(-20.0, -20.0, 20.0, 20.0))
     assert tiled.cache_bytes > 0
+    # a window copies its tiles: those mapped in only for the copy are unmapped after it, so a
+    # window is not resident twice (tiles mapped before stay: query() keeps them for its reads)
+    tiled.drop_except(())
+    win = tiled.window(-20.0, -20.0, 20.0, 20.0)
+    assert tiled.open_tiles == [] and np.array_equal(win.query(q[inside]), mono.query(q[inside]))
+    tiled.query(q[:10])
+    before = set(tiled.open_tiles)
+    tiled.window(-20.0, -20.0, 20.0, 20.0)
+    assert set(tiled.open_tiles) == before
+
+
+def test_the_follower_keeps_one_window_and_no_tile_mapped(town):
+    from lidarloc.core.maps.follow import TileFollower
+
+    pts, mono, tiled, _ = town
+    follower = TileFollower(tiled)
+    cloud = np.random.default_rng(2).normal(0.0, 3.0, (500, 2))
+    a = follower.follow(cloud, 40.0)
+    assert follower.follow(cloud + 0.5, 40.0) is a and follower.windows == 1  # the same tiles: reused
+    far = cloud + (pts.max(axis=0)[:2] - 30.0)
+    b = follower.follow(far, 40.0)
+    assert b is not a and follower.windows == 2 and tiled.open_tiles == []
+    q = np.c_[far + np.random.default_rng(3).normal(0.0, 10.0, far.shape), np.zeros(len(far))]
+    assert np.array_equal(b.query(q), mono.query(q))
 
 
 def test_tile_sizes_are_whole_build_tiles():

@@ -2,10 +2,11 @@
 memory a drive through the city keeps resident, measured where nothing else was loaded before.
 
 It opens the tiled lookup table and BEV pyramid from their cache (no map points), assembles the
-likelihood's window around the first pose (the start), then follows the drive's poses: a new
-window whenever the vehicle moved a quarter tile, tiles left behind unmapped, and a scan-sized
-read of the window at every pose (the particle filter's reads), plus the tiled global search of
-one scan. Prints one JSON line: start_s, rss_peak_mb, tiles mapped.
+likelihood's window around a tracking particle cloud at the first pose (the start) with the
+particle filter's own :class:`~lidarloc.core.maps.follow.TileFollower`, then moves the cloud
+along the drive's poses (a new window whenever the tiles under the cloud and the scan's reach
+change) with a scan-sized read of the window at every pose (the particle filter's reads), plus
+the tiled global search of one scan. Prints one JSON line: start_s, rss_peak_mb, windows.
 """
 
 from __future__ import annotations
@@ -17,12 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.maps.follow import TileFollower
 from ...core.maps.tile_cache import read_index
 from ...core.maps.tiled_bev import TiledBEV
 from ...core.maps.tiled_lookup import TiledLookup
 from ...core.matching.tiled_search import match_global_tiled
 
-REACH_M = 100.0  # the window's half side: scan range (80 m) plus the particles' spread
+SCAN_REACH_M = 80.0  # the scan's reach from its particle (the HDL-64E's range)
+SPREAD_M = 5.0  # the tracking cloud's standard deviation per axis (m)
+PARTICLES = 1000
 
 
 def peak_rss_mb() -> float:
@@ -44,27 +48,22 @@ def probe(args: dict) -> dict:
     bev = TiledBEV.load_or_build(
         np.zeros((0, 2)), Path(args["bev_dir"]), args["bev_key"], args["bev_res"], args["bev_tile_m"]
     )
-    x, y = poses[0, :2]
-    window = lookup.window(x - REACH_M, y - REACH_M, x + REACH_M, y + REACH_M)
+    follower = TileFollower(lookup)
+    spread = np.random.default_rng(1).normal(0.0, SPREAD_M, (PARTICLES, 2))  # a tracking particle cloud
+    window = follower.follow(poses[0, :2] + spread, SCAN_REACH_M)
     start_s = time.perf_counter() - t0
     rng = np.random.default_rng(0)
     offsets = np.c_[rng.uniform(-80, 80, (20_000, 2)), rng.uniform(-2, 10, 20_000)]
-    centre = poses[0, :2]
-    windows = 1
     for p in poses:
-        if np.hypot(*(p[:2] - centre)) > lookup.tile_m / 4:
-            centre = p[:2]
-            x, y = centre
-            lookup.drop_except(lookup.tiles_over(x - REACH_M, y - REACH_M, x + REACH_M, y + REACH_M))
-            window = lookup.window(x - REACH_M, y - REACH_M, x + REACH_M, y + REACH_M)
-            windows += 1
+        window = None  # as the particle filter holds it: only between its reads
+        window = follower.follow(p[:2] + spread, SCAN_REACH_M)
         window.query(offsets + p)
     t = time.perf_counter()
     match_global_tiled(bev, scan, args["angle_step"])
     return {
         "start_s": start_s,
         "rss_peak_mb": peak_rss_mb(),
-        "windows": windows,
+        "windows": follower.windows,
         "window_mb": window.nbytes / 1e6,
         "global_ms": (time.perf_counter() - t) * 1e3,
         "bev_tiles_loaded": bev.loaded,

@@ -7,14 +7,17 @@ several GB); a run maps in the tiles its particles and its searches touch and dr
 and the operating system pages in only the parts of a mapped tile that are read.
 
 Why a CRC per tile: a truncated file is caught by its size, but a tile copied from another cache
-(another map, another resolution) has the right size. Each tile's CRC is checked once, when it
-is first opened, reading the file in chunks (not through the map, so the check leaves nothing
-resident); a tile that fails is rebuilt and rewritten (temporary file, then rename).
+(another map, another resolution) has the right size. Each tile file's CRC is checked once per
+process, when it is first opened, reading the file in chunks (not through the map, so the check
+leaves nothing resident); a tile reopened later (a run coming back to it) is checked again only
+if its file changed (size, modification time or inode). A tile that fails is rebuilt and
+rewritten (temporary file, then rename).
 """
 
 from __future__ import annotations
 
 import json
+import threading
 import zlib
 from pathlib import Path
 
@@ -25,6 +28,10 @@ from ..errors import DataError
 
 INDEX = "tiles.json"
 _CHUNK = 1 << 22
+
+# files whose CRC matched, as (path, size, mtime_ns, inode, crc): a file changed since is checked again
+_checked: set[tuple] = set()
+_checked_lock = threading.Lock()
 
 
 def tile_name(tx: int, ty: int) -> str:
@@ -61,8 +68,15 @@ def open_tile(directory: Path, name: str, entry: dict) -> dict[str, np.ndarray]:
             raise DataError(f"{path}: missing tile file") from None
         if size != want["bytes"]:
             raise DataError(f"{path}: truncated tile file ({size} of {want['bytes']} bytes)")
-        if file_crc(path) != want["crc"]:
-            raise DataError(f"{path}: tile file of another table (checksum differs)")
+        st = path.stat()
+        seen = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino, want["crc"])
+        with _checked_lock:
+            checked = seen in _checked
+        if not checked:
+            if file_crc(path) != want["crc"]:
+                raise DataError(f"{path}: tile file of another table (checksum differs)")
+            with _checked_lock:
+                _checked.add(seen)
         try:
             array = np.load(path, mmap_mode="r")
         except (OSError, ValueError) as exc:

@@ -229,18 +229,25 @@ class TiledLookup:
         cx1 = min((txs[-1] + 1) * self.tile_cells, self.shape[0])
         cy1 = min((tys[-1] + 1) * self.tile_cells, self.shape[1])
         nb_x, nb_y = (cx1 - cx0 + BRICK - 1) // BRICK, (cy1 - cy0 + BRICK - 1) // BRICK
-        parts = [self.tile(tx, ty) for tx, ty in tiles]
-        pool = np.empty((1 + sum(len(p[1]) - 1 for p in parts), BRICK_CELLS), np.uint8)
+        # the window holds a copy: a tile mapped in only to be copied is unmapped right after its
+        # copy, so that the copy is not resident twice (its pages and the mapped file's)
+        was_open = set(self._open)
+        sizes = [len(self.tile(tx, ty)[1]) for tx, ty in tiles]  # mapped, not read yet: nothing resident
+        pool = np.empty((1 + sum(n - 1 for n in sizes), BRICK_CELLS), np.uint8)
         pool[0] = MISS_CODE
         brick_index = np.zeros((nb_x, nb_y, self.nbz), np.int32)
         slot = 1
-        for (tx, ty), (index, bricks) in zip(tiles, parts, strict=True):
+        for tx, ty in tiles:
+            index, bricks = self.tile(tx, ty)
             k = len(bricks) - 1
             pool[slot : slot + k] = bricks[1:]
             local = np.asarray(index)
             bx, by = (tx - txs[0]) * bpt, (ty - tys[0]) * bpt
             brick_index[bx : bx + local.shape[0], by : by + local.shape[1]] = np.where(local > 0, local + slot - 1, 0)
             slot += k
+            del index, bricks, local
+            if (tx, ty) not in was_open:
+                self._open.pop((tx, ty), None)
         origin = self.origin + np.array([cx0 * self.resolution, cy0 * self.resolution, 0.0])
         return LookupTable(
             origin, self.resolution, self.d_max_built, (cx1 - cx0, cy1 - cy0, self.shape[2]), brick_index, pool

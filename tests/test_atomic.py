@@ -1,6 +1,7 @@
 """Atomic writes (core/cache.py, core/runs/results.py): a result file is complete or absent whenever
-its writer is killed; a write that fails (file too large, disk full) is one line naming the file
-and leaves earlier files intact; an unreadable cache entry is built again and the user told."""
+its writer is killed; a write that fails (file too large, disk full, a real full tmpfs under a run)
+is one line naming the file and leaves earlier files intact; an unreadable cache entry is built
+again and the user told."""
 
 import json
 import logging
@@ -177,3 +178,53 @@ def test_a_damaged_map_cache_is_rebuilt_and_the_user_told(tmp_path, caplog, dama
     with caplog.at_level(logging.WARNING, logger="lidarloc.cache"):  # rewritten whole: read as it is
         third = open_world(seq.map_source, cfg, tmp_path, lookup=False, pyramid=False).prior_map
     assert "unreadable" not in caplog.text and np.array_equal(third.points, first.points)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real full disk: a 256 kB tmpfs (mounting one needs root; elsewhere the test skips)."""
+    import os
+    import shutil
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("a tmpfs needs root and mount(8)")
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {made.stderr.decode().strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+@pytest.mark.slow
+def test_a_run_that_fills_a_real_disk_is_one_line_and_keeps_what_it_wrote(small_disk, cache_root):
+    """``lidarloc run`` onto a 256 kB tmpfs: its recording fills the disk a few scans in. The run
+    stops with one line naming the file and the cause (exit 2), no traceback, no temporary file
+    left, a file there before untouched, and the steps recorded so far readable."""
+    import os
+
+    from lidarloc.core.runs import recording
+
+    earlier = small_disk / "earlier.txt"
+    earlier.write_text("written before the run\n")
+    out = small_disk / "run"
+    env = dict(os.environ, LIDARLOC_CACHE=str(cache_root))
+    r = subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", "20"]
+        + ["--set", "pf.n_particles=300", "--set", "town.n_scans=150"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("lidarloc: error:")]
+    assert len(errors) == 1 and "No space left on device" in errors[0] and str(out) in errors[0], r.stderr[-2000:]
+    assert earlier.read_text() == "written before the run\n"
+    assert not [p for p in small_disk.rglob("*") if ".tmp" in p.name]
+    rec = recording.open(out / "recording")
+    assert rec.n >= 1 and list(rec.scan_index) == list(range(rec.n))

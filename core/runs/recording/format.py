@@ -52,12 +52,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ...cache import atomic_write_file
 from ...errors import LidarlocError
 from ...localizer.state import ResumePayload  # noqa: F401  (the payload a step's record carries)
 from ...snapshot import S2MView
@@ -147,9 +147,10 @@ def source_dict(spec) -> dict:
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(jsonable(data), indent=1))
-    os.replace(tmp, path)  # a reader never sees half an index
+    """A reader never sees half an index; a write that fails (a full disk) leaves the old one and
+    no temporary file."""
+    text = json.dumps(jsonable(data), indent=1)
+    atomic_write_file(path, lambda tmp: tmp.write_text(text))
 
 
 def save_s2m(folder: Path, step: int, view: S2MView) -> None:

@@ -8,14 +8,14 @@ from __future__ import annotations
 import time
 
 from helpers import wait_for
-from lidarloc.app.bench.clients import _SlowClient, _timed
+from lidarloc.app.bench.clients import SocketTab, _timed
 
 
 def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):
     v, loc = viewer.viewer, viewer.localizer
     updates: list = []
     _timed(v, updates)
-    slow = _SlowClient(viewer.port, every_s=1.0)
+    slow = SocketTab(viewer.port, every_s=1.0)
     try:
         v.controls.s2m_enabled.value = False  # the filter alone: its pace is the one that matters here
         v.controls.speed.value = "max"

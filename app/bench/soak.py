@@ -2,11 +2,11 @@
 
 A real ``lidarloc demo`` (``view SOURCE`` with a source) is started in a child process with
 ``--autoplay --loop`` on the real-time clock, recording on (into the soak's own folder, kept to
-the viewer's default budget), with one client attached: a headless Chromium tab (Playwright; without it the soak runs with no
-client and says so), or a websocket tab that reads everything the server sends without drawing it
-(``socket``: on a machine without a GPU the browser's software rendering takes a core of its own,
-which on 2 cores makes every scan late whatever the viewer does). Every ``sample_s`` seconds the process tree is sampled:
-resident memory (the viewer and its child processes), open file descriptors, the viewer's
+the viewer's default budget), with one client attached: a headless Chromium tab (Playwright;
+without it the soak runs with no client and says so), or a websocket tab that reads everything
+the server sends without drawing it (``socket``: on a machine without a GPU the browser's
+software rendering takes a core of its own, which on 2 cores makes every scan late whatever the
+viewer does). Every ``sample_s`` seconds the process tree is sampled: resident memory (the viewer and its child processes), open file descriptors, the viewer's
 threads, its child processes, and the recordings' size. Each loop's line (``loop N: S scans,
 L late, …``) gives the late scans: a step that started over one scan period after its scan arrived.
 

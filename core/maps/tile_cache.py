@@ -63,12 +63,11 @@ def open_tile(directory: Path, name: str, entry: dict) -> dict[str, np.ndarray]:
     for layer, want in entry.items():
         path = Path(directory) / f"{name}.{layer}.npy"
         try:
-            size = path.stat().st_size
+            st = path.stat()
         except OSError:
             raise DataError(f"{path}: missing tile file") from None
-        if size != want["bytes"]:
-            raise DataError(f"{path}: truncated tile file ({size} of {want['bytes']} bytes)")
-        st = path.stat()
+        if st.st_size != want["bytes"]:
+            raise DataError(f"{path}: truncated tile file ({st.st_size} of {want['bytes']} bytes)")
         seen = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino, want["crc"])
         with _checked_lock:
             checked = seen in _checked

@@ -29,6 +29,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from ...core.errors import LidarlocError
 from ..viewer.token_gate import TOKEN_ENV
@@ -188,7 +189,7 @@ def run(
         if client == "chromium":
             client_handle, client_note = _open_client(out.url)
         elif client == "socket":
-            client_handle, client_note = SocketTab(int(out.url.rsplit(":", 1)[1].split("/")[0])), "one websocket tab"
+            client_handle, client_note = SocketTab(urlsplit(out.url).port), "one websocket tab"
         end = time.perf_counter() + 60.0 * minutes
         next_t = time.perf_counter()
         while time.perf_counter() < end and proc.poll() is None:

@@ -221,6 +221,15 @@ class WorkerProcess:
             except OSError:
                 pass
 
+    def kill(self) -> None:
+        """SIGKILL the child without waiting for it: the parent is about to exit and cannot wait
+        for :meth:`close` (the kernel reaps the child once the parent is gone)."""
+        try:
+            if self._proc.poll() is None:
+                self._proc.kill()
+        except OSError:
+            pass
+
     def __del__(self):
         try:
             self.close()
@@ -309,6 +318,10 @@ class WorkerProxy:
 
     def close(self) -> None:
         self._worker.close()
+
+    def kill(self) -> None:
+        """Kill the current child at once (see :meth:`WorkerProcess.kill`)."""
+        self._worker.kill()
 
 
 def _next_message(stream) -> tuple[bool, Any]:

@@ -25,7 +25,7 @@ def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):
     assert r["client"] == "one websocket tab"
     assert r["loops"] >= 1 and r["loop_lines"][0]["scans"] == 20, r
     assert not r["crashed"] and r["exit_code"] == 0, r  # SIGTERM stops it as Ctrl-C does
-    assert r["orphans_after_stop"] == 0
+    assert r["orphans_after_stop"] == 0, r["orphan_commands"]
     rows = list(csv.DictReader(open(tmp_path / "soak.csv")))
     assert len(rows) == r["samples"] >= 5 and float(rows[0]["rss_mb"]) > 100 and int(rows[0]["children"]) >= 1
     assert (tmp_path / "soak.png").stat().st_size > 1000

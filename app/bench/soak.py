@@ -223,6 +223,7 @@ def run(
             proc.wait()
         stop_s = time.perf_counter() - stop_t
     orphans = _alive(tree_pids)
+    orphan_commands = [_command_line(p) for p in orphans]
     for p in orphans:  # do not leave them behind the benchmark either (the very process: pid and start time)
         try:
             p.kill()
@@ -254,6 +255,7 @@ def run(
         "stop_s": round(stop_s, 2),
         "exit_code": proc.returncode,
         "orphans_after_stop": len(orphans),
+        "orphan_commands": orphan_commands,
         "targets": {"rss_growth_mb": 50.0, "fd_growth": 0, "thread_growth": 0, "children_growth": 0},
         "load_average_1min": round(load_avg(), 2),
         "load_average_max": max((r["load_1min"] for r in rows), default=None),
@@ -273,6 +275,16 @@ def _identities(procs) -> set[tuple[int, float]]:
         except psutil.Error:  # ended meanwhile
             pass
     return out
+
+
+def _command_line(p) -> str:
+    """What an orphan runs (its command line), to say which block left it behind."""
+    import psutil
+
+    try:
+        return " ".join(p.cmdline())
+    except psutil.Error:  # ended meanwhile
+        return f"pid {p.pid} (ended)"
 
 
 def _alive(seen: set[tuple[int, float]]) -> list:

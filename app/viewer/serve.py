@@ -77,6 +77,8 @@ class ViewerHandle:
             closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
             closer.start()
             closer.join(timeout=0.3)
+            if closer.is_alive():  # a busy machine: no child may outlive the viewer's process
+                loc.kill_processes()
         self._stopped.set()
 
 

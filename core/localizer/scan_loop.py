@@ -284,6 +284,17 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         for pool in pools:
             pool.shutdown(wait=True)
 
+    def kill_processes(self) -> None:
+        """Kill every child process at once, without waiting for them or for the threads: for a
+        process about to exit whose :meth:`close` did not finish in time (a busy machine), so
+        that no child outlives it. Safe from any thread, also while :meth:`close` runs."""
+        self._interrupt.set()
+        self._closed = True
+        if self._road_removal is not None:
+            self._road_removal.kill(wait=False)
+        self.odometry.kill_process()
+        self.s2m.kill_processes()
+
     def wait_ready(self) -> None:
         """Block until every block is ready to work at full speed: the child processes (S2M's map,
         pyramid, GICP target and warm-up match; KISS-ICP) have finished their set-up, and the PF's

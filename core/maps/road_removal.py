@@ -69,10 +69,13 @@ class RoadRemovalProcess:
             lines = [ln for ln in err.decode(errors="replace").splitlines() if ln.strip()]
             raise LidarlocError(f"road removal failed: {lines[-1] if lines else f'exit code {self._proc.returncode}'}")
 
-    def kill(self) -> None:
+    def kill(self, wait: bool = True) -> None:
+        """SIGKILL the child (its map is written to a temporary name, then renamed: nothing is
+        left half-written); ``wait`` False does not reap it (the parent is about to exit)."""
         if self._proc.poll() is None:
             self._proc.kill()
-            self._proc.wait()
+            if wait:
+                self._proc.wait()
 
 
 def main(argv: list[str]) -> int:

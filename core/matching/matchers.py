@@ -78,3 +78,9 @@ class MatcherMixin:
         for matcher in [self.matcher, *self._retired_matchers]:
             if isinstance(matcher, S2MProcess):
                 matcher.close()
+
+    def kill_processes(self) -> None:
+        """Kill the S2M child processes at once, without waiting (the process is about to exit)."""
+        for matcher in [self.matcher, *self._retired_matchers]:
+            if isinstance(matcher, S2MProcess):
+                matcher.kill()

@@ -59,6 +59,9 @@ class S2MNotReady:
     def close_processes(self) -> None:
         pass
 
+    def kill_processes(self) -> None:
+        pass
+
 
 def in_daemon_thread(work: Callable[[], object], name: str) -> Future:
     """Run ``work`` on a daemon thread and return its Future. Not a pool: a pool's threads are

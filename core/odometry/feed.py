@@ -342,3 +342,8 @@ class OdometryFeed:
         """Close the KISS-ICP child (a busy one is killed: its registration would be thrown away)."""
         if self.process is not None:
             self.process.close()
+
+    def kill_process(self) -> None:
+        """Kill the KISS-ICP child at once, without waiting (the process is about to exit)."""
+        if self.process is not None:
+            self.process.kill()

@@ -44,10 +44,11 @@ def test_tiled_search_finds_the_whole_map_optimum(town, tmp_path, tile_m):
     assert bev.ntx * bev.nty > 1
     for scan in scans:
         whole = match_global(world.pyramid, scan, STEP)
-        tiled = match_global_tiled(bev, scan, STEP)
-        assert tiled.score == whole.score
-        assert (tiled.x, tiled.y, tiled.yaw) == (whole.x, whole.y, whole.yaw)
-        assert tiled.candidates[0, 3] == whole.score
+        for workers in (1, 3):  # one tile at a time, or three at once on threads: the same answer
+            tiled = match_global_tiled(bev, scan, STEP, workers=workers)
+            assert tiled.score == whole.score
+            assert (tiled.x, tiled.y, tiled.yaw) == (whole.x, whole.y, whole.yaw)
+            assert tiled.candidates[0, 3] == whole.score
 
 
 def test_a_damaged_pyramid_tile_is_rebuilt_and_the_user_told(town, tmp_path, caplog):

@@ -13,6 +13,7 @@ a tile is such a block at level k.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -57,6 +58,7 @@ class TiledBEV:
         self.xy = xy  # the road-removed map's points, kept to rebuild a tile whose file is damaged
         self.rebuilt: list[tuple[int, int]] = []  # tiles rebuilt since opening (damaged files)
         self._open: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()  # the global search reads tiles from several threads
 
     @property
     def cache_bytes(self) -> int:
@@ -64,6 +66,10 @@ class TiledBEV:
 
     def tile(self, tx: int, ty: int) -> np.ndarray:
         """L0 of tile (tx, ty) (zeros for a tile with no map points), mapped in on first use."""
+        with self._lock:
+            return self._tile(tx, ty)
+
+    def _tile(self, tx: int, ty: int) -> np.ndarray:
         key = (tx, ty)
         if key in self._open:
             self._open.move_to_end(key)

@@ -10,7 +10,9 @@ the point, and the sum over the scan's points bounds every pose in the tile (the
 :mod:`.m3rsm` at level k). Tiles are then searched best bound first, each with M3RSM's own
 branch and bound on its L0 (mapped in from its file, with the neighbouring tiles' cells a scan
 can reach) and told the best score so far, so it prunes against it; the search stops at the
-first tile whose bound cannot beat that score. No pose is pruned whose score could be higher
+first tile whose bound cannot beat that score. Tiles are searched a few at once, one per core,
+each batch told the best score of the batches before it and merged in tile order, so that the
+result does not depend on which thread finished first. No pose is pruned whose score could be higher
 than the one returned, so the optimum is the whole-map search's (tests/test_tiles_search.py
 compares them).
 """
@@ -18,7 +20,9 @@ compares them).
 from __future__ import annotations
 
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numba as nb
 import numpy as np
@@ -56,11 +60,16 @@ def _tile_bounds(Lk, cx, cy, level, ntx, nty):
 
 
 def match_global_tiled(
-    bev: TiledBEV, scan_xy: np.ndarray, angle_step: float = 2.5 * math.pi / 180.0, keep_candidates: int = N_CANDIDATES
+    bev: TiledBEV,
+    scan_xy: np.ndarray,
+    angle_step: float = 2.5 * math.pi / 180.0,
+    keep_candidates: int = N_CANDIDATES,
+    workers: int | None = None,
 ) -> MatchResult:
     """Global search over the whole tiled map (see the module docstring): the pose and score
     :func:`~lidarloc.core.matching.m3rsm.match_global` finds on the same map, mapping in only
-    the tiles whose bound can beat the best score found."""
+    the tiles whose bound can beat the best score found. ``workers`` tiles are searched at once
+    on as many threads (default: one per core; the branch and bound releases the GIL)."""
     if angle_step <= 0:
         raise LidarlocError(f"angle_step must be > 0, got {angle_step}")
     t0 = time.perf_counter()
@@ -76,14 +85,13 @@ def match_global_tiled(
     bounds = _tile_bounds(bev.coarse[0], cx, cy, bev.tile_level, bev.ntx, bev.nty)
     tile_bound = bounds.max(axis=1) if bounds.size else np.zeros(len(bounds))
     order = np.argsort(-tile_bound, kind="stable")
-    best, found, nodes, searched = -1.0, None, 0, 0
-    cands = []
     lo_x, hi_x = (int(cx.min()), int(cx.max())) if cx.size else (0, 0)
     lo_y, hi_y = (int(cy.min()), int(cy.max())) if cy.size else (0, 0)
-    for i in order:
-        if tile_bound[i] <= best:
-            break  # no pose in this tile or any later one can beat the best score
-        sel = np.flatnonzero(bounds[i] > best)  # the angles whose bound can still beat it
+
+    def search_tile(i: int, beat: float):
+        """Tile i's own branch and bound over the angles whose bound can beat ``beat``: its best
+        pose strictly above ``beat`` (on the city's grid), or None, and its result."""
+        sel = np.flatnonzero(bounds[i] > beat)
         tx, ty = divmod(int(i), bev.nty)
         kx0, ky0 = tx * t, ty * t
         kx1, ky1 = min(kx0 + t, nx) - 1, min(ky0 + t, ny) - 1
@@ -94,19 +102,46 @@ def match_global_tiled(
         local_anchor = (anchor[0] + kx0 * d, anchor[1] + ky0 * d)
         res = search_cells(
             pyr, cx[sel] + (kx0 - wx0), cy[sel] + (ky0 - wy0), local_anchor, angles[sel], (0, 0), (kx1 - kx0, ky1 - ky0),
-            beat=best, keep=keep_candidates,
+            beat=beat, keep=keep_candidates,
         )  # fmt: skip
-        searched += 1
-        nodes += res.nodes_expanded
-        if len(res.candidates):
-            k = np.rint((res.candidates[:, :2] - np.array(local_anchor)) / d) + np.array([kx0, ky0])
-            c = res.candidates.copy()
+        c = res.candidates.copy()
+        if len(c):
+            k = np.rint((c[:, :2] - np.array(local_anchor)) / d) + np.array([kx0, ky0])
             c[:, 0], c[:, 1] = anchor[0] + k[:, 0] * d, anchor[1] + k[:, 1] * d
-            cands.append(c)
-        if not math.isnan(res.x) and res.score > best:
+        pose = None
+        if not math.isnan(res.x) and res.score > beat:
             kx = int(round((res.x - local_anchor[0]) / d)) + kx0
             ky = int(round((res.y - local_anchor[1]) / d)) + ky0
-            best, found = res.score, (anchor[0] + kx * d, anchor[1] + ky * d, res.yaw)
+            pose = (anchor[0] + kx * d, anchor[1] + ky * d, res.yaw)
+        return pose, res, c
+
+    # Tiles in batches of `workers`, best bound first, every tile of a batch told the best score
+    # of the batches before it; a batch's results are merged in tile order, so the outcome does not
+    # depend on which thread finished first (the same as one thread searching tile after tile).
+    best, found, nodes, searched = -1.0, None, 0, 0
+    cands = []
+    workers = max(1, int(workers or os.cpu_count() or 1))
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="lidarloc-tiles") if workers > 1 else None
+    try:
+        pos = 0
+        while pos < len(order) and tile_bound[order[pos]] > best:
+            batch = [int(i) for i in order[pos : pos + workers] if tile_bound[i] > best]
+            pos += workers
+            beat = best
+            if pool is None:
+                results = [search_tile(i, beat) for i in batch]
+            else:
+                results = list(pool.map(search_tile, batch, [beat] * len(batch)))
+            for pose, res, c in results:
+                searched += 1
+                nodes += res.nodes_expanded
+                if len(c):
+                    cands.append(c)
+                if pose is not None and res.score > best:
+                    best, found = res.score, pose
+    finally:
+        if pool is not None:
+            pool.shutdown()
     candidates = np.concatenate(cands) if cands else np.zeros((0, 4))
     candidates = candidates[np.argsort(-candidates[:, 3], kind="stable")][:keep_candidates]
     common = dict(

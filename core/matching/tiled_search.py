@@ -12,9 +12,9 @@ branch and bound on its L0 (mapped in from its file, with the neighbouring tiles
 can reach) and told the best score so far, so it prunes against it; the search stops at the
 first tile whose bound cannot beat that score. Tiles are searched a few at once, one per core,
 each batch told the best score of the batches before it and merged in tile order, so that the
-result does not depend on which thread finished first. No pose is pruned whose score could be higher
-than the one returned, so the optimum is the whole-map search's (tests/test_tiles_search.py
-compares them).
+result does not depend on which thread finished first. No pose is pruned whose score could be
+higher than the one returned, so the optimum is the whole-map search's
+(tests/test_tiles_search.py compares them).
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ def match_global_tiled(
 
     # Tiles in batches of `workers`, best bound first, every tile of a batch told the best score
     # of the batches before it; a batch's results are merged in tile order, so the outcome does not
-    # depend on which thread finished first (the same as one thread searching tile after tile).
+    # depend on which thread finished first.
     best, found, nodes, searched = -1.0, None, 0, 0
     cands = []
     workers = max(1, int(workers or os.cpu_count() or 1))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
 
 import numpy as np
 import pytest
@@ -321,6 +322,19 @@ def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
         assert table.count("|") > 20
     finally:
         h2.stop()
+
+
+def test_the_second_run_is_drawn_between_display_updates(recorded):
+    """A branch sets the second run from its own thread: it draws only between display updates.
+    Two threads writing one trajectory line at once left it holding a node viser had replaced
+    (same name), and a later scrub failed on it."""
+    handle, _ = recorded
+    v = handle.viewer
+    done = threading.Event()
+    with v.drawing():  # a display update in progress
+        threading.Thread(target=lambda: (v.travel.set_reference(None), done.set()), daemon=True).start()
+        assert not done.wait(0.3), "the second run was drawn during a display update"
+    assert done.wait(30), "setting the second run never finished"
 
 
 def test_branch_from_here_continues_in_its_own_folder_beside_the_original(recorded):

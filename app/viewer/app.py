@@ -411,12 +411,21 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self.display_faults.clear()
             self._last_update = time.perf_counter()
 
+    @contextmanager
+    def drawing(self):
+        """Hold the display: a scene write from another thread (a branch setting the second run)
+        waits for a display update in progress and keeps the next one out until it is done. Two
+        threads writing one chunked line at once can leave it holding a node that viser replaced
+        (same name) and that later writes fail on."""
+        # the gate first, as GUI actions take it (one of them may update the display): one order
+        with self._gui_gate, self._display_lock:
+            yield
+
     def update_display(self, force_plots: bool = False) -> float:
         """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
         on the scene and status (the per-scan cost). Updates are serialised: the display thread and
         a caller (a test, the timeline) never interleave, so the newest state is what stays shown."""
-        # the gate first, as GUI actions take it (one of them may update the display): one order
-        with self._gui_gate, self._display_lock:
+        with self.drawing():
             if self.closed:
                 return 0.0
             return self._update_display(force_plots)

@@ -275,7 +275,12 @@ class TimeTravel:
 
     # ================================================================== a second run
     def set_reference(self, run: RecordedRun | None, label: str = "", primary_label: str = "") -> None:
-        """Show ``run`` beside the one on screen (None: no second run)."""
+        """Show ``run`` beside the one on screen (None: no second run). Any thread (the branch's
+        own): it draws while holding the display, as the display thread's updates do."""
+        with self.v.drawing():
+            self._set_reference(run, label, primary_label)
+
+    def _set_reference(self, run: RecordedRun | None, label: str, primary_label: str) -> None:
         with self._lock:
             self.reference, self.reference_label, self.primary_label = run, label, primary_label
             self._ref_series = None if run is None else run.series()

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -39,7 +38,7 @@ import numba as nb
 import numpy as np
 
 from .bricks import BRICK, BRICK_CELLS, MAX_CODE, MISS_CODE, extract_bricks
-from .tiling import bucket_points, point_cells
+from .tiling import bucket_points, point_cells, usable_cores
 
 _TILE = 192  # x-y cells per build tile (multiple of BRICK)
 _INF = np.int32(1 << 30)  # "no map point in reach" in the transform's squared cell distances
@@ -446,9 +445,7 @@ def build_bricks(
 
     n_tiles = ntx * nty
     results = []
-    threads = threads or max(
-        1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
+    threads = usable_cores(threads)
     done = 0
     with ThreadPoolExecutor(threads, thread_name_prefix="lidarloc-lookup") as pool:
         for res in pool.map(do_tile, range(n_tiles)):

@@ -23,7 +23,6 @@ Reading
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -39,7 +38,7 @@ from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_
 from .distance_transform import _TILE, _tile_bricks
 from .lookup import LookupTable
 from .tile_cache import cache_bytes, open_tile, read_index, tile_name, write_index, write_tile
-from .tiling import bucket_points, point_cells
+from .tiling import bucket_points, point_cells, usable_cores
 
 _FORMAT = 1
 
@@ -49,12 +48,6 @@ def tile_cells_for(tile_m: float, resolution: float) -> int:
     if not (tile_m > 0 and math.isfinite(tile_m)):
         raise LidarlocError(f"tile size must be > 0 m, got {tile_m}")
     return max(1, round(tile_m / resolution / _TILE)) * _TILE
-
-
-def _threads(threads: int | None) -> int:
-    if threads:
-        return int(threads)
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
 @nb.njit(nogil=True, cache=True, fastmath=True)
@@ -388,7 +381,7 @@ def build_tiles(points, directory, key, resolution, d_max, tile_cells, threads=N
         name = tile_name(tx, ty)
         return name, write_tile(directory, name, {"index": brick_index, "bricks": bricks})
 
-    with ThreadPoolExecutor(_threads(threads), thread_name_prefix="lidarloc-tiles") as pool:
+    with ThreadPoolExecutor(usable_cores(threads), thread_name_prefix="lidarloc-tiles") as pool:
         for done, (name, entry) in enumerate(pool.map(one, range(ntx * nty)), 1):
             index["tiles"][name] = entry
             if progress is not None:

@@ -5,9 +5,18 @@ and in parallel (the lookup table's distance transform)."""
 from __future__ import annotations
 
 import math
+import os
 
 import numba as nb
 import numpy as np
+
+
+def usable_cores(requested: int | None = None) -> int:
+    """Threads to build or search tiles on: ``requested`` if given, else the cores this process
+    may run on (its CPU affinity, which a container or ``taskset`` narrows below the machine's)."""
+    if requested:
+        return int(requested)
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
 @nb.njit(nogil=True, cache=True)

@@ -20,7 +20,6 @@ higher than the one returned, so the optimum is the whole-map search's
 from __future__ import annotations
 
 import math
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -29,6 +28,7 @@ import numpy as np
 
 from ..errors import LidarlocError
 from ..maps.tiled_bev import TiledBEV
+from ..maps.tiling import usable_cores
 from .m3rsm import N_CANDIDATES, MatchResult, _angle_cells, _wrap, angle_lattice, scan_cells, search_cells
 
 
@@ -120,7 +120,7 @@ def match_global_tiled(
     # depend on which thread finished first.
     best, found, nodes, searched = -1.0, None, 0, 0
     cands = []
-    workers = max(1, int(workers or os.cpu_count() or 1))
+    workers = usable_cores(workers)
     pool = ThreadPoolExecutor(workers, thread_name_prefix="lidarloc-tiles") if workers > 1 else None
     try:
         pos = 0

@@ -6,9 +6,10 @@ the viewer's default budget), with one client attached: a headless Chromium tab 
 without it the soak runs with no client and says so), or a websocket tab that reads everything
 the server sends without drawing it (``socket``: on a machine without a GPU the browser's
 software rendering takes a core of its own, which on 2 cores makes every scan late whatever the
-viewer does). Every ``sample_s`` seconds the process tree is sampled: resident memory (the viewer and its child processes), open file descriptors, the viewer's
-threads, its child processes, and the recordings' size. Each loop's line (``loop N: S scans,
-L late, …``) gives the late scans: a step that started over one scan period after its scan arrived.
+viewer does). Every ``sample_s`` seconds the process tree is sampled: resident memory (the viewer
+and its child processes), open file descriptors, the viewer's threads, its child processes, and
+the recordings' size. Each loop's line (``loop N: S scans, L late, …``) gives the late scans: a
+step that started over one scan period after its scan arrived.
 
 Growth is measured from the first sample after the first loop ended (warm-up: caches filled, the
 map drawn, the first recording opened) to the last sample. ``recording_mb_per_hour`` is what was

@@ -73,14 +73,16 @@ class MatcherMixin:
             self._restarts_seen = matcher.restarts
             self._event(k, "restarted", f"S2M: {words or 'the S2M process died; a new one was started'}")
 
+    def _processes(self) -> list[S2MProcess]:
+        """The S2M child processes: the current matcher's and the retired ones'."""
+        return [m for m in (self.matcher, *self._retired_matchers) if isinstance(m, S2MProcess)]
+
     def close_processes(self) -> None:
         """Close the S2M child processes (a busy one is killed: its match would be thrown away)."""
-        for matcher in [self.matcher, *self._retired_matchers]:
-            if isinstance(matcher, S2MProcess):
-                matcher.close()
+        for process in self._processes():
+            process.close()
 
     def kill_processes(self) -> None:
         """Kill the S2M child processes at once, without waiting (the process is about to exit)."""
-        for matcher in [self.matcher, *self._retired_matchers]:
-            if isinstance(matcher, S2MProcess):
-                matcher.kill()
+        for process in self._processes():
+            process.kill()

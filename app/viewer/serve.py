@@ -61,7 +61,8 @@ class ViewerHandle:
         """Stop playback, the display and the server; close the localizer if the viewer built it.
         Bounded: returns within ~1.2 s. A scan of the viewer's own localizer that is waiting for
         a block gives up at once (``Localizer.interrupt``); one still computing finishes on its
-        daemon thread, and the localizer's worker pools are joined by Python at exit."""
+        daemon thread, and the localizer's worker pools are joined by Python at exit. A close
+        not done within 0.3 s has the localizer's child processes killed, so none outlives it."""
         if self._stopped.is_set():
             return
         loc = self.viewer.localizer

@@ -5,9 +5,15 @@ the filter to wait on)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
 import time
 
+import pytest
 from helpers import wait_for
+from lidarloc.app.bench import clients
 from lidarloc.app.bench.clients import SocketTab, _timed
 
 
@@ -30,3 +36,23 @@ def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):
     finally:
         slow.close()
     assert sorted(updates)[len(updates) // 2] < 1000.0  # the median update did not wait on the slow client
+
+
+def test_idle_tabs_run_at_the_idle_cpu_priority(tmp_path, monkeypatch):
+    """The benchmark's tabs at ``idle`` start Chromium (here a stand-in that reports its own
+    scheduling policy) under SCHED_IDLE; at ``normal`` as any other process."""
+    if shutil.which("chrt") is None:
+        pytest.skip("chrt (util-linux) is not installed")
+    stand_in = tmp_path / "chromium"
+    stand_in.write_text(f"#!{sys.executable}\nimport os\nprint(os.sched_getscheduler(0))\n")
+    stand_in.chmod(0o755)
+    monkeypatch.setattr(clients, "CHROMIUM", stand_in)
+    policies = {}
+    for priority in clients.TAB_PRIORITIES:
+        with clients.chromium_at(priority) as executable:
+            out = subprocess.run([str(executable), "--headless"], capture_output=True, text=True, check=True)
+            policies[priority] = int(out.stdout)
+    assert policies == {"idle": os.SCHED_IDLE, "normal": os.SCHED_OTHER}
+    with pytest.raises(ValueError, match="tab priority"):
+        with clients.chromium_at("high"):
+            pass

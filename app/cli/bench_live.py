@@ -70,6 +70,15 @@ def bench_soak(
 def bench_clients(
     tabs: Annotated[int, typer.Option("--tabs", min=1, help="Browser tabs open at once.")] = 5,
     phase_s: Annotated[float, typer.Option("--phase-s", min=5.0, help="Seconds per phase.")] = 45.0,
+    tab_priority: Annotated[
+        str,
+        typer.Option(
+            "--tab-priority",
+            metavar="idle|normal",
+            help="CPU priority of the tabs' Chromium: idle (they use only what the viewer leaves, as "
+            "browsers on their users' own machines would) or normal (browser and viewer share the cores).",
+        ),
+    ] = "idle",
     as_json: JsonOpt = False,
     spec=None,
     preset: PresetOpt = None,
@@ -82,13 +91,18 @@ def bench_clients(
     update and memory per phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per
     connection, a slow client slows nothing."""
     from ...core.localizer import Localizer
+    from ..bench.clients import TAB_PRIORITIES
     from ..bench.clients import run as run_bench
     from ..options import open_source
 
+    if tab_priority not in TAB_PRIORITIES:
+        raise typer.BadParameter(
+            f"{tab_priority!r} is not one of {', '.join(TAB_PRIORITIES)}", param_hint="--tab-priority"
+        )
     cfg = config_from(config, set_, preset=preset)
     loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
     try:
-        result = run_bench(loc, tabs=tabs, phase_s=phase_s)
+        result = run_bench(loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority)
     finally:
         loc.close()
     show_bench_result("clients", result, as_json)

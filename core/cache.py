@@ -90,14 +90,16 @@ def cache_rebuilt(directory: Path, why: str) -> None:
     log.warning("lidarloc: warning: %s: unreadable cache entry (%s); building it again", directory, why)
 
 
-def check_points(points, name: str):
-    """``points`` as a cache keeps them: a finite (N, 3) float array, else ValueError."""
+def check_points(points, name: str, values: bool = True):
+    """``points`` as a cache keeps them: a finite (N, 3) float array, else ValueError.
+    ``values=False``: the shape and type only (a memory-mapped map is not read whole here)."""
     import numpy as np
 
-    points = np.asarray(points)
+    if not isinstance(points, np.memmap):
+        points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind != "f":
         raise ValueError(f"{name}: {points.dtype} array of shape {points.shape}, not (N, 3) floats")
-    if not np.isfinite(points).all():
+    if values and not np.isfinite(points).all():
         raise ValueError(f"{name}: non-finite coordinates")
     return points
 

@@ -240,3 +240,19 @@ def test_moving_the_vehicle_swaps_the_tiles_at_full_density(viewer):
     assert all(old[r]._impl.removed for r in left)  # their nodes are gone from the scene
     assert all(v.scene.near_tile_node(r) is not None for r in second)
     assert v.scene.map_points_sent <= settings.budget
+
+
+def test_a_map_on_disk_is_tiled_for_display_as_one_in_memory(tmp_path):
+    """A city map kept on disk (memory-mapped) is read through mappings of the display's own:
+    the same coarse layer and the same tiles as from the map in memory."""
+    from lidarloc.app.viewer.map_tiles import TiledMap
+
+    pts = _city_map(1)
+    np.save(tmp_path / "map_points.npy", pts)
+    on_disk = np.load(tmp_path / "map_points.npy", mmap_mode="r")
+    a = TiledMap(pts, 0.2, 0.5, TileSettings())
+    b = TiledMap(on_disk, 0.2, 0.5, TileSettings())
+    assert np.array_equal(a.coarse, b.coarse) and np.array_equal(a.counts, b.counts)
+    downtown = int(a.grid.tiles_of(np.array([[2000.0, 2000.0]]))[0])
+    assert np.array_equal(a.load(downtown), b.load(downtown)) and len(a.load(downtown)) > 10_000
+    assert b.points is on_disk  # the map's own array is kept, not a copy

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ...core.maps.mapping import VoxelAccumulator
+from ...core.maps.mapping import VoxelAccumulator, private_mapping
 from .ground import GroundHeight
 from .style import (
     COARSE_MAX_POINTS,
@@ -231,8 +231,9 @@ class TiledMap:
     by tile, the ground under the pointer (GroundHeight), and one tile read at ``voxel`` on
     demand. Holds the map's array itself (not a copy) to read tiles from."""
 
-    def __init__(self, points: np.ndarray, map_voxel: float, voxel: float, settings: TileSettings):
-        self.points = points
+    def __init__(self, map_points: np.ndarray, map_voxel: float, voxel: float, settings: TileSettings):
+        self.points = map_points
+        points = private_mapping(map_points)  # a map on disk: what is read here does not stay resident
         self.voxel = float(voxel)
         size = max(1, round(settings.tile_m / voxel)) * voxel
         self.lo, self.hi = _bounds(points)
@@ -262,12 +263,13 @@ class TiledMap:
         """Tile ``t`` at the display voxel (float32 centroids), read from the chunks of the map
         that hold its points."""
         g = self.grid
-        out = np.empty((int(self.counts[t]), 3), self.points.dtype)
+        points = private_mapping(self.points)
+        out = np.empty((int(self.counts[t]), 3), points.dtype)
         k = 0
         for c in np.flatnonzero(self.chunk_tiles[:, t]):
             start = int(c) * CHUNK
-            stop = min(start + CHUNK, len(self.points))
-            k = _gather(self.points, start, stop, g.x0, g.y0, 1.0 / g.size, g.nx, g.ny, int(t), out, k)
+            stop = min(start + CHUNK, len(points))
+            k = _gather(points, start, stop, g.x0, g.y0, 1.0 / g.size, g.nx, g.ny, int(t), out, k)
         pts = centroids(out[:k], self.voxel)
         assert pts is not None
         return pts

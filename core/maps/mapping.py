@@ -22,6 +22,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numba as nb
 import numpy as np
@@ -31,6 +32,9 @@ from ..config import MapConfig
 from ..errors import DataError, LidarlocError
 from ..o3d import open3d
 from .voxelhash import hash_slot, voxel_key
+
+if TYPE_CHECKING:
+    from .point_tiles import PointTiles
 
 _EMPTY = np.int64(-1)
 
@@ -215,6 +219,22 @@ def remove_flat(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
     return points[~flat_surface_mask(points, cfg)]
 
 
+#: A map of more points than this is held on disk in a run on tiles (``pf.lookup_tile_m`` > 0): its
+#: files memory-mapped, read near one place through its point tiles (:mod:`.point_tiles`). 20 M
+#: points are 240 MB; the 1 km² city has ~26 M, the 4 × 4 km city 421 M. Smaller maps are read
+#: whole, as in a run on one table (their S2M then registers against the whole map, as there).
+LARGE_MAP_POINTS = 20_000_000
+
+
+def private_mapping(points: np.ndarray) -> np.ndarray:
+    """A memory-mapped map read through a mapping of its own, dropped when the reader is done with
+    it: read through the shared mapping, every page read would stay resident in the process (5 GB
+    for a city's map read once). Other arrays as they are."""
+    if isinstance(points, np.memmap) and points.filename:
+        return np.memmap(points.filename, points.dtype, "r", offset=points.offset, shape=points.shape)
+    return points
+
+
 @dataclass
 class PriorMap:
     points: np.ndarray  # (N, 3) float32, world frame (= first LiDAR pose)
@@ -226,22 +246,51 @@ class PriorMap:
     # float64 (3,): the map's frame in the frame of the file it came from (file = points + origin);
     # zeros for a map fused from a drive, whose frame is the drive's own
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # the same points by x-y tile on disk (a map too big to read whole: a city), for what reads
+    # the map near one place; their index also knows the bounds (see :meth:`use_tiles`)
+    tiles: PointTiles | None = field(default=None, repr=False, compare=False)
+    _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.points.min(axis=0), self.points.max(axis=0)
+        if self._bounds is None:
+            self._bounds = (self.points.min(axis=0), self.points.max(axis=0))
+        return self._bounds
+
+    def use_tiles(self, tiles: PointTiles) -> None:
+        """Read the map near one place from ``tiles`` (its bounds from their index: a
+        memory-mapped map is then never read whole)."""
+        self.tiles = tiles
+        lo, hi = tiles.bounds
+        self._bounds = (lo.astype(self.points.dtype), hi.astype(self.points.dtype))
 
     def save(self, directory: Path) -> None:
         np.save(directory / "map_points.npy", self.points)
         if self.points_bev is not None:
             np.save(directory / BEV_FILE, self.points_bev)
 
+    @property
+    def on_disk(self) -> bool:
+        """Whether the points stay on disk (memory-mapped: a large map in a tiled run)."""
+        return isinstance(self.points, np.memmap)
+
     @classmethod
-    def load(cls, directory: Path, meta: dict) -> PriorMap:
+    def load(cls, directory: Path, meta: dict, memory_map: bool = False, large: int | None = None) -> PriorMap:
+        """The cached map; ``memory_map`` and more than ``large`` points (default
+        LARGE_MAP_POINTS): its files mapped, not read (a city's 5 GB), their shape, type and length
+        checked here and their values when tiles are cut from them."""
         bev = directory / BEV_FILE
+        large = LARGE_MAP_POINTS if large is None else int(large)
+        mapped = memory_map and int(meta.get("points") or 0) > large
+
+        def read(path: Path):
+            if not mapped:
+                return check_points(np.load(path), path.name)
+            return check_points(np.load(path, mmap_mode="r"), path.name, values=False)
+
         return cls(
-            points=check_points(np.load(directory / "map_points.npy"), "map_points.npy"),
-            points_bev=check_points(np.load(bev), BEV_FILE) if bev.is_file() else None,
+            points=read(directory / "map_points.npy"),
+            points_bev=read(bev) if bev.is_file() else None,
             voxel_size=float(meta["map"]["voxel_size"]),
             source=meta.get("source", ""),
             origin=np.asarray(meta.get("origin", (0.0, 0.0, 0.0)), dtype=np.float64),
@@ -354,9 +403,13 @@ def load_or_build_map(
     cache_root: Path | None = None,
     progress: Callable[[int, int], None] | None = None,
     road_removal: bool = True,
+    memory_map: bool = False,
 ) -> Cached[PriorMap]:
     """The prior map of ``seq`` from the cache, or built and cached (in its own directory under
     ``cache_root``, default :func:`~lidarloc.core.cache.default_cache_root`).
+
+    ``memory_map``: a large cached map's files are mapped, not read (see :meth:`PriorMap.load`);
+    a large map built here is written, dropped and mapped in the same way.
 
     ``road_removal=False``: the map may come without its road-removed copy (``points_bev`` is
     None unless a previous build cached it); :func:`load_or_build_road_removed` adds it later.
@@ -367,7 +420,7 @@ def load_or_build_map(
     if meta_path.is_file():
         try:
             meta = json.loads(meta_path.read_text())
-            prior = PriorMap.load(directory, meta)
+            prior = PriorMap.load(directory, meta, memory_map=memory_map)
         except (OSError, ValueError, KeyError, TypeError) as exc:  # rebuilt below
             cache_rebuilt(directory, f"{type(exc).__name__}: {exc}")
         else:
@@ -397,6 +450,8 @@ def load_or_build_map(
         atomic_write_dir(directory, write)
     except OSError as exc:
         raise LidarlocError(f"{directory}: cannot write the map cache ({exc.strerror})") from None
+    if memory_map and len(prior.points) > LARGE_MAP_POINTS:
+        prior = PriorMap.load(directory, meta, memory_map=True)
     return Cached(prior, directory, False)
 
 

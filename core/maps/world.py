@@ -20,6 +20,7 @@ from .bev import BEVPyramid, load_or_build_pyramid
 from .follow import TileFollower
 from .lookup import LookupTable, load_or_build_lookup
 from .mapping import PriorMap, load_or_build_map
+from .point_tiles import PointTiles
 from .tiled_lookup import TiledLookup
 
 
@@ -62,12 +63,25 @@ def open_world(
 
     ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
     viewer's first start plays on the particle filter while it is built in the background.
-    ``progress(stage, fraction)`` reports "map", "lookup" and "pyramid"; ``on_map(prior_map)`` is
+    ``progress(stage, fraction)`` reports "map", ("points" on a tiled map,) "lookup" and "pyramid"; ``on_map(prior_map)`` is
     called as soon as the map is there, before its tables (a viewer shows it meanwhile)."""
     report = progress or (lambda stage, fraction: None)
+    tiled = cfg.pf.lookup_tile_m > 0  # a large map in a tiled run (a city) stays on disk, never read whole
     prior_map, map_dir, _ = load_or_build_map(
-        map_source, cfg.map, cache_root, progress=lambda i, n: report("map", i / n), road_removal=road_removal
+        map_source,
+        cfg.map,
+        cache_root,
+        progress=lambda i, n: report("map", i / n),
+        road_removal=road_removal,
+        memory_map=tiled,
     )
+    if prior_map.on_disk:
+        report("points", 0.0)
+        prior_map.use_tiles(
+            PointTiles.load_or_build(
+                prior_map.points, map_dir / "tiles-points", map_dir.name, progress=lambda f: report("points", f)
+            )
+        )
     if on_map is not None:
         on_map(prior_map)
     world = World(prior_map, map_dir)

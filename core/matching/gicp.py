@@ -165,3 +165,47 @@ class GICPRefiner:
         )
         # open3d does not report convergence; fitness is its inlier ratio
         return _result(init, np.array(res.transformation), True, self.max_iterations, res.fitness, t0)
+
+
+class LocalGICPRefiner:
+    """GICP against the map near each match, for a map held as point tiles (a city): the target is
+    built from the 3 × 3 tiles around the tile under the initial guess (with 100 m tiles, ≥ 100 m
+    of map past the sensor in every direction: beyond a scan's reach plus the correspondence
+    distance) and reused while guesses stay in that tile; the two latest targets are kept, so a
+    drive along a tile border does not build them again and again. A target costs ~1 s to build
+    (3 × 3 tiles of a survey-density city): once per tile crossed, in the S2M process."""
+
+    def __init__(self, tiles, keep: int = 2, **gicp_args):
+        self.tiles = tiles
+        self.keep = int(keep)
+        self.gicp_args = gicp_args
+        self._targets: dict[tuple[int, int], GICPRefiner] = {}
+        self.builds = 0  # targets built so far
+
+    def target_for(self, x: float, y: float) -> GICPRefiner:
+        """The GICP target around the tile under (x, y)."""
+        t = self.tiles.tile_m
+        ox, oy = self.tiles.origin
+        key = (math.floor((x - ox) / t), math.floor((y - oy) / t))
+        if key in self._targets:
+            self._targets[key] = self._targets.pop(key)  # most recently used last
+            return self._targets[key]
+        x0, y0 = ox + (key[0] - 1) * t, oy + (key[1] - 1) * t
+        pts = self.tiles.points_in(x0, y0, x0 + 3 * t, y0 + 3 * t)
+        if len(pts) == 0:
+            raise LidarlocError(
+                f"no map points within {1.5 * t:.0f} m of ({x:.1f}, {y:.1f}): nothing to register against"
+            )
+        while len(self._targets) >= self.keep:
+            self._targets.pop(next(iter(self._targets)))
+        self._targets[key] = GICPRefiner(pts, **self.gicp_args)
+        self.builds += 1
+        return self._targets[key]
+
+    def refine(self, scan_points: np.ndarray, init: np.ndarray) -> GICPResult:
+        init = np.asarray(init, dtype=np.float64)
+        try:
+            target = self.target_for(float(init[0, 3]), float(init[1, 3]))
+        except LidarlocError:  # off the map: nothing converges there
+            return _result(init, init.copy(), False, 0, 0.0, time.perf_counter())
+        return target.refine(scan_points, init)

@@ -22,11 +22,18 @@ class MatcherMixin:
         if self.matcher is not None:
             return
         if self.cfg.localize.s2m_process:
-            self.matcher = S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, self._nice())
+            self.matcher = self._process(self._nice())
         else:
             from .s2m import ScanToMapMatcher
 
             self.matcher = ScanToMapMatcher(self._prior_map, self._pyramid, self.cfg.s2m, self.cfg.map)
+
+    def _process(self, nice: int) -> S2MProcess:
+        """A new S2M child process at ``nice``; on a map held as point tiles, told where they are."""
+        tiles = getattr(self._prior_map, "tiles", None)
+        return S2MProcess(
+            self._map_dir, self.cfg.map, self.cfg.s2m, nice, point_tiles=None if tiles is None else tiles.directory
+        )
 
     def _nice(self) -> int:
         """The S2M process's priority offset for the current clock (see s2m.replay_process_nice)."""
@@ -42,7 +49,7 @@ class MatcherMixin:
         if not isinstance(self.matcher, S2MProcess) or nice >= self.matcher.nice:
             return
         self.cancel(k, "clock changed: new S2M process")
-        old, self.matcher = self.matcher, S2MProcess(self._map_dir, self.cfg.map, self.cfg.s2m, nice)
+        old, self.matcher = self.matcher, self._process(nice)
         self._retired_matchers.append(old)  # close() kills it if its match is still running
         self._pool.submit(old.close)
 

@@ -44,7 +44,7 @@ from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
 from ..o3d import open3d
 from . import m3rsm
-from .gicp import GICPRefiner, GICPResult
+from .gicp import GICPRefiner, GICPResult, LocalGICPRefiner
 
 #: Voxel (m) the scan is down-sampled to before its normals are estimated for road removal.
 #: 0.3 m keeps the scan's near-range density close to the 0.2 m map's (so the |n_z| test behaves
@@ -139,14 +139,29 @@ class ScanToMapMatcher:
         self.prior_map = prior_map
         self.pyramid = pyramid
         # the map side is finer than the scan (but no finer than the map itself): see gicp.py
-        self.gicp = GICPRefiner(
-            prior_map.points,
+        gicp_args = dict(
             voxel=self.cfg.gicp_voxel,
             max_corr=self.cfg.gicp_max_corr,
             backend=gicp_backend,
             target_voxel=max(float(prior_map.voxel_size), self.cfg.gicp_voxel / 2.0),
         )
-        self._ground = _GroundGrid(prior_map.points, pyramid.resolution)
+        tiles = getattr(prior_map, "tiles", None)
+        if tiles is None:
+            self.gicp = GICPRefiner(prior_map.points, **gicp_args)
+            self._ground = _GroundGrid(prior_map.points, pyramid.resolution)
+        else:  # a map held as point tiles (a city): the map is read only near each match
+            self.gicp = LocalGICPRefiner(tiles, **gicp_args)
+            self._ground = _TiledGround(tiles, pyramid.resolution)
+
+    def map_points_near(self, x: float, y: float, radius: float) -> np.ndarray:
+        """The map's points within ``radius`` of (x, y) in x-y, (n, 3) float64 (from the point
+        tiles on a tiled map: never the whole map)."""
+        tiles = getattr(self.prior_map, "tiles", None)
+        if tiles is None:
+            pts = np.asarray(self.prior_map.points, dtype=np.float64)
+        else:
+            pts = tiles.points_in(x - radius, y - radius, x + radius, y + radius).astype(np.float64)
+        return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) < radius]
 
     # ------------------------------------------------------------------------- scan preparation
     def prepare(self, scan_sensor: np.ndarray) -> PreparedScan:
@@ -417,8 +432,34 @@ class _GroundGrid:
         road (reflections) and cells whose lowest point is a car roof."""
         i = int(math.floor(x / self.res)) - int(self.lo[0])
         j = int(math.floor(y / self.res)) - int(self.lo[1])
+        # clipped at 0 on both ends: a negative stop would count from the grid's far end
         win = self.zmin[
-            max(i - radius_cells, 0) : i + radius_cells + 1, max(j - radius_cells, 0) : j + radius_cells + 1
+            max(i - radius_cells, 0) : max(i + radius_cells + 1, 0),
+            max(j - radius_cells, 0) : max(j + radius_cells + 1, 0),
         ]
         vals = win[np.isfinite(win)]
+        return float(np.median(vals)) if len(vals) else math.nan
+
+
+class _TiledGround:
+    """:class:`_GroundGrid`'s heights from a map held as point tiles: the cells around (x, y)
+    from the points under them, read when asked (a global match asks once)."""
+
+    def __init__(self, tiles, resolution: float):
+        self.tiles = tiles
+        self.res = float(resolution)
+
+    def height(self, x: float, y: float, radius_cells: int = 2) -> float:
+        r = self.res
+        i, j = math.floor(x / r), math.floor(y / r)
+        x0, y0 = (i - radius_cells) * r, (j - radius_cells) * r
+        side = (2 * radius_cells + 1) * r
+        pts = self.tiles.points_in(x0, y0, x0 + side, y0 + side)
+        ci = np.floor(pts[:, 0].astype(np.float64) / r).astype(np.int64) - (i - radius_cells)
+        cj = np.floor(pts[:, 1].astype(np.float64) / r).astype(np.int64) - (j - radius_cells)
+        n = 2 * radius_cells + 1
+        inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)  # the rectangle's far edges are closed
+        zmin = np.full((n, n), np.inf, np.float32)
+        np.minimum.at(zmin, (ci[inside], cj[inside]), pts[inside, 2])
+        vals = zmin[np.isfinite(zmin)]
         return float(np.median(vals)) if len(vals) else math.nan

@@ -30,13 +30,18 @@ from ..worker_process import WorkerProxy, lower_priority, serve
 def _make_handler(init: tuple):
     from ..maps.bev import load_or_build_pyramid
     from ..maps.mapping import PriorMap
+    from ..maps.point_tiles import PointTiles
     from .s2m import ScanToMapMatcher
 
-    map_dir, map_cfg, s2m_cfg, nice = init
+    map_dir, map_cfg, s2m_cfg, nice, point_tiles = init
     if nice > 0:
         lower_priority(nice)
     map_dir = Path(map_dir)
-    prior_map = PriorMap.load(map_dir, json.loads((map_dir / "meta.json").read_text()))
+    # a map held as point tiles (a city) stays on disk: mapped, read only near each match
+    meta = json.loads((map_dir / "meta.json").read_text())
+    prior_map = PriorMap.load(map_dir, meta, memory_map=bool(point_tiles), large=0)  # the parent chose
+    if point_tiles:
+        prior_map.use_tiles(PointTiles.open(Path(point_tiles), prior_map.points))
     state = {
         "matcher": ScanToMapMatcher(
             prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value, s2m_cfg, map_cfg
@@ -66,9 +71,9 @@ def _warm_up(matcher) -> None:
 
     from ..geometry import pose_matrix
 
-    pts = np.asarray(matcher.prior_map.points, dtype=np.float64)
-    centre = pts[len(pts) // 2] + np.array([0.0, 0.0, 1.7])
-    near = pts[np.linalg.norm(pts[:, :2] - centre[:2], axis=1) < 20.0][::4]
+    pts = matcher.prior_map.points
+    centre = np.asarray(pts[len(pts) // 2], np.float64) + np.array([0.0, 0.0, 1.7])
+    near = matcher.map_points_near(centre[0], centre[1], 20.0)[::4]
     if len(near) < 100:
         return
     saved, matcher.cfg = matcher.cfg, replace(matcher.cfg, region_x=5.0, region_y=5.0)
@@ -84,9 +89,12 @@ class S2MProcess(WorkerProxy):
     """Parent side: ``match_local(scan, start_pose, s2m_cfg)`` → S2MOutcome, computed in the child
     (RS, M3RSM and GICP). Set-up starts at construction and overlaps with the caller's work."""
 
-    def __init__(self, map_dir: Path, map_cfg, s2m_cfg, nice: int = 0):
+    def __init__(self, map_dir: Path, map_cfg, s2m_cfg, nice: int = 0, point_tiles: Path | None = None):
+        """``point_tiles``: the directory of the map's point tiles, for a map too big to load
+        whole (:mod:`~lidarloc.core.maps.point_tiles`); the child then maps the map's files."""
         self.nice = int(nice)
-        super().__init__("lidarloc.core.matching.worker", (str(map_dir), map_cfg, s2m_cfg, self.nice), "S2M")
+        tiles = None if point_tiles is None else str(point_tiles)
+        super().__init__("lidarloc.core.matching.worker", (str(map_dir), map_cfg, s2m_cfg, self.nice, tiles), "S2M")
 
     def match_local(self, scan: np.ndarray, start_pose: np.ndarray, s2m_cfg, level: bool = False):
         pts = np.ascontiguousarray(np.asarray(scan)[:, :3], dtype=np.float32)

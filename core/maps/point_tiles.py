@@ -1,0 +1,211 @@
+"""The map's points cut into square x-y tiles on disk, for what reads the map only near one place of
+a map too big to hold: the scan-to-map matcher's GICP target and its ground heights on a city.
+
+A 4 × 4 km city surveyed at 0.2 m is 421 M points (5 GB as float32): the S2M process cannot load
+them, nor build a GICP target over all of them, and it needs only the ~200 m around the match.
+Here every point goes to the tile under it (tiles of ``POINT_TILE_M`` on a side, one ``.npy``
+file each, :mod:`.tile_cache`: written atomically, CRC-checked when first opened, memory-mapped);
+:meth:`PointTiles.points_in` reads the tiles meeting a rectangle and keeps the points inside it,
+so a read across a tile border sees the points on both sides, as the whole map would.
+
+The build reads the map in chunks (it may be a memory-mapped file larger than memory), checks
+every coordinate is finite, and appends each chunk's points to its tiles in the map's order, so a
+tile holds its points in the order the map file has them. The index (written last: a build cut
+short leaves no index and is done again) keeps the grid, each tile's point count and the map's
+bounds, which a run on a memory-mapped map reads instead of scanning every point.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..cache import cache_rebuilt
+from ..errors import DataError
+from .mapping import private_mapping
+from .tile_cache import INDEX, open_tile, read_index, tile_name, write_index, write_tile
+
+POINT_TILE_M = 100.0  # a 3 × 3 block around a match reaches ≥ 100 m past the sensor: beyond a scan
+_CHUNK = 1 << 24  # points read at a time while building (192 MB of float32 coordinates)
+_FORMAT = 1
+_STAGING = "staging"
+
+
+class PointTiles:
+    """A map's points by x-y tile in ``directory`` (see the module docstring)."""
+
+    def __init__(self, directory: Path, index: dict, points: np.ndarray | None = None, max_open: int = 32):
+        self.directory = Path(directory)
+        self.points = points  # the whole map (may be memory-mapped), to cut a damaged tile again
+        self.index = index
+        self.origin = np.asarray(index["origin"], np.float64)  # (2,) x, y of tile (0, 0)'s corner
+        self.tile_m = float(index["tile_m"])
+        self.ntx, self.nty = (int(v) for v in index["tiles_xy"])
+        self.n_points = int(index["points"])
+        lo, hi = index["bounds"]
+        self.bounds = (np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+        self.max_open = int(max_open)
+        self.rebuilt: list[tuple[int, int]] = []  # tiles cut again since opening (damaged files)
+        self._open: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()  # the S2M feeder and a warm-up may read at once
+
+    def tiles_over(self, x0: float, y0: float, x1: float, y1: float) -> list[tuple[int, int]]:
+        """The tiles meeting the rectangle [x0, x1] × [y0, y1] (clipped to the grid)."""
+        ox, oy = self.origin
+        t = self.tile_m
+        tx0, tx1 = max(math.floor((x0 - ox) / t), 0), min(math.floor((x1 - ox) / t), self.ntx - 1)
+        ty0, ty1 = max(math.floor((y0 - oy) / t), 0), min(math.floor((y1 - oy) / t), self.nty - 1)
+        return [(tx, ty) for tx in range(tx0, tx1 + 1) for ty in range(ty0, ty1 + 1)]
+
+    def tile(self, tx: int, ty: int) -> np.ndarray:
+        """The (n, 3) float32 points of tile (tx, ty), memory-mapped (empty where the map has none).
+        A damaged tile file (its size or CRC, checked when first opened) is cut again from the
+        map's points and the user told; without them it is a DataError naming the file."""
+        name = tile_name(tx, ty)
+        entry = self.index["tiles"].get(name)
+        if entry is None:
+            return np.zeros((0, 3), np.float32)
+        with self._lock:
+            if name in self._open:
+                self._open.move_to_end(name)
+                return self._open[name]
+            try:
+                points = open_tile(self.directory, name, entry)["points"]
+            except DataError as exc:
+                if self.points is None:
+                    raise DataError(f"{exc}; rebuild the map's tables (the map points are needed)") from None
+                cache_rebuilt(self.directory / name, str(exc))
+                points = self._rebuild(tx, ty)
+            self._open[name] = points
+            while len(self._open) > self.max_open:
+                self._open.popitem(last=False)
+            return points
+
+    def _rebuild(self, tx: int, ty: int) -> np.ndarray:
+        """Tile (tx, ty) cut again from the whole map (one pass over it, in chunks)."""
+        assert self.points is not None
+        source = private_mapping(self.points)
+        parts = []
+        for s in range(0, len(source), _CHUNK):
+            chunk = np.asarray(source[s : s + _CHUNK, :3], dtype=np.float32)
+            t = _tile_xy(chunk, self.origin, self.tile_m, self.ntx, self.nty)
+            parts.append(chunk[(t[:, 0] == tx) & (t[:, 1] == ty)])
+        points = np.concatenate(parts)
+        name = tile_name(tx, ty)
+        self.index["tiles"][name] = write_tile(self.directory, name, {"points": points})
+        write_index(self.directory, self.index)
+        self.rebuilt.append((tx, ty))
+        return points
+
+    def points_in(self, x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+        """Every map point with x in [x0, x1] and y in [y0, y1], (n, 3) float32, tile by tile in
+        tile order (a copy: the tiles stay on disk)."""
+        parts = []
+        for tx, ty in self.tiles_over(x0, y0, x1, y1):
+            pts = self.tile(tx, ty)
+            if not len(pts):
+                continue
+            x, y = pts[:, 0], pts[:, 1]
+            parts.append(np.asarray(pts[(x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)]))
+        return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+
+    @classmethod
+    def open(cls, directory: Path, points: np.ndarray | None = None) -> PointTiles:
+        """The tiles already cut in ``directory`` (whatever their key: the caller built them for
+        this map), DataError if there are none."""
+        try:
+            index = json.loads((Path(directory) / INDEX).read_text())
+        except (OSError, ValueError) as exc:
+            raise DataError(f"{directory}: no point tiles ({exc})") from None
+        return cls(directory, index, points)
+
+    @classmethod
+    def load_or_build(
+        cls,
+        points: np.ndarray,
+        directory: Path,
+        key: str,
+        tile_m: float = POINT_TILE_M,
+        progress: Callable[[float], None] | None = None,
+    ) -> PointTiles:
+        """The tiles of ``points`` cached in ``directory`` for ``key`` (the map's identity), or cut
+        there; a cache made for another key or tile size, or with a damaged tile, is cut again."""
+        directory = Path(directory)
+        full_key = f"{key}|points|t{float(tile_m):.6g}|v{_FORMAT}"
+        index = read_index(directory, full_key)
+        if index is None:
+            index = _build(points, directory, full_key, float(tile_m), progress or (lambda f: None))
+            write_index(directory, index)
+        return cls(directory, index, points)
+
+
+def _tile_xy(points: np.ndarray, origin: np.ndarray, tile_m: float, ntx: int, nty: int) -> np.ndarray:
+    """(n, 2) int64 tile of each point (clamped into the grid)."""
+    txy = np.floor((points[:, :2].astype(np.float64) - origin) / tile_m).astype(np.int64)
+    np.clip(txy[:, 0], 0, ntx - 1, out=txy[:, 0])
+    np.clip(txy[:, 1], 0, nty - 1, out=txy[:, 1])
+    return txy
+
+
+def _build(points: np.ndarray, directory: Path, key: str, tile_m: float, progress) -> dict:
+    if not tile_m > 0 or not math.isfinite(tile_m):
+        raise DataError(f"point tile size must be > 0 m, got {tile_m}")
+    points = private_mapping(points)
+    n = len(points)
+    if points.ndim != 2 or points.shape[1] < 3 or n == 0:
+        raise DataError(f"map points must be a non-empty (N, 3) array; got shape {points.shape}")
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for s in range(0, n, _CHUNK):  # pass 1: bounds, and every coordinate finite
+        chunk = np.asarray(points[s : s + _CHUNK, :3], dtype=np.float32)
+        if not np.isfinite(chunk).all():
+            raise DataError(f"map points {s}…{s + len(chunk) - 1}: non-finite coordinates")
+        lo = np.minimum(lo, chunk.min(axis=0))
+        hi = np.maximum(hi, chunk.max(axis=0))
+        progress(0.3 * (s + len(chunk)) / n)
+    origin = np.floor(lo[:2] / tile_m) * tile_m
+    ntx, nty = (int(v) for v in np.floor((hi[:2] - origin) / tile_m).astype(np.int64) + 1)
+    staging = directory / _STAGING
+    shutil.rmtree(staging, ignore_errors=True)  # a build cut short before
+    staging.mkdir(parents=True)
+    counts = np.zeros(ntx * nty, np.int64)
+    for s in range(0, n, _CHUNK):  # pass 2: each chunk's points appended to their tiles, in order
+        chunk = np.ascontiguousarray(points[s : s + _CHUNK, :3], dtype=np.float32)
+        txy = _tile_xy(chunk, origin, tile_m, ntx, nty)
+        t = txy[:, 0] * nty + txy[:, 1]
+        order = np.argsort(t, kind="stable")
+        t_sorted = t[order]
+        starts = np.flatnonzero(np.r_[True, t_sorted[1:] != t_sorted[:-1]])
+        ends = np.r_[starts[1:], len(t_sorted)]
+        for a, b in zip(starts, ends, strict=True):
+            tid = int(t_sorted[a])
+            with open(staging / f"{tile_name(tid // nty, tid % nty)}.raw", "ab") as fh:
+                fh.write(chunk[order[a:b]].tobytes())
+            counts[tid] += b - a
+        progress(0.3 + 0.4 * (s + len(chunk)) / n)
+    tiles = {}
+    filled = np.flatnonzero(counts)
+    for i, tid in enumerate(filled):
+        name = tile_name(int(tid) // nty, int(tid) % nty)
+        raw = staging / f"{name}.raw"
+        pts = np.fromfile(raw, np.float32).reshape(-1, 3)
+        tiles[name] = write_tile(directory, name, {"points": pts})
+        raw.unlink()
+        progress(0.7 + 0.3 * (i + 1) / len(filled))
+    shutil.rmtree(staging, ignore_errors=True)
+    return {
+        "key": key,
+        "origin": origin.tolist(),
+        "tile_m": tile_m,
+        "tiles_xy": [ntx, nty],
+        "points": int(n),
+        "bounds": [lo.tolist(), hi.tolist()],
+        "tiles": tiles,
+    }

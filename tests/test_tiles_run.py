@@ -56,3 +56,23 @@ def test_a_run_across_tiles_is_the_run_on_one_table(town, cache_root):
         assert tiled_records == records
         if tile_m == 100.0:  # the whole map at the start, then only the tiles around the particles
             assert windows >= 2 and 1 < under < total
+
+
+@pytest.mark.slow
+def test_the_window_of_a_spread_start_is_let_go_once_the_particles_gather(town, cache_root):
+    """The first window covers the whole map (the particles may be anywhere); once they gather,
+    only the tiles under them stay resident: nothing keeps the first window alive."""
+    import gc
+    import weakref
+
+    cfg = Config()
+    cfg.pf.n_particles = 300
+    cfg.pf.lookup_tile_m = 100.0
+    with Localizer(town, cfg, cache_root) as loc:
+        first = weakref.ref(loc.world.lookup)
+        loc.reset(pose=town.poses[0])
+        loc.run(3)
+        gc.collect()
+        assert loc.world.tiles.windows >= 2
+        assert first() is None
+        assert loc.world.lookup is loc.lookup

@@ -421,7 +421,8 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             reach = float(np.linalg.norm(prepared[:, :3], axis=1).max()) if len(prepared) else 0.0
             table = self.world.tiles.follow(self.pf.states, reach)
             if table is not self.lookup:
-                self.lookup = table
+                # the world's too: the first window (the whole map, for a spread start) goes
+                self.lookup = self.world.lookup = table
                 self.pf.set_lookup(table)
         self.pf.update(prepared)
         pf_s = time.perf_counter() - t0

@@ -150,7 +150,9 @@ class ScanToMapMatcher:
             self.gicp = GICPRefiner(prior_map.points, **gicp_args)
             self._ground = _GroundGrid(prior_map.points, pyramid.resolution)
         else:  # a map held as point tiles (a city): the map is read only near each match
-            self.gicp = LocalGICPRefiner(tiles, **gicp_args)
+            # what a scan point can pair with: the scan's range and the correspondence distance
+            reach = float(self.map_cfg.scan_max_range) + self.cfg.gicp_max_corr
+            self.gicp = LocalGICPRefiner(tiles, reach_m=reach, **gicp_args)
             self._ground = _TiledGround(tiles, pyramid.resolution)
 
     def map_points_near(self, x: float, y: float, radius: float) -> np.ndarray:

@@ -27,10 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import cache_rebuilt
 from ..errors import DataError
 from .mapping import private_mapping
-from .tile_cache import INDEX, open_tile, read_index, tile_name, write_index, write_tile
+from .tile_cache import INDEX, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 
 POINT_TILE_M = 100.0  # a 3 × 3 block around a match reaches ≥ 100 m past the sensor: beyond a scan
 _CHUNK = 1 << 24  # points read at a time while building (192 MB of float32 coordinates)
@@ -76,17 +75,15 @@ class PointTiles:
             if name in self._open:
                 self._open.move_to_end(name)
                 return self._open[name]
-            try:
-                points = open_tile(self.directory, name, entry)["points"]
-            except DataError as exc:
-                if self.points is None:
-                    raise DataError(f"{exc}; rebuild the map's tables (the map points are needed)") from None
-                cache_rebuilt(self.directory / name, str(exc))
-                points = self._rebuild(tx, ty)
-            self._open[name] = points
-            while len(self._open) > self.max_open:
-                self._open.popitem(last=False)
-            return points
+            points = open_or_rebuild(
+                self.directory,
+                name,
+                entry,
+                lambda arrays: arrays["points"],
+                None if self.points is None else lambda: self._rebuild(tx, ty),
+                "rebuild the map's tables (the map points are needed)",
+            )
+            return remember(self._open, name, points, self.max_open)
 
     def _rebuild(self, tx: int, ty: int) -> np.ndarray:
         """Tile (tx, ty) cut again from the whole map (one pass over it, in chunks)."""

@@ -19,14 +19,18 @@ from __future__ import annotations
 import json
 import threading
 import zlib
+from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-from ..cache import atomic_write_file
+from ..cache import atomic_write_file, cache_rebuilt
 from ..errors import DataError
 
 INDEX = "tiles.json"
+T = TypeVar("T")
 _CHUNK = 1 << 22
 
 # files whose CRC matched, as (path, size, mtime_ns, inode, crc): a file changed since is checked again
@@ -84,6 +88,29 @@ def open_tile(directory: Path, name: str, entry: dict) -> dict[str, np.ndarray]:
             raise DataError(f"{path}: tile file of another shape {array.shape}")
         out[layer] = array
     return out
+
+
+def open_or_rebuild(directory: Path, name: str, entry: dict, read: Callable[[dict], T], rebuild, hint: str) -> T:
+    """Tile ``name``'s arrays as ``read`` takes them from :func:`open_tile`; a damaged tile is made
+    again by ``rebuild()`` (the user told), or, where it cannot be (``rebuild`` None), a
+    DataError naming the file and ending in ``hint`` (what the user can do)."""
+    try:
+        return read(open_tile(directory, name, entry))
+    except DataError as exc:
+        if rebuild is None:
+            raise DataError(f"{exc}; {hint}") from None
+        cache_rebuilt(Path(directory) / name, str(exc))
+        return rebuild()
+
+
+def remember(opened: OrderedDict, key, value, max_open: int):
+    """``value`` as the most recently used of a reader's open tiles (``opened``, least recently
+    used first); the least recently used beyond ``max_open`` are forgotten (unmapped once nothing
+    else holds them). Returns ``value``."""
+    opened[key] = value
+    while len(opened) > max_open:
+        opened.popitem(last=False)
+    return value
 
 
 def read_index(directory: Path, key: str) -> dict | None:

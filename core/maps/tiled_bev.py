@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from ..cache import atomic_write_file, cache_rebuilt
-from ..errors import DataError, LidarlocError
+from ..errors import LidarlocError
 from .bev import DEFAULT_CELL_VALUE, BEVPyramid, _cell_values, max_pool2
-from .tile_cache import cache_bytes, open_tile, read_index, tile_name, write_index, write_tile
+from .tile_cache import cache_bytes, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 
 _FORMAT = 1
 _CHUNK = 1 << 24
@@ -79,18 +79,16 @@ class TiledBEV:
         if entry is None:
             l0 = np.zeros(self._tile_shape(tx, ty), np.float32)
         else:
-            try:
-                l0 = open_tile(self.directory, name, entry)["L0"]
-            except DataError as exc:
-                if self.xy is None:
-                    raise DataError(f"{exc}; delete {self.directory} to rebuild the city's pyramid") from None
-                cache_rebuilt(self.directory / name, str(exc))
-                l0 = self._rebuild(tx, ty)
+            l0 = open_or_rebuild(
+                self.directory,
+                name,
+                entry,
+                lambda arrays: arrays["L0"],
+                None if self.xy is None else lambda: self._rebuild(tx, ty),
+                f"delete {self.directory} to rebuild the city's pyramid",
+            )
         self.loaded += 1
-        self._open[key] = l0
-        while len(self._open) > self.max_open:
-            self._open.popitem(last=False)
-        return l0
+        return remember(self._open, key, l0, self.max_open)
 
     def _rebuild(self, tx: int, ty: int) -> np.ndarray:
         """L0 of tile (tx, ty) counted again from the map's points, written back in place."""

@@ -32,12 +32,11 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 
-from ..cache import cache_rebuilt
 from ..errors import DataError, LidarlocError
 from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_CODE
 from .distance_transform import _TILE, _tile_bricks
 from .lookup import LookupTable
-from .tile_cache import cache_bytes, open_tile, read_index, tile_name, write_index, write_tile
+from .tile_cache import cache_bytes, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 from .tiling import bucket_points, point_cells, usable_cores
 
 _FORMAT = 1
@@ -135,18 +134,15 @@ class TiledLookup:
             self._open.move_to_end(key)
             return self._open[key]
         name = tile_name(tx, ty)
-        try:
-            arrays = open_tile(self.directory, name, self.index["tiles"][name])
-            arrays = (arrays["index"], arrays["bricks"])
-        except DataError as exc:
-            if self.points is None:
-                raise DataError(f"{exc}; rebuild the map's tables (the map points are needed)") from None
-            cache_rebuilt(self.directory / tile_name(tx, ty), str(exc))
-            arrays = self._rebuild(tx, ty)
-        self._open[key] = arrays
-        while len(self._open) > self.max_open:
-            self._open.popitem(last=False)
-        return arrays
+        arrays = open_or_rebuild(
+            self.directory,
+            name,
+            self.index["tiles"][name],
+            lambda files: (files["index"], files["bricks"]),
+            None if self.points is None else lambda: self._rebuild(tx, ty),
+            "rebuild the map's tables (the map points are needed)",
+        )
+        return remember(self._open, key, arrays, self.max_open)
 
     def drop_except(self, keep) -> None:
         """Unmap every open tile not in ``keep`` (tiles the run left behind)."""

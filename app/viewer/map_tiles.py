@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ...core.maps.mapping import VoxelAccumulator, private_mapping
+from ...core.maps.mapping import VoxelAccumulator
+from ...core.maps.point_tiles import private_mapping
 from .ground import GroundHeight
 from .style import (
     COARSE_MAX_POINTS,

@@ -226,15 +226,6 @@ def remove_flat(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
 LARGE_MAP_POINTS = 20_000_000
 
 
-def private_mapping(points: np.ndarray) -> np.ndarray:
-    """A memory-mapped map read through a mapping of its own, dropped when the reader is done with
-    it: read through the shared mapping, every page read would stay resident in the process (5 GB
-    for a city's map read once). Other arrays as they are."""
-    if isinstance(points, np.memmap) and points.filename:
-        return np.memmap(points.filename, points.dtype, "r", offset=points.offset, shape=points.shape)
-    return points
-
-
 @dataclass
 class PriorMap:
     points: np.ndarray  # (N, 3) float32, world frame (= first LiDAR pose)

@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .mapping import private_mapping
 from .tile_cache import INDEX, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 
 POINT_TILE_M = 100.0  # a 3 × 3 block around a match reaches ≥ 100 m past the sensor: beyond a scan
@@ -141,6 +140,15 @@ class PointTiles:
             index = _build(points, directory, full_key, float(tile_m), progress or (lambda f: None))
             write_index(directory, index)
         return cls(directory, index, points)
+
+
+def private_mapping(points: np.ndarray) -> np.ndarray:
+    """A memory-mapped map read through a mapping of its own, dropped when the reader is done with
+    it: read through the shared mapping, every page read would stay resident in the process (5 GB
+    for a city's map read once). Other arrays as they are."""
+    if isinstance(points, np.memmap) and points.filename:
+        return np.memmap(points.filename, points.dtype, "r", offset=points.offset, shape=points.shape)
+    return points
 
 
 def _tile_xy(points: np.ndarray, origin: np.ndarray, tile_m: float, ntx: int, nty: int) -> np.ndarray:

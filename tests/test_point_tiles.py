@@ -67,6 +67,19 @@ def test_the_cut_is_cached_and_a_damaged_tile_is_cut_again(cloud, tmp_path):
     assert other.n_points == 1000
 
 
+def test_two_cuts_of_one_map_at_once_do_not_mix(cloud, tmp_path):
+    """Two processes (here threads) opening the same large map for the first time both cut it: each
+    in a staging folder of its own, so neither tile holds the other's copy of a point."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(lambda _: PointTiles.load_or_build(cloud, tmp_path, "cloud", tile_m=50.0), range(2)))
+    tiles = PointTiles.open(tmp_path)
+    assert tiles.n_points == len(cloud)
+    assert np.array_equal(rows(tiles.points_in(-500, -500, 500, 500)), rows(cloud))
+    assert not [d for d in tmp_path.iterdir() if d.is_dir()]  # no staging folder left
+
+
 def test_non_finite_points_are_refused(cloud, tmp_path):
     bad = cloud.copy()
     bad[7, 1] = np.nan

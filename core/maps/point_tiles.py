@@ -2,17 +2,18 @@
 a map too big to hold: the scan-to-map matcher's GICP target and its ground heights on a city.
 
 A 4 × 4 km city surveyed at 0.2 m is 421 M points (5 GB as float32): the S2M process cannot load
-them, nor build a GICP target over all of them, and it needs only the ~200 m around the match.
+them, nor build a GICP target over all of them, and it needs only the ~150 m around the match.
 Here every point goes to the tile under it (tiles of ``POINT_TILE_M`` on a side, one ``.npy``
 file each, :mod:`.tile_cache`: written atomically, CRC-checked when first opened, memory-mapped);
 :meth:`PointTiles.points_in` reads the tiles meeting a rectangle and keeps the points inside it,
 so a read across a tile border sees the points on both sides, as the whole map would.
 
 The build reads the map in chunks (it may be a memory-mapped file larger than memory), checks
-every coordinate is finite, and appends each chunk's points to its tiles in the map's order, so a
-tile holds its points in the order the map file has them. The index (written last: a build cut
-short leaves no index and is done again) keeps the grid, each tile's point count and the map's
-bounds, which a run on a memory-mapped map reads instead of scanning every point.
+every coordinate is finite, and appends each chunk's points to its tiles in the map's order (in a
+staging folder of its own, so two processes cutting the same map at once do not mix), so a tile
+holds its points in the order the map file has them. The index (written last: a build cut short
+leaves no index and is done again) keeps the grid, each tile's point count and the map's bounds,
+which a run on a memory-mapped map reads instead of scanning every point.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -30,10 +32,10 @@ import numpy as np
 from ..errors import DataError
 from .tile_cache import INDEX, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 
-POINT_TILE_M = 100.0  # a 3 × 3 block around a match reaches ≥ 100 m past the sensor: beyond a scan
+POINT_TILE_M = 100.0  # ~0.26 M points (3 MB) of a survey city; a match's 142 m disc reads 9–16 of them
 _CHUNK = 1 << 24  # points read at a time while building (192 MB of float32 coordinates)
 _FORMAT = 1
-_STAGING = "staging"
+_STAGING = "staging-"
 
 
 class PointTiles:
@@ -132,7 +134,8 @@ class PointTiles:
         progress: Callable[[float], None] | None = None,
     ) -> PointTiles:
         """The tiles of ``points`` cached in ``directory`` for ``key`` (the map's identity), or cut
-        there; a cache made for another key or tile size, or with a damaged tile, is cut again."""
+        there; a cache made for another key or tile size is cut again (a damaged tile alone, when
+        it is read: :meth:`tile`)."""
         directory = Path(directory)
         full_key = f"{key}|points|t{float(tile_m):.6g}|v{_FORMAT}"
         index = read_index(directory, full_key)
@@ -177,9 +180,16 @@ def _build(points: np.ndarray, directory: Path, key: str, tile_m: float, progres
         progress(0.3 * (s + len(chunk)) / n)
     origin = np.floor(lo[:2] / tile_m) * tile_m
     ntx, nty = (int(v) for v in np.floor((hi[:2] - origin) / tile_m).astype(np.int64) + 1)
-    staging = directory / _STAGING
-    shutil.rmtree(staging, ignore_errors=True)  # a build cut short before
-    staging.mkdir(parents=True)
+    directory.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=_STAGING, dir=directory))
+    try:
+        return _cut(points, directory, staging, key, tile_m, origin, ntx, nty, lo, hi, progress)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _cut(points, directory: Path, staging: Path, key: str, tile_m: float, origin, ntx: int, nty: int, lo, hi, progress):
+    n = len(points)
     counts = np.zeros(ntx * nty, np.int64)
     for s in range(0, n, _CHUNK):  # pass 2: each chunk's points appended to their tiles, in order
         chunk = np.ascontiguousarray(points[s : s + _CHUNK, :3], dtype=np.float32)
@@ -204,7 +214,6 @@ def _build(points: np.ndarray, directory: Path, key: str, tile_m: float, progres
         tiles[name] = write_tile(directory, name, {"points": pts})
         raw.unlink()
         progress(0.7 + 0.3 * (i + 1) / len(filled))
-    shutil.rmtree(staging, ignore_errors=True)
     return {
         "key": key,
         "origin": origin.tolist(),

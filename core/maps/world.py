@@ -63,8 +63,9 @@ def open_world(
 
     ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
     viewer's first start plays on the particle filter while it is built in the background.
-    ``progress(stage, fraction)`` reports "map", ("points" on a tiled map,) "lookup" and "pyramid"; ``on_map(prior_map)`` is
-    called as soon as the map is there, before its tables (a viewer shows it meanwhile)."""
+    ``progress(stage, fraction)`` reports "map", "points" (a large map cut into point tiles),
+    "lookup" and "pyramid"; ``on_map(prior_map)`` is called as soon as the map is there, before its
+    tables (a viewer shows it meanwhile)."""
     report = progress or (lambda stage, fraction: None)
     tiled = cfg.pf.lookup_tile_m > 0  # a large map in a tiled run (a city) stays on disk, never read whole
     prior_map, map_dir, _ = load_or_build_map(

@@ -252,7 +252,8 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -
                 page.close()
             browser.close()
     finally:
-        handle.stop()
+        with contextlib.redirect_stdout(sys.stderr):  # viser's "Server stopped": stdout carries --json
+            handle.stop()
     base = phases[0]["scans_per_s"]
     growth = churned["rss_mb_end"] - churned["rss_mb_start"]
     late_with_tabs = sum(p["late_scans"] for p in phases[1:])

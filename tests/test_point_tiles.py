@@ -141,8 +141,10 @@ def test_a_run_on_a_large_tiled_map_keeps_it_on_disk_and_matches_from_the_tiles(
     cfg = Config()
     cfg.pf.n_particles = 300
     cfg.pf.lookup_tile_m = 100.0
-    with Localizer(seq, cfg, cache_root) as loc:
+    stages = set()
+    with Localizer(seq, cfg, cache_root, progress=lambda stage, f: stages.add(stage)) as loc:
         assert loc.prior_map.on_disk and loc.prior_map.tiles is not None
+        assert "point tiles" in stages  # the user sees what the first start does
         assert (loc.map_dir / "tiles-points" / "tiles.json").is_file()
         loc.reset(pose=seq.poses[0])
         loc.run(30)

@@ -18,7 +18,7 @@ from .style import COLLAPSED_N_EFF_SHARE, PLOT_INTERVAL, REALTIME_LATE_S, error_
 BUILD_STAGES = {
     "starting": "Starting the localizer",
     "map": "Building the prior map",
-    "points": "Cutting the map into tiles",
+    "point tiles": "Cutting the map into tiles",
     "lookup": "Building the distance lookup table",
     "pyramid": "Building the BEV pyramid",
     "ready": "Ready",

@@ -63,7 +63,7 @@ def open_world(
 
     ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
     viewer's first start plays on the particle filter while it is built in the background.
-    ``progress(stage, fraction)`` reports "map", "points" (a large map cut into point tiles),
+    ``progress(stage, fraction)`` reports "map", "point tiles" (a large map cut into tiles),
     "lookup" and "pyramid"; ``on_map(prior_map)`` is called as soon as the map is there, before its
     tables (a viewer shows it meanwhile)."""
     report = progress or (lambda stage, fraction: None)
@@ -77,10 +77,10 @@ def open_world(
         memory_map=tiled,
     )
     if prior_map.on_disk:
-        report("points", 0.0)
+        report("point tiles", 0.0)
         prior_map.use_tiles(
             PointTiles.load_or_build(
-                prior_map.points, map_dir / "tiles-points", map_dir.name, progress=lambda f: report("points", f)
+                prior_map.points, map_dir / "tiles-points", map_dir.name, progress=lambda f: report("point tiles", f)
             )
         )
     if on_map is not None:

@@ -1,6 +1,10 @@
 """A run on a tiled lookup table (pf.lookup_tile_m, core/maps/follow.py): the table follows the
 particles (tiles mapped in around them, across tile borders), and the run is the run on one table,
-with tiles of 100 m and of 400 m (replay, seed fixed)."""
+with tiles of 100 m and of 400 m (replay, seed fixed); the first window (the whole map) is let go
+once the particles gather."""
+
+import gc
+import weakref
 
 import numpy as np
 import pytest
@@ -39,10 +43,16 @@ def trajectory(seq, cache_root, tile_m: float):
     cfg.pf.n_particles = 300
     cfg.pf.lookup_tile_m = tile_m
     with Localizer(seq, cfg, cache_root) as loc:
+        first = weakref.ref(loc.lookup)  # a tiled run's first window: the whole map
         loc.reset(pose=seq.poses[0])
         loc.run(N_SCANS)
         tiles = loc.world.tiles
-        moved = (tiles.windows, len(tiles.tiles), tiles.tiled.ntx * tiles.tiled.nty) if tiles is not None else None
+        gc.collect()
+        moved = (
+            (tiles.windows, len(tiles.tiles), tiles.tiled.ntx * tiles.tiled.nty, first() is None)
+            if tiles is not None
+            else None
+        )
         return loc.pf.states.copy(), [(r.x, r.y, r.yaw, r.n_eff) for r in loc.records], moved
 
 
@@ -51,28 +61,9 @@ def trajectory(seq, cache_root, tile_m: float):
 def test_a_run_across_tiles_is_the_run_on_one_table(town, cache_root):
     states, records, _ = trajectory(town, cache_root, 0.0)
     for tile_m in (100.0, 400.0):
-        tiled_states, tiled_records, (windows, under, total) = trajectory(town, cache_root, tile_m)
+        tiled_states, tiled_records, (windows, under, total, first_let_go) = trajectory(town, cache_root, tile_m)
         assert np.array_equal(tiled_states, states)
         assert tiled_records == records
         if tile_m == 100.0:  # the whole map at the start, then only the tiles around the particles
             assert windows >= 2 and 1 < under < total
-
-
-@pytest.mark.slow
-def test_the_window_of_a_spread_start_is_let_go_once_the_particles_gather(town, cache_root):
-    """The first window covers the whole map (the particles may be anywhere); once they gather,
-    only the tiles under them stay resident: nothing keeps the first window alive."""
-    import gc
-    import weakref
-
-    cfg = Config()
-    cfg.pf.n_particles = 300
-    cfg.pf.lookup_tile_m = 100.0
-    with Localizer(town, cfg, cache_root) as loc:
-        first = weakref.ref(loc.world.lookup)
-        loc.reset(pose=town.poses[0])
-        loc.run(3)
-        gc.collect()
-        assert loc.world.tiles.windows >= 2
-        assert first() is None
-        assert loc.world.lookup is loc.lookup
+            assert first_let_go  # nothing keeps the first window (the whole map) alive

@@ -321,10 +321,10 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     assert "running" not in page.evaluate(JS_S2M_ROW)
     page.get_by_text("Parameters", exact=True).click()
     # A click (it waits for the folder to open and the box to be still), then the localizer's word.
-    # Not uncheck(): it reads the box right after its click, and on a loaded machine the box may
-    # show the new state only a moment later (the failure seen under load: "Clicking the checkbox
-    # did not change its state", the click itself done). A click lost on a folder still opening
-    # leaves the box checked and S2M on: clicked once more then.
+    # Not uncheck() alone: under load its click once left the box as it was ("Clicking the
+    # checkbox did not change its state"; viser sets a box's value in the page at once, so the
+    # click missed it: the panel moved under the pointer between Playwright's stability check and
+    # its click). A click lost that way leaves the box checked and S2M on: made once more then.
     box = page.get_by_label("S2M enabled")
     box.click(timeout=STEP_TIMEOUT)
     try:

@@ -275,3 +275,23 @@ def test_tabs_that_close_at_once_leave_nothing_behind(viewer):
         wait_for(lambda: not cameras._tabs, what="the last tab's camera folder dropped")
     closed = [str(w.message) for w in caught if "closed connection" in str(w.message)]
     assert not closed, closed[0]
+
+
+# ------------------------------------------------------------------------ actions never dropped
+def test_a_tabs_action_is_not_dropped_while_the_viewer_writes_values_on_another_thread(viewer):
+    """The viewer quiets the callbacks of the values it writes itself (viser runs them in the
+    writing thread); a tab's click handled on another thread meanwhile still runs. With one flag
+    for all threads, a click handled while the display thread wrote a value (the BEV level's range
+    when the pyramid arrives, a new run's live parameters) was dropped without a word: the likely
+    cause of a browser test that waited a minute under load for the message of its Apply."""
+    from types import SimpleNamespace
+
+    v = viewer.viewer
+    ran = []
+    callback = v._guarded(lambda: ran.append(threading.current_thread().name), needs_localizer=False)
+    with v._quietly():
+        callback(SimpleNamespace(client=None))  # the viewer's own write, in this thread: quiet
+        tab = threading.Thread(target=callback, args=(SimpleNamespace(client=None),), name="tab")
+        tab.start()
+        tab.join()
+    assert ran == ["tab"]

@@ -114,7 +114,9 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self.alarm = AlarmNotice(
             lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
         )
-        self._syncing = False  # set while the viewer itself writes GUI values
+        # set in the thread where the viewer itself writes GUI values (viser runs the callbacks of
+        # a value written on the server in the writing thread): only those callbacks are quiet
+        self._syncing = threading.local()
         self.display_faults = FaultReporter(
             "viewer display", lambda line: self.show_message(line, error=True, everyone=True)
         )
@@ -142,7 +144,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
     def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True) -> None:
         """Run a GUI action; a refused value or any failure becomes a visible message, never a
         dead callback thread or a crashed server."""
-        if self._syncing or self.closed:
+        if getattr(self._syncing, "on", False) or self.closed:
             return
         client = getattr(event, "client", None)
         # messages the action shows go to this tab as notifications too (show_message)
@@ -170,12 +172,13 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     @contextmanager
     def _quietly(self):
-        """The viewer writes GUI values itself: their callbacks do nothing meanwhile."""
-        self._syncing = True
+        """The viewer writes GUI values itself: their callbacks (run in this thread by viser) do
+        nothing meanwhile. A tab's action handled on another thread meanwhile is not dropped."""
+        self._syncing.on = True
         try:
             yield
         finally:
-            self._syncing = False
+            self._syncing.on = False
 
     def show_message(
         self, text: str, error: bool = False, client=None, everyone: bool = False, title: str | None = None

@@ -194,3 +194,27 @@ def test_a_kept_step_branches_and_a_dropped_one_says_why(rolled, cache_root):
         np.testing.assert_array_equal(snap.particles, rolled.snaps[at + 1].particles)
     finally:
         loc.close()
+
+
+def test_a_part_dropped_while_it_is_opened_counts_as_gone_not_as_a_failure(recorded_town_run, tmp_path, monkeypatch):
+    """The recorder drops a rolling window's oldest part while the display opens the recording: a
+    field file that was there when looked for and gone when read (here: ``done.bin``) leaves its
+    part with no step, and the recording opens (before, the display failed with
+    FileNotFoundError and said so in the page's message line)."""
+    import shutil
+    from pathlib import Path
+
+    run_dir, _ = recorded_town_run
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir / "recording", copy / "recording")
+    assert recording.open(copy).n == 14
+    real_stat, real_is_file = Path.stat, Path.is_file
+
+    def stat(self, *args, **kwargs):
+        if self.name == "done.bin":
+            raise FileNotFoundError(2, "No such file or directory", str(self))
+        return real_stat(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "stat", stat)
+    monkeypatch.setattr(Path, "is_file", lambda self: True if self.name == "done.bin" else real_is_file(self))
+    assert recording.open(copy).n == 0

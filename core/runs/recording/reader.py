@@ -47,7 +47,12 @@ class Recording:
         parts = [top]
         for folder in continuation_folders(path):
             if (folder / INDEX).is_file():  # else its start was cut short: no step in it
-                parts.append(Part(folder, read_index(folder)))
+                try:
+                    parts.append(Part(folder, read_index(folder)))
+                except RecordingError:
+                    if (folder / INDEX).is_file():
+                        raise
+                    # dropped by the recording budget while being opened: its steps are gone
         keep = kept([(p.first_step, p.n) for p in parts])
         self._parts = [parts[i] for i in keep]
         self._offsets = [0]

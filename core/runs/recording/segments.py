@@ -182,8 +182,9 @@ class Part:
             self.events_before = int((self.meta.get("segment") or {}).get("events_before", 0))
         except (TypeError, ValueError, AttributeError) as exc:
             raise RecordingError(f"{index_file}: corrupt recording index ({exc})") from None
-        steps_file = self.path / STEPS
-        n = steps_file.stat().st_size // 8 if steps_file.is_file() else 0
+        # A part of a rolling window can be dropped while it is opened (the recorder removes its
+        # files): a file gone between here and its read counts as no rows, never as a failure.
+        n = _committed(self.path)
         self._cache: dict[str, np.ndarray] = {}
         try:
             for name, info in self.fields.items():  # a step counts only if every field has its row
@@ -198,6 +199,8 @@ class Part:
                 )
                 while n > 0 and self.field("particle_rows", n)[n - 1].sum() > n_rows:
                     n -= 1
+        except RecordingError:  # a field's file went meanwhile (gone): the part was dropped
+            n = 0
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise RecordingError(f"{index_file}: corrupt recording index ({exc})") from None
         self.n = int(n)
@@ -209,7 +212,10 @@ class Part:
     def _rows_on_disk(self, name: str, info: dict) -> int:
         f = self.path / f"{name}.bin"
         size = np.dtype(info["dtype"]).itemsize * int(np.prod(info["shape"], dtype=np.int64))
-        return f.stat().st_size // size if f.is_file() else 0
+        try:
+            return f.stat().st_size // size
+        except FileNotFoundError:  # not written yet, or dropped with its part meanwhile
+            return 0
 
     def field(self, name: str, n: int | None = None) -> np.ndarray:
         """A per-step field of this part's first ``n`` steps (default: all); steps before the

@@ -114,6 +114,11 @@ class PointTiles:
             parts.append(np.asarray(pts[(x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)]))
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
 
+    def points_near(self, x: float, y: float, radius: float) -> np.ndarray:
+        """Every map point within ``radius`` of (x, y) in x-y, (n, 3) float32."""
+        pts = self.points_in(x - radius, y - radius, x + radius, y + radius)
+        return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) <= radius]
+
     @classmethod
     def open(cls, directory: Path, points: np.ndarray | None = None) -> PointTiles:
         """The tiles already cut in ``directory`` (whatever their key: the caller built them for

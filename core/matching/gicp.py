@@ -194,8 +194,7 @@ class LocalGICPRefiner:
             if math.hypot(x - self.centre[0], y - self.centre[1]) <= self.recentre_m:
                 return self._target
         half = self.reach_m + self.recentre_m
-        pts = self.tiles.points_in(x - half, y - half, x + half, y + half)
-        pts = pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) <= half]
+        pts = self.tiles.points_near(x, y, half)
         if len(pts) == 0:
             raise LidarlocError(f"no map points within {half:.0f} m of ({x:.1f}, {y:.1f}): nothing to register against")
         self._target = None  # the old target goes before the new one is built: never two resident

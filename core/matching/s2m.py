@@ -159,10 +159,9 @@ class ScanToMapMatcher:
         """The map's points within ``radius`` of (x, y) in x-y, (n, 3) float64 (from the point
         tiles on a tiled map: never the whole map)."""
         tiles = getattr(self.prior_map, "tiles", None)
-        if tiles is None:
-            pts = np.asarray(self.prior_map.points, dtype=np.float64)
-        else:
-            pts = tiles.points_in(x - radius, y - radius, x + radius, y + radius).astype(np.float64)
+        if tiles is not None:
+            return tiles.points_near(x, y, radius).astype(np.float64)
+        pts = np.asarray(self.prior_map.points, dtype=np.float64)
         return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) < radius]
 
     # ------------------------------------------------------------------------- scan preparation

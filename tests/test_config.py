@@ -42,6 +42,15 @@ def test_config_yaml_toml_and_overrides(tmp_path):
     assert load_config(t).pf.sigma == 0.9
 
 
+def test_a_tuple_is_set_with_or_without_brackets():
+    q = [0.25, 0.25, 0.05] + [0.01] * 8
+    plain = load_config(None, ["pf.q_std=" + ",".join(map(str, q))])
+    bracketed = load_config(None, ["pf.q_std=[" + ", ".join(map(str, q)) + "]"])
+    assert plain.pf.q_std == bracketed.pf.q_std == tuple(q)
+    with pytest.raises(LidarlocError, match="not a valid tuple"):
+        load_config(None, ["pf.q_std=[0.1, x]"])
+
+
 @pytest.mark.parametrize(
     "text,needle",
     [

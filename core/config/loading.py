@@ -28,7 +28,8 @@ def _coerce(current: Any, raw: Any, key: str) -> Any:
         if isinstance(current, float):
             return float(raw)
         if isinstance(current, tuple):
-            items = raw.split(",") if isinstance(raw, str) else list(raw)
+            # "a,b,c", and the same in brackets as a YAML list would be typed: "[a, b, c]"
+            items = raw.strip().strip("[]()").split(",") if isinstance(raw, str) else list(raw)
             return tuple(float(v) for v in items)
         return str(raw)
     except (TypeError, ValueError):

@@ -268,7 +268,9 @@ def waiting(tmp_path_factory):
     loc.close()
 
 
-JS_S2M_ROW = "(() => { const m = document.body.innerText.match(/\\nS2M\\s+([^\\n]*)/); return m ? m[1] : ''; })()"
+# the status table's S2M row (a table row's cells are tab-separated in innerText; "S2M enabled",
+# the checkbox's label, is not it)
+JS_S2M_ROW = "(() => { const m = document.body.innerText.match(/\\nS2M\\t([^\\n]*)/); return m ? m[1] : ''; })()"
 
 
 def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):

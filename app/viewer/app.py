@@ -77,7 +77,8 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         )
         self.cache_root = None  # where a branch finds the map's tables (serve sets it)
         self.replay_only = ""  # why controls that need a localizer refuse (a recorded run)
-        self.travel = TimeTravel(self, order=self.controls.message.order + 0.5)
+        # the timeline heads the control panel, above Playback
+        self.travel = TimeTravel(self, order=self.controls.playback_folder.order - 0.5)
         # the Why views read the localizer, or a recorded run's map and table when there is none
         self.why = WhyViews(
             server,

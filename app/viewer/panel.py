@@ -14,6 +14,9 @@ from .plots import Plots
 from .scene import Layers
 from .style import GT_NAME, SPEEDS
 
+STATUS_WIDTH_PX = 400  # the status window's width (CSS pixels): its table's rows on one line each
+STATUS_MARGIN_PX = 15  # its gap from the top left corner of the 3D view
+
 LAYER_LABELS = (
     ("map", "Map"),
     ("map_bev", "Map, road removed"),
@@ -31,12 +34,14 @@ LAYER_LABELS = (
 class Controls:
     """Handles of every control and read-out, for the viewer and for tests that drive them."""
 
-    # read-outs at the top of the panel
+    # read-outs, in a panel of their own (see build_panel)
+    status_panel: object = None
     progress: object = None
     progress_text: object = None
     status: object = None
     message: object = None
     # Playback
+    playback_folder: object = None
     play: object = None
     step: object = None
     speed: object = None
@@ -78,12 +83,20 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
     c = Controls()
     gui.configure_theme(dark_mode=True, control_width="medium", show_share_button=False)
     gui.set_panel_label("lidarloc")
-    c.progress = gui.add_progress_bar(0.0, animated=True, visible=True)
-    c.progress_text = gui.add_markdown("Starting the localizer…")
-    c.status = gui.add_markdown("")
-    c.message = gui.add_markdown("", visible=False)
+    # The read-outs change height with every scan (events come and go, warnings appear): in the
+    # control panel they pushed every control below them up and down, and a click aimed at a
+    # button landed on another. They float in a window of their own at the top left, which the
+    # user can move or minimise; the controls stay where they are.
+    c.status_panel = gui.add_panel()
+    with c.status_panel.add_tab("Status", viser.Icon.INFO_CIRCLE):
+        c.progress = gui.add_progress_bar(0.0, animated=True, visible=True)
+        c.progress_text = gui.add_markdown("Starting the localizer…")
+        c.status = gui.add_markdown("")
+        c.message = gui.add_markdown("", visible=False)
+    c.status_panel.float(x=STATUS_MARGIN_PX, y=STATUS_MARGIN_PX, width=STATUS_WIDTH_PX)
 
-    with gui.add_folder("Playback"):
+    c.playback_folder = gui.add_folder("Playback")
+    with c.playback_folder:
         c.play = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
         c.step = gui.add_button(
             "Step", icon=viser.Icon.PLAYER_TRACK_NEXT, disabled=True, hint="Pause and process exactly one scan"

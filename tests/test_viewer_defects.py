@@ -251,6 +251,20 @@ def test_map_is_shown_while_the_tables_are_built_and_sent_once(street, cache_roo
     wait_for(lambda: built and built[0].closed, what="localizer closed")
 
 
+def test_the_map_is_drawn_under_the_display_lock(viewer):
+    """The build thread draws the map while the display thread may be drawing the overview and
+    the map's tiles: it waits for a display update in progress, as every other scene write does."""
+    v, loc = viewer.viewer, viewer.localizer
+    v._map_shown = None  # as before the first map
+    with v.drawing():
+        t = threading.Thread(target=v.show_map, args=(loc.prior_map,))
+        t.start()
+        t.join(0.5)
+        assert t.is_alive() and v._map_shown is None  # waiting for the display update to end
+    t.join(30)
+    assert not t.is_alive() and v._map_shown is loc.prior_map
+
+
 # ---------------------------------------------------------------------------------- tabs that close at once
 def test_tabs_that_close_at_once_leave_nothing_behind(viewer):
     """A tab closed while the server builds its camera folder (a reload, a page opened and shut):

@@ -245,11 +245,14 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         """Draw the prior map and move every tab's camera onto it, before the localizer is ready
         (the Localizer's ``on_map`` callback, on the thread that builds it: the lookup table and
         pyramid are still to come). :meth:`attach` then leaves the map as it is."""
-        if prior_map is self._map_shown:
-            return
-        self.scene.set_map(prior_map)
-        self.overview.set_map(self.scene.footprint)
-        self._map_shown = prior_map
+        # held like a display update: the display thread draws the overview and the map's tiles
+        # too, and two threads writing one node at once can leave it stale
+        with self.drawing():
+            if prior_map is self._map_shown:
+                return
+            self.scene.set_map(prior_map)
+            self.overview.set_map(self.scene.footprint)
+            self._map_shown = prior_map
         self.cameras.overview()
         self._wake.set()
 

@@ -309,3 +309,31 @@ def test_a_tabs_action_is_not_dropped_while_the_viewer_writes_values_on_another_
         tab.start()
         tab.join()
     assert ran == ["tab"]
+
+
+# ---------------------------------------------------------------------------------- a run a branch took over
+class SlowToClose:
+    """A localizer whose close hangs (its children busy on a loaded machine) until released."""
+
+    def __init__(self):
+        self.release, self.closed, self.killed = threading.Event(), threading.Event(), threading.Event()
+
+    def close(self):
+        self.release.wait(30)
+        self.closed.set()
+
+    def kill_processes(self):
+        self.killed.set()
+
+
+def test_stopping_the_viewer_kills_the_children_of_a_run_still_closing(viewer):
+    done, slow = SlowToClose(), SlowToClose()
+    retired = viewer.viewer.retired
+    retired.close(done)
+    done.release.set()
+    assert done.closed.wait(30)
+    retired.close(slow)  # a branch took over from it; its close hangs
+    viewer.stop()
+    assert slow.killed.is_set() and not done.killed.is_set()  # only the one still closing
+    slow.release.set()
+    assert slow.closed.wait(30)

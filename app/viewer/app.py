@@ -35,6 +35,7 @@ from .params import ParamForm
 from .playback import Playback
 from .player import Player
 from .readouts import Readouts
+from .retired import Retired
 from .scene import SceneView
 from .status import AlarmNotice, play_state, viewer_status
 from .style import MIN_DRAW_INTERVAL, error_markdown
@@ -90,6 +91,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             folder_order=self.controls.particles_folder.order + 0.25,
         )
         self.owns_localizer = False
+        self.retired = Retired()  # runs a branch took over, closing meanwhile
         self._display_lock = threading.RLock()  # one display update at a time (update_display)
         # GUI writes from callbacks and messages hold the gate; close_gui() takes it before the
         # server stops, so nothing is queued on a stopped server (viser warns of each such write)
@@ -338,7 +340,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             self._adopt(localizer, record={"name": name, "branch_of": branch_of, "first_step": first_step})
             self._ready.set()
         if old is not None and owned and old is not localizer:
-            threading.Thread(target=old.close, name="lidarloc-close", daemon=True).start()
+            self.retired.close(old)
         self._wake.set()
 
     def wait_ready(self, timeout: float | None = None) -> bool:

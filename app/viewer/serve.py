@@ -62,7 +62,8 @@ class ViewerHandle:
         Bounded: returns within ~1.2 s. A scan of the viewer's own localizer that is waiting for
         a block gives up at once (``Localizer.interrupt``); one still computing finishes on its
         daemon thread, and the localizer's worker pools are joined by Python at exit. A close
-        not done within 0.3 s has the localizer's child processes killed, so none outlives it."""
+        not done within 0.3 s has the localizer's child processes killed, so none outlives it; so
+        have those of runs a branch took over whose close is not done yet."""
         if self._stopped.is_set():
             return
         loc = self.viewer.localizer
@@ -80,6 +81,7 @@ class ViewerHandle:
             closer.join(timeout=0.3)
             if closer.is_alive():  # a busy machine: no child may outlive the viewer's process
                 loc.kill_processes()
+        self.viewer.retired.kill_unfinished()  # nor those of a run a branch took over
         self._stopped.set()
 
 

@@ -19,6 +19,7 @@ def test_kld_moves_the_protected_particle_and_the_match_follows(town, cache_root
     cfg = Config()
     cfg.pf.kld = True
     cfg.pf.n_particles = 1000
+    cfg.pf.kld_min = 400  # a converged cloud shrinks (the default keeps all 1000)
     cfg.localize.s2m_process = False
     cfg.s2m.n_s2m = 3
     with Localizer(town, cfg, cache_root) as loc:

@@ -49,10 +49,10 @@ def _same(a, b) -> bool:
     return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
 
 
-#: Upper limits of the page's fields (display units) where the localizer's rule only says "> 0":
-#: far beyond any sensible setting, low enough that a value sent by a modified page cannot make
-#: the localizer build a lookup table or search a region the size of a continent.
-PAGE_MAX = {"d_max": 100.0, "sigma": 100.0, "region_x": 5000.0, "region_y": 5000.0, Q_STD.key: 1e4}
+#: Upper limits of the page's fields (display units) where the localizer's own rule has none (its
+#: rules cap d_max, σ and the S2M region themselves): far beyond any sensible setting, low enough
+#: that a value sent by a modified page cannot spread the particles over a continent in one step.
+PAGE_MAX = {Q_STD.key: 1e4}
 
 
 class ParamForm:

@@ -346,10 +346,9 @@ def test_bench_branch_times_every_replay_length_and_sizes_the_payload(original, 
     assert set(result["branch_start_s_by_replayed_steps"]) == {str(r) for r in range(CHECKPOINT_EVERY)}
     assert 0 < result["branch_start_s_median"] < 30 and result["recorded_steps"] == N_SCANS
     assert 0 < result["checkpoints_and_per_step_mb_per_1000"] < BUDGET_MB_PER_1000
-    assert (
-        result["checkpoints_and_per_step_mb_per_1000_at_1000_particles"]
-        > result["checkpoints_and_per_step_mb_per_1000"]
-    )
+    # scaled to 1000 particles: at least the run's own (the same where the run kept 1000 throughout)
+    at_1000 = result["checkpoints_and_per_step_mb_per_1000_at_1000_particles"]
+    assert at_1000 >= result["checkpoints_and_per_step_mb_per_1000"] - 0.01  # both rounded to 0.01 MB
     assert result["s2m_outcomes_mb_per_1000"] > 0
 
 

@@ -160,11 +160,14 @@ def make_step(
     )
 
 
-def display_map(points: np.ndarray, max_points: int = MAP_POINTS) -> tuple[np.ndarray, float]:
-    """The map thinned for display, in the localizer's local frame (float32), and the voxel used."""
-    from .viewer.shapes import downsample_for_display
+def display_map(points: np.ndarray, max_points: int = MAP_POINTS, map_voxel: float = 0.1) -> tuple[np.ndarray, float]:
+    """The map thinned for display, in the localizer's local frame (float32), and the voxel used
+    (at least 0.5 m). Streamed, as the viewer thins a city's coarse layer (``map_voxel``: the
+    map's own voxel, from which the first voxel tried is guessed): a whole copy of a 421 M-point
+    map and a hash table sized by its points would take tens of GB."""
+    from .viewer.map_tiles import thin
 
-    return downsample_for_display(np.asarray(points, np.float32), 0.5, max_points)
+    return thin(points, max_points, 0.5, map_voxel)
 
 
 def stamps_of(seq, scans: np.ndarray, times_s: np.ndarray) -> np.ndarray:
@@ -215,7 +218,7 @@ class RunSteps:
         return in_map(T, self.origin)
 
     def map_points(self, max_points: int = MAP_POINTS) -> tuple[np.ndarray, float]:
-        return display_map(self.prior.points, max_points)
+        return display_map(self.prior.points, max_points, float(self.prior.voxel_size))
 
     def scan(self, i: int) -> np.ndarray:
         """(M, 3) float32: step i's scan as the filter weighed it, in the LiDAR's frame."""

@@ -32,7 +32,7 @@ class _LiveRun:
         return in_map(T, self.origin)
 
     def map_points(self, max_points: int):
-        return display_map(self.prior.points, max_points)
+        return display_map(self.prior.points, max_points, float(self.prior.voxel_size))
 
 
 class FoxgloveLive:

@@ -10,7 +10,7 @@ import pytest
 from helpers import random_segments
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.maps.bev import BEVPyramid
-from lidarloc.core.matching import m3rsm
+from lidarloc.core.matching import bnb_kernels, m3rsm
 
 DEG = math.pi / 180
 
@@ -37,7 +37,7 @@ def test_bounds_are_admissible_for_every_block():
     angles = np.array([0.3, -2.0])
     cx, cy = m3rsm.angle_cells(pyr, B, angles, (3.7, 21.2))
     top = prep.n_levels - 1
-    ex, ey, ec, ew, eoff = m3rsm.level_entries(cx, cy, 1, top)
+    ex, ey, ec, ew, eoff = bnb_kernels.level_entries(cx, cy, 1, top)
     checked = 0
     for l in range(1, top + 1):
         size = 1 << l
@@ -45,11 +45,13 @@ def test_bounds_are_admissible_for_every_block():
             r = int(rng.integers(len(angles)))
             kx = int(rng.integers(-40, 40)) // size * size
             ky = int(rng.integers(-40, 40)) // size * size
-            exact = max(m3rsm.score_l0(prep.L0, cx[r], cy[r], kx + i, ky + j) for i in range(size) for j in range(size))
-            strided = m3rsm.bound(
+            exact = max(
+                bnb_kernels.score_l0(prep.L0, cx[r], cy[r], kx + i, ky + j) for i in range(size) for j in range(size)
+            )
+            strided = bnb_kernels.bound(
                 prep.G, prep.gnx, prep.gny, prep.goff, l, ex, ey, ec, ew, eoff[l, r], eoff[l, r + 1], kx >> l, ky >> l
             )
-            dense = m3rsm.bound_dense(prep.S, prep.snx, prep.sny, prep.soff, l, cx[r], cy[r], kx, ky)
+            dense = bnb_kernels.bound_dense(prep.S, prep.snx, prep.sny, prep.soff, l, cx[r], cy[r], kx, ky)
             assert strided >= exact and dense >= exact
             assert dense <= strided  # the stride-1 pooling is the tighter of the two
             checked += exact > 0

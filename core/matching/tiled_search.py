@@ -29,7 +29,8 @@ import numpy as np
 from ..errors import LidarlocError
 from ..maps.tiled_bev import TiledBEV
 from ..maps.tiling import usable_cores
-from .m3rsm import N_CANDIDATES, MatchResult, _angle_cells, _wrap, angle_lattice, scan_cells, search_cells
+from .bnb_kernels import _angle_cells
+from .m3rsm import N_CANDIDATES, MatchResult, _wrap, angle_lattice, scan_cells, search_cells
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)

@@ -329,9 +329,10 @@ class SlowToClose:
 def test_stopping_the_viewer_kills_the_children_of_a_run_still_closing(viewer):
     done, slow = SlowToClose(), SlowToClose()
     retired = viewer.viewer.retired
-    retired.close(done)
+    closer = retired.close(done)
     done.release.set()
-    assert done.closed.wait(30)
+    closer.join(30)
+    assert done.closed.is_set() and not closer.is_alive()
     retired.close(slow)  # a branch took over from it; its close hangs
     viewer.stop()
     assert slow.killed.is_set() and not done.killed.is_set()  # only the one still closing

@@ -13,14 +13,15 @@ class Retired:
         self._lock = threading.Lock()
         self._closing: list[tuple[object, threading.Thread]] = []
 
-    def close(self, localizer) -> None:
-        """Close ``localizer`` on a thread of its own (it holds its map and tables until then;
-        entries whose close has finished are let go here)."""
+    def close(self, localizer) -> threading.Thread:
+        """Close ``localizer`` on a thread of its own, returned (it holds its map and tables until
+        then; entries whose close has finished are let go here)."""
         closer = threading.Thread(target=localizer.close, name="lidarloc-close", daemon=True)
         with self._lock:
             self._closing = [(loc, t) for loc, t in self._closing if t.is_alive()]
             self._closing.append((localizer, closer))
         closer.start()
+        return closer
 
     def kill_unfinished(self) -> int:
         """Kill the child processes of every localizer still closing (safe while its close runs);

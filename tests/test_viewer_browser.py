@@ -51,6 +51,17 @@ JS_PLOTS = """(() => Object.values((window.__viserTestpoints || {}).uplots || {}
 }))()"""
 
 
+# every press, release and click the page receives: the element's tag, text and whether it was disabled, and the
+# element actually under the pointer (what a click lost to an overlay or a re-render would show)
+JS_RECORD_CLICKS = """window.__clicks = [];
+for (const kind of ['mousedown', 'mouseup', 'click']) document.addEventListener(kind, e => {
+    const b = e.target.closest('button');
+    const under = document.elementFromPoint(e.clientX, e.clientY);
+    window.__clicks.push({kind, target: b ? b.innerText : e.target.tagName, disabled: b ? b.disabled : null,
+                          under: under ? under.tagName + ':' + (under.innerText || '').slice(0, 30) : null});
+}, true);"""
+
+
 def scan_counter(page) -> int:
     return page.evaluate(JS_SCAN)
 
@@ -235,6 +246,10 @@ def test_viewer_in_chromium(browser, served):
     page.get_by_text("Parameters", exact=True).click()
     sigma = page.get_by_label("σ (m)")
     sigma_on_server = served.viewer.controls.params["sigma"]
+    # where a click went, should one be lost: the page's clicks and the server's Apply callbacks
+    page.evaluate(JS_RECORD_CLICKS)
+    apply_clicks: list[int] = []
+    served.viewer.controls.apply.on_click(lambda _: apply_clicks.append(1))
     sigma.fill("0")
     wait_for(lambda: sigma_on_server.value == 0, what="σ = 0 on the server")
     page.get_by_role("button", name="Apply 1 change").click()
@@ -242,7 +257,12 @@ def test_viewer_in_chromium(browser, served):
     try:
         wait_for(lambda: served.viewer.message == refused, what=repr(refused))
     except AssertionError as exc:
-        raise AssertionError(f"{exc}; the server's message is {served.viewer.message!r}") from None
+        page.screenshot(path=str(ARTIFACTS / "viewer-apply-lost.png"))
+        raise AssertionError(
+            f"{exc}; the server's message is {served.viewer.message!r}, it saw {len(apply_clicks)} Apply "
+            f"click(s), changed {served.viewer.params.changed()!r}; the page's clicks: "
+            f"{page.evaluate('window.__clicks')!r}"
+        ) from None
     page.wait_for_function(f"document.body.innerText.includes({refused!r})", polling=250, timeout=STEP_TIMEOUT)
     assert served.localizer.cfg.pf.sigma == 0.5
     sigma.fill("0.7")

@@ -56,3 +56,22 @@ def test_idle_tabs_run_at_the_idle_cpu_priority(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="tab priority"):
         with clients.chromium_at("high"):
             pass
+
+
+def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
+    """Every connection's server-side state (viser's client handle, the viewer's camera folder for
+    it) is let go when the tab disconnects: a websocket tab connecting and disconnecting in a loop
+    leaves no client handle alive and no camera folder behind."""
+    import gc
+    import weakref
+
+    handles: list = []
+    viewer.server.on_client_connect(lambda client: handles.append(weakref.ref(client)))
+    r = clients.socket_churn(viewer, seconds=6.0)
+    assert r["connects"] >= 15 and r["connects"] == len(handles), r  # every connection was counted
+    assert r["rss_mb_per_connection"] is not None
+    assert viewer.server.get_clients() == {}
+    assert viewer.viewer.cameras._tabs == {}
+    gc.collect()
+    alive = [ref for ref in handles if ref() is not None]
+    assert not alive, f"{len(alive)} of {len(handles)} disconnected tabs' client handles are still referenced"

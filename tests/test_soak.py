@@ -17,6 +17,21 @@ def test_growth_is_measured_from_the_first_sample_after_the_first_loop():
     assert soak.growth(rows, 30, "rss_mb") is None  # one sample after it: no growth to speak of
 
 
+def test_memory_growth_compares_windows_not_single_samples():
+    # flat at 400 MB with a 60 MB spike in every fifth sample (a match in flight), one per 10 s
+    flat = [{"t_s": 10.0 * i, "rss_mb": 400.0 + (60.0 if i % 5 == 4 else 0.0)} for i in range(200)]
+    assert soak.growth(flat, 0, "rss_mb") == 60.0  # the last sample caught a spike
+    assert soak.memory_growth(flat, 0, "rss_mb") == 0.0
+    # a real leak: +1 MB a minute for 33 minutes, spikes and all
+    leak = [{"t_s": r["t_s"], "rss_mb": r["rss_mb"] + r["t_s"] / 60.0} for r in flat]
+    # the leak between the windows' centres (2.5 and 30.7 min) is 28.2 MB
+    assert soak.memory_growth(leak, 0, "rss_mb") == pytest.approx(28.2, abs=0.5)
+    assert soak.memory_growth(leak, 1990, "rss_mb") is None  # one sample after the first loop
+    # a short run: the windows shrink to a third of the span each, never overlapping
+    short = [{"t_s": 10.0 * i, "rss_mb": 100.0 + i} for i in range(10)]
+    assert soak.memory_growth(short, 0, "rss_mb") == 6.0  # samples 0–3 against 6–9
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):

@@ -2,12 +2,15 @@
 
 The viewer runs in this process on the real-time clock, the drive in a loop; the phases follow
 each other, ``phase_s`` seconds each: no client; five headless Chromium tabs; the five and a sixth
-tab that connects, waits for the page and disconnects in a loop; the five and a slow client (a
-websocket that reads one message a second). Per phase: the filter's scans per second and late
+tab that connects, waits for the page and disconnects in a loop; the five and a websocket tab
+that connects and disconnects in a loop (:func:`socket_churn`: hundreds of connections where a
+browser tab makes a few); the five and a slow client (a websocket that reads one message a
+second). Per phase: the filter's scans per second and late
 scans (the player's counts), the server-side display update (median, p95 ms: the whole
 ``update_display`` on the display thread, for the updates that drew a new snapshot), this
-process's RSS. ``rss_mb_per_connection`` is the
-RSS growth over the connect/disconnect phase divided by its connections.
+process's RSS. ``rss_mb_per_connection`` is the slope of the RSS against the websocket tab's
+connections (``rss_mb_per_browser_connection``: the browser tab's phase's RSS growth divided by
+its few connections).
 Targets: the real-time rate kept, the update ≤ 20 ms, no memory growth per connection, a slow
 client slows nothing (viser keeps only the newest message per scene node for it).
 
@@ -182,6 +185,48 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
     }
 
 
+def socket_churn(handle, seconds: float, on_sample=None) -> dict:
+    """A websocket tab (:class:`SocketTab`) that connects, is counted by the server, disconnects
+    and is let go by it, in a loop for ``seconds``: the connections made and this process's RSS
+    after each one was let go (``on_sample(i)`` called then, for tests).
+
+    ``rss_mb_per_connection`` is the least-squares slope of that RSS against the connection's
+    number, from the sixth connection on (the first ones fill what any tab fills once: message
+    buffers, the thread pool's threads); ``rss_mb_growth`` the last five samples' median minus
+    the median of samples 6–10."""
+    server = handle.server
+    rss: list[float] = []
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        before = set(server.get_clients())
+        tab = SocketTab(handle.port)
+        try:
+            _wait(lambda: set(server.get_clients()) - before, "the server to count the websocket tab")
+        finally:
+            tab.close()
+        _wait(lambda: not set(server.get_clients()) - before, "the server to let the websocket tab go")
+        rss.append(rss_mb())
+        if on_sample is not None:
+            on_sample(len(rss) - 1)
+    warm = rss[5:]
+    slope = float(np.polyfit(np.arange(len(warm)), warm, 1)[0]) if len(warm) >= 10 else None
+    return {
+        "connects": len(rss),
+        "rss_mb_start": round(rss[0], 1) if rss else None,
+        "rss_mb_end": round(rss[-1], 1) if rss else None,
+        "rss_mb_per_connection": round(slope, 3) if slope is not None else None,
+        "rss_mb_growth": round(float(np.median(warm[-5:]) - np.median(warm[:5])), 1) if len(warm) >= 10 else None,
+    }
+
+
+def _wait(condition, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.perf_counter() + timeout_s
+    while not condition():
+        if time.perf_counter() > deadline:
+            raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.01)  # polls the server's client table: no event to wait on
+
+
 def _open_tab(browser, handle):
     """A new tab on the viewer, returned once the server counts its connection (the page's
     canvas may still be laying out in software WebGL)."""
@@ -241,6 +286,20 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -
             churned["connects"] = connects
             churned["connects_timed_out"] = failed - tab_failures
             phases.append(churned)
+            churn_stats: dict = {}
+
+            def socket_tabs():
+                churn_stats.update(socket_churn(handle, phase_s))
+
+            sockets = _phase(
+                viewer,
+                updates,
+                f"{tabs} tabs + a websocket tab connecting and disconnecting",
+                phase_s,
+                during=socket_tabs,
+            )
+            sockets.update({f"socket_{k}": v for k, v in churn_stats.items()})
+            phases.append(sockets)
             slow = SocketTab(handle.port, every_s=1.0)
             try:
                 slowed = _phase(viewer, updates, f"{tabs} tabs + a slow client (1 message/s)", phase_s)
@@ -270,7 +329,11 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -
         ),
         "late_scans_with_tabs": late_with_tabs,
         "update_ms_median_max": max(p["update_ms_median"] for p in phases),
-        "rss_mb_per_connection": round(growth / connects, 2) if connects else None,
+        # the websocket tabs' many connections give the figure; the browser tabs' few, a check
+        "rss_mb_per_connection": churn_stats.get("rss_mb_per_connection"),
+        "connections": churn_stats.get("connects"),
+        "rss_mb_growth_over_connections": churn_stats.get("rss_mb_growth"),
+        "rss_mb_per_browser_connection": round(growth / connects, 2) if connects else None,
         "targets": {"update_ms_median": 20.0, "rss_mb_per_connection": 0.0},
         "load_average_1min": round(load_avg(), 2),
         "machine": machine(),

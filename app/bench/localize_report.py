@@ -14,30 +14,6 @@ from ...core.runs.results import write_json
 from ...core.sequences.factory import SourceSpec
 from .common import median
 
-
-def code_fingerprint() -> str:
-    """SHA-256 of lidarloc's own Python sources (core and app) and of the versions of the
-    libraries that compute its numbers: two benchmark runs resume into one report only if they
-    ran the same code."""
-    import hashlib
-    from importlib import metadata
-
-    import lidarloc.app
-    import lidarloc.core
-
-    digest = hashlib.sha256()
-    for dist in ("numpy", "numba", "scipy", "kiss-icp", "small_gicp", "open3d"):
-        try:
-            digest.update(f"{dist}=={metadata.version(dist)}\0".encode())
-        except metadata.PackageNotFoundError:
-            digest.update(f"{dist} missing\0".encode())
-    for package in (lidarloc.core, lidarloc.app):
-        root = Path(package.__file__).parent
-        for path in sorted(root.rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return digest.hexdigest()
-
-
 # The paper's figures for KITTI 05, 250 runs (Simulation section), for the report table.
 PAPER = {
     "B": {"p75": 14, "max": 24},

@@ -11,8 +11,11 @@ and its child processes), open file descriptors, the viewer's threads, its child
 the recordings' size. Each loop's line (``loop N: S scans, L late, …``) gives the late scans: a
 step that started over one scan period after its scan arrived.
 
-Growth is measured from the first sample after the first loop ended (warm-up: caches filled, the
-map drawn, the first recording opened) to the last sample. ``recording_mb_per_hour`` is what was
+Growth is measured from the first samples after the first loop ended (warm-up: caches filled,
+the map drawn, the first recording opened) to the last ones: for memory, the median of the last
+five minutes' samples minus the median of the first five minutes' (:data:`MEMORY_WINDOW_S`;
+``rss_growth_mb_single_samples`` gives the same from two single samples); for file descriptors,
+threads and child processes, the last sample minus the first. ``recording_mb_per_hour`` is what was
 written per hour (each run folder at the largest size it was seen with), whatever the budget
 removed since. After the stop, any process of the tree still alive is an orphan.
 Targets: RSS growth ≤ 50 MB after the first loop, fds / threads / children constant, no late
@@ -152,6 +155,28 @@ def growth(rows: list[dict], since_s: float | None, key: str) -> float | None:
     return round(after[-1][key] - after[0][key], 1)
 
 
+#: Memory is compared between windows of samples, not single samples: resident memory swings by
+#: tens of MB within a loop (a sample taken while a scan-to-map match holds its GICP target, or
+#: right after it was freed), so two single samples measure when they fell more than any leak.
+MEMORY_WINDOW_S = 300.0
+
+
+def memory_growth(rows: list[dict], since_s: float | None, key: str, window_s: float = MEMORY_WINDOW_S) -> float | None:
+    """Median of the last ``window_s`` of samples minus the median of the first ``window_s`` at or
+    after ``since_s`` (each window at most a third of the span, so they never overlap; None: too
+    few samples)."""
+    import statistics
+
+    after = [r for r in rows if since_s is None or r["t_s"] >= since_s]
+    if len(after) < 2:
+        return None
+    t0, t1 = after[0]["t_s"], after[-1]["t_s"]
+    w = min(window_s, (t1 - t0) / 3.0)
+    first = [r[key] for r in after if r["t_s"] <= t0 + w]
+    last = [r[key] for r in after if r["t_s"] >= t1 - w]
+    return round(statistics.median(last) - statistics.median(first), 1)
+
+
 CLIENTS = ("chromium", "socket", "none")
 
 
@@ -243,8 +268,10 @@ def run(
         "samples": len(rows),
         "first_loop_end_s": first_loop_s,
         "rss_mb_after_first_loop": next((r["rss_mb"] for r in rows if first_loop_s and r["t_s"] >= first_loop_s), None),
-        "rss_growth_mb": growth(rows, first_loop_s, "rss_mb") if first_loop_s else None,
-        "viewer_rss_growth_mb": growth(rows, first_loop_s, "viewer_rss_mb") if first_loop_s else None,
+        "rss_growth_mb": memory_growth(rows, first_loop_s, "rss_mb") if first_loop_s else None,
+        "viewer_rss_growth_mb": memory_growth(rows, first_loop_s, "viewer_rss_mb") if first_loop_s else None,
+        # the same from two single samples (the last one and the first after the first loop)
+        "rss_growth_mb_single_samples": growth(rows, first_loop_s, "rss_mb") if first_loop_s else None,
         "fd_growth": growth(rows, first_loop_s, "fds") if first_loop_s else None,
         "thread_growth": growth(rows, first_loop_s, "threads") if first_loop_s else None,
         "children_growth": growth(rows, first_loop_s, "children") if first_loop_s else None,

@@ -162,7 +162,7 @@ class ScanToMapMatcher:
         if tiles is not None:
             return tiles.points_near(x, y, radius).astype(np.float64)
         pts = np.asarray(self.prior_map.points, dtype=np.float64)
-        return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) < radius]
+        return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) <= radius]
 
     # ------------------------------------------------------------------------- scan preparation
     def prepare(self, scan_sensor: np.ndarray) -> PreparedScan:

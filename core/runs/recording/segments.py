@@ -163,8 +163,12 @@ def read_index(path: Path) -> dict:
     return index
 
 
-def gone(f: Path) -> RecordingError:
-    return RecordingError(
+class RecordingGone(RecordingError):
+    """A recording's file went between its check and its read: the rolling window dropped it."""
+
+
+def gone(f: Path) -> RecordingGone:
+    return RecordingGone(
         f"{f}: no longer on disk (the recording budget dropped these steps since the recording was opened)"
     )
 
@@ -199,7 +203,7 @@ class Part:
                 )
                 while n > 0 and self.field("particle_rows", n)[n - 1].sum() > n_rows:
                     n -= 1
-        except RecordingError:  # a field's file went meanwhile (gone): the part was dropped
+        except RecordingGone:  # a field's file went meanwhile: the part was dropped
             n = 0
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise RecordingError(f"{index_file}: corrupt recording index ({exc})") from None

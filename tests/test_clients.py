@@ -75,3 +75,30 @@ def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
     gc.collect()
     alive = [ref for ref in handles if ref() is not None]
     assert not alive, f"{len(alive)} of {len(handles)} disconnected tabs' client handles are still referenced"
+
+
+@pytest.mark.slow
+def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_root):
+    """``bench clients --tab-kind socket``: the phases run with websocket tabs (no browser), each
+    with the filter's rate, the process's CPU and the display update; the websocket tab's many
+    connections give the memory per connection."""
+    from helpers import make_localizer
+
+    loc = make_localizer(street, cache_root)
+    try:
+        r = clients.run(loc, tabs=2, phase_s=4.0, tab_kind="socket")
+    finally:
+        loc.close()
+    names = [p["phase"] for p in r["phases"]]
+    assert names == [
+        "no client",
+        "2 websocket tabs",
+        "2 websocket tabs + a websocket tab connecting and disconnecting",
+        "2 websocket tabs + a slow client (1 message/s)",
+    ]
+    assert r["tabs_connected"] == 2 and r["tab_priority"] is None
+    assert r["connections"] >= 10 and r["rss_mb_per_connection"] is not None, r
+    assert all(p["cpu_pct"] > 0 and p["scans_per_s"] > 0 for p in r["phases"]), r["phases"]
+    assert r["rss_mb_per_browser_connection"] is None  # no browser tab came and went
+    with pytest.raises(ValueError, match="tab kind"):
+        clients.run(loc, tab_kind="firefox")

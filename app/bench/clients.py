@@ -21,7 +21,10 @@ filter up to 3 s behind its clock while the server-side update stays at 5 ms). F
 watching a run sit at five machines of their own, so by default the tabs run at the idle CPU
 priority (``SCHED_IDLE``, through ``chrt``): they get only the CPU the viewer leaves, and the
 phases measure what serving them costs the viewer. ``tab_priority="normal"`` runs them as any
-other process (browser and viewer on one small machine).
+other process (browser and viewer on one small machine). ``tab_kind="socket"`` opens websocket
+tabs instead (:class:`SocketTab`: everything the server sends, read and not drawn): with no
+browser on the machine, the phases show what serving the tabs costs the viewer itself
+(``cpu_pct`` per phase: this process's CPU, every thread).
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ CHROMIUM_ARGS = [
 CHROMIUM = Path("/usr/bin/chromium")
 LOAD_TIMEOUT_MS = 120_000
 TAB_PRIORITIES = ("idle", "normal")
+TAB_KINDS = ("chromium", "socket")
 
 
 @contextlib.contextmanager
@@ -158,7 +162,7 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
     """Run for ``seconds`` (``during()`` called in a loop meanwhile): the phase's figures."""
     updates.clear()
     viewer.player.take_counts()
-    rss0, t0 = rss_mb(), time.perf_counter()
+    rss0, t0, cpu0 = rss_mb(), time.perf_counter(), time.process_time()
     loops = 0
     while time.perf_counter() - t0 < seconds:
         if during is not None:
@@ -167,6 +171,7 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
         else:
             time.sleep(0.5)
     elapsed = time.perf_counter() - t0
+    cpu_pct = (time.process_time() - cpu0) / elapsed * 100.0  # this process, every thread
     counts = viewer.player.take_counts()
     ms = np.array(updates) if updates else np.array([np.nan])
     return {
@@ -181,6 +186,7 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
         "rss_mb_start": round(rss0, 1),
         "rss_mb_end": round(rss_mb(), 1),
         "loops": loops,
+        "cpu_pct": round(cpu_pct, 1),
         "load_1min": round(load_avg(), 2),
     }
 
@@ -242,14 +248,17 @@ def _open_tab(browser, handle):
     return page
 
 
-def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -> dict:
+def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", tab_kind: str = "chromium") -> dict:
     """The phases above on a ready Localizer ``loc`` (closed by the caller); the tabs' Chromium at
-    ``tab_priority`` (see the module docstring)."""
-    from playwright.sync_api import sync_playwright
-
+    ``tab_priority`` (see the module docstring). ``tab_kind="socket"``: the tabs are websocket
+    tabs (:class:`SocketTab`: everything the server sends, read and not drawn), so the phases
+    measure what serving them costs the viewer without any browser's rendering on the machine
+    (no browser tab connecting and disconnecting then)."""
     from ..viewer.serve import serve
 
-    if not CHROMIUM.exists():
+    if tab_kind not in TAB_KINDS:
+        raise ValueError(f"tab kind {tab_kind!r} is not one of {', '.join(TAB_KINDS)}")
+    if tab_kind == "chromium" and not CHROMIUM.exists():
         raise RuntimeError("bench clients needs /usr/bin/chromium (apt-get install -y chromium)")
     with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout carries --json
         handle = serve(loc, port=0, autoplay=False)
@@ -260,66 +269,72 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -
     loc.set_params(clock="realtime")
     viewer.player.set_clock("realtime")
     phases, connects, failed, pages = [], 0, 0, []
+    churn_stats: dict = {}
     try:
         viewer.play()
-        with sync_playwright() as pw, chromium_at(tab_priority) as executable:
-            browser = pw.chromium.launch(executable_path=str(executable), args=CHROMIUM_ARGS)
+        with contextlib.ExitStack() as stack:
+            browser = None
+            if tab_kind == "chromium":
+                from playwright.sync_api import sync_playwright
+
+                pw = stack.enter_context(sync_playwright())
+                executable = stack.enter_context(chromium_at(tab_priority))
+                browser = pw.chromium.launch(executable_path=str(executable), args=CHROMIUM_ARGS)
+                stack.callback(browser.close)
             phases.append(_phase(viewer, updates, "no client", phase_s))
             for _ in range(tabs):
                 try:
-                    pages.append(_open_tab(browser, handle))
+                    pages.append(_open_tab(browser, handle) if browser is not None else SocketTab(handle.port))
                 except TimeoutError:  # said in the result: the phases run with the tabs that got through
                     failed += 1
+            stack.callback(lambda: [page.close() for page in pages])
             tab_failures = failed
-            phases.append(_phase(viewer, updates, f"{len(pages)} tabs", phase_s))
+            kind = "tabs" if browser is not None else "websocket tabs"
+            phases.append(_phase(viewer, updates, f"{len(pages)} {kind}", phase_s))
+            if browser is not None:
 
-            def churn():
-                nonlocal connects
-                nonlocal failed
-                try:
-                    _open_tab(browser, handle).close()
-                    connects += 1
-                except TimeoutError:  # counted: on a saturated machine a tab may not get through
-                    failed += 1
+                def churn():
+                    nonlocal connects
+                    nonlocal failed
+                    try:
+                        _open_tab(browser, handle).close()
+                        connects += 1
+                    except TimeoutError:  # counted: on a saturated machine a tab may not get through
+                        failed += 1
 
-            churned = _phase(viewer, updates, f"{tabs} tabs + one connecting and disconnecting", phase_s, during=churn)
-            churned["connects"] = connects
-            churned["connects_timed_out"] = failed - tab_failures
-            phases.append(churned)
-            churn_stats: dict = {}
-
-            def socket_tabs():
-                churn_stats.update(socket_churn(handle, phase_s))
-
+                churned = _phase(
+                    viewer, updates, f"{len(pages)} tabs + one connecting and disconnecting", phase_s, during=churn
+                )
+                churned["connects"] = connects
+                churned["connects_timed_out"] = failed - tab_failures
+                phases.append(churned)
             sockets = _phase(
                 viewer,
                 updates,
-                f"{tabs} tabs + a websocket tab connecting and disconnecting",
+                f"{len(pages)} {kind} + a websocket tab connecting and disconnecting",
                 phase_s,
-                during=socket_tabs,
+                during=lambda: churn_stats.update(socket_churn(handle, phase_s)),
             )
             sockets.update({f"socket_{k}": v for k, v in churn_stats.items()})
             phases.append(sockets)
             slow = SocketTab(handle.port, every_s=1.0)
             try:
-                slowed = _phase(viewer, updates, f"{tabs} tabs + a slow client (1 message/s)", phase_s)
+                slowed = _phase(viewer, updates, f"{len(pages)} {kind} + a slow client (1 message/s)", phase_s)
                 slowed["slow_client_read"] = slow.read
             finally:
                 slow.close()
             phases.append(slowed)
-            for page in pages:
-                page.close()
-            browser.close()
     finally:
         with contextlib.redirect_stdout(sys.stderr):  # viser's "Server stopped": stdout carries --json
             handle.stop()
     base = phases[0]["scans_per_s"]
-    growth = churned["rss_mb_end"] - churned["rss_mb_start"]
+    browser_growth = phases[2]["rss_mb_end"] - phases[2]["rss_mb_start"] if connects else None
     late_with_tabs = sum(p["late_scans"] for p in phases[1:])
     return {
         "phases": phases,
         "tabs": tabs,
-        "tab_priority": tab_priority,
+        "tab_kind": tab_kind,
+        "tab_priority": tab_priority if tab_kind == "chromium" else None,
         "tabs_connected": len(pages),
         "phase_s": phase_s,
         "realtime_scans_per_s": round(1.0 / float(np.median(np.diff(np.asarray(loc.seq.timestamps, float)))), 2),
@@ -329,11 +344,14 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle") -
         ),
         "late_scans_with_tabs": late_with_tabs,
         "update_ms_median_max": max(p["update_ms_median"] for p in phases),
-        # the websocket tabs' many connections give the figure; the browser tabs' few, a check
+        # what serving the tabs costs this process: its CPU with the tabs against without them
+        "cpu_pct_no_client": phases[0]["cpu_pct"],
+        "cpu_pct_with_tabs": phases[1]["cpu_pct"],
+        # the websocket tab's many connections give the figure; the browser tab's few, a check
         "rss_mb_per_connection": churn_stats.get("rss_mb_per_connection"),
         "connections": churn_stats.get("connects"),
         "rss_mb_growth_over_connections": churn_stats.get("rss_mb_growth"),
-        "rss_mb_per_browser_connection": round(growth / connects, 2) if connects else None,
+        "rss_mb_per_browser_connection": round(browser_growth / connects, 2) if connects else None,
         "targets": {"update_ms_median": 20.0, "rss_mb_per_connection": 0.0},
         "load_average_1min": round(load_avg(), 2),
         "machine": machine(),

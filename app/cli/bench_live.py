@@ -79,6 +79,15 @@ def bench_clients(
             "browsers on their users' own machines would) or normal (browser and viewer share the cores).",
         ),
     ] = "idle",
+    tab_kind: Annotated[
+        str,
+        typer.Option(
+            "--tab-kind",
+            metavar="chromium|socket",
+            help="The tabs: headless Chromium, or websocket tabs that read everything the server sends "
+            "without drawing it (what serving tabs costs the viewer, without browsers on the machine).",
+        ),
+    ] = "chromium",
     as_json: JsonOpt = False,
     spec=None,
     preset: PresetOpt = None,
@@ -87,11 +96,12 @@ def bench_clients(
     cache: CacheOpt = None,
 ):
     """The live viewer in real time with no client, --tabs headless Chromium tabs, one more tab
-    connecting and disconnecting in a loop, and a slow client: the filter's rate, the server-side
-    update and memory per phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per
-    connection, a slow client slows nothing."""
+    connecting and disconnecting in a loop (a browser tab, then a websocket tab: hundreds of
+    connections), and a slow client: the filter's rate, the server-side update and memory per
+    phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per connection, a slow
+    client slows nothing."""
     from ...core.localizer import Localizer
-    from ..bench.clients import TAB_PRIORITIES
+    from ..bench.clients import TAB_KINDS, TAB_PRIORITIES
     from ..bench.clients import run as run_bench
     from ..options import open_source
 
@@ -99,10 +109,12 @@ def bench_clients(
         raise typer.BadParameter(
             f"{tab_priority!r} is not one of {', '.join(TAB_PRIORITIES)}", param_hint="--tab-priority"
         )
+    if tab_kind not in TAB_KINDS:
+        raise typer.BadParameter(f"{tab_kind!r} is not one of {', '.join(TAB_KINDS)}", param_hint="--tab-kind")
     cfg = config_from(config, set_, preset=preset)
     loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
     try:
-        result = run_bench(loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority)
+        result = run_bench(loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority, tab_kind=tab_kind)
     finally:
         loc.close()
     show_bench_result("clients", result, as_json)

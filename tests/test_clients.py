@@ -15,6 +15,7 @@ import pytest
 from helpers import wait_for
 from lidarloc.app.bench import clients
 from lidarloc.app.bench.clients import SocketTab, _timed
+from lidarloc.app.viewer import heap as heap_module
 
 
 def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):
@@ -67,7 +68,14 @@ def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
 
     handles: list = []
     viewer.server.on_client_connect(lambda client: handles.append(weakref.ref(client)))
+    heap = viewer.viewer.heap
+    trims_before = heap.trims
+    t0 = time.perf_counter()
     r = clients.socket_churn(viewer, seconds=6.0)
+    if heap.available:  # what the tabs freed went back to the system, at most once per interval
+        wait_for(lambda: heap.trims > trims_before, what="a heap trim after the tabs left")
+        elapsed = time.perf_counter() - t0
+        assert heap.trims - trims_before <= 1 + elapsed / heap_module.MIN_INTERVAL_S, (heap.trims, elapsed)
     assert r["connects"] >= 15 and r["connects"] == len(handles), r  # every connection was counted
     assert r["rss_mb_per_connection"] is not None
     assert viewer.server.get_clients() == {}

@@ -250,6 +250,8 @@ def test_viewer_in_chromium(browser, served):
     page.evaluate(JS_RECORD_CLICKS)
     apply_clicks: list[int] = []
     served.viewer.controls.apply.on_click(lambda _: apply_clicks.append(1))
+    reconnects: list[int] = []  # a tab reconnecting meanwhile drops what its page sends until it is back
+    served.viewer.server.on_client_connect(lambda client: reconnects.append(client.client_id))
     sigma.fill("0")
     wait_for(lambda: sigma_on_server.value == 0, what="σ = 0 on the server")
     page.get_by_role("button", name="Apply 1 change").click()
@@ -261,7 +263,7 @@ def test_viewer_in_chromium(browser, served):
         raise AssertionError(
             f"{exc}; the server's message is {served.viewer.message!r}, it saw {len(apply_clicks)} Apply "
             f"click(s), changed {served.viewer.params.changed()!r}; the page's clicks: "
-            f"{page.evaluate('window.__clicks')!r}"
+            f"{page.evaluate('window.__clicks')!r}; tabs connected meanwhile: {reconnects}"
         ) from None
     page.wait_for_function(f"document.body.innerText.includes({refused!r})", polling=250, timeout=STEP_TIMEOUT)
     assert served.localizer.cfg.pf.sigma == 0.5

@@ -27,6 +27,7 @@ from ...core.snapshot import Snapshot
 from .camera import TabCameras, start_pose, tab_may_close
 from .controls import ParameterControls, ParticleControls
 from .faults import BlockFailed, FaultReporter
+from .heap import HeapTrimmer
 from .history import History
 from .layers import LayerFolder
 from .minimap import Overview
@@ -138,6 +139,9 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         )
         server.on_client_connect(self._on_connect)
         server.on_client_disconnect(self.cameras.disconnect)
+        # what a tab that left or a finished run freed goes back to the system (see heap.py)
+        self.heap = HeapTrimmer()
+        server.on_client_disconnect(self.heap.request)
         # Without the display thread (benchmarks) the owner calls update_display() itself.
         self._display = threading.Thread(target=self._display_loop, name="lidarloc-display", daemon=True)
         if display_thread:
@@ -488,6 +492,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         a block that hangs must not hang the exit), so that the server stops after them."""
         self._stopping.set()
         self._wake.set()
+        self.heap.stop()
         self.why.stop()
         if self.player is not None:
             self.player.stop(timeout=STOP_WAIT_S)

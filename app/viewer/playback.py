@@ -114,6 +114,7 @@ class Playback:
         self.alarm.clear()
         self.player.rebase()
         self.publish(self.localizer.snapshot())
+        self.heap.request()  # the run just left behind was freed
         self.show_message(f"restarted from scan 0 with seed {seed}")
 
     def play_again(self) -> None:

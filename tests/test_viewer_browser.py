@@ -299,6 +299,8 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     """In a real page: playback waits for the first tab; a kidnap while paused shows at once;
     Restart takes the last run's S2M match out of the scene; the S2M row is not "running" after
     the end and says "off" when S2M is off."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
     loc, viewer = waiting.localizer, waiting.viewer
     assert waiting.wait_ready(60)
     assert not viewer.player.playing and loc.k == 0  # nobody is watching yet: not playing
@@ -340,8 +342,18 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     )
 
     # to the end: the S2M row does not say "running"; switched off, it says "off"
+    page.evaluate(JS_RECORD_CLICKS)
+    play_clicks: list[int] = []
+    viewer.controls.play.on_click(lambda _: play_clicks.append(1))
     page.get_by_role("button", name="Play").click()
-    page.wait_for_function("document.body.innerText.includes('· finished')", timeout=LOAD_TIMEOUT)
+    try:
+        page.wait_for_function("document.body.innerText.includes('· finished')", timeout=LOAD_TIMEOUT)
+    except PlaywrightTimeout as exc:
+        raise AssertionError(
+            f"{exc}; on the server: scan {loc.k} of {loc.n_scans}, playing {viewer.player.playing}, "
+            f"{len(play_clicks)} Play click(s), message {viewer.message!r}; the page's clicks: "
+            f"{page.evaluate('window.__clicks')!r}"
+        ) from None
     assert "running" not in page.evaluate(JS_S2M_ROW)
     page.get_by_text("Parameters", exact=True).click()
     # A click (it waits for the folder to open and the box to be still), then the localizer's word.

@@ -4,7 +4,7 @@ there, the tiled search agrees with the whole-map search, and a second run start
 import math
 
 import pytest
-from lidarloc.app.bench.city import judge, run
+from lidarloc.app.bench.city import judge, localize_figures, run
 from lidarloc.core.config import load_config
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -37,3 +37,19 @@ def test_bench_city_reports_every_figure(cache_root):
     assert out["build_s"] > 0 and out["cache_mb"] > 0
     again = run(spec, cfg, cache_root=cache_root, global_scans=1, peer_scans=0, tile_m=50.0, bev_tile_m=32.0)
     assert again["build_parts_s"] == out["build_parts_s"]  # the tiles came from the cache
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_localize_runs_give_localize_success(cache_root, tmp_path):
+    """``--localize-runs``: seeded runs of full localization on the city's drive, summed up as
+    bench localize sums them (the share of runs localized and within 5 m to the end)."""
+    import json
+
+    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+    out = tmp_path / "localize"
+    got = localize_figures(SourceSpec(scans=30), cfg, runs=1, workers=1, out_dir=out, cache_root=cache_root)
+    summary = json.loads((out / "summary.json").read_text())
+    assert got["localize_runs"] == 1 and got["localize_success"] in (0.0, 1.0)
+    assert got["localize_success"] == summary["within_5m_to_end_ratio"]
+    assert got["localize_false_fire_rate"] == summary["false_fire_rate"]

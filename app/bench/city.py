@@ -144,11 +144,29 @@ def run(
         out["whole_map_ms_median"] = out["whole_map_success"] = None
     out.update(_peers(seq, prior, cfg, idx[:peer_scans], report) if peer_scans > 0 else {})
     out.update(_probe(seq, lookup, bev, cfg, idx))
-    out["localize_success"] = None  # `bench localize` on a city drive: not measured by this command
+    out["localize_success"] = None  # filled by localize_figures (``--localize-runs``)
     out["load_avg_end"] = load_avg()
     out["rss_bench_mb"] = rss_mb()
     out["rows"] = rows
     return out
+
+
+def localize_figures(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: Path, cache_root=None) -> dict:
+    """Full localization from a start spread over the whole city: ``runs`` seeded runs of
+    ``bench localize`` on the city's drive (into ``out_dir``, resumable as its own). A run
+    succeeds if it localized and was within 5 m of the truth to the end of the drive; the
+    targets also ask for D max ≤ 40 and no false fire."""
+    from .localize import run_bench as localize_runs
+
+    agg = localize_runs(spec, cfg, runs=runs, workers=workers, out_dir=out_dir, cache_root=cache_root)
+    return {
+        "localize_runs": runs,
+        "localize_success": agg.get("within_5m_to_end_ratio"),
+        "localize_D_max": (agg.get("D") or {}).get("max"),
+        "localize_false_fire_rate": agg.get("false_fire_rate"),
+        "localize_rmse_after_localized_m_median": agg.get("rmse_after_localized_m_median"),
+        "localize_out": str(out_dir),
+    }
 
 
 def _dir_bytes(directory: Path) -> int:

@@ -291,6 +291,19 @@ def bench_city(
     whole_map: Annotated[
         bool, typer.Option("--whole-map/--no-whole-map", help="Also today's whole-map search on the same scans.")
     ] = True,
+    localize_runs: Annotated[
+        int,
+        typer.Option(
+            "--localize-runs",
+            min=0,
+            help="Also this many seeded runs of full localization on the city's drive (bench localize; "
+            "each a whole drive, minutes on a city) for localize_success.",
+        ),
+    ] = 0,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Worker processes for --localize-runs.")] = 2,
+    out: Annotated[Path, typer.Option("--out", help="Directory for the --localize-runs runs (resumable).")] = Path(
+        "out/bench-city"
+    ),
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
@@ -302,7 +315,9 @@ def bench_city(
     """lidarloc holding a city (by default the 4 × 4 km city, a 10-minute drive through it):
     the tiled tables' build and cache size, a later start and the memory a drive keeps resident
     (in a fresh process), and the exact tiled global search beside the whole-map search and
-    FPFH + RANSAC. --set town.extent_m=E (or any source option) measures another city."""
+    FPFH + RANSAC; with --localize-runs N, N seeded runs of full localization from a start
+    spread over the whole city. --set town.extent_m=E (or any source option) measures another city."""
+    from ..bench.city import localize_figures
     from ..bench.city import run as run_bench
 
     overrides = ["town.extent_m=4000", "town.n_scans=6000", *(set_ or [])]
@@ -325,4 +340,6 @@ def bench_city(
             whole_map=whole_map,
             progress=progress,
         )
+    if localize_runs:  # its own progress bar: after the one above has closed
+        result.update(localize_figures(spec, cfg, localize_runs, workers, out / "localize", cache_root=cache))
     show_bench_result("city", result, as_json)

@@ -76,10 +76,11 @@ def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
         wait_for(lambda: heap.trims > trims_before, what="a heap trim after the tabs left")
         elapsed = time.perf_counter() - t0
         assert heap.trims - trims_before <= 1 + elapsed / heap_module.MIN_INTERVAL_S, (heap.trims, elapsed)
-    assert r["connects"] >= 15 and r["connects"] == len(handles), r  # every connection was counted
-    assert r["rss_mb_per_connection"] is not None
+    assert r["connects"] >= 15 and r["rss_mb_per_connection"] is not None, r
+    # viser runs the connect callbacks on its own threads: the last ones may still be running
+    wait_for(lambda: len(handles) == r["connects"], what="every connection's callback")
     assert viewer.server.get_clients() == {}
-    assert viewer.viewer.cameras._tabs == {}
+    wait_for(lambda: viewer.viewer.cameras._tabs == {}, what="no camera folder left")
     gc.collect()
     alive = [ref for ref in handles if ref() is not None]
     assert not alive, f"{len(alive)} of {len(handles)} disconnected tabs' client handles are still referenced"
@@ -94,7 +95,7 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
 
     loc = make_localizer(street, cache_root)
     try:
-        r = clients.run(loc, tabs=2, phase_s=4.0, tab_kind="socket")
+        r = clients.run(loc, tabs=2, phase_s=6.0, tab_kind="socket")
     finally:
         loc.close()
     names = [p["phase"] for p in r["phases"]]

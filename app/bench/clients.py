@@ -9,7 +9,7 @@ second). Per phase: the filter's scans per second and late
 scans (the player's counts), the server-side display update (median, p95 ms: the whole
 ``update_display`` on the display thread, for the updates that drew a new snapshot), this
 process's RSS. ``rss_mb_per_connection`` is the slope of the RSS against the websocket tab's
-connections (``rss_mb_per_browser_connection``: the browser tab's phase's RSS growth divided by
+connections over their second half (``rss_mb_per_browser_connection``: the browser tab's phase's RSS growth divided by
 its few connections).
 Targets: the real-time rate kept, the update ≤ 20 ms, no memory growth per connection, a slow
 client slows nothing (viser keeps only the newest message per scene node for it).

@@ -62,6 +62,15 @@ for (const kind of ['mousedown', 'mouseup', 'click']) document.addEventListener(
 }, true);"""
 
 
+def watch_clicks(page, button) -> list:
+    """Record the page's presses, releases and clicks from now on (``window.__clicks``); the
+    returned list gets an entry each time the server runs ``button``'s callbacks."""
+    page.evaluate(JS_RECORD_CLICKS)
+    on_server: list[int] = []
+    button.on_click(lambda _: on_server.append(1))
+    return on_server
+
+
 def scan_counter(page) -> int:
     return page.evaluate(JS_SCAN)
 
@@ -247,9 +256,7 @@ def test_viewer_in_chromium(browser, served):
     sigma = page.get_by_label("σ (m)")
     sigma_on_server = served.viewer.controls.params["sigma"]
     # where a click went, should one be lost: the page's clicks and the server's Apply callbacks
-    page.evaluate(JS_RECORD_CLICKS)
-    apply_clicks: list[int] = []
-    served.viewer.controls.apply.on_click(lambda _: apply_clicks.append(1))
+    apply_clicks = watch_clicks(page, served.viewer.controls.apply)
     reconnects: list[int] = []  # a tab reconnecting meanwhile drops what its page sends until it is back
     served.viewer.server.on_client_connect(lambda client: reconnects.append(client.client_id))
     sigma.fill("0")
@@ -342,9 +349,7 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     )
 
     # to the end: the S2M row does not say "running"; switched off, it says "off"
-    page.evaluate(JS_RECORD_CLICKS)
-    play_clicks: list[int] = []
-    viewer.controls.play.on_click(lambda _: play_clicks.append(1))
+    play_clicks = watch_clicks(page, viewer.controls.play)
     page.get_by_role("button", name="Play").click()
     try:
         page.wait_for_function("document.body.innerText.includes('· finished')", timeout=LOAD_TIMEOUT)

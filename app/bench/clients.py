@@ -275,6 +275,7 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
     viewer.player.set_clock("realtime")
     phases, connects, failed, pages = [], 0, 0, []
     churn_stats: dict = {}
+    browser_growth = None  # RSS over the browser tab's connect/disconnect phase
     try:
         viewer.play()
         with contextlib.ExitStack() as stack:
@@ -313,6 +314,7 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
                 churned["connects"] = connects
                 churned["connects_timed_out"] = failed - tab_failures
                 phases.append(churned)
+                browser_growth = churned["rss_mb_end"] - churned["rss_mb_start"]
             sockets = _phase(
                 viewer,
                 updates,
@@ -333,7 +335,6 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
         with contextlib.redirect_stdout(sys.stderr):  # viser's "Server stopped": stdout carries --json
             handle.stop()
     base = phases[0]["scans_per_s"]
-    browser_growth = phases[2]["rss_mb_end"] - phases[2]["rss_mb_start"] if connects else None
     late_with_tabs = sum(p["late_scans"] for p in phases[1:])
     return {
         "phases": phases,

@@ -38,7 +38,7 @@ from urllib.parse import urlsplit
 from ...core.errors import LidarlocError
 from ..viewer.token_gate import TOKEN_ENV
 from .clients import CHROMIUM, CHROMIUM_ARGS, SocketTab
-from .common import load_avg, machine
+from .common import load_avg, machine, median
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
 _LOOP = re.compile(r"^loop (\d+): (\d+) scans, (\d+) late, largest lag ([0-9.]+) s")
@@ -165,8 +165,6 @@ def memory_growth(rows: list[dict], since_s: float | None, key: str, window_s: f
     """Median of the last ``window_s`` of samples minus the median of the first ``window_s`` at or
     after ``since_s`` (each window at most a third of the span, so they never overlap; None: too
     few samples)."""
-    import statistics
-
     after = [r for r in rows if since_s is None or r["t_s"] >= since_s]
     if len(after) < 2:
         return None
@@ -174,7 +172,7 @@ def memory_growth(rows: list[dict], since_s: float | None, key: str, window_s: f
     w = min(window_s, (t1 - t0) / 3.0)
     first = [r[key] for r in after if r["t_s"] <= t0 + w]
     last = [r[key] for r in after if r["t_s"] >= t1 - w]
-    return round(statistics.median(last) - statistics.median(first), 1)
+    return round(median(last) - median(first), 1)
 
 
 CLIENTS = ("chromium", "socket", "none")

@@ -4,7 +4,14 @@ built once and then read from its cache."""
 import numpy as np
 from lidarloc.core.config import MapConfig
 from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.maps.mapping import VoxelAccumulator, flat_surface_mask, load_or_build_map, range_filter
+from lidarloc.core.maps import mapping
+from lidarloc.core.maps.mapping import (
+    VoxelAccumulator,
+    flat_surface_mask,
+    load_or_build_map,
+    range_filter,
+    voxel_centroids,
+)
 from lidarloc.core.sequences.base import Limited
 
 
@@ -24,6 +31,27 @@ def test_voxel_accumulator_centroids_and_growth():
         mask = (keys == c).all(axis=1)
         centroid = pts[mask].mean(axis=0)
         assert np.min(np.linalg.norm(out - centroid, axis=1)) < 1e-5
+
+
+def test_voxel_centroids_streamed_in_chunks_equal_one_pass(monkeypatch):
+    """The centroids of a map read a chunk at a time (so that a city map is never copied whole)
+    are those of one pass over every point, from a read-only memory map too; past ``cap`` voxels
+    the answer is None."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-20, 20, size=(5000, 3)).astype(np.float32)
+    whole = VoxelAccumulator(2.0)
+    whole.add(pts)
+    expected = whole.points()
+    monkeypatch.setattr(mapping, "CENTROID_CHUNK", 333)  # 16 chunks, voxels split across them
+    read_only = pts.copy()
+    read_only.flags.writeable = False
+    got = voxel_centroids(read_only, 2.0)
+    assert got is not None and got.dtype == np.float32
+    order = lambda a: a[np.lexsort(a.T)]  # noqa: E731
+    np.testing.assert_allclose(order(got), order(expected), atol=1e-5)
+    assert len(expected) > 900  # 20³ voxels, most hit: the comparison is not of a handful
+    assert voxel_centroids(pts, 2.0, cap=100) is None
+    assert voxel_centroids(pts, 2.0, cap=len(expected)) is not None
 
 
 def test_adding_a_scan_at_a_pose_equals_filtering_and_transforming_it_first():

@@ -12,7 +12,7 @@ import numpy as np
 
 from ...core.config import Config
 from ...core.maps.bev import load_or_build_pyramid
-from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.maps.mapping import load_or_build_map, range_filter, voxel_centroids
 from ...core.sequences.factory import SourceSpec
 from .common import median, open_source, pose_error
 
@@ -35,8 +35,11 @@ class FeatureMap:
 
     def features(self, points: np.ndarray):
         o3d, v = self.o3d, self.voxel
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)[:, :3]))
-        pcd = pcd.voxel_down_sample(v)
+        # Down-sampled before open3d sees it, a chunk at a time: open3d's own voxel_down_sample
+        # wants every point as float64 in its cloud first (a city map: tens of GB).
+        centroids = voxel_centroids(points, v)
+        assert centroids is not None  # no cap
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centroids.astype(np.float64)))
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
             pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ...core.maps.mapping import VoxelAccumulator
+from ...core.maps.mapping import voxel_centroids
 from ...core.maps.point_tiles import private_mapping
 from .ground import GroundHeight
 from .style import (
@@ -36,7 +36,7 @@ from .style import (
     ROAD_REMOVED_MAX_POINTS,
 )
 
-CHUNK = 1 << 18  # points per chunk: the unit of the tile index and of the streamed voxel sums
+CHUNK = 1 << 18  # points per chunk: the unit of the tile index
 SAMPLE_ABOVE = 64  # a coarse layer is thinned from at most about this many times its points
 
 
@@ -136,18 +136,6 @@ def fit(order: Iterable[int], counts: Mapping[int, int], budget: int) -> tuple[l
     return chosen, None
 
 
-# ------------------------------------------------------------------------- voxel sums, streamed
-def centroids(points: np.ndarray, voxel: float, cap: int | None = None) -> np.ndarray | None:
-    """One centroid per ``voxel`` (float32), the points added a chunk at a time so that the hash
-    table stays about twice the voxels' count; None as soon as there are more than ``cap``."""
-    acc = VoxelAccumulator(voxel, capacity=1 << 12)
-    for s in range(0, len(points), CHUNK):
-        acc.add(points[s : s + CHUNK])
-        if cap is not None and acc.size > cap:
-            return None
-    return acc.points()
-
-
 def thin(points: np.ndarray, max_points: int, voxel: float, map_voxel: float) -> tuple[np.ndarray, float]:
     """At most ``max_points`` centroids of ``points`` on a voxel of at least ``voxel``, grown
     until they fit. The first voxel tried is guessed from the count (surfaces sampled at
@@ -161,11 +149,11 @@ def thin(points: np.ndarray, max_points: int, voxel: float, map_voxel: float) ->
         return np.zeros((0, 3), np.float32), voxel
     v = max(voxel, map_voxel * math.sqrt(len(points) / (4.0 * max_points)))
     points = points[:: max(1, len(points) // (SAMPLE_ABOVE * max_points))]
-    while (c := centroids(points, v, cap=8 * max_points)) is None:
+    while (c := voxel_centroids(points, v, cap=8 * max_points)) is None:
         v *= 2.0
     while len(c) > max_points:
         v *= max(1.25, 1.05 * math.sqrt(len(c) / max_points))
-        c = centroids(c, v)
+        c = voxel_centroids(c, v)
         assert c is not None
     return c, v
 
@@ -271,7 +259,7 @@ class TiledMap:
             start = int(c) * CHUNK
             stop = min(start + CHUNK, len(points))
             k = _gather(points, start, stop, g.x0, g.y0, 1.0 / g.size, g.nx, g.ny, int(t), out, k)
-        pts = centroids(out[:k], self.voxel)
+        pts = voxel_centroids(out[:k], self.voxel)
         assert pts is not None
         return pts
 

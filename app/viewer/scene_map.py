@@ -13,8 +13,9 @@ import time
 
 import numpy as np
 
+from ...core.maps.mapping import voxel_centroids
 from .ground import GroundHeight
-from .map_tiles import NearTiles, TiledMap, TileSettings, centroids, thin
+from .map_tiles import NearTiles, TiledMap, TileSettings, thin
 from .minimap import Footprint
 from .style import (
     BEV_COLOR,
@@ -61,7 +62,7 @@ class MapLayers:
         self._tile_settings = settings
         self._max_points = max_points
         # whole, if it leaves room for the road-removed layer in the budget
-        pts = centroids(prior_map.points, voxel, cap=min(max_points, settings.budget - settings.road_removed_max))
+        pts = voxel_centroids(prior_map.points, voxel, cap=min(max_points, settings.budget - settings.road_removed_max))
         if pts is not None:  # one node
             self._map = self._cloud("/map/full", pts, voxel * 0.8, self.layers.map)
             self._map_points = len(pts)
@@ -192,7 +193,7 @@ class MapLayers:
         s = self._tile_settings
         if self._tiled is None:  # as the map: at the display voxel, within what the budget leaves
             room = min(self._max_points, s.budget - self._map_points)
-            bev = centroids(points_bev, self.display_voxel, cap=room)
+            bev = voxel_centroids(points_bev, self.display_voxel, cap=room)
             size = self.display_voxel
             if bev is None:
                 bev, size = thin(points_bev, room, self.display_voxel, self._source_voxel)

@@ -153,6 +153,22 @@ class VoxelAccumulator:
         return (acc[:, :3] / acc[:, 3:4]).astype(np.float32)
 
 
+CENTROID_CHUNK = 1 << 18  # points added to the hash table at a time
+
+
+def voxel_centroids(points: np.ndarray, voxel: float, cap: int | None = None) -> np.ndarray | None:
+    """One centroid per ``voxel`` (float32, voxels aligned to the origin), the points added a
+    chunk at a time so that memory stays at the voxels' hash table (about twice their count) and
+    one chunk, however large ``points`` (a memory-mapped city map is never copied whole); None as
+    soon as there are more than ``cap`` voxels."""
+    acc = VoxelAccumulator(voxel, capacity=1 << 12)
+    for s in range(0, len(points), CENTROID_CHUNK):
+        acc.add(points[s : s + CENTROID_CHUNK])
+        if cap is not None and acc.size > cap:
+            return None
+    return acc.points()
+
+
 @nb.njit(cache=True, nogil=True)
 def _reinsert(table_keys, table_acc, keys, acc):
     mask = table_keys.shape[0] - 1

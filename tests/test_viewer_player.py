@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 from helpers import wait_for
-from lidarloc.app.viewer.player import Player
+from lidarloc.app.viewer.player import TRACE_LATE_ENV, Player
 from lidarloc.core.errors import LidarlocError
 
 # Upper bounds below only catch a player that hangs or paces an order of magnitude too slowly: a
@@ -181,3 +181,39 @@ def test_player_loops_counts_late_scans_and_names_a_failing_block():
         ]
     finally:
         p2.stop()
+
+
+def test_a_late_scan_leaves_every_threads_stack_in_the_trace_file(tmp_path, monkeypatch):
+    """With $LIDARLOC_TRACE_LATE set, the moment the next scan becomes late the player writes
+    every thread's stack (the one stuck in the slow step among them), then names the late scan."""
+    trace = tmp_path / "late.txt"
+    monkeypatch.setenv(TRACE_LATE_ENV, str(trace))
+
+    class OneStall(InstantSteps):
+        def step(self):
+            if self.k == 5:
+                self.stuck_in_scan_five()
+            return super().step()
+
+        def stuck_in_scan_five(self):
+            time.sleep(0.4)  # the next scans arrive meanwhile: scan 6 starts ≥ 0.3 s late
+
+    loc = OneStall()
+    player = Player(loc, lambda s: None, lambda m: None, clock="realtime")
+    player.start()
+    try:
+        player.play()
+        wait_for(lambda: loc.k >= 9, what="9 scans")
+    finally:
+        player.stop()
+    text = trace.read_text()
+    assert "Timeout" in text and "stuck_in_scan_five" in text  # faulthandler's dump, the culprit named
+    assert text.count("Thread 0x") >= 2  # every thread: the test's own and the player's at least
+    late_lines = [line for line in text.splitlines() if line.startswith("^ the stacks above: scan 6 ")]
+    assert late_lines and float(late_lines[0].split(" started ")[1].split(" s ")[0]) >= 0.2
+
+
+def test_no_trace_file_unless_asked(tmp_path, monkeypatch):
+    monkeypatch.delenv(TRACE_LATE_ENV, raising=False)
+    player = Player(InstantSteps(), lambda s: None, lambda m: None, clock="realtime")
+    assert player._tracer is None

@@ -10,10 +10,19 @@ time has passed as the sequence's timestamps say since the scan playback (re)sta
 which scans to skip is the localizer's business, not the player's). A step that starts more than
 one scan period after its scan arrived is *late* (the next scan was already there): the player
 counts them (:meth:`Player.take_counts`), which is what a long run in a loop reports per loop.
+
+Why a scan was late. With ``$LIDARLOC_TRACE_LATE=FILE`` set, the player writes every thread's
+Python stack into FILE at the very moment the next scan becomes late (its start more than one
+period after its arrival), then a line naming that scan and its lag once it starts. The dump comes
+from :mod:`faulthandler`'s own C thread, which does not wait for the GIL: a stall inside an
+extension that holds it still shows the Python line that called in. A debugging aid (a thread
+started per scan), off unless the variable is set.
 """
 
 from __future__ import annotations
 
+import faulthandler
+import os
 import sys
 import threading
 import time
@@ -30,6 +39,41 @@ from .faults import block_of, describe
 from .style import RATE_WINDOW_S
 
 CLOCKS = ("replay", "realtime")
+TRACE_LATE_ENV = "LIDARLOC_TRACE_LATE"
+
+
+class LateTracer:
+    """Every thread's stack into ``path`` when a real-time scan becomes late (see the module's
+    docstring): :meth:`arm` at each step's start with the seconds until the next scan would be
+    late; a step that starts in time re-arms it (which cancels the previous timer)."""
+
+    def __init__(self, path: str):
+        self._file = open(path, "a", buffering=1)  # open as long as the player lives
+        self.armed_for: int | None = None  # the scan whose lateness the armed timer catches
+
+    def arm(self, scan: int, seconds: float) -> None:
+        faulthandler.dump_traceback_later(seconds, repeat=False, file=self._file)
+        self.armed_for = scan
+
+    def cancel(self) -> None:
+        if self.armed_for is not None:
+            faulthandler.cancel_dump_traceback_later()
+            self.armed_for = None
+
+    def late(self, scan: int, lag: float) -> None:
+        """The line that says which scan the stacks above made late (or that this one is late
+        only because the player is still catching up: no new dump)."""
+        what = "the stacks above" if scan == self.armed_for else "catching up, no new stall"
+        self._file.write(f"^ {what}: scan {scan} started {lag:.3f} s after it arrived (late)\n")
+
+    def close(self) -> None:
+        self.cancel()
+        self._file.close()
+
+    @classmethod
+    def from_env(cls) -> LateTracer | None:
+        path = os.environ.get(TRACE_LATE_ENV)
+        return cls(path) if path else None
 
 
 class _Timed(Protocol):
@@ -91,6 +135,7 @@ class Player:
         self._finished_at: deque[float] = deque(maxlen=256)  # start times of steps finished while playing
         self._lag: float | None = None  # realtime: how late the newest step started after its scan arrived
         self._playing_since: float | None = None  # wall time play() was last pressed
+        self._tracer = LateTracer.from_env()
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
 
     # ------------------------------------------------------------------ controls (any thread)
@@ -111,12 +156,14 @@ class Player:
     def pause(self) -> None:
         with self._cond:
             self._playing = False
+            self._untrace()
             self._cond.notify_all()
 
     def step_once(self) -> None:
         """Pause, then process exactly one more scan."""
         with self._cond:
             self._playing = False
+            self._untrace()
             self._steps_pending += 1
             self._cond.notify_all()
 
@@ -133,12 +180,14 @@ class Player:
         with self._cond:
             self._clock = clock
             self._anchor = None
+            self._untrace()
             self._cond.notify_all()
 
     def rebase(self) -> None:
         """Forget the pacing reference (after a restart or kidnap the sequence time jumps)."""
         with self._cond:
             self._anchor = None
+            self._untrace()
             self._last_start = None
             self._finished_at.clear()
             self._lag = None
@@ -216,6 +265,10 @@ class Player:
             self._cond.notify_all()
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout)
+        with self._cond:
+            tracer, self._tracer = self._tracer, None
+        if tracer is not None:
+            tracer.close()
 
     # ------------------------------------------------------------------ the thread
     def _due_in(self, now: float) -> float:
@@ -260,6 +313,31 @@ class Player:
             self._max_lag = max(self._max_lag, self._lag)
             if self._lag > self._scan_period():
                 self._late += 1
+                if self._tracer is not None:
+                    self._tracer.late(self._loc.k, self._lag)
+        if self._tracer is not None:
+            self._arm_tracer(self._last_start)
+
+    def _untrace(self) -> None:
+        """No late scan to trace (paused, another clock, the pacing restarted). Called with the
+        lock held."""
+        if self._tracer is not None:
+            self._tracer.cancel()
+
+    def _arm_tracer(self, now: float | None) -> None:
+        """Arm the late-scan trace for the scan after the one starting ``now`` (realtime, playing);
+        cancel it otherwise. Called with the lock held."""
+        assert self._tracer is not None
+        stamps = self._loc.seq.timestamps
+        k = self._loc.k + 1
+        if now is None or self._lag is None or self._anchor is None or k >= len(stamps):
+            self._tracer.cancel()
+            return
+        late_at = self._anchor[0] + (float(stamps[k]) - self._anchor[1]) + self._scan_period()
+        if late_at > now:
+            self._tracer.arm(k, late_at - now)
+        else:
+            self._tracer.cancel()
 
     def _run(self) -> None:
         while True:

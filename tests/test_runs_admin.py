@@ -9,7 +9,8 @@ import os
 import time
 
 import pytest
-from lidarloc.app.viewer.budget import find_runs, plan_prune, remove_runs
+from lidarloc.app.viewer import budget
+from lidarloc.app.viewer.budget import KnownRuns, find_runs, plan_prune, remove_runs
 from lidarloc.core.errors import LidarlocError
 from typer.testing import CliRunner
 
@@ -37,6 +38,33 @@ def runs_root(tmp_path):
     fake_run(root / "2026-01-02T10-00-00" / "branch-scan-3", 2.0, 2000, branch_of=original)
     fake_run(root / "2026-01-03T10-00-00" / "run", 2.0, 10)  # being written now (another viewer)
     return root
+
+
+def test_the_periodic_check_walks_only_runs_that_may_have_changed(runs_root, monkeypatch):
+    """With what it learnt (KnownRuns), the budget check finds the same runs but walks again only
+    the live run and runs whose folders changed; runs removed from disk are forgotten."""
+    walked = []
+    scan = budget._scan_folder
+    monkeypatch.setattr(budget, "_scan_folder", lambda path: walked.append(path) or scan(path))
+    known = KnownRuns()
+    first = find_runs(runs_root, known)
+    assert len(walked) == 5
+    key = lambda runs: [(r.path, r.bytes, r.written, r.steps, r.branch_of) for r in runs]  # noqa: E731
+    plain = find_runs(runs_root)
+    walked.clear()
+    again = find_runs(runs_root, known)
+    assert key(again) == key(first) == key(plain)
+    live = runs_root / "2026-01-03T10-00-00" / "run"
+    assert walked == [live]  # only the run written in the last two minutes
+    # a quiet run that changes (a rolling window drops a segment: its folder's time moves)
+    changed = runs_root / "2026-01-01T10-00-00" / "run-2"
+    (changed / "recording" / "particles.bin").unlink()
+    walked.clear()
+    runs = {r.path: r for r in find_runs(runs_root, known)}
+    assert sorted(walked) == sorted([live, changed]) and runs[changed].bytes < 1000  # the 2 MB file gone
+    # a run removed from disk is neither listed nor remembered
+    remove_runs([runs[changed]], runs_root)
+    assert changed not in {r.path for r in find_runs(runs_root, known)} and changed not in known._runs
 
 
 def test_oldest_runs_go_first_never_a_live_one_or_a_kept_branchs_original(runs_root):

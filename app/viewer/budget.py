@@ -14,7 +14,10 @@ to in the last ``LIVE_S`` seconds (another viewer may be recording it right now)
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import stat
+import threading
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -47,16 +50,30 @@ class RunFolder:
         return self.bytes / 1e6
 
 
-def _scan_folder(path: Path) -> RunFolder:
+def _walk_sizes(folder: str) -> tuple[int, float]:
+    """The regular files' bytes and the newest modification time of anything under ``folder``:
+    one ``lstat`` per entry (a recording holds hundreds of segment files)."""
     size, newest = 0, 0.0
-    for f in path.rglob("*"):
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:  # removed meanwhile
+        return 0, 0.0
+    for entry in entries:
         try:
-            st = f.lstat()
+            st = entry.stat(follow_symlinks=False)
         except OSError:  # removed meanwhile (a writer's temporary file)
             continue
-        if f.is_file():
-            size += st.st_size
         newest = max(newest, st.st_mtime)
+        if entry.is_dir(follow_symlinks=False):
+            sub_size, sub_newest = _walk_sizes(entry.path)
+            size, newest = size + sub_size, max(newest, sub_newest)
+        elif stat.S_ISREG(st.st_mode):
+            size += st.st_size
+    return size, newest
+
+
+def _scan_folder(path: Path) -> RunFolder:
+    size, newest = _walk_sizes(str(path))
     steps, window = 0, None
     held = segments.window(path / INDEX.parent)
     if held is not None:
@@ -74,15 +91,67 @@ def _scan_folder(path: Path) -> RunFolder:
     return RunFolder(path, size, newest, int(steps), branch_of, window)
 
 
-def find_runs(root: Path) -> list[RunFolder]:
-    """Every recorded run under ``root`` (up to three folders deep), oldest first."""
+def _stamp(path: Path) -> tuple[int, ...] | None:
+    """What changes when a recording changes other than by a write into a file it already has:
+    the modification times of the run's folder, its recording folder and its index."""
+    try:
+        return tuple(os.stat(p).st_mtime_ns for p in (path, path / INDEX.parent, path / INDEX))
+    except OSError:
+        return None
+
+
+class KnownRuns:
+    """What :func:`find_runs` learnt of the runs that were quiet: a viewer checks its budget every
+    30 s, and walking every file of every kept run each time (50 runs of hundreds of segment
+    files) is Python holding the GIL for a good part of a second, long enough to make the filter's
+    real-time scans late. A run quiet for :data:`LIVE_S` (no writer: its recorder finished or
+    rolled on) whose folders' and index's modification times are unchanged is not walked again;
+    anything newer always is."""
+
+    def __init__(self):
+        self._runs: dict[Path, tuple[tuple[int, ...], RunFolder]] = {}
+        self._lock = threading.Lock()  # a new run's check and the periodic one may overlap
+
+    def get(self, path: Path, now: float) -> RunFolder | None:
+        with self._lock:
+            held = self._runs.get(path)
+        if held is None or now - held[1].written < LIVE_S or _stamp(path) != held[0]:
+            return None
+        return held[1]
+
+    def put(self, run: RunFolder, stamp: tuple[int, ...] | None) -> None:
+        if stamp is not None:
+            with self._lock:
+                self._runs[run.path] = (stamp, run)
+
+    def forget_all_but(self, seen: set[Path]) -> None:
+        """Drop what is no longer on disk (pruned, removed by hand)."""
+        with self._lock:
+            for path in [p for p in self._runs if p not in seen]:
+                del self._runs[path]
+
+
+def find_runs(root: Path, known: KnownRuns | None = None) -> list[RunFolder]:
+    """Every recorded run under ``root`` (up to three folders deep), oldest first; with
+    ``known``, a run that was quiet and has not changed since the last call is not walked again."""
     root = Path(root)
     if not root.is_dir():
         return []
-    found = []
+    found, seen, now = [], set(), time.time()
     for depth in ("*", "*/*", "*/*/*"):
         for index in root.glob(f"{depth}/{INDEX.as_posix()}"):
-            found.append(_scan_folder(index.parent.parent))
+            path = index.parent.parent
+            run = known.get(path, now) if known is not None else None
+            if run is None:
+                # stamped before the walk: a change during it is seen next time
+                stamp = _stamp(path) if known is not None else None
+                run = _scan_folder(path)
+                if known is not None:
+                    known.put(run, stamp)
+            seen.add(path)
+            found.append(run)
+    if known is not None:
+        known.forget_all_but(seen)
     return sorted(found, key=lambda r: (r.written, str(r.path)))
 
 
@@ -145,8 +214,12 @@ def remove_runs(runs: list[RunFolder], root: Path) -> list[RunFolder]:
 
 
 def enforce(
-    root: Path, keep_runs: int | None, max_bytes: float | None, protect: Iterable[Path] = ()
+    root: Path,
+    keep_runs: int | None,
+    max_bytes: float | None,
+    protect: Iterable[Path] = (),
+    known: KnownRuns | None = None,
 ) -> list[RunFolder]:
     """Prune ``root`` to the budget now; returns the runs removed."""
-    runs = find_runs(root)
+    runs = find_runs(root, known)
     return remove_runs(plan_prune(runs, keep_runs, max_bytes, protect), root)

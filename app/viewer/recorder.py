@@ -41,7 +41,7 @@ from pathlib import Path
 from ...core.cache import default_cache_root
 from ...core.errors import LidarlocError
 from ...core.runs.recording import RecordingWriter, segments
-from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB, enforce
+from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB, KnownRuns, enforce
 from .faults import one_line
 from .recorded import RecordedRun
 
@@ -109,6 +109,7 @@ class Recorder:
         self.removed: list[Path] = []  # runs the budget removed, oldest first
         self._on_notice = on_notice or (lambda message: None)
         self._budget_stop = threading.Event()
+        self._known_runs = KnownRuns()  # the periodic check walks only runs that changed
         self._budget_thread: threading.Thread | None = None
         self.spec = spec
         self.preset = preset
@@ -186,7 +187,8 @@ class Recorder:
         if b is None:
             return []
         current = self.run_dir
-        removed = [r.path for r in enforce(b.root, b.keep_runs, b.max_bytes, protect=[current] if current else [])]
+        protect = [current] if current else []
+        removed = [r.path for r in enforce(b.root, b.keep_runs, b.max_bytes, protect, self._known_runs)]
         self.removed += removed
         if removed:
             self._on_notice(f"recording budget: removed {len(removed)} oldest run(s), the newest of them {removed[-1]}")

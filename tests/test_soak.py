@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import csv
 import json
+import signal
+import subprocess
+import sys
 
+import psutil
 import pytest
-from helpers import MAPPING_SCANS
+from helpers import MAPPING_SCANS, process_gone, wait_for
 from lidarloc.app.bench import soak
 
 
@@ -47,3 +51,25 @@ def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):
     # every loop is a run of its own, recorded (the viewer's default budget keeps them all here)
     assert len(list((tmp_path / "runs").glob("run*/recording/index.json"))) >= r["loops"]
     json.dumps(r)  # what --json prints
+
+
+def test_sigterm_to_the_benchmark_stops_its_viewer_too(cache_root, tmp_path):
+    """``bench soak`` stopped by SIGTERM (a service manager, ``kill``) runs its cleanup as on
+    Ctrl-C: the viewer it started, in a session of its own, does not outlive it."""
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", "bench", "soak", "--minutes", "5", "--client", "none"]
+    cmd += ["--scans", "20", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
+    cmd += ["--out", str(tmp_path)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: (tmp_path / "soak.csv").is_file(), timeout=300, what="the soak's first sample")
+        viewers = [p.pid for p in psutil.Process(proc.pid).children(recursive=True)]
+        assert viewers, "the soak's viewer is running"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode != 0 and "Traceback" not in err, err
+    for pid in viewers:
+        wait_for(lambda pid=pid: process_gone(pid), timeout=10, what=f"the viewer's process {pid} to end")

@@ -213,7 +213,10 @@ def test_a_late_scan_leaves_every_threads_stack_in_the_trace_file(tmp_path, monk
     assert late_lines and float(late_lines[0].split(" started ")[1].split(" s ")[0]) >= 0.2
 
 
-def test_no_trace_file_unless_asked(tmp_path, monkeypatch):
+def test_no_trace_file_unless_asked_and_one_line_if_it_cannot_be_written(tmp_path, monkeypatch):
     monkeypatch.delenv(TRACE_LATE_ENV, raising=False)
     player = Player(InstantSteps(), lambda s: None, lambda m: None, clock="realtime")
     assert player._tracer is None
+    monkeypatch.setenv(TRACE_LATE_ENV, str(tmp_path / "no-such-folder" / "late.txt"))
+    with pytest.raises(LidarlocError, match="LIDARLOC_TRACE_LATE: cannot write .*late.txt"):
+        Player(InstantSteps(), lambda s: None, lambda m: None, clock="realtime")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import typer
 
 from ...core.errors import LidarlocError
-from ..console import fail
+from ..console import fail, stop_signals_like_ctrl_c
 from . import admin, bench_costs, bench_live, bench_runs, maps, runs, sweeps, viewing  # noqa: F401  (they register their commands)
 from .groups import app
 
@@ -15,6 +15,9 @@ from .groups import app
 def main() -> None:
     """Entry point: click's usage errors behave as usual; LidarlocError becomes one line + exit 2."""
     command = typer.main.get_command(app)
+    # Every command, the benchmarks that start viewers and browsers included, stops on SIGTERM and
+    # SIGHUP as on Ctrl-C: its cleanup runs, so it leaves no child process behind.
+    stop_signals_like_ctrl_c()
     try:
         command.main(prog_name="lidarloc", standalone_mode=True)
     except LidarlocError as exc:

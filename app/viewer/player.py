@@ -73,7 +73,12 @@ class LateTracer:
     @classmethod
     def from_env(cls) -> LateTracer | None:
         path = os.environ.get(TRACE_LATE_ENV)
-        return cls(path) if path else None
+        if not path:
+            return None
+        try:
+            return cls(path)
+        except OSError as exc:
+            raise LidarlocError(f"${TRACE_LATE_ENV}: cannot write {path}: {exc.strerror or exc}") from None
 
 
 class _Timed(Protocol):

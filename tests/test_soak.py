@@ -70,6 +70,11 @@ def test_sigterm_to_the_benchmark_stops_its_viewer_too(cache_root, tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode != 0 and "Traceback" not in err, err
-    for pid in viewers:
-        wait_for(lambda pid=pid: process_gone(pid), timeout=10, what=f"the viewer's process {pid} to end")
+    try:
+        assert proc.returncode != 0 and "Traceback" not in err, err
+        for pid in viewers:
+            wait_for(lambda pid=pid: process_gone(pid), timeout=10, what=f"the viewer's process {pid} to end")
+    finally:  # a failing test leaves nothing running either
+        for pid in viewers:
+            if not process_gone(pid):
+                psutil.Process(pid).kill()

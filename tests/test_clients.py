@@ -15,7 +15,7 @@ import pytest
 from helpers import wait_for
 from lidarloc.app.bench import clients
 from lidarloc.app.bench.clients import SocketTab, _timed
-from lidarloc.core import heap as heap_module
+from lidarloc.app.viewer import heap as heap_module
 
 
 def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):

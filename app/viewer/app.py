@@ -23,11 +23,11 @@ from typing import TYPE_CHECKING
 import viser
 
 from ...core.errors import LidarlocError
-from ...core.heap import HeapTrimmer
 from ...core.snapshot import Snapshot
 from .camera import TabCameras, start_pose, tab_may_close
 from .controls import ParameterControls, ParticleControls
 from .faults import BlockFailed, FaultReporter
+from .heap import HeapTrimmer
 from .history import History
 from .layers import LayerFolder
 from .minimap import Overview

@@ -28,7 +28,6 @@ from ..worker_process import WorkerProxy, lower_priority, serve
 
 
 def _make_handler(init: tuple):
-    from ..heap import HeapTrimmer
     from ..maps.bev import load_or_build_pyramid
     from ..maps.mapping import PriorMap
     from ..maps.point_tiles import PointTiles
@@ -49,10 +48,6 @@ def _make_handler(init: tuple):
         )
     }
     _warm_up(state["matcher"])
-    # A match leaves its GICP target and its search's arrays freed but held by the allocator
-    # (hundreds of MB after a whole-map check on a city): given back after matches, at most every
-    # few seconds, beside the next match (see core/heap.py).
-    trimmer = HeapTrimmer()
 
     def handle(request):
         kind, scan, start_pose, cfg, level = request
@@ -61,10 +56,7 @@ def _make_handler(init: tuple):
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
             matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg).value
         matcher.cfg = cfg  # live region / angle-step changes
-        try:
-            return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
-        finally:
-            trimmer.request()
+        return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
 
     return handle
 

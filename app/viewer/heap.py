@@ -1,15 +1,14 @@
-"""Give memory a burst of work freed back to the system.
+"""Give the memory a closed tab or a finished run freed back to the system.
 
-Python frees the objects of a finished burst (a tab's scene, a restarted run, a scan-to-map
-match's GICP target and search), but glibc's allocator keeps the freed heap pages for later and
-the process's resident memory stays at its high-water mark. ``malloc_trim`` returns them.
-Measured on the live viewer with a websocket tab connecting and disconnecting 20 times a second:
-every connection's objects were freed (no client handle left, nothing traced), yet the resident
-memory rose ~33 MB over the first 650 connections and ~4 kB a connection after that;
-``malloc_trim`` gave all of it back in 1.4–4.3 ms of CPU. So the viewer trims after a tab leaves
-or a run restarts, and the scan-to-map process after its matches, each at most once per
-:data:`MIN_INTERVAL_S`, on a thread of its own (never on the server's event loop or the filter's
-threads). Where the C library is not glibc there is nothing to call and nothing is done.
+Each tab that connects is sent the whole scene (the map's points, the panel), and each restart
+drops a localizer's run; Python frees those objects, but glibc's allocator keeps the freed heap
+pages for later and the process's resident memory stays up. Measured on the live viewer with a
+websocket tab connecting and disconnecting 20 times a second: every connection's objects were
+freed (no client handle left, nothing traced), yet the resident memory rose ~33 MB over the first
+650 connections and ~4 kB a connection after that; ``malloc_trim`` gave all of it back in
+1.4–4.3 ms of CPU. So after a tab leaves or a run restarts the viewer trims the heap, at most
+once per :data:`MIN_INTERVAL_S`, on a thread of its own (never on the server's event loop or the
+filter's threads). Where the C library is not glibc there is nothing to call and nothing is done.
 """
 
 from __future__ import annotations
@@ -18,8 +17,7 @@ import ctypes
 import ctypes.util
 import threading
 
-#: At most one trim per this many seconds (a tab reloading in a loop, or matches back to back,
-#: must not cost a trim each: the next burst takes its pages back from the system).
+#: At most one trim per this many seconds (a tab reloading in a loop must not cost a trim each).
 MIN_INTERVAL_S = 5.0
 
 

@@ -111,3 +111,18 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
     assert r["rss_mb_per_browser_connection"] is None  # no browser tab came and went
     with pytest.raises(ValueError, match="tab kind"):
         clients.run(loc, tab_kind="firefox")
+
+
+def test_the_viewer_caps_its_malloc_arenas_unless_the_user_did():
+    """``view``/``demo`` cap glibc's arenas (heap.py: the high-water mark under many connections
+    is a fifth); a ``MALLOC_ARENA_MAX`` of the user's own is left as it is. Run in a fresh process
+    so that the cap does not reach the test session's own allocator."""
+    code = "from lidarloc.app.viewer.heap import limit_arenas; print(limit_arenas())"
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    if heap_module._libc() is None or not hasattr(heap_module._libc(), "mallopt"):
+        pytest.skip("not glibc: no arenas to cap")
+    capped = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert capped.stdout.strip() == "True"
+    env["MALLOC_ARENA_MAX"] = "4"
+    left = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert left.stdout.strip() == "False"

@@ -104,6 +104,7 @@ def bench_clients(
     from ..bench.clients import TAB_KINDS, TAB_PRIORITIES
     from ..bench.clients import run as run_bench
     from ..options import open_source
+    from ..viewer.heap import limit_arenas
 
     if tab_priority not in TAB_PRIORITIES:
         raise typer.BadParameter(
@@ -112,6 +113,7 @@ def bench_clients(
     if tab_kind not in TAB_KINDS:
         raise typer.BadParameter(f"{tab_kind!r} is not one of {', '.join(TAB_KINDS)}", param_hint="--tab-kind")
     cfg = config_from(config, set_, preset=preset)
+    limit_arenas()  # the viewer runs in this process: as `view` and `demo` set it up
     loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
     try:
         result = run_bench(loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority, tab_kind=tab_kind)

@@ -45,8 +45,10 @@ def _serve(
     max_record_gb=DEFAULT_MAX_RECORD_GB,
     token=None,
 ):
+    from ..viewer.heap import limit_arenas
     from ..viewer.serve import serve_until_interrupted
 
+    limit_arenas()  # before the viewer's threads start (see heap.py)
     serve_until_interrupted(
         spec,
         cfg,

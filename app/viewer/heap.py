@@ -15,19 +15,43 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import threading
 
 #: At most one trim per this many seconds (a tab reloading in a loop must not cost a trim each).
 MIN_INTERVAL_S = 5.0
 
 
+#: glibc's mallopt parameter for the most malloc arenas (malloc.h: M_ARENA_MAX).
+M_ARENA_MAX = -8
+#: The viewer's arenas. glibc gives threads that contend for the heap arenas of their own, up to
+#: 8 a core, and each keeps its freed pages: with five tabs and one connecting and disconnecting
+#: 30 times a second, the viewer's memory rose 239 MB over the first half of 1908 connections
+#: with glibc's default, 48 MB over 1790 with two arenas (``MALLOC_ARENA_MAX=2``; no growth over
+#: the second half either way; 10.0 scans/s both times, the display update 2.1–3.2 ms median per
+#: phase against 2.0–2.5, at a load of 6.4 against 4.9).
+VIEWER_ARENAS = 2
+
+
+def _libc():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
 def _malloc_trim():
     """glibc's ``malloc_trim``, or None where the C library has none."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return libc.malloc_trim
-    except (OSError, AttributeError):
-        return None
+    return getattr(_libc(), "malloc_trim", None)
+
+
+def limit_arenas(arenas: int = VIEWER_ARENAS) -> bool:
+    """Cap glibc's malloc arenas for this process (see :data:`VIEWER_ARENAS`); call it before the
+    process starts threads. A ``MALLOC_ARENA_MAX`` the user set wins. True if the cap was set."""
+    if os.environ.get("MALLOC_ARENA_MAX"):
+        return False
+    mallopt = getattr(_libc(), "mallopt", None)
+    return bool(mallopt is not None and mallopt(M_ARENA_MAX, arenas) == 1)
 
 
 class HeapTrimmer:

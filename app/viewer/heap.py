@@ -27,9 +27,9 @@ M_ARENA_MAX = -8
 #: The viewer's arenas. glibc gives threads that contend for the heap arenas of their own, up to
 #: 8 a core, and each keeps its freed pages: with five tabs and one connecting and disconnecting
 #: 30 times a second, the viewer's memory rose 239 MB over the first half of 1908 connections
-#: with glibc's default, 48 MB over 1790 with two arenas (``MALLOC_ARENA_MAX=2``; no growth over
-#: the second half either way; 10.0 scans/s both times, the display update 2.1–3.2 ms median per
-#: phase against 2.0–2.5, at a load of 6.4 against 4.9).
+#: with glibc's default, 48 MB over 1790 with two arenas (``MALLOC_ARENA_MAX=2``; 10.0 scans/s
+#: both times, the display update 2.1–3.2 ms median per phase against 2.0–2.5, at a load of 6.4
+#: against 4.9). Over the second half the figure moves from run to run either way (−13 to +28 MB).
 VIEWER_ARENAS = 2
 
 

@@ -112,17 +112,19 @@ class KnownRuns:
         self._runs: dict[Path, tuple[tuple[int, ...], RunFolder]] = {}
         self._lock = threading.Lock()  # a new run's check and the periodic one may overlap
 
-    def get(self, path: Path, now: float) -> RunFolder | None:
+    def scan(self, path: Path, now: float) -> RunFolder:
+        """The run at ``path``: as last seen if it was quiet and has not changed since, else
+        walked (and remembered)."""
+        stamp = _stamp(path)  # before any walk: a change during it is seen next time
         with self._lock:
             held = self._runs.get(path)
-        if held is None or now - held[1].written < LIVE_S or _stamp(path) != held[0]:
-            return None
-        return held[1]
-
-    def put(self, run: RunFolder, stamp: tuple[int, ...] | None) -> None:
+        if held is not None and held[0] == stamp and now - held[1].written >= LIVE_S:
+            return held[1]
+        run = _scan_folder(path)
         if stamp is not None:
             with self._lock:
-                self._runs[run.path] = (stamp, run)
+                self._runs[path] = (stamp, run)
+        return run
 
     def forget_all_but(self, seen: set[Path]) -> None:
         """Drop what is no longer on disk (pruned, removed by hand)."""
@@ -141,15 +143,8 @@ def find_runs(root: Path, known: KnownRuns | None = None) -> list[RunFolder]:
     for depth in ("*", "*/*", "*/*/*"):
         for index in root.glob(f"{depth}/{INDEX.as_posix()}"):
             path = index.parent.parent
-            run = known.get(path, now) if known is not None else None
-            if run is None:
-                # stamped before the walk: a change during it is seen next time
-                stamp = _stamp(path) if known is not None else None
-                run = _scan_folder(path)
-                if known is not None:
-                    known.put(run, stamp)
             seen.add(path)
-            found.append(run)
+            found.append(known.scan(path, now) if known is not None else _scan_folder(path))
     if known is not None:
         known.forget_all_but(seen)
     return sorted(found, key=lambda r: (r.written, str(r.path)))

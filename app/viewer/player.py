@@ -283,10 +283,9 @@ class Player:
             stamps = self._loc.seq.timestamps
             if k >= len(stamps):
                 return 0.0
-            t_seq = float(stamps[k])
             if self._anchor is None:
-                self._anchor = (now, t_seq)
-            return self._anchor[0] + (t_seq - self._anchor[1]) - now
+                self._anchor = (now, float(stamps[k]))
+            return self._arrival(k) - now
         if self._speed is None or self._last_start is None:
             return 0.0
         return self._last_start + 1.0 / self._speed - now
@@ -300,8 +299,13 @@ class Player:
         k = self._loc.k
         if k >= len(stamps):
             return None
-        due = self._anchor[0] + (float(stamps[k]) - self._anchor[1])
-        return max(0.0, now - due)
+        return max(0.0, now - self._arrival(k))
+
+    def _arrival(self, k: int) -> float:
+        """Wall time scan k arrives in the realtime clock, from the pacing anchor (set). Called
+        with the lock held."""
+        assert self._anchor is not None
+        return self._anchor[0] + (float(self._loc.seq.timestamps[k]) - self._anchor[1])
 
     def _scan_period(self) -> float:
         if self._period is None:
@@ -338,7 +342,7 @@ class Player:
         if now is None or self._lag is None or self._anchor is None or k >= len(stamps):
             self._tracer.cancel()
             return
-        late_at = self._anchor[0] + (float(stamps[k]) - self._anchor[1]) + self._scan_period()
+        late_at = self._arrival(k) + self._scan_period()
         if late_at > now:
             self._tracer.arm(k, late_at - now)
         else:

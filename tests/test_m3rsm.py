@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from helpers import random_segments
 from lidarloc.core.errors import LidarlocError
-from lidarloc.core.maps.bev import BEVPyramid
+from lidarloc.core.maps.bev import BEVPyramid, cell_dtype
 from lidarloc.core.matching import bnb_kernels, m3rsm
 
 DEG = math.pi / 180
@@ -92,6 +92,57 @@ def test_branch_and_bound_finds_the_exhaustive_optimum(monkeypatch, dense_upto):
         else:
             assert m3rsm.score_pose(pyr, scan, fast.x, fast.y, fast.yaw) == pytest.approx(slow.score)
     assert same_pose >= 12
+
+
+@pytest.mark.parametrize("cell_value", ["sat8", "binary", "count", "log"])
+def test_grids_in_the_narrowest_exact_type_change_no_result(monkeypatch, cell_value):
+    """Integer cells (saturated counts, binary) are searched from one-byte grids; the search is
+    the same, bit for bit, as from float32 grids: scores, poses, nodes, runners-up."""
+    rng = np.random.default_rng(21)
+    pyr = BEVPyramid.build(random_segments(rng, 14, 60, 20), 1.0, cell_value=cell_value)
+    narrow = m3rsm._Prepared(pyr, dense_upto=3)
+    want = {"sat8": np.uint8, "binary": np.uint8, "log": np.float32}.get(cell_value)
+    if want is not None:
+        assert narrow.dtype is want and narrow.S.dtype == want and narrow.G.dtype == want
+        assert all(lv.dtype == want for lv in pyr.levels) and narrow.L0 is pyr.levels[0]
+    else:  # raw counts: uint8 or uint16 by the map's densest cell
+        assert narrow.dtype in (np.uint8, np.uint16)
+        assert int(pyr.levels[0].max()) <= np.iinfo(narrow.dtype).max
+    scans = [rng.uniform(-12, 12, (int(rng.integers(20, 80)), 2)) for _ in range(4)]
+
+    def searches():
+        pyr.derived.clear()
+        out = []
+        for scan in scans:
+            out.append(m3rsm.match(pyr, scan, (30.0, 30.0), (12.0, 12.0), 0.5, math.pi, 5 * DEG))
+            out.append(m3rsm.match_global(pyr, scan, 10 * DEG))
+        return out
+
+    compact = searches()
+    monkeypatch.setattr(m3rsm, "cell_dtype", lambda level0: np.float32)
+    wide = searches()
+    assert m3rsm._prepared(pyr, m3rsm.DENSE_UPTO).S.dtype == np.float32
+    for a, b in zip(compact, wide):
+        assert (a.x, a.y, a.yaw, a.score, a.nodes_expanded) == (b.x, b.y, b.yaw, b.score, b.nodes_expanded)
+        assert a.nodes_per_level == b.nodes_per_level and np.array_equal(a.candidates, b.candidates)
+
+
+def test_cell_dtype_is_the_narrowest_exact_one(tmp_path):
+    assert cell_dtype(np.array([[0.0, 8.0]], np.float32)) is np.uint8
+    assert cell_dtype(np.array([[0.0, 300.0]], np.float32)) is np.uint16
+    assert cell_dtype(np.array([[0.0, 70000.0]], np.float32)) is np.float32
+    assert cell_dtype(np.array([[0.0, 0.5]], np.float32)) is np.float32
+    assert cell_dtype(np.array([[-1.0, 2.0]], np.float32)) is np.float32
+    assert cell_dtype(np.array([[0, 7]], np.int64)) is np.uint8
+    # float32 levels (a cache written in float32) are narrowed; a saved pyramid loads the same cells
+    rng = np.random.default_rng(3)
+    pyr = BEVPyramid.build(random_segments(rng, 8, 30, 10), 1.0, cell_value="sat8")
+    wide = BEVPyramid(pyr.resolution, pyr.origin, [lv.astype(np.float32) for lv in pyr.levels], pyr.cell_value)
+    assert wide.levels[0].dtype == np.uint8
+    pyr.save(tmp_path / "p")
+    back = BEVPyramid.load(tmp_path / "p")
+    assert [lv.dtype for lv in back.levels] == [np.uint8] * pyr.n_levels
+    assert all(np.array_equal(a, b) for a, b in zip(back.levels, pyr.levels))
 
 
 def test_min_score_prunes_and_reports_nothing_when_unbeaten():

@@ -32,7 +32,8 @@ compromise: half of sat32's margin gain over binary at 3/4 of its time; log and 
 little margin at 1.5–2.2× sat8's time. The margins come from a one-off exhaustive score map
 (all 144 angles × all cells); ``lidarloc bench s2m --cell-study`` reproduces the other columns.
 
-Layout: ``levels[l]`` is a float32 array indexed ``[ix, iy]``; cell (ix, iy) of level l covers
+Layout: ``levels[l]`` is an array indexed ``[ix, iy]``, in the narrowest type that holds its cells
+exactly (:func:`cell_dtype`: uint8 for sat8 and binary, float32 for log); cell (ix, iy) of level l covers
 world x ∈ [origin_x + ix·2^l·d_m, origin_x + (ix+1)·2^l·d_m) (same for y). ``origin`` is a
 multiple of d_m so that the L0 lattice is the world lattice of step d_m.
 """
@@ -76,6 +77,23 @@ def _cell_values(counts: np.ndarray, cell_value: str) -> np.ndarray:
     raise LidarlocError(f"invalid BEV cell value '{cell_value}': expected count, binary, log or sat<c> (c > 0)")
 
 
+def cell_dtype(level0: np.ndarray) -> type:
+    """The narrowest of uint8, uint16 and float32 that holds every value of ``level0`` exactly
+    (saturated counts and binary cells: uint8; log cells: float32). Every coarser grid built from
+    it holds maxima of its cells, so it fits the same type; sums over cells are taken in float64
+    by the matcher, the same whatever the type."""
+    values = np.asarray(level0)
+    if values.size == 0:
+        return np.uint8
+    if values.dtype.kind in "ui" and values.min() >= 0 and values.max() <= 65535:
+        return np.uint8 if values.max() <= 255 else np.uint16
+    values = values.astype(np.float32, copy=False)
+    lo, hi = float(values.min()), float(values.max())
+    if lo < 0.0 or not np.isfinite(hi) or not np.array_equal(values, np.floor(values)):
+        return np.float32
+    return np.uint8 if hi <= 255 else np.uint16 if hi <= 65535 else np.float32
+
+
 def max_pool2(grid: np.ndarray) -> np.ndarray:
     """2×2 max-pooling with stride 2; an odd edge is padded with zeros (cells with no map points)."""
     nx, ny = grid.shape
@@ -88,12 +106,20 @@ def max_pool2(grid: np.ndarray) -> np.ndarray:
 class BEVPyramid:
     resolution: float  # d_m, metres per L0 cell
     origin: np.ndarray  # (2,) world x, y of the lower corner of L0 cell (0, 0)
-    levels: list  # [L0, L1, …], float32 (nx_l, ny_l)
+    levels: list  # [L0, L1, …], (nx_l, ny_l) in the narrowest exact type (cell_dtype)
     cell_value: str = DEFAULT_CELL_VALUE
     meta: dict = field(default_factory=dict)
     # What a matcher derives from the levels, built on first use and kept with them (M3RSM's
     # flattened bound grids, by its key); never saved.
     derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        # Integer cells (saturated counts, binary, counts) are held in one or two bytes rather than
+        # four: the 4 × 4 km city's pyramid is 88 MB in float32, 22 MB in uint8. Every level is a
+        # max-pool of L0, so L0's type holds them all.
+        if self.levels:
+            dtype = cell_dtype(self.levels[0])
+            self.levels = [np.ascontiguousarray(lv, dtype=dtype) for lv in self.levels]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -163,7 +189,7 @@ class BEVPyramid:
             if info.get("format") != _PYRAMID_FORMAT:
                 raise ValueError("format")
             with np.load(directory / "levels.npz") as data:
-                levels = [np.ascontiguousarray(data[f"L{i}"], dtype=np.float32) for i in range(info["n_levels"])]
+                levels = [np.ascontiguousarray(data[f"L{i}"]) for i in range(info["n_levels"])]
         except (OSError, ValueError, KeyError) as exc:
             raise LidarlocError(f"{directory}: unreadable BEV pyramid ({exc})") from None
         return cls(

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LidarlocError
-from ..maps.bev import BEVPyramid
+from ..maps.bev import BEVPyramid, cell_dtype
 from .bnb_kernels import (
     _angle_cells,
     _bound_grid,
@@ -132,38 +132,49 @@ def _angles_window(center: float, window: float, step: float) -> np.ndarray:
 class _Prepared:
     """The pyramid flattened for the kernels: L0, dense bound grids S_l for levels 1..dense_upto,
     strided bound grids G_l for levels ≥ strided_from (default dense_upto + 1). Only the levels a
-    search can use are built: the dense grids grow by 2^l cells per axis per level."""
+    search can use are built: the dense grids grow by 2^l cells per axis per level.
+
+    The grids are stored in the narrowest type that holds every cell value exactly
+    (:func:`~lidarloc.core.maps.bev.cell_dtype`, the pyramid's own): the saturated counts (the
+    default ``sat8``) and binary cells fit in one byte, so the dense grids — three copies of a
+    level-0-sized grid — take a quarter of the memory they take in float32 (the 4 × 4 km city:
+    200 → 50 MB in the S2M process). The kernels add the cells up in float64 either way: scores,
+    bounds, the search's order and its result are the same bit for bit (tests/test_m3rsm.py)."""
 
     def __init__(self, pyramid: BEVPyramid, dense_upto: int, strided_from: int | None = None):
         n = pyramid.n_levels
         strided_from = dense_upto + 1 if strided_from is None else strided_from
         self.n_levels = n
-        self.L0 = np.ascontiguousarray(pyramid.levels[0], dtype=np.float32)
-        empty = np.zeros(0, np.float32)
+        level0 = pyramid.levels[0]
+        self.dtype = cell_dtype(level0)
+        self.L0 = np.ascontiguousarray(level0, dtype=self.dtype)  # the pyramid's own array: no copy
+        empty = np.zeros(0, self.dtype)
         grids, gnx, gny = [], [], []
         for l, lv in enumerate(pyramid.levels):
             use = 1 <= l and l >= strided_from
-            grids.append(_bound_grid(np.ascontiguousarray(lv, dtype=np.float32)).ravel() if use else empty)
+            grid = _bound_grid(np.ascontiguousarray(lv, dtype=np.float32)) if use else None
+            grids.append(empty if grid is None else grid.ravel().astype(self.dtype))
             gnx.append(lv.shape[0])
             gny.append(lv.shape[1])
-        self.G, self.goff = _flatten(grids)
+        self.G, self.goff = _flatten(grids, self.dtype)
         self.gnx = np.asarray(gnx, np.int64)
         self.gny = np.asarray(gny, np.int64)
         dense, snx, sny = [empty], [gnx[0]], [gny[0]]
-        prev = self.L0
+        prev = np.ascontiguousarray(level0, dtype=np.float32)
         for l in range(1, min(dense_upto, n - 1) + 1):
-            prev = _sliding_max(prev, l)
-            dense.append(prev.ravel())
+            prev = _sliding_max(prev, l)  # float32, one level at a time: the narrow copy is kept
+            dense.append(prev.ravel().astype(self.dtype))
             snx.append(prev.shape[0])
             sny.append(prev.shape[1])
-        self.S, self.soff = _flatten(dense)
+        del prev
+        self.S, self.soff = _flatten(dense, self.dtype)
         self.snx = np.asarray(snx, np.int64)
         self.sny = np.asarray(sny, np.int64)
 
 
-def _flatten(arrays: list) -> tuple[np.ndarray, np.ndarray]:
+def _flatten(arrays: list, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
     offsets = np.cumsum([0] + [len(a) for a in arrays[:-1]]).astype(np.int64)
-    return np.concatenate(arrays).astype(np.float32), offsets
+    return np.concatenate(arrays).astype(dtype, copy=False), offsets
 
 
 _prep_lock = threading.Lock()

@@ -25,7 +25,11 @@ def test_judge_is_two_metres_and_five_degrees():
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_bench_city_reports_every_figure(cache_root):
+def test_bench_city_reports_every_figure(cache_root, monkeypatch):
+    import numpy as np
+    from lidarloc.app.bench import city
+    from lidarloc.core.maps import mapping
+
     cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
     spec = SourceSpec()
     out = run(spec, cfg, cache_root=cache_root, global_scans=3, peer_scans=1, tile_m=50.0, bev_tile_m=32.0)
@@ -35,8 +39,22 @@ def test_bench_city_reports_every_figure(cache_root):
     assert out["global_success"] == out["whole_map_success"]
     assert out["start_s"] is not None and out["start_s"] < 30 and out["rss_tracking_mb"] > 0
     assert out["build_s"] > 0 and out["cache_mb"] > 0
-    again = run(spec, cfg, cache_root=cache_root, global_scans=1, peer_scans=0, tile_m=50.0, bev_tile_m=32.0)
+    # again from the cache, the map mapped as a city's is (every map counts as large here): the
+    # same tables, the same matches
+    monkeypatch.setattr(mapping, "LARGE_MAP_POINTS", 0)
+    mapped = []
+
+    def loading(*args, **kwargs):
+        got = mapping.load_or_build_map(*args, **kwargs)
+        mapped.append(isinstance(got.value.points, np.memmap))
+        return got
+
+    monkeypatch.setattr(city, "load_or_build_map", loading)
+    again = run(spec, cfg, cache_root=cache_root, global_scans=3, peer_scans=1, tile_m=50.0, bev_tile_m=32.0)
+    assert mapped == [True]
     assert again["build_parts_s"] == out["build_parts_s"]  # the tiles came from the cache
+    assert [r["tiled_err_m"] for r in again["rows"]] == [r["tiled_err_m"] for r in out["rows"]]
+    assert again["fpfh_ransac_success"] == out["fpfh_ransac_success"]
 
 
 @pytest.mark.slow

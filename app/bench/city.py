@@ -80,7 +80,9 @@ def run(
     report = progress or (lambda what, f: None)
     seq = open_source(spec, cfg, "city", need_poses=True)
     t0 = time.perf_counter()
-    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root)
+    # a large map stays on disk, mapped (as in a run on tiles), not read into memory whole: the
+    # system pages in what the tables, the whole-map pyramid and FPFH's down-sampling read
+    prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, cache_root, memory_map=True)
     map_meta = json.loads((map_dir / "meta.json").read_text()) if (map_dir / "meta.json").is_file() else {}
     map_load_s = time.perf_counter() - t0
     lookup, bev = _tables(prior, map_dir, cfg, tile_m, bev_tile_m, report)

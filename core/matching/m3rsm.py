@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LidarlocError
-from ..maps.bev import BEVPyramid, cell_dtype
+from ..maps.bev import BEVPyramid
 from .bnb_kernels import (
     _angle_cells,
     _bound_grid,
@@ -134,8 +134,8 @@ class _Prepared:
     strided bound grids G_l for levels ≥ strided_from (default dense_upto + 1). Only the levels a
     search can use are built: the dense grids grow by 2^l cells per axis per level.
 
-    The grids are stored in the narrowest type that holds every cell value exactly
-    (:func:`~lidarloc.core.maps.bev.cell_dtype`, the pyramid's own): the saturated counts (the
+    The grids are stored in the pyramid's type, the narrowest that holds every cell value exactly
+    (:func:`~lidarloc.core.maps.bev.cell_dtype`): the saturated counts (the
     default ``sat8``) and binary cells fit in one byte, so the dense grids — three copies of a
     level-0-sized grid — take a quarter of the memory they take in float32 (the 4 × 4 km city:
     200 → 50 MB in the S2M process). The kernels add the cells up in float64 either way: scores,
@@ -146,8 +146,8 @@ class _Prepared:
         strided_from = dense_upto + 1 if strided_from is None else strided_from
         self.n_levels = n
         level0 = pyramid.levels[0]
-        self.dtype = cell_dtype(level0)
-        self.L0 = np.ascontiguousarray(level0, dtype=self.dtype)  # the pyramid's own array: no copy
+        self.dtype = level0.dtype.type  # the pyramid holds its cells in the narrowest exact type
+        self.L0 = np.ascontiguousarray(level0)  # the pyramid's own array: no copy
         empty = np.zeros(0, self.dtype)
         grids, gnx, gny = [], [], []
         for l, lv in enumerate(pyramid.levels):

@@ -107,6 +107,17 @@ def _query(points, origin, inv_res, step, d_max, brick_index, bricks, out):
 
 
 # ----------------------------------------------------------------------------------- building
+def grid_over(lo, hi, resolution: float, d_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, shape) of the table's grid over map points bounded by ``lo`` and ``hi`` (their
+    per-axis minimum and maximum). The grid covers the map's bounding box grown by d_max on every
+    side: outside that, every point is ≥ d_max from the map, so "outside reads d_max" is exact. (On
+    the tight box of the paper, ground returns a few cm below the map's lowest point would read
+    d_max.)"""
+    lo = np.asarray(lo).astype(np.float64) - d_max
+    hi = np.asarray(hi).astype(np.float64) + d_max
+    return lo, np.floor((hi - lo) / resolution).astype(np.int64) + 1
+
+
 class LookupTable:
     """Block-sparse quantised nearest-map-point distances over the map's bounding box."""
 
@@ -205,12 +216,7 @@ class LookupTable:
             raise DataError("cannot build a lookup table from an empty map")
         if not np.isfinite(pts).all():
             raise DataError("map points contain NaN or infinite coordinates")
-        # The grid covers the map's bounding box grown by d_max on every side: outside that, every
-        # point is ≥ d_max from the map, so "outside reads d_max" is exact. (On the tight box of
-        # the paper, ground returns a few cm below the map's lowest point would read d_max.)
-        lo = pts.min(axis=0).astype(np.float64) - d_max
-        hi = pts.max(axis=0).astype(np.float64) + d_max
-        shape = np.floor((hi - lo) / resolution).astype(np.int64) + 1
+        lo, shape = grid_over(pts.min(axis=0), pts.max(axis=0), resolution, d_max)
         brick_index, bricks = build_bricks(pts, lo, shape, resolution, d_max, progress, threads)
         return cls(lo, resolution, d_max, shape, brick_index, bricks)
 

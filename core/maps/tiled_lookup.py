@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import DataError, LidarlocError
 from .bricks import BRICK, BRICK_CELLS, BRICK_MASK, BRICK_SHIFT, MAX_CODE, MISS_CODE
 from .distance_transform import _TILE, _tile_bricks
-from .lookup import LookupTable
+from .lookup import LookupTable, grid_over
 from .point_tiles import private_mapping
 from .tile_cache import cache_bytes, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
 from .tiling import bucket_points, point_cells, usable_cores
@@ -400,8 +400,9 @@ def build_tiles(
 
 
 def _grid_in_chunks(pts: np.ndarray, resolution: float, d_max: float, chunk: int) -> tuple[np.ndarray, np.ndarray]:
-    """(origin, shape) of the grid :meth:`LookupTable.build` lays over ``pts`` (their bounds grown
-    by d_max), read ``chunk`` points at a time, checking every coordinate is finite."""
+    """(origin, shape) of the grid :meth:`LookupTable.build` lays over ``pts``
+    (:func:`~.lookup.grid_over`), their bounds read ``chunk`` points at a time, checking every
+    coordinate is finite."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     for s in range(0, len(pts), chunk):
@@ -410,9 +411,7 @@ def _grid_in_chunks(pts: np.ndarray, resolution: float, d_max: float, chunk: int
             raise DataError("map points contain NaN or infinite coordinates")
         lo = np.minimum(lo, part.min(axis=0))
         hi = np.maximum(hi, part.max(axis=0))
-    lo = lo - d_max
-    hi = hi + d_max
-    return lo, np.floor((hi - lo) / resolution).astype(np.int64) + 1
+    return grid_over(lo, hi, resolution, d_max)
 
 
 def _bucket_in_chunks(pts: np.ndarray, grid: dict, reach: int, ntx: int, nty: int, chunk: int, only=None):

@@ -90,12 +90,12 @@ def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
 def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_root):
     """``bench clients --tab-kind socket``: the phases run with websocket tabs (no browser), each
     with the filter's rate, the process's CPU and the display update; the websocket tab's many
-    connections give the memory per connection."""
+    connections give the memory per connection, over a phase of its own length (``--churn-s``)."""
     from helpers import make_localizer
 
     loc = make_localizer(street, cache_root)
     try:
-        r = clients.run(loc, tabs=2, phase_s=6.0, tab_kind="socket")
+        r = clients.run(loc, tabs=2, phase_s=6.0, tab_kind="socket", churn_s=9.0)
     finally:
         loc.close()
     names = [p["phase"] for p in r["phases"]]
@@ -106,6 +106,8 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
         "2 websocket tabs + a slow client (1 message/s)",
     ]
     assert r["tabs_connected"] == 2 and r["tab_priority"] is None
+    seconds = [p["seconds"] for p in r["phases"]]
+    assert seconds[2] >= 9.0 and max(seconds[:2] + seconds[3:]) < 9.0, seconds
     assert r["connections"] >= 10 and r["rss_mb_per_connection"] is not None, r
     assert all(p["cpu_pct"] > 0 and p["scans_per_s"] > 0 for p in r["phases"]), r["phases"]
     assert r["rss_mb_per_browser_connection"] is None  # no browser tab came and went

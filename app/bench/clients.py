@@ -253,12 +253,21 @@ def _open_tab(browser, handle):
     return page
 
 
-def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", tab_kind: str = "chromium") -> dict:
+def run(
+    loc,
+    tabs: int = 5,
+    phase_s: float = 45.0,
+    tab_priority: str = "idle",
+    tab_kind: str = "chromium",
+    churn_s: float | None = None,
+) -> dict:
     """The phases above on a ready Localizer ``loc`` (closed by the caller); the tabs' Chromium at
     ``tab_priority`` (see the module docstring). ``tab_kind="socket"``: the tabs are websocket
     tabs (:class:`SocketTab`: everything the server sends, read and not drawn), so the phases
     measure what serving them costs the viewer without any browser's rendering on the machine
-    (no browser tab connecting and disconnecting then)."""
+    (no browser tab connecting and disconnecting then). ``churn_s`` (default ``phase_s``): the
+    length of the websocket tab's connect/disconnect phase alone: the allocator's pages come and
+    go by tens of MB, so only thousands of connections pin the growth per connection down."""
     from ..viewer.serve import serve
 
     if tab_kind not in TAB_KINDS:
@@ -273,6 +282,7 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
     viewer.on_finished = viewer.play_again
     loc.set_params(clock="realtime")
     viewer.player.set_clock("realtime")
+    churn_s = phase_s if churn_s is None else churn_s
     phases, connects, failed, pages = [], 0, 0, []
     churn_stats: dict = {}
     browser_growth = None  # RSS over the browser tab's connect/disconnect phase
@@ -319,8 +329,8 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
                 viewer,
                 updates,
                 f"{len(pages)} {kind} + a websocket tab connecting and disconnecting",
-                phase_s,
-                during=lambda: churn_stats.update(socket_churn(handle, phase_s)),
+                churn_s,
+                during=lambda: churn_stats.update(socket_churn(handle, churn_s)),
             )
             sockets.update({f"socket_{k}": v for k, v in churn_stats.items()})
             phases.append(sockets)
@@ -343,6 +353,7 @@ def run(loc, tabs: int = 5, phase_s: float = 45.0, tab_priority: str = "idle", t
         "tab_priority": tab_priority if tab_kind == "chromium" else None,
         "tabs_connected": len(pages),
         "phase_s": phase_s,
+        "churn_s": churn_s,
         "realtime_scans_per_s": round(1.0 / float(np.median(np.diff(np.asarray(loc.seq.timestamps, float)))), 2),
         # kept: the rate of the phase with no client, and no scan late that was not late without them
         "rate_kept_with_tabs": bool(

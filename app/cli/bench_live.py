@@ -70,6 +70,15 @@ def bench_soak(
 def bench_clients(
     tabs: Annotated[int, typer.Option("--tabs", min=1, help="Browser tabs open at once.")] = 5,
     phase_s: Annotated[float, typer.Option("--phase-s", min=5.0, help="Seconds per phase.")] = 45.0,
+    churn_s: Annotated[
+        float | None,
+        typer.Option(
+            "--churn-s",
+            min=5.0,
+            help="Seconds of the websocket tab connecting and disconnecting (default: --phase-s); "
+            "thousands of connections pin the memory per connection down under the allocator's noise.",
+        ),
+    ] = None,
     tab_priority: Annotated[
         str,
         typer.Option(
@@ -116,7 +125,9 @@ def bench_clients(
     limit_arenas()  # the viewer runs in this process: as `view` and `demo` set it up
     loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
     try:
-        result = run_bench(loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority, tab_kind=tab_kind)
+        result = run_bench(
+            loc, tabs=tabs, phase_s=phase_s, tab_priority=tab_priority, tab_kind=tab_kind, churn_s=churn_s
+        )
     finally:
         loc.close()
     show_bench_result("clients", result, as_json)

@@ -269,6 +269,44 @@ def test_view_run_opens_a_finished_run_and_a_moved_source_is_one_line(recorded, 
     assert "\n" not in str(exc.value)
 
 
+def test_a_move_while_the_replay_takes_a_step_is_the_step_that_stays(recorded, cache_root, tmp_path):
+    """A drag (or Back, an event button) that comes while a recorded run's playback is taking a
+    step stops the playback, and the user's step is the one shown: the replay's step lands before
+    it, never after it. The replay is held inside a step until the user's move has returned or 2 s
+    have passed: a move that does not wait for the step lets the replay read the user's step and
+    go one further."""
+    from lidarloc.app.viewer.runs import open_runs
+
+    handle, _ = recorded
+    h2 = open_runs([handle.viewer.travel.recorder.run_dir], port=0, cache_root=cache_root, record_to=tmp_path)
+    try:
+        v = h2.viewer
+        travel, tl = v.travel, v.travel.timeline
+        in_step, moved = threading.Event(), threading.Event()
+        current = tl.current
+
+        def current_in_a_replay_step():
+            if threading.current_thread() is travel._replay and not in_step.is_set():
+                in_step.set()
+                moved.wait(2.0)  # the user's move lands now, unless it waits for this step
+            return current()
+
+        tl.current = current_in_a_replay_step
+        v.controls.speed.value = "max"
+        v.controls.play.value = True
+        assert in_step.wait(30), "the recorded run did not start playing"
+        mover = threading.Thread(target=lambda: (tl.go(2), moved.set()))
+        mover.start()
+        mover.join(30)
+        assert moved.is_set()
+        wait_for(lambda: not travel.replaying, what="the playback to stop")
+        assert tl.step == 2
+        travel._replay.join(5)
+        assert not travel._replay.is_alive() and tl.step == 2
+    finally:
+        h2.stop()
+
+
 def test_view_two_runs_side_by_side_in_lockstep(recorded, cache_root):
     from lidarloc.app.viewer.runs import open_runs
 

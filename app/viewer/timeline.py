@@ -69,10 +69,14 @@ class Timeline:
         on_move: Callable[[int | None], None],
         order: float | None = None,
         on_forward_live: Callable[[], None] | None = None,
+        before_move: Callable[[], None] | None = None,
     ):
         """``on_forward_live``: ▶ pressed while live at the newest step (the viewer processes one
-        more scan)."""
+        more scan). ``before_move()``: called first in every :meth:`go`, before the step changes
+        (the viewer stops a recorded run's playback there, so that a step it was taking cannot
+        land after the user's)."""
         self._on_move = on_move
+        self._before_move = before_move
         self._on_forward_live = on_forward_live
         self._guarded = guarded
         self._own = threading.local()
@@ -242,6 +246,8 @@ class Timeline:
     def go(self, step: int) -> int:
         """Show recorded ``step`` (clamped to the recording); returns it."""
         self._require()
+        if self._before_move is not None:
+            self._before_move()
         step = int(np.clip(step, self._first, self._n - 1))
         with self._lock:
             self.step = step
@@ -319,6 +325,8 @@ class Timeline:
         if not self.live_available:
             self.go(self._n - 1)
             return
+        if self._before_move is not None:
+            self._before_move()
         with self._lock:
             self.step = None
         self.sync(moved=True)

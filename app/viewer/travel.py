@@ -76,12 +76,20 @@ class TimeTravel:
         self._pending: tuple | None = None
         self._replay: threading.Thread | None = None  # plays a recorded run's timeline
         self._replay_stop = threading.Event()
+        # held by the replay thread while it takes a step, and by any other mover while it stops
+        # the replay: a step the replay was taking lands before the user's move, never after it
+        self._replay_step = threading.Lock()
         self.branching = False
         self._resume_on_live = False  # scrubbing paused live playback: Live plays on
         self._compared = (-1, 0.0)  # (steps, when) the Compare table was last computed for
         gui = viewer.server.gui
         self.timeline = Timeline(
-            gui, guarded=viewer._guarded, on_move=self._moved, order=order, on_forward_live=lambda: viewer.step_once()
+            gui,
+            guarded=viewer._guarded,
+            on_move=self._moved,
+            order=order,
+            on_forward_live=lambda: viewer.step_once(),
+            before_move=self._halt_replay,
         )
         self.timeline.branch.on_click(viewer._guarded(self.branch_from_here, needs_localizer=False))
         with gui.add_folder("Compare", order=order + 0.01, expand_by_default=True, visible=False) as folder:
@@ -260,16 +268,26 @@ class TimeTravel:
     def stop_replay(self) -> None:
         self._replay_stop.set()
 
+    def _halt_replay(self) -> None:
+        """Before any move but the replay's own: stop the replay and wait out a step it is taking."""
+        if threading.current_thread() is self._replay:
+            return
+        with self._replay_step:
+            self._replay_stop.set()
+
     def _replay_loop(self, stop: threading.Event, interval: float) -> None:
         tl = self.timeline
         while not stop.wait(interval):
-            try:
-                cur = tl.current()
-                if cur >= tl.n - 1:
+            with self._replay_step:
+                if stop.is_set():  # a move came while this thread waited for the lock: it stands
                     break
-                tl.go(cur + 1)
-            except LidarlocError:
-                break
+                try:
+                    cur = tl.current()
+                    if cur >= tl.n - 1:
+                        break
+                    tl.go(cur + 1)
+                except LidarlocError:
+                    break
         stop.set()
         self.v.wake()
 

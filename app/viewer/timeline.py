@@ -72,9 +72,9 @@ class Timeline:
         before_move: Callable[[], None] | None = None,
     ):
         """``on_forward_live``: ▶ pressed while live at the newest step (the viewer processes one
-        more scan). ``before_move()``: called first in every :meth:`go`, before the step changes
-        (the viewer stops a recorded run's playback there, so that a step it was taking cannot
-        land after the user's)."""
+        more scan). ``before_move()``: called first in every move (:meth:`go`, :meth:`live`), before
+        the step changes (the viewer stops a recorded run's playback there, so that a step it was
+        taking cannot land after the user's)."""
         self._on_move = on_move
         self._before_move = before_move
         self._on_forward_live = on_forward_live

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import select
 import signal
 import struct
 import subprocess
@@ -44,6 +45,8 @@ _STOP = "__stop__"
 _PING = "__ping__"  # answered by the serving loop itself, once the handler is built
 #: How often a child checks that its parent is still there (seconds).
 PARENT_POLL_S = 0.25
+#: How often a call in flight checks whether its child was killed by this process (milliseconds).
+ABANDON_POLL_MS = 20
 
 
 class WorkerDied(RuntimeError):
@@ -67,9 +70,26 @@ def exit_words(code: int | None) -> str:
     return f"exit code {code}"
 
 
-def _read_exact(stream, n: int) -> bytes:
+def _wait_for(stream, events: int, abandon: threading.Event | None) -> None:
+    """Block until ``stream``'s pipe is ready for ``events`` (or hung up). With ``abandon``, give
+    up with ``BrokenPipeError`` once it is set: a child this process killed keeps its pipes open
+    until the kernel has freed its memory (``exit_mm`` comes before ``exit_files``), which for a
+    child holding a map takes a few hundred milliseconds on a busy machine; a call in flight
+    would wait that long, and Python's exit waits for the thread making it."""
+    poller = select.poll()
+    poller.register(stream.fileno(), events | select.POLLHUP | select.POLLERR)
+    while not poller.poll(ABANDON_POLL_MS if abandon is not None else None):
+        if abandon is not None and abandon.is_set():
+            raise BrokenPipeError("the process was killed")
+    if abandon is not None and abandon.is_set():
+        raise BrokenPipeError("the process was killed")
+
+
+def _read_exact(stream, n: int, abandon: threading.Event | None = None) -> bytes:
     buf = bytearray()
     while len(buf) < n:
+        if abandon is not None:
+            _wait_for(stream, select.POLLIN, abandon)
         chunk = stream.read(n - len(buf))
         if not chunk:
             raise EOFError
@@ -77,21 +97,26 @@ def _read_exact(stream, n: int) -> bytes:
     return bytes(buf)
 
 
-def _send(stream, obj: Any) -> None:
+def _send(stream, obj: Any, abandon: threading.Event | None = None) -> None:
+    """Write one message. ``stream`` may be non-blocking (the parent's pipes to its children
+    are): a full pipe is then waited for here, where ``abandon`` can end the wait."""
     data = pickle.dumps(obj, protocol=5)
     view = memoryview(_LEN.pack(len(data)) + data)
     # An unbuffered pipe's write may take only part of a large message when a signal arrives
-    # mid-way (Ctrl-C, SIGTERM, a debugger attaching): the rest must follow, or the child waits
-    # for it forever while the parent waits for the answer.
+    # mid-way (Ctrl-C, SIGTERM, a debugger attaching), or when the pipe is non-blocking and full:
+    # the rest must follow, or the child waits for it forever while the parent waits for the answer.
     while view:
         written = stream.write(view)
-        view = view[written if written is not None else 0 :]
+        if not written:  # None: a non-blocking pipe is full
+            _wait_for(stream, select.POLLOUT, abandon)
+            continue
+        view = view[written:]
     stream.flush()
 
 
-def _receive(stream) -> Any:
-    (n,) = _LEN.unpack(_read_exact(stream, _LEN.size))
-    return pickle.loads(_read_exact(stream, n))
+def _receive(stream, abandon: threading.Event | None = None) -> Any:
+    (n,) = _LEN.unpack(_read_exact(stream, _LEN.size, abandon))
+    return pickle.loads(_read_exact(stream, n, abandon))
 
 
 class WorkerProcess:
@@ -108,6 +133,9 @@ class WorkerProcess:
             bufsize=0,
             start_new_session=True,
         )
+        # writes wait in _send, where a kill by this process ends the wait (see _wait_for)
+        os.set_blocking(self._proc.stdin.fileno(), False)
+        self._killed = threading.Event()  # set by kill(): a call in flight gives up at once
         self._lock = threading.Lock()
         self._init_sent = False
         self._init = init
@@ -117,11 +145,13 @@ class WorkerProcess:
         with self._lock:
             try:
                 self._send_init_once()
-                _send(self._proc.stdin, request)
-                status, value = _receive(self._proc.stdout)
+                _send(self._proc.stdin, request, self._killed)
+                status, value = _receive(self._proc.stdout, self._killed)
                 self._answered = True
             except (BrokenPipeError, EOFError, OSError, ValueError):  # ValueError: pipe closed by close()
-                raise WorkerDied(f"{self.name} process exited ({self.exit_words()})", self) from None
+                # killed here: say so without waiting for the kernel to reap it (see _wait_for)
+                how = exit_words(-signal.SIGKILL) if self.killed_here else self.exit_words()
+                raise WorkerDied(f"{self.name} process exited ({how})", self) from None
         if status == "error":
             raise RuntimeError(value)
         return value
@@ -141,6 +171,11 @@ class WorkerProcess:
         except (OSError, IndexError):  # no /proc (not Linux): poll() has the last word
             return True
         return state not in ("Z", "X")
+
+    @property
+    def killed_here(self) -> bool:
+        """Whether this process killed the child (:meth:`kill`, or :meth:`close` of a busy one)."""
+        return self._killed.is_set()
 
     @property
     def answered(self) -> bool:
@@ -187,7 +222,7 @@ class WorkerProcess:
         """The set-up message goes first, exactly once (caller holds the lock)."""
         if not self._init_sent:
             self._init_sent = True
-            _send(self._proc.stdin, self._init)
+            _send(self._proc.stdin, self._init, self._killed)
 
     def close(self) -> None:
         """Stop the child: an idle one is asked to exit. One that is busy (a call in flight,
@@ -209,6 +244,7 @@ class WorkerProcess:
                 finally:
                     self._lock.release()
             if not asked:
+                self._killed.set()
                 proc.kill()
             try:
                 proc.wait(timeout=2.0)
@@ -223,7 +259,9 @@ class WorkerProcess:
 
     def kill(self) -> None:
         """SIGKILL the child without waiting for it: the parent is about to exit and cannot wait
-        for :meth:`close` (the kernel reaps the child once the parent is gone)."""
+        for :meth:`close` (the kernel reaps the child once the parent is gone). A call in
+        flight gives up within ``ABANDON_POLL_MS`` (:class:`WorkerDied`)."""
+        self._killed.set()
         try:
             if self._proc.poll() is None:
                 self._proc.kill()
@@ -263,13 +301,16 @@ class WorkerProxy:
         a :class:`WorkerDied` names); returns what happened in words, or None when there was
         nothing to do (it runs, or ``died`` was replaced already). The new child sets up in the
         background, as the first did. Raises :class:`~lidarloc.core.failures.BlockError` when the
-        child that died was itself a restart that never answered: it died again at once."""
+        child that died was itself a restart that never answered: it died again at once; and
+        :class:`WorkerDied` when this process killed it (closing): no new child is started then."""
         with self._revive_lock:
             old = self._worker
             if died is not None and died is not old:
                 return None
             if died is None and old.alive:
                 return None
+            if old.killed_here:  # stopped on purpose (the run is closing): not a death to mend
+                raise WorkerDied(f"{self.name} process was stopped", old)
             how = old.exit_words()
             if self.restarts and not old.answered:
                 raise BlockError(
@@ -382,6 +423,14 @@ def serve(make_handler: Callable[[Any], Callable[[Any], Any]]) -> None:
     except (OSError, EOFError):
         # the parent closed the pipe: it no longer wants an answer. _exit, not return: the
         # interpreter's exit would flush the broken pipe again and print that it failed.
+        os._exit(0)
+    # Stopped by the parent: nothing is left to write (a child writes files, numba's kernel cache
+    # included, only while it computes an answer), so the interpreter's own exit — tearing down
+    # numba, open3d and the map's objects, a long while for a child at a low priority on a busy
+    # machine, with the parent's close waiting for it — is skipped.
+    try:
+        sys.stderr.flush()
+    finally:
         os._exit(0)
 
 

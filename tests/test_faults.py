@@ -172,3 +172,57 @@ def test_large_messages_survive_signals_arriving_mid_write():
         icp.close()
     assert interrupts > 0
     assert np.isfinite(icp.last_pose).all()
+
+
+@pytest.mark.parametrize("waiting_to", ["write", "read"])
+def test_a_call_to_a_child_this_process_killed_gives_up_at_once(waiting_to):
+    """A child killed by its parent (Ctrl-C, closing the viewer) keeps its pipes open until the
+    kernel has freed its memory, a few hundred milliseconds for one holding a map on a busy
+    machine; a call in flight must not wait for that (Python's exit waits for the thread making
+    it). Here something else holds the child's pipe ends open, so its pipes never close: the call
+    must give up because this process killed it, not because the pipe closed."""
+    from lidarloc.core.odometry.worker import KissICPProcess
+    from lidarloc.core.worker_process import WorkerDied
+
+    icp = KissICPProcess()
+    icp.wait_ready()
+    pid = icp.pid
+    # the child's ends of its two pipes, held open past its death (opening /proc/PID/fd/N of a
+    # pipe opens that pipe)
+    held = [
+        os.open(f"/proc/{pid}/fd/0", os.O_RDONLY | os.O_NONBLOCK),
+        os.open(f"/proc/{pid}/fd/1", os.O_WRONLY | os.O_NONBLOCK),
+    ]
+    os.kill(pid, signal.SIGSTOP)  # it reads nothing more and answers nothing
+    # a scan far larger than a pipe holds waits to be written; a small one waits for its answer
+    n = 200_000 if waiting_to == "write" else 10
+    outcome: list = []
+
+    def call():
+        try:
+            icp.register_frame(np.zeros((n, 3), np.float32))
+            outcome.append("answered")
+        except WorkerDied as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=call, daemon=True)
+    try:
+        thread.start()
+        thread.join(0.5)
+        assert thread.is_alive(), f"the call ended before the kill: {outcome}"
+        t0 = time.monotonic()
+        icp.kill()
+        thread.join(HANG_BOUND_S)
+        gave_up_s = time.monotonic() - t0
+    finally:
+        icp.kill()
+        for fd in held:
+            os.close(fd)
+    assert not thread.is_alive(), "the call still waits for a child killed by this process"
+    assert len(outcome) == 1 and isinstance(outcome[0], WorkerDied)
+    assert "killed by SIGKILL" in str(outcome[0])
+    assert gave_up_s < 1.0, f"gave up after {gave_up_s:.2f} s"
+    # killed on purpose (a run closing): the feeders' fault handling must not start a new child
+    with pytest.raises(WorkerDied, match="stopped"):
+        icp.revive(outcome[0].worker)
+    assert icp.restarts == 0

@@ -115,3 +115,21 @@ def test_a_closed_terminal_stops_view_as_ctrl_c_does_and_leaves_no_process_behin
     assert proc.returncode == 0
     gone, alive = psutil.wait_procs(children, timeout=10)
     assert not alive, f"left behind: {[p.pid for p in alive]}"
+
+
+@pytest.mark.timeout(300)
+def test_bench_stop_times_the_viewers_stops_with_cores_kept_busy(cache_root):
+    """``lidarloc bench stop --viewer``: each stop of a playing demo timed, beside spinning
+    processes, against the viewer's own 1 s target."""
+    import json
+
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", "bench", "stop", "--viewer", "--busy", "2", "--repeats", "2"]
+    cmd += ["--delay", "0", "--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
+    done = subprocess.run(cmd + ["--json"], capture_output=True, text=True, timeout=280)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout)
+    assert list(result["stops"]) == ["viewer, Ctrl-C 0 s after playing"]
+    figures = result["stops"]["viewer, Ctrl-C 0 s after playing"]
+    assert 0 < figures["stop_s_median"] <= figures["stop_s_max"] == result["worst_s"]
+    assert result["target_s"] == STOP_S and result["busy"] == 2
+    assert result["met"] == (result["worst_s"] <= STOP_S)

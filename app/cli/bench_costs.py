@@ -456,11 +456,26 @@ def bench_startup(
 @bench_app.command("stop")
 @with_source()
 def bench_stop(
+    ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
     delay: Annotated[
         list[float] | None,
-        typer.Option("--delay", min=0.0, help="Seconds after 'localizing' to press Ctrl-C (repeatable)."),
+        typer.Option(
+            "--delay",
+            min=0.0,
+            help="Seconds after 'localizing' (the viewer: after 'ready') to press Ctrl-C (repeatable).",
+        ),
     ] = None,
+    viewer: Annotated[
+        bool,
+        typer.Option(
+            "--viewer", help="Stop the live viewer (`demo`, or `view` on a source given) instead (target ≤ 1 s)."
+        ),
+    ] = False,
+    busy: Annotated[
+        int,
+        typer.Option("--busy", min=0, help="Processes spinning on a core each beside the command, from its start on."),
+    ] = 0,
     as_json: JsonOpt = False,
     spec=None,
     preset: PresetOpt = None,
@@ -468,7 +483,8 @@ def bench_stop(
     set_: SetOpt = None,
     cache: CacheOpt = None,
 ):
-    """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s).
+    """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s); with
+    --viewer, the live viewer (target ≤ 1 s).
 
     Runs the town's first 300 scans unless the source options say otherwise."""
     from ..bench.common import config_args, source_args
@@ -476,12 +492,21 @@ def bench_stop(
 
     config_from(config, set_, preset=preset)
     spec = replace(spec, scans=300 if spec.scans is None else spec.scans)
+    settings = config_args(config, set_, preset)
+    if not viewer:
+        command = None
+    elif given(ctx, SOURCE_CHOICE + ("map",)):
+        command = ["view", *source_args(spec), *settings]
+    else:
+        command = ["demo", "--scans", str(spec.scans), *settings]
     show_bench_result(
         "stop",
         run_bench(
-            source_args(spec) + config_args(config, set_, preset),
+            source_args(spec) + settings,
             repeats=repeats,
             cache=None if cache is None else str(cache),
+            busy=busy,
+            viewer=command,
             **({"delays_s": tuple(delay)} if delay else {}),
         ),
         as_json,

@@ -59,11 +59,14 @@ class ViewerHandle:
 
     def stop(self) -> None:
         """Stop playback, the display and the server; close the localizer if the viewer built it.
-        Bounded: returns within ~1.2 s. A scan of the viewer's own localizer that is waiting for
-        a block gives up at once (``Localizer.interrupt``); one still computing finishes on its
-        daemon thread, and the localizer's worker pools are joined by Python at exit. A close
-        not done within 0.3 s has the localizer's child processes killed, so none outlives it; so
-        have those of runs a branch took over whose close is not done yet."""
+        Bounded: returns within about half a second. A scan of the viewer's own localizer that is
+        waiting for a block gives up at once (``Localizer.interrupt``); one still computing
+        finishes on its daemon thread, and the localizer's worker pools are joined by Python at
+        exit. The localizer's child processes are killed first, not asked to exit: what they were
+        computing would be thrown away, their caches are written under a temporary name and
+        renamed, and a child at its low priority on a busy machine took longer to run its
+        interpreter's exit than the whole stop may take. The children of runs a branch took over
+        and whose close is not done yet are killed too, so none outlives the viewer."""
         if self._stopped.is_set():
             return
         loc = self.viewer.localizer
@@ -76,11 +79,10 @@ class ViewerHandle:
         for sink in self.viewer.sinks:
             sink.stop()
         if owned:
+            loc.kill_processes()
             closer = threading.Thread(target=loc.close, name="lidarloc-close", daemon=True)
             closer.start()
-            closer.join(timeout=0.3)
-            if closer.is_alive():  # a busy machine: no child may outlive the viewer's process
-                loc.kill_processes()
+            closer.join(timeout=0.1)  # the pools; a step still computing is left to its daemon thread
         self.viewer.retired.kill_unfinished()  # nor those of a run a branch took over
         self._stopped.set()
 

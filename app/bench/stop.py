@@ -132,7 +132,7 @@ def run(
 ) -> dict:
     """Stop ``lidarloc run <run_args>`` (source and configuration options) ``repeats`` times per
     clock and delay; with ``viewer`` (``["demo", …]`` or ``["view", …]``), that viewer instead,
-    ``repeats`` times per delay. ``busy``: processes spinning beside it from its start on."""
+    ``repeats`` times per delay. ``busy``: processes spinning beside it once it is under way."""
     results = {}
     if viewer is not None:
         for delay in delays_s:

@@ -474,7 +474,11 @@ def bench_stop(
     ] = False,
     busy: Annotated[
         int,
-        typer.Option("--busy", min=0, help="Processes spinning on a core each beside the command, from its start on."),
+        typer.Option(
+            "--busy",
+            min=0,
+            help="Processes spinning on a core each beside the command once it is under way (from 'localizing' or 'ready' on).",
+        ),
     ] = 0,
     as_json: JsonOpt = False,
     spec=None,

@@ -16,7 +16,7 @@ from helpers import MAPPING_SCANS
 
 pytestmark = pytest.mark.slow
 
-STOP_S = 1.0  # the README's promise
+STOP_S = 1.0  # docs/keeps-working.md, "Stopping"
 
 
 def _lines(proc) -> queue.Queue:

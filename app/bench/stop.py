@@ -1,5 +1,5 @@
 """``lidarloc bench stop``: how fast Ctrl-C stops ``lidarloc run`` (target: within 2 s, results
-still written), or with ``--viewer`` the live viewer (target: within 1 s, the README's promise).
+still written), or with ``--viewer`` the live viewer (target: within 1 s, as docs/keeps-working.md promises).
 
 A real ``lidarloc run`` in a child process, the way a user starts it, gets SIGINT a given delay
 after it prints ``localizing`` (0 s: the first scans, when the S2M process may still be in its
@@ -30,7 +30,7 @@ from ...core.errors import LidarlocError
 from .common import load_avg, machine
 
 TARGET_S = 2.0
-VIEWER_TARGET_S = 1.0  # the README's promise for the viewer
+VIEWER_TARGET_S = 1.0  # docs/keeps-working.md, "Stopping"
 
 
 @contextmanager

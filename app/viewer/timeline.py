@@ -154,7 +154,6 @@ class Timeline:
         # one writer at a time, from reading the step to writing the value: the step read here is
         # the one the value shows (a write's own callback returns at once, see _slider_moved)
         with self._lock, self._writing():
-            seen = s.value
             grew = n != self._n or first != self._first
             self._n, self._first = n, first
             if self.step is not None and self.step < first:
@@ -171,6 +170,11 @@ class Timeline:
                 if s.disabled != (n - first < 2):
                     s.disabled = n - first < 2
             value = max((n - 1 if step is None else step) if n else 0, first)
+            # read last, just before the write: a drag landing while the bounds above were sent
+            # is then seen and kept (read first, it was overwritten, and its callback read the
+            # newest step). Between this read and the write a drag can still be lost: viser has
+            # no compare-and-set.
+            seen = s.value
             if moved or seen == self._written:
                 if s.value != value:
                     s.value = value

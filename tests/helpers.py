@@ -212,25 +212,18 @@ class StreetSequence(Sequence):
         return self._poses
 
 
-def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int | None = None):
-    """A Localizer with the default configuration but ``n_particles`` particles (and, given, the
-    S2M process's nice value in the replay clock)."""
+def make_localizer(seq, cache_root, n_particles: int = 300):
+    """A Localizer with the default configuration but ``n_particles`` particles."""
     from lidarloc.core.localizer import Localizer
 
     cfg = Config()
     cfg.pf.n_particles = n_particles
-    if s2m_nice is not None:
-        cfg.s2m.replay_process_nice = s2m_nice
     return Localizer(seq, cfg, cache_root)
 
 
 def browser_localizer(cache_root):
-    """The localizer the browser tests drive: long enough to pause mid-run. Its S2M process runs
-    at the PF's priority: the browser tests are also run beside processes spinning on both cores
-    (CONTRIBUTING, "Under load"), where a niced S2M process in a scheduling group of its own gets
-    about a tenth of a core, and the replay clock waits for its matches (a tab's test then timed
-    out waiting for scan 8). The page is what these tests check, not the S2M's priority."""
-    return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000, s2m_nice=0)
+    """The localizer the browser test drives: long enough to pause mid-run."""
+    return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000)
 
 
 # The drive that maps the town: a run's scans are localized inside its map. Shorter than the

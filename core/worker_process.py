@@ -78,11 +78,11 @@ def _wait_for(stream, events: int, abandon: threading.Event | None) -> None:
     would wait that long, and Python's exit waits for the thread making it."""
     poller = select.poll()
     poller.register(stream.fileno(), events | select.POLLHUP | select.POLLERR)
-    while not poller.poll(ABANDON_POLL_MS if abandon is not None else None):
+    while True:
         if abandon is not None and abandon.is_set():
             raise BrokenPipeError("the process was killed")
-    if abandon is not None and abandon.is_set():
-        raise BrokenPipeError("the process was killed")
+        if poller.poll(ABANDON_POLL_MS if abandon is not None else None):
+            return
 
 
 def _read_exact(stream, n: int, abandon: threading.Event | None = None) -> bytes:

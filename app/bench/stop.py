@@ -21,6 +21,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -45,38 +46,58 @@ def _busy(n: int):
             p.wait()
 
 
-def _one_stop(out: Path, clock: str, delay_s: float, args: list[str], cache: str | None, busy: int = 0) -> float:
-    cmd = [sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), *args, "--clock", clock] + (
-        ["--cache", cache] if cache else []
-    )
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+def _stop_when_ready(
+    cmd: list[str], merged: bool, ready: Callable[[str], bool], what: str, until: str, delay_s: float, busy: int
+) -> tuple[float, int, str]:
+    """Start ``cmd``, read its output (stdout with stderr when ``merged``, else stderr) until a
+    line ``ready`` accepts, then, beside ``busy`` spinning processes, wait ``delay_s`` and send
+    SIGINT. Returns the seconds from the signal to the exit, the exit code and the output."""
+    out = subprocess.PIPE if merged else subprocess.DEVNULL
+    err = subprocess.STDOUT if merged else subprocess.PIPE
+    proc = subprocess.Popen(cmd, stdout=out, stderr=err, text=True)
+    stream = proc.stdout if merged else proc.stderr
     try:
         seen = []
-        for line in proc.stderr:
+        for line in stream:
             seen.append(line)
-            if "localizing" in line:
+            if ready(line):
                 break
         else:
-            raise LidarlocError("lidarloc run ended before localizing: " + (seen[-1].strip() if seen else "no output"))
+            raise LidarlocError(f"{what} ended before {until}: " + (seen[-1].strip() if seen else "no output"))
+        tail: list[str] = []
+        # the output is drained meanwhile: a command that prints must not block on a full pipe
+        reader = threading.Thread(target=lambda: tail.extend(stream), daemon=True)
+        reader.start()
         with _busy(busy):
-            time.sleep(delay_s)  # the run goes on meanwhile; this is not synchronisation
+            time.sleep(delay_s)  # the command goes on meanwhile; this is not synchronisation
             proc.send_signal(signal.SIGINT)
             t0 = time.perf_counter()
             try:
-                _, rest = proc.communicate(timeout=60)
+                proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
-                raise LidarlocError(f"Ctrl-C after {delay_s} s: lidarloc run still running after 60 s") from None
+                raise LidarlocError(f"Ctrl-C after {delay_s} s: {what} still running after 60 s") from None
             stop_s = time.perf_counter() - t0
+        reader.join(timeout=5)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return stop_s, proc.returncode, "".join(tail or seen)
+
+
+def _one_stop(out: Path, clock: str, delay_s: float, args: list[str], cache: str | None, busy: int = 0) -> float:
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), *args, "--clock", clock] + (
+        ["--cache", cache] if cache else []
+    )
+    stop_s, code, rest = _stop_when_ready(
+        cmd, False, lambda line: "localizing" in line, "lidarloc run", "localizing", delay_s, busy
+    )
     summary_file = out / "summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
-    if proc.returncode != 130 or not summary.get("interrupted"):
-        last = (rest or "".join(seen)).strip().splitlines()[-1:]
+    if code != 130 or not summary.get("interrupted"):
+        last = rest.strip().splitlines()[-1:]
         raise LidarlocError(
-            f"Ctrl-C after {delay_s} s: exit code {proc.returncode}, summary.json "
+            f"Ctrl-C after {delay_s} s: exit code {code}, summary.json "
             f"{'interrupted' if summary.get('interrupted') else 'missing or not interrupted'}: {last}"
         )
     return stop_s
@@ -85,40 +106,13 @@ def _one_stop(out: Path, clock: str, delay_s: float, args: list[str], cache: str
 def _one_viewer_stop(command: list[str], delay_s: float, cache: str | None, busy: int) -> float:
     cmd = [sys.executable, "-m", "lidarloc.app.cli", *command, "--autoplay", "--port", "0", "--no-record"]
     cmd += ["--cache", cache] if cache else []
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        seen = []
-        for line in proc.stdout:
-            seen.append(line)
-            if line.startswith("ready:"):
-                break
-        else:
-            raise LidarlocError(
-                f"lidarloc {command[0]} ended before it played: " + (seen[-1].strip() if seen else "no output")
-            )
-        tail: list[str] = []
-        # the output is drained meanwhile: a viewer that prints must not block on a full pipe
-        reader = threading.Thread(target=lambda: tail.extend(proc.stdout), daemon=True)
-        reader.start()
-        with _busy(busy):
-            time.sleep(delay_s)  # the viewer plays on meanwhile; this is not synchronisation
-            proc.send_signal(signal.SIGINT)
-            t0 = time.perf_counter()
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                raise LidarlocError(
-                    f"Ctrl-C after {delay_s} s: lidarloc {command[0]} still running after 60 s"
-                ) from None
-            stop_s = time.perf_counter() - t0
-        reader.join(timeout=5)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    if proc.returncode != 0:
-        last = "".join(tail or seen).strip().splitlines()[-1:]
-        raise LidarlocError(f"Ctrl-C after {delay_s} s: lidarloc {command[0]} exit code {proc.returncode}: {last}")
+    what = f"lidarloc {command[0]}"
+    stop_s, code, rest = _stop_when_ready(
+        cmd, True, lambda line: line.startswith("ready:"), what, "it played", delay_s, busy
+    )
+    if code != 0:
+        last = rest.strip().splitlines()[-1:]
+        raise LidarlocError(f"Ctrl-C after {delay_s} s: {what} exit code {code}: {last}")
     return stop_s
 
 

@@ -137,6 +137,32 @@ def test_dragging_pauses_live_playback_and_live_plays_on(recorded):
     assert tl.slider.value == loc.steps - 1
 
 
+def test_a_tabs_drag_written_over_by_the_live_follow_still_goes_where_it_was_dragged(recorded):
+    """The display thread follows the newest step while live; a drag applied just before that
+    write lands, and moved after it, goes to the dragged step, not the newest."""
+    from lidarloc.app.bench.clients import SocketTab
+
+    handle, _ = recorded
+    v = handle.viewer
+    tl = v.travel.timeline
+    tab = SocketTab(handle.port)
+    try:
+        wait_for(lambda: len(handle.server.get_clients()) >= 1, what="the tab counted")
+        newest = tl.n - 1
+        assert tl.step is None and tl.slider.value == newest > 2
+        with v._gui_gate:  # the move waits here, as behind a display update in progress
+            tab.set(tl.slider, 2)
+            wait_for(lambda: tl._dragged == 2, what="the drag applied")
+            with tl._writing():  # the live follow, from a value read before the drag
+                tl.slider.value = newest
+        wait_for(lambda: tl.step is not None, what="the move")
+        assert tl.step == 2 and tl.slider.value == 2
+    finally:
+        tab.close()
+        tl.live()
+    assert tl.step is None and tl.slider.value == newest
+
+
 def test_event_buttons_land_on_event_steps(recorded):
     from lidarloc.app.viewer.timeline import DEFAULT_FILTER, EVENT_FILTERS
 

@@ -131,11 +131,15 @@ class SocketTab:
 
     def click(self, button) -> None:
         """Press a GUI button of the server's, as a browser does."""
+        self.set(button, True)
+
+    def set(self, handle, value) -> None:
+        """Set a GUI input of the server's (a slider dragged, a button pressed), as a browser does."""
         import msgspec
         from viser._messages import GuiUpdateMessage
 
         self.ws.send(
-            msgspec.msgpack.encode(GuiUpdateMessage(button._impl.uuid, {"value": True}).as_serializable_dict())
+            msgspec.msgpack.encode(GuiUpdateMessage(handle._impl.uuid, {"value": value}).as_serializable_dict())
         )
 
     def close(self) -> None:

@@ -11,7 +11,9 @@ budget holds only its newest steps: the slider's lower end follows the window's 
 step on screen that the window left behind moves up with it), and ◀ or ◀ event there says the
 earlier steps were dropped by the recording budget. The viewer's own writes to the
 slider (following the live run) do not count as moves: they are made with a thread-local flag up,
-and viser runs an assigned value's callbacks on the assigning thread.
+and viser runs an assigned value's callbacks on the assigning thread. A tab's drag is read on
+viser's event loop as it is applied (a live follow written over it before its move runs does not
+change where it goes).
 """
 
 from __future__ import annotations
@@ -111,6 +113,9 @@ class Timeline:
             )
             self.recording_text = gui.add_markdown("")
             gui.add_markdown(f"<small>{HELP}</small>")
+        self._dragged: int | None = None  # the value a tab's drag set (read on viser's event loop)
+        # first: a tab's drag is read on the event loop as it is applied; then the move itself
+        self.slider.on_update(self._tab_moved)
         self.slider.on_update(self._slider_moved)
         self.buttons.on_click(guarded(self._button, needs_localizer=False))
         self.kinds.on_update(guarded(self.list_events, needs_localizer=False))
@@ -213,11 +218,24 @@ class Timeline:
             self._own.active = False
 
     # ------------------------------------------------------------------ moves
+    async def _tab_moved(self, event) -> None:
+        """A tab's drag, on viser's event loop right after it set the slider's value: the value is
+        kept here, because by the time the move runs (on a worker thread, after the display's
+        update in progress) a live follow may have written the newest step over it. Writes made
+        on the server (ours, or a test's) arrive here without a client and are left alone."""
+        if event.client_id is not None:
+            self._dragged = int(self.slider.value)
+
     def _slider_moved(self, event) -> None:
         if getattr(self._own, "active", False):
             return
+        # the value moved to: a tab's as its update set it (read when the move runs: of several
+        # quick drags the last one wins); a write made on this thread, read at once (this callback
+        # runs right after it), not after the display's update in progress, which may follow live
+        from_tab = getattr(event, "client_id", None) is not None and self._dragged is not None
+        value = None if from_tab else int(self.slider.value)
         try:
-            self._guarded(lambda: self.go(int(self.slider.value)), needs_localizer=False)(event)
+            self._guarded(lambda: self.go(self._dragged if value is None else value), needs_localizer=False)(event)
         finally:
             if self.slider.value != self._written:  # a refused move: show the timeline's step again
                 self.sync(moved=True)

@@ -221,9 +221,9 @@ def make_localizer(seq, cache_root, n_particles: int = 300):
     return Localizer(seq, cfg, cache_root)
 
 
-def browser_localizer(cache_root):
+def browser_localizer(cache_root, n_scans: int = 60):
     """The localizer the browser test drives: long enough to pause mid-run."""
-    return make_localizer(StreetSequence(n=60), cache_root, n_particles=1000)
+    return make_localizer(StreetSequence(n=n_scans), cache_root, n_particles=1000)
 
 
 # The drive that maps the town: a run's scans are localized inside its map. Shorter than the

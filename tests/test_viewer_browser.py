@@ -34,10 +34,12 @@ def served(tmp_path_factory):
 @pytest.fixture
 def playing(tmp_path_factory):
     """A run already playing before any tab is open (the usual case: start the demo, then open
-    the page)."""
+    the page). 150 scans, at least 30 s at 5 scans/s: its test pauses it after a page load and
+    twenty-odd scans of plots, well before the end (a Pause that lands after the last scan
+    shows "finished", not "paused")."""
     from lidarloc.app.viewer.serve import serve
 
-    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"))
+    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"), n_scans=150)
     handle = serve(loc, port=0, autoplay=True, speed="5")
     yield handle
     handle.stop()
@@ -150,8 +152,20 @@ def test_tab_opened_while_playing_gets_the_history_and_live_plots(browser, playi
     toast.first.wait_for(timeout=STEP_TIMEOUT)
 
     # the legend and the plots, for the eye
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    viewer = playing.viewer
+    assert not loc.done, f"the run finished (scan {loc.k} of {loc.n_scans}) before the test could pause it"
+    pause_clicks = watch_clicks(page, viewer.controls.play)
     page.get_by_role("button", name="Pause").click()
-    page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    try:
+        page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
+    except PlaywrightTimeout as exc:
+        raise AssertionError(
+            f"{exc}; on the server: scan {loc.k} of {loc.n_scans}, done {loc.done}, playing "
+            f"{viewer.player.playing}, {len(pause_clicks)} Pause click(s), message {viewer.message!r}; "
+            f"the page's clicks: {page.evaluate('window.__clicks')!r}"
+        ) from None
     assert page.get_by_text("particles by log-weight rank").count() == 1
     page.get_by_text("particles by log-weight rank").scroll_into_view_if_needed()
     page.screenshot(path=str(ARTIFACTS / "viewer-legend.png"))

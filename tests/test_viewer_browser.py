@@ -73,6 +73,25 @@ def watch_clicks(page, button) -> list:
     return on_server
 
 
+def press_and_wait(page, viewer, label: str, text: str, timeout_ms: float) -> None:
+    """Press the Play/Pause button labelled ``label`` and wait for ``text`` in the page; if it
+    does not come, say where the press went (the page's clicks, the server's callbacks) and
+    where the run is."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    loc = viewer.localizer
+    clicks = watch_clicks(page, viewer.controls.play)
+    page.get_by_role("button", name=label).click()
+    try:
+        page.wait_for_function(f"document.body.innerText.includes({text!r})", timeout=timeout_ms)
+    except PlaywrightTimeout as exc:
+        raise AssertionError(
+            f"{exc}; on the server: scan {loc.k} of {loc.n_scans}, done {loc.done}, playing "
+            f"{viewer.player.playing}, {len(clicks)} {label} click(s), message {viewer.message!r}; "
+            f"the page's clicks: {page.evaluate('window.__clicks')!r}"
+        ) from None
+
+
 def scan_counter(page) -> int:
     return page.evaluate(JS_SCAN)
 
@@ -152,20 +171,9 @@ def test_tab_opened_while_playing_gets_the_history_and_live_plots(browser, playi
     toast.first.wait_for(timeout=STEP_TIMEOUT)
 
     # the legend and the plots, for the eye
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
-
     viewer = playing.viewer
     assert not loc.done, f"the run finished (scan {loc.k} of {loc.n_scans}) before the test could pause it"
-    pause_clicks = watch_clicks(page, viewer.controls.play)
-    page.get_by_role("button", name="Pause").click()
-    try:
-        page.wait_for_function("document.body.innerText.includes('· paused')", timeout=STEP_TIMEOUT)
-    except PlaywrightTimeout as exc:
-        raise AssertionError(
-            f"{exc}; on the server: scan {loc.k} of {loc.n_scans}, done {loc.done}, playing "
-            f"{viewer.player.playing}, {len(pause_clicks)} Pause click(s), message {viewer.message!r}; "
-            f"the page's clicks: {page.evaluate('window.__clicks')!r}"
-        ) from None
+    press_and_wait(page, viewer, "Pause", "· paused", STEP_TIMEOUT)
     assert page.get_by_text("particles by log-weight rank").count() == 1
     page.get_by_text("particles by log-weight rank").scroll_into_view_if_needed()
     page.screenshot(path=str(ARTIFACTS / "viewer-legend.png"))
@@ -320,7 +328,6 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     """In a real page: playback waits for the first tab; a kidnap while paused shows at once;
     Restart takes the last run's S2M match out of the scene; the S2M row is not "running" after
     the end and says "off" when S2M is off."""
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
     loc, viewer = waiting.localizer, waiting.viewer
     assert waiting.wait_ready(60)
@@ -363,16 +370,7 @@ def test_what_a_new_user_trips_over_is_fixed_in_the_page(browser, waiting):
     )
 
     # to the end: the S2M row does not say "running"; switched off, it says "off"
-    play_clicks = watch_clicks(page, viewer.controls.play)
-    page.get_by_role("button", name="Play").click()
-    try:
-        page.wait_for_function("document.body.innerText.includes('· finished')", timeout=LOAD_TIMEOUT)
-    except PlaywrightTimeout as exc:
-        raise AssertionError(
-            f"{exc}; on the server: scan {loc.k} of {loc.n_scans}, playing {viewer.player.playing}, "
-            f"{len(play_clicks)} Play click(s), message {viewer.message!r}; the page's clicks: "
-            f"{page.evaluate('window.__clicks')!r}"
-        ) from None
+    press_and_wait(page, viewer, "Play", "· finished", LOAD_TIMEOUT)
     assert "running" not in page.evaluate(JS_S2M_ROW)
     page.get_by_text("Parameters", exact=True).click()
     # A click (it waits for the folder to open and the box to be still), then the localizer's word.

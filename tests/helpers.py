@@ -212,18 +212,26 @@ class StreetSequence(Sequence):
         return self._poses
 
 
-def make_localizer(seq, cache_root, n_particles: int = 300):
-    """A Localizer with the default configuration but ``n_particles`` particles."""
+def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int | None = None):
+    """A Localizer with the default configuration but ``n_particles`` particles (and, if given,
+    the S2M process's replay-clock nice value)."""
     from lidarloc.core.localizer import Localizer
 
     cfg = Config()
     cfg.pf.n_particles = n_particles
+    if s2m_nice is not None:
+        cfg.s2m.replay_process_nice = s2m_nice
     return Localizer(seq, cfg, cache_root)
 
 
 def browser_localizer(cache_root, n_scans: int = 60):
-    """The localizer the browser test drives: long enough to pause mid-run."""
-    return make_localizer(StreetSequence(n=n_scans), cache_root, n_particles=1000)
+    """The localizer the browser test drives: long enough to pause mid-run.
+
+    Its S2M process runs at the PF's priority: the replay clock waits for every match, and a
+    niced S2M beside other busy processes (a loaded CI machine) gets a sliver of a core, so
+    the run would crawl and the tests' timeouts would measure the machine, not the viewer.
+    The priority never changes a replay result."""
+    return make_localizer(StreetSequence(n=n_scans), cache_root, n_particles=1000, s2m_nice=0)
 
 
 # The drive that maps the town: a run's scans are localized inside its map. Shorter than the

@@ -1,6 +1,7 @@
 """The viewer's playback thread (app/viewer/player.py) on a stand-in localizer with 1 ms steps:
 replay and real-time pacing, max speed, single steps, refused settings, and a failing step."""
 
+import re
 import threading
 import time
 
@@ -211,6 +212,7 @@ def test_a_late_scan_leaves_every_threads_stack_in_the_trace_file(tmp_path, monk
     assert text.count("Thread 0x") >= 2  # every thread: the test's own and the player's at least
     late_lines = [line for line in text.splitlines() if line.startswith("^ the stacks above: scan 6 ")]
     assert late_lines and float(late_lines[0].split(" started ")[1].split(" s ")[0]) >= 0.2
+    assert re.search(r"\(late, \d\d:\d\d:\d\d UTC\)$", late_lines[0])  # when, to lay beside other logs
 
 
 def test_no_trace_file_unless_asked_and_one_line_if_it_cannot_be_written(tmp_path, monkeypatch):

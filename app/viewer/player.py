@@ -13,10 +13,10 @@ counts them (:meth:`Player.take_counts`), which is what a long run in a loop rep
 
 Why a scan was late. With ``$LIDARLOC_TRACE_LATE=FILE`` set, the player writes every thread's
 Python stack into FILE at the very moment the next scan becomes late (its start more than one
-period after its arrival), then a line naming that scan and its lag once it starts. The dump comes
-from :mod:`faulthandler`'s own C thread, which does not wait for the GIL: a stall inside an
-extension that holds it still shows the Python line that called in. A debugging aid (a thread
-started per scan), off unless the variable is set.
+period after its arrival), then a line naming that scan, its lag and the time (UTC) once it
+starts. The dump comes from :mod:`faulthandler`'s own C thread, which does not wait for the GIL:
+a stall inside an extension that holds it still shows the Python line that called in. A debugging
+aid (a thread started per scan), off unless the variable is set.
 """
 
 from __future__ import annotations
@@ -64,7 +64,9 @@ class LateTracer:
         """The line that says which scan the stacks above made late (or that this one is late
         only because the player is still catching up: no new dump)."""
         what = "the stacks above" if scan == self.armed_for else "catching up, no new stall"
-        self._file.write(f"^ {what}: scan {scan} started {lag:.3f} s after it arrived (late)\n")
+        # the UTC time lets a trace be laid beside other logs (the soak's samples, the system's)
+        at = time.strftime("%H:%M:%S", time.gmtime())
+        self._file.write(f"^ {what}: scan {scan} started {lag:.3f} s after it arrived (late, {at} UTC)\n")
 
     def close(self) -> None:
         self.cancel()

@@ -8,6 +8,7 @@ import resource
 import signal
 import sys
 import threading
+import time
 from typing import NoReturn
 
 import typer
@@ -98,3 +99,16 @@ def stop_signals_like_ctrl_c() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     for sig in STOP_SIGNALS[1:]:
         signal.signal(sig, _as_ctrl_c)
+
+
+def wait_for_stop(stop: threading.Event, poll_s: float = 0.1) -> None:
+    """Block the main thread until a stop signal's handler sets ``stop``.
+
+    Short sleeps, not ``stop.wait()``: a signal sent to the process can be taken by any of its
+    threads, and Python runs the handler only when the main thread next runs Python code, which a
+    wait without a timeout never does (a SIGTERM taken by another thread left the viewer running
+    for good: reproduced by sending it to one of the viewer's threads). Nor a timed
+    ``stop.wait()``: the handler, run on this same thread in the middle of it, would set ``stop``
+    while wait() holds the Event's lock, and deadlock. ``poll_s`` bounds how late the stop begins."""
+    while not stop.is_set():
+        time.sleep(poll_s)

@@ -63,3 +63,30 @@ def test_a_stop_signal_stops_a_run_like_ctrl_c(town_map, tmp_path, sig, backgrou
     assert summary["interrupted"] is True
     for pid in children:
         wait_for(lambda pid=pid: process_gone(pid), timeout=5, what=f"child {pid} to end")
+
+
+@pytest.mark.timeout(30)
+def test_the_viewers_wait_for_a_stop_signal_ends_when_another_thread_takes_the_signal():
+    """A signal sent to the process may be taken by any of its threads; Python then runs the
+    handler only when the main thread next runs Python code. ``wait_for_stop`` must return all
+    the same (an untimed ``Event.wait()`` here never returned: the viewer outlived its SIGTERM)."""
+    import threading
+    import time
+
+    from lidarloc.app.console import wait_for_stop
+
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGUSR1, lambda *_: stop.set())
+    idle = threading.Event()
+    other = threading.Thread(target=idle.wait, daemon=True)  # a thread of the process, not the main one
+    other.start()
+    try:
+        # the signal goes to that thread: its C handler notes it, the main thread runs the handler
+        threading.Timer(0.3, signal.pthread_kill, args=(other.ident, signal.SIGUSR1)).start()
+        t0 = time.perf_counter()
+        wait_for_stop(stop)
+        waited = time.perf_counter() - t0
+    finally:
+        idle.set()
+        signal.signal(signal.SIGUSR1, previous)
+    assert stop.is_set() and waited < 5.0, waited

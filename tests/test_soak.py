@@ -36,6 +36,23 @@ def test_memory_growth_compares_windows_not_single_samples():
     assert soak.memory_growth(short, 0, "rss_mb") == 6.0  # samples 0–3 against 6–9
 
 
+def test_a_loop_line_is_read_with_and_without_its_garbage_collections():
+    line = "loop 3: 1200 scans, 1 late, largest lag 0.102 s, 4 full garbage collections (longest 1.5 ms)"
+    assert soak.parse_loop_line(line) == {
+        "loop": 3,
+        "scans": 1200,
+        "late": 1,
+        "max_lag_s": 0.102,
+        "full_collections": 4,
+        "longest_full_collection_ms": 1.5,
+    }
+    older = soak.parse_loop_line("loop 2: 20 scans, 0 late, largest lag 0.0 s")
+    assert older["scans"] == 20 and older["full_collections"] is None
+    assert soak.parse_loop_line("ready: playing") is None
+    loops = [{"full_collections": 2, "longest_full_collection_ms": 1.5}, older]
+    assert soak._total(loops, "full_collections") == 2 and soak._largest(loops, "longest_full_collection_ms") == 1.5
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):
@@ -43,6 +60,7 @@ def test_a_short_soak_loops_samples_and_stops_cleanly(cache_root, tmp_path):
     r = soak.run(command, minutes=0.5, out_dir=tmp_path, sample_s=2.0, cache=str(cache_root), client="socket")
     assert r["client"] == "one websocket tab"
     assert r["loops"] >= 1 and r["loop_lines"][0]["scans"] == 20, r
+    assert all(x["full_collections"] is not None for x in r["loop_lines"]), r["loop_lines"]  # counted, read
     assert not r["crashed"] and r["exit_code"] == 0, r  # SIGTERM stops it as Ctrl-C does
     assert r["orphans_after_stop"] == 0, r["orphan_commands"]
     rows = list(csv.DictReader(open(tmp_path / "soak.csv")))

@@ -3,7 +3,9 @@ process (the short town, cached map), SIGINT once it plays, timed to the process
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
 import queue
 import signal
 import subprocess
@@ -115,6 +117,39 @@ def test_a_closed_terminal_stops_view_as_ctrl_c_does_and_leaves_no_process_behin
     assert proc.returncode == 0
     gone, alive = psutil.wait_procs(children, timeout=10)
     assert not alive, f"left behind: {[p.pid for p in alive]}"
+
+
+#: tgkill(2)'s number, to send a signal to one thread of another process (Python has no call for it).
+SYS_TGKILL = {"x86_64": 234, "aarch64": 131}.get(platform.machine())
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(
+    SYS_TGKILL is None or not sys.platform.startswith("linux"), reason="tgkill: Linux on x86_64/aarch64"
+)
+def test_a_sigterm_taken_by_another_thread_of_the_viewer_stops_it_too(cache_root):
+    """The kernel hands a signal sent to the process to any of its threads that does not block
+    it; the viewer must stop whichever one takes it (it ran on for good when it was not the main
+    thread). The signal is sent to each of three of the viewer's other threads in turn."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    for turn in range(3):
+        cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record"]
+        cmd += ["--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
+        )
+        try:
+            _wait_for_line(_lines(proc), "ready:", timeout=240)
+            others = sorted(int(t) for t in os.listdir(f"/proc/{proc.pid}/task") if int(t) != proc.pid)
+            tid = others[(turn * len(others)) // 3]
+            assert libc.syscall(SYS_TGKILL, proc.pid, tid, signal.SIGTERM) == 0, ctypes.get_errno()
+            proc.wait(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+                pytest.fail(f"the viewer ran on after a SIGTERM taken by its thread {tid} (turn {turn})")
+        assert proc.returncode == 0
 
 
 @pytest.mark.timeout(300)

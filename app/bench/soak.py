@@ -8,8 +8,9 @@ the server sends without drawing it (``socket``: on a machine without a GPU the 
 software rendering takes a core of its own, which on 2 cores makes every scan late whatever the
 viewer does). Every ``sample_s`` seconds the process tree is sampled: resident memory (the viewer
 and its child processes), open file descriptors, the viewer's threads, its child processes, and
-the recordings' size. Each loop's line (``loop N: S scans, L late, …``) gives the late scans: a
-step that started over one scan period after its scan arrived.
+the recordings' size. Each loop's line (``loop N: S scans, L late, …``) gives the late scans (a
+step that started over one scan period after its scan arrived) and the viewer's full garbage
+collections, how many and the longest (each holds the GIL while it runs).
 
 Growth is measured from the first samples after the first loop ended (warm-up: caches filled,
 the map drawn, the first recording opened) to the last ones: for memory, the median of the last
@@ -41,8 +42,27 @@ from .clients import CHROMIUM, CHROMIUM_ARGS, SocketTab
 from .common import load_avg, machine, median
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
-_LOOP = re.compile(r"^loop (\d+): (\d+) scans, (\d+) late, largest lag ([0-9.]+) s")
+_LOOP = re.compile(
+    r"^loop (\d+): (\d+) scans, (\d+) late, largest lag ([0-9.]+) s"
+    r"(?:, (\d+) full garbage collections \(longest ([0-9.]+) ms\))?"
+)
 FIELDS = ("t_s", "rss_mb", "viewer_rss_mb", "fds", "threads", "children", "recording_mb", "loops", "load_1min")
+
+
+def parse_loop_line(line: str) -> dict | None:
+    """The fields of a ``demo --loop`` loop line, or None if ``line`` is not one. The full
+    collections' fields are None where the line has none (a viewer that does not count them)."""
+    m = _LOOP.match(line)
+    if m is None:
+        return None
+    return {
+        "loop": int(m.group(1)),
+        "scans": int(m.group(2)),
+        "late": int(m.group(3)),
+        "max_lag_s": float(m.group(4)),
+        "full_collections": int(m.group(5)) if m.group(5) else None,
+        "longest_full_collection_ms": float(m.group(6)) if m.group(6) else None,
+    }
 
 
 class _Output:
@@ -66,17 +86,9 @@ class _Output:
                 self.url = m.group(1)
             if line.startswith("ready:") or "the first scan failed" in line:
                 self.ready.set()
-            m = _LOOP.match(line)
-            if m:
-                self.loops.append(
-                    {
-                        "loop": int(m.group(1)),
-                        "scans": int(m.group(2)),
-                        "late": int(m.group(3)),
-                        "max_lag_s": float(m.group(4)),
-                        "t_s": round(time.perf_counter() - self._t0, 1),
-                    }
-                )
+            loop = parse_loop_line(line)
+            if loop is not None:
+                self.loops.append({**loop, "t_s": round(time.perf_counter() - self._t0, 1)})
         self.ready.set()  # the demo ended: nobody waits for it any longer
 
 
@@ -275,6 +287,9 @@ def run(
         "children_growth": growth(rows, first_loop_s, "children") if first_loop_s else None,
         "late_scans_first_loop": out.loops[0]["late"] if out.loops else None,
         "late_scans_after_first_loop": sum(x["late"] for x in after) if after else None,
+        # the viewer's full garbage collections (each holds the GIL; see app/viewer/collector.py)
+        "full_collections_after_first_loop": _total(after, "full_collections"),
+        "longest_full_collection_ms_after_first_loop": _largest(after, "longest_full_collection_ms"),
         "recording_mb_per_hour": round(written / hours, 1) if hours > 0 else None,
         "recording_mb_on_disk": rows[-1]["recording_mb"] if rows else None,
         "crashed": crashed,
@@ -289,6 +304,16 @@ def run(
         "csv": str(out_dir / "soak.csv"),
         "plot": str(out_dir / "soak.png"),
     }
+
+
+def _total(loops: list[dict], key: str) -> int | None:
+    values = [x[key] for x in loops if x.get(key) is not None]
+    return sum(values) if values else None
+
+
+def _largest(loops: list[dict], key: str) -> float | None:
+    values = [x[key] for x in loops if x.get(key) is not None]
+    return max(values) if values else None
 
 
 def _identities(procs) -> set[tuple[int, float]]:

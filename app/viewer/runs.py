@@ -28,9 +28,11 @@ from rich.console import Console
 from ...core.config import LIVE_PARAMS
 from ...core.errors import LidarlocError
 from ...core.runs import recording
+from ..console import wait_for_stop
+from .collector import release_at_exit
 from .recorded import RecordedRun
 from .recorder import Recorder, default_record_root
-from .serve import ViewerHandle, announce, release_at_exit
+from .serve import ViewerHandle, announce
 from .token_gate import resolve_token, start_server
 from .travel import RunContext
 
@@ -176,7 +178,7 @@ def serve_runs(
             soft_wrap=True,
         )
         try:
-            stop.wait()
+            wait_for_stop(stop)
         finally:
             console.print("stopping viewer")
             handle.stop()

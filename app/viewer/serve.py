@@ -5,7 +5,6 @@ and page), and serve until Ctrl-C."""
 
 from __future__ import annotations
 
-import gc
 import inspect
 import signal
 import sys
@@ -22,10 +21,11 @@ from ...core.config import Config
 from ...core.errors import LidarlocError
 from ...core.localizer import Localizer
 from ...core.sequences.factory import SourceSpec
-from ..console import progress_bar
+from ..console import progress_bar, wait_for_stop
 from ..options import open_source
 from .app import Viewer
 from .budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB
+from .collector import FullCollections, freeze_startup, release_at_exit
 from .recorder import Budget, Recorder, default_record_root
 from .style import SPEEDS
 from .token_gate import resolve_token, start_server, with_token
@@ -85,14 +85,6 @@ class ViewerHandle:
             closer.join(timeout=0.1)  # the pools; a step still computing is left to its daemon thread
         self.viewer.retired.kill_unfinished()  # nor those of a run a branch took over
         self._stopped.set()
-
-
-def release_at_exit() -> None:
-    """Called once the viewer has stopped and the command is about to return (the process ends
-    with it): the objects made so far are frozen out of the garbage collector. The interpreter's
-    last collections otherwise walk all of them (the map, the tables, the server's state) on the
-    way out: 0.9 s of a 1.2 s Ctrl-C with both cores busy; the memory goes back with the process."""
-    gc.freeze()
 
 
 def _call_factory(factory: Callable[..., Localizer], progress, on_map=None) -> Localizer:
@@ -293,8 +285,9 @@ def serve_until_interrupted(
     except BaseException:
         _restore_signals(previous)
         raise
+    collections = FullCollections()
     if loop:
-        handle.viewer.on_finished = _looper(handle.viewer, console)
+        handle.viewer.on_finished = _looper(handle.viewer, console, collections)
     announce(handle, host, console)
     if handle.foxglove_url is not None:
         console.print(
@@ -315,6 +308,8 @@ def serve_until_interrupted(
         if failure:
             exc = failure[0]
             raise exc if isinstance(exc, LidarlocError) else LidarlocError(f"{type(exc).__name__}: {exc}")
+        if not stop.is_set():
+            freeze_startup()  # the start-up's objects, out of the full collections' way (see collector.py)
         failed = None
         if not stop.is_set() and autoplay:
             # "playing" once the first scan is on the page, not merely once playback was told to start
@@ -335,7 +330,7 @@ def serve_until_interrupted(
                 else "ready: playback starts when a browser tab is open; use the page's controls to pause, "
                 "step and tune"
             )
-        stop.wait()
+        wait_for_stop(stop)
     finally:
         _restore_signals(previous)
         try:
@@ -343,6 +338,7 @@ def serve_until_interrupted(
         except (OSError, ValueError):  # SIGHUP: the terminal is gone; stop all the same
             pass
         handle.stop()
+        collections.close()
         release_at_exit()
 
 
@@ -381,20 +377,23 @@ def _restore_signals(previous: dict) -> None:
         signal.signal(s, h)
 
 
-def _looper(viewer: Viewer, console: Console) -> Callable[[], None]:
-    """``--loop``: at the end of the drive, one line with the loop's scans, late scans and largest
-    lag (what ``bench soak`` reads), then play it again."""
+def _looper(viewer: Viewer, console: Console, collections: FullCollections) -> Callable[[], None]:
+    """``--loop``: at the end of the drive, one line with the loop's scans, late scans, largest
+    lag and full garbage collections (what ``bench soak`` reads), then play it again."""
     loops = [0]
 
     def again() -> None:
         loops[0] += 1
         c = viewer.player.take_counts() if viewer.player is not None else {}
+        g = collections.take()
         try:
             console.print(
                 f"loop {loops[0]}: {c.get('steps', 0)} scans, {c.get('late', 0)} late, "
-                f"largest lag {c.get('max_lag_s', 0.0)} s",
+                f"largest lag {c.get('max_lag_s', 0.0)} s, {g['count']} full garbage collections "
+                f"(longest {g['longest_ms']} ms)",
                 markup=False,
                 highlight=False,
+                soft_wrap=True,  # one line, whatever the terminal's width: bench soak reads it
             )
         except (OSError, ValueError):
             pass

@@ -101,6 +101,12 @@ def stop_signals_like_ctrl_c() -> None:
         signal.signal(sig, _as_ctrl_c)
 
 
+#: How long a main thread waits on worker processes at most before it looks again, so that a stop
+#: signal another of the process's threads took is run (Python runs handlers on the main thread,
+#: only when it runs Python code; see :func:`wait_for_stop`), in seconds.
+SIGNAL_POLL_S = 0.5
+
+
 def wait_for_stop(stop: threading.Event, poll_s: float = 0.1) -> None:
     """Block the main thread until a stop signal's handler sets ``stop``.
 

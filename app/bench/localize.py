@@ -24,7 +24,7 @@ import multiprocessing
 import shutil
 import signal
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict
 from pathlib import Path
 
@@ -35,7 +35,7 @@ from ...core.config import Config, update_from_dict
 from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir, summarize_run, write_run
 from ...core.sequences.factory import SourceSpec, open_sequence
-from ..console import progress_bar, stop_signals_like_ctrl_c
+from ..console import SIGNAL_POLL_S, progress_bar, stop_signals_like_ctrl_c
 from .common import is_town
 from .localize_report import write_report
 
@@ -260,8 +260,14 @@ def run_tasks(fn, tasks: dict, workers: int, on_done, executor: str = "process",
     )
     try:
         futures = {pool.submit(fn, *args): key for key, args in tasks.items()}
-        for fut in as_completed(futures):
-            on_done(futures[fut], fut.result())
+        order = {fut: i for i, fut in enumerate(futures)}  # runs that finish together: in task order
+        pending = set(futures)
+        while pending:
+            # waits with a timeout: a stop signal taken by another of this process's threads (the
+            # pool's) is run on the main thread only when it next runs Python code
+            done, pending = wait(pending, timeout=SIGNAL_POLL_S, return_when=FIRST_COMPLETED)
+            for fut in sorted(done, key=lambda f: order[f]):
+                on_done(futures[fut], fut.result())
     except BaseException:
         # Ctrl-C, a signal or a failed run: the runs in progress are thrown away, so their
         # processes end now (they would otherwise run on, orphaned, into a closed pipe).

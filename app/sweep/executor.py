@@ -26,6 +26,7 @@ from pathlib import Path
 
 from rich.console import Console
 
+from ..console import SIGNAL_POLL_S
 from .bookkeeping import POOL_RETRIES, WORKER_DIED, Board, Run, Tally, call_run, is_done
 
 
@@ -73,7 +74,9 @@ def _pool(fn, todo: list[Run], workers: int, tally: Tally, board: Board, on_done
                 run = queue.popleft()
                 inflight[pool.submit(call_run, fn, run)] = run
                 board.started()
-            finished, _ = wait(list(inflight), return_when=FIRST_COMPLETED)
+            finished: set = set()
+            while not finished:  # timed, so that a stop signal another thread took is run (SIGNAL_POLL_S)
+                finished, _ = wait(list(inflight), timeout=SIGNAL_POLL_S, return_when=FIRST_COMPLETED)
             broken = False
             for fut in finished:
                 run = inflight.pop(fut)

@@ -10,9 +10,10 @@ walks what was made since, 0.5–0.9 ms for the same process (BENCHMARKS, "soak"
 
 The price: a frozen object is never collected. What becomes garbage by reference counts is freed
 as always; only garbage held in reference cycles among the frozen objects stays. The frozen ones
-are the process's start-up state (modules, the map, the tables, the server); a run's state is
-made after it, so restarts and loops collect theirs as before. It is called once, so what it can
-keep is bounded by the start-up state, not by how long the viewer runs.
+are the process's start-up state (modules, the map, the tables, the server, and the first run as
+it stands when the localizer is ready); later runs' state is made after the freeze and is
+collected as before. It is called once, so what it can keep is bounded by the start-up state,
+not by how long the viewer runs or how many times it loops.
 
 :class:`FullCollections` times the full collections (a ``gc.callbacks`` hook) so that each loop's
 line can say how many ran and the longest.

@@ -48,7 +48,7 @@ class FullCollections:
     def __init__(self) -> None:
         # re-entrant: a collection can start while take() holds the lock on the same thread
         self._lock = threading.RLock()
-        self._started: dict[int, float] = {}  # thread id → start of its collection
+        self._began: float | None = None  # the running collection's start (the interpreter runs one at a time)
         self._count = 0
         self._longest_s = 0.0
         gc.callbacks.append(self._on_collection)
@@ -57,15 +57,14 @@ class FullCollections:
         if info.get("generation") != 2:
             return
         now = time.perf_counter()
-        who = threading.get_ident()
         with self._lock:
             if phase == "start":
-                self._started[who] = now
+                self._began = now
                 return
-            began = self._started.pop(who, None)
-            if began is not None:
+            if self._began is not None:
                 self._count += 1
-                self._longest_s = max(self._longest_s, now - began)
+                self._longest_s = max(self._longest_s, now - self._began)
+                self._began = None
 
     def take(self) -> dict:
         """``{"count": n, "longest_ms": t}`` since the last call (or the start); starts again from zero."""

@@ -187,11 +187,11 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         job = loc.s2m.job  # real time lands a match at the first scan after it is done
         assert job is not None and job.started_at >= 3
         job.future.result(timeout=120)
-        # An accepted match waits (at most REALTIME_LAND_MAX_DEFERRALS scans) for the odometry
+        # An accepted match waits (at most REALTIME_LAND_FORCE_AFTER scans) for the odometry
         # of the scan it lands at; a rejected one lands at once.
-        from lidarloc.core.matching.schedule import REALTIME_LAND_MAX_DEFERRALS
+        from lidarloc.core.matching.schedule import REALTIME_LAND_FORCE_AFTER
 
-        for _ in range(REALTIME_LAND_MAX_DEFERRALS + 1):
+        for _ in range(REALTIME_LAND_FORCE_AFTER + 1):
             loc.run(1)
             if loc.s2m.job is not job:
                 break
@@ -387,9 +387,11 @@ def test_realtime_s2m_spaced_once_localized(town, cache_root):
 
 def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, monkeypatch):
     """Real time: an accepted match whose scan's odometry is not ready lands at a later scan
-    (its particle still protected) instead of stalling the PF behind KISS-ICP, and after
-    REALTIME_LAND_MAX_DEFERRALS tries it waits for the odometry (a landing is never lost)."""
+    (its particle still protected) instead of stalling the PF behind KISS-ICP; after
+    REALTIME_LAND_MAX_DEFERRALS tries it waits a little longer each scan (never a scan period),
+    and after REALTIME_LAND_FORCE_AFTER tries it waits for the odometry (a landing is never lost)."""
     import threading
+    import time
 
     from lidarloc.core.matching import schedule as schedule_module
 
@@ -413,6 +415,8 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
         job.future.result(timeout=60)
         monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 0.03)
         monkeypatch.setattr(schedule_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_PATIENT_WAIT_S", 0.2)
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_FORCE_AFTER", 4)
         # from here on: note when a step blocks on an unfinished registration (before, scan 0's
         # rules may legitimately wait for the very first one)
         landing_waits = threading.Event()
@@ -430,21 +434,26 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
             worker.start()
             return worker
 
-        for _ in (3, 4):  # the match is done but its odometry is not: no landing
+        took = []
+        for _ in (3, 4, 5, 6):  # the match is done but its odometry is not: no landing
+            t0 = time.perf_counter()
             worker = step_in_thread()
             worker.join(timeout=60)
+            took.append(time.perf_counter() - t0)
             assert not worker.is_alive(), "the step waited for the stalled odometry"
-        assert loc.s2m.job is job and job.deferrals == 2 and not landing_waits.is_set()
+        assert loc.s2m.job is job and job.deferrals == 4 and not landing_waits.is_set()
+        # scans 5 and 6 waited the patient 0.2 s for the odometry, behind a backlog too
+        assert min(took[2:]) >= 0.2, took
         started = f"started {job.started_at}"
         assert not [e for e in loc.events if e.kind in ("s2m_accepted", "s2m_rejected") and started in e.detail]
-        worker = step_in_thread()  # scan 5: two tries are the limit, so it waits …
+        worker = step_in_thread()  # scan 7: four tries are the limit, so it waits …
         assert landing_waits.wait(timeout=60)
         gate.set()  # … until the odometry catches up, then lands
         worker.join(timeout=60)
         assert not worker.is_alive()
         landed = [e for e in loc.events if e.kind == "s2m_accepted" and started in e.detail]
-        assert [e.scan for e in landed] == [5]
-        assert loc.s2m.last.started_at == job.started_at and loc.s2m.last.landed_at == 5
+        assert [e.scan for e in landed] == [7]
+        assert loc.s2m.last.started_at == job.started_at and loc.s2m.last.landed_at == 7
     finally:
         gate.set()
         loc.close()

@@ -60,10 +60,15 @@ from .worker import S2MProcess
 # Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
 # the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).
 REALTIME_LAND_WAIT_S = 0.03
-# … and after how many such tries it waits for the odometry however long it takes: a transient
-# backlog (one slow registration, ~0.65 s on the town) clears well within it, while under a
-# sustained one the landing still happens and the RPE queue stays bounded.
+# … after how many such tries it waits longer, even behind a backlog, but still less than a scan
+# period: KISS-ICP takes ~50 ms a town scan on 2 cores, so 30 ms after the PF is often not enough
+# and tries run out in steady state; an unbounded wait then met the drive's few slow
+# registrations (0.3–0.8 s at the same scans every loop) and made scans late …
 REALTIME_LAND_MAX_DEFERRALS = 20
+REALTIME_LAND_PATIENT_WAIT_S = 0.05
+# … and after how many tries in all it waits for the odometry however long it takes: under a
+# sustained backlog the landing still happens and the RPE queue stays bounded.
+REALTIME_LAND_FORCE_AFTER = 100
 
 
 @dataclass
@@ -448,16 +453,22 @@ class S2MScheduler(MatcherMixin):
         """Real time: an accepted match is carried forward with scan k's odometry, so it lands
         only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
         while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
-        at the next scan, its particle still protected, and after ``REALTIME_LAND_MAX_DEFERRALS``
-        tries it waits for the odometry. Always blocking until the odometry was done stalled the
-        PF behind KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench
-        rpe``), and the landing that waited for it made 16 scans late. A failed or rejected match
-        needs no odometry and lands at once."""
+        at the next scan, its particle still protected. After ``REALTIME_LAND_MAX_DEFERRALS``
+        tries it waits ``REALTIME_LAND_PATIENT_WAIT_S`` a scan, backlog or not (still within a
+        scan period), and after ``REALTIME_LAND_FORCE_AFTER`` tries it waits for the odometry
+        however long it takes. Always blocking until the odometry was done stalled the PF behind
+        KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench rpe``), and the
+        landing that waited for it made 16 scans late. A failed or rejected match needs no
+        odometry and lands at once."""
         if job.future.exception() is not None or not job.future.result().accepted:
             return True  # a failure (the landing reports it) or a rejection: no odometry needed
-        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
+        if job.deferrals >= REALTIME_LAND_FORCE_AFTER:
             return True  # the landing waits for the odometry
-        if not odometry.registered_within(k, REALTIME_LAND_WAIT_S):
+        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
+            ready = odometry.registered_within(k, REALTIME_LAND_PATIENT_WAIT_S, behind_too=True)
+        else:
+            ready = odometry.registered_within(k, REALTIME_LAND_WAIT_S)
+        if not ready:
             job.deferrals += 1
             return False
         return True  # registered (or failed: the landing reports it)

@@ -269,11 +269,11 @@ class OdometryFeed:
         """Block until scan k is registered (a failed registration raises here)."""
         self._wait(self.futures[k], "RPE", k)
 
-    def registered_within(self, k: int, timeout: float) -> bool:
+    def registered_within(self, k: int, timeout: float, behind_too: bool = False) -> bool:
         """Whether scan k is registered, waiting up to ``timeout`` seconds for it; no wait at all
-        while scan k−1 is still pending (the odometry is behind)."""
+        while scan k−1 is still pending (the odometry is behind), unless ``behind_too``."""
         previous = self.futures.get(k - 1)
-        behind = previous is not None and not previous.done()  # a backlog: do not wait
+        behind = not behind_too and previous is not None and not previous.done()  # a backlog: do not wait
         registration = self.futures[k]
         wait_futures([registration], timeout=0.0 if behind else timeout)
         return registration.done()

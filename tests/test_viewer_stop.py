@@ -50,27 +50,18 @@ def _wait_for_line(q: queue.Queue, prefix: str, timeout: float) -> None:
     raise AssertionError(f"no {prefix!r} line; last output: {seen[-5:]}")
 
 
-@pytest.mark.timeout(300)
-def test_ctrl_c_stops_the_demo_within_a_second_under_load(cache_root):
-    cmd = [
-        sys.executable,
-        "-m",
-        "lidarloc.app.cli",
-        "demo",
-        "--autoplay",
-        "--port",
-        "0",
-        "--no-record",
-        "--scans",
-        "60",
-        "--set",
-        f"town.n_scans={MAPPING_SCANS}",
-        "--cache",
-        str(cache_root),
-    ]
-    proc = subprocess.Popen(
+def _start_demo(cache_root, *extra: str) -> subprocess.Popen:
+    """A real ``lidarloc demo`` on the short town (cached map), playing at once, not recording."""
+    cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record", *extra]
+    cmd += ["--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
+    return subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
     )
+
+
+@pytest.mark.timeout(300)
+def test_ctrl_c_stops_the_demo_within_a_second_under_load(cache_root):
+    proc = _start_demo(cache_root)
     burners = []
     try:
         _wait_for_line(_lines(proc), "ready:", timeout=240)
@@ -97,11 +88,7 @@ def test_a_closed_terminal_stops_view_as_ctrl_c_does_and_leaves_no_process_behin
     child processes go with it. Bound to every interface, it first says who can reach it."""
     import psutil
 
-    cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record"]
-    cmd += ["--host", "0.0.0.0", "--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
-    proc = subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
-    )
+    proc = _start_demo(cache_root, "--host", "0.0.0.0")
     q = _lines(proc)
     try:
         _wait_for_line(q, "warning: --host 0.0.0.0: anyone who can reach port", timeout=240)
@@ -133,11 +120,7 @@ def test_a_sigterm_taken_by_another_thread_of_the_viewer_stops_it_too(cache_root
     thread). The signal is sent to each of three of the viewer's other threads in turn."""
     libc = ctypes.CDLL(None, use_errno=True)
     for turn in range(3):
-        cmd = [sys.executable, "-m", "lidarloc.app.cli", "demo", "--autoplay", "--port", "0", "--no-record"]
-        cmd += ["--scans", "60", "--set", f"town.n_scans={MAPPING_SCANS}", "--cache", str(cache_root)]
-        proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ, COLUMNS="200")
-        )
+        proc = _start_demo(cache_root)
         try:
             _wait_for_line(_lines(proc), "ready:", timeout=240)
             others = sorted(int(t) for t in os.listdir(f"/proc/{proc.pid}/task") if int(t) != proc.pid)

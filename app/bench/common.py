@@ -123,6 +123,28 @@ def rss_mb() -> float:
     return float("nan")
 
 
+def child_result(queue, proc, bench: str) -> dict:
+    """What a measuring child process put on ``queue``, or its end as one line: a child that
+    died (killed for memory, a crash in C) puts nothing, and a plain ``queue.get()`` would wait
+    for it for ever."""
+    import queue as queue_mod
+
+    while True:
+        try:
+            return queue.get(timeout=1.0)
+        except queue_mod.Empty:
+            if not proc.is_alive():
+                raise LidarlocError(f"bench {bench}: the measuring process ended with status {proc.exitcode}") from None
+
+
+def end_child(proc) -> None:
+    """Join a measuring child, killing it if it does not end by itself within 10 s."""
+    proc.join(timeout=10)
+    if proc.is_alive():
+        proc.kill()
+        proc.join()
+
+
 # ------------------------------------------------------------------------------------ numbers
 def median(values) -> float | None:
     """Median of the known values (None and non-finite left out); None if there are none."""

@@ -29,7 +29,7 @@ from ...core.config import Config
 from ...core.maps.mapfile import CHUNK_POINTS
 from ...core.maps.mapfile_write import write_map_chunks
 from ..console import peak_rss_mb
-from .common import load_avg, machine, rss_mb
+from .common import child_result, end_child, load_avg, machine, rss_mb
 
 DEFAULT_POINTS = 50_000_000
 #: the side of the generated square (m) for 50 M points: ~300 points/m² of ground, a SLAM map's
@@ -186,16 +186,13 @@ def run(n_points: int = DEFAULT_POINTS) -> dict:
         proc = ctx.Process(target=_child, args=(str(path), str(work / "cache"), queue), daemon=True)
         proc.start()
         try:
-            res = _get(queue, proc)
+            res = child_result(queue, proc, "mapfile")
             if "error" in res:
                 from ...core.errors import LidarlocError
 
                 raise LidarlocError(f"bench mapfile: {res['error']}")
         finally:
-            proc.join(timeout=10)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
+            end_child(proc)
         float32_mb = n_points * 12 / 1e6
         return {
             "points": n_points,
@@ -213,17 +210,3 @@ def run(n_points: int = DEFAULT_POINTS) -> dict:
         }
     finally:
         shutil.rmtree(work, ignore_errors=True)
-
-
-def _get(queue, proc) -> dict:
-    """The child's result, or its failure as one line (a child that died puts nothing)."""
-    import queue as queue_mod
-
-    from ...core.errors import LidarlocError
-
-    while True:
-        try:
-            return queue.get(timeout=1.0)
-        except queue_mod.Empty:
-            if not proc.is_alive():
-                raise LidarlocError(f"bench mapfile: the measuring process ended with status {proc.exitcode}") from None

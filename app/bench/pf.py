@@ -38,7 +38,7 @@ import numpy as np
 from ...core.config import Config
 from ...core.sequences.factory import SourceSpec
 from ..console import peak_rss_mb
-from .common import load_avg, median_ms, open_source, rss_mb
+from .common import child_result, end_child, load_avg, median_ms, open_source, rss_mb
 
 DEG = math.pi / 180.0
 
@@ -127,10 +127,12 @@ def measure_lookup(points: np.ndarray, resolution: float = 0.25, d_max: float = 
             (_child_load, (str(work / "L"),)),
         ):
             queue = ctx.Queue()
-            proc = ctx.Process(target=target, args=(*args, queue))
+            proc = ctx.Process(target=target, args=(*args, queue), daemon=True)
             proc.start()
-            results.update(queue.get())
-            proc.join()
+            try:
+                results.update(child_result(queue, proc, "pf"))
+            finally:
+                end_child(proc)
         return results
     finally:
         shutil.rmtree(work, ignore_errors=True)

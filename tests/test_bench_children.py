@@ -1,5 +1,6 @@
-"""The benchmarks' measuring child processes (app/bench/common.py): a child that dies without a
-result ends the benchmark with one line naming its exit status, instead of a wait for ever."""
+"""What the benchmarks wait on ends their wait when it fails: a measuring child process
+(app/bench/common.py) that dies without a result ends the benchmark with one line naming its exit
+status, and the GIL probe's work (app/bench/s2m.py) that raises hands its error on."""
 
 import multiprocessing as mp
 import os
@@ -41,3 +42,15 @@ def test_a_child_that_answers_gives_its_result():
     assert child_result(queue, proc, "pf") == {"build_s": 1.5}
     end_child(proc)
     assert proc.exitcode == 0
+
+
+def test_the_gil_probe_hands_on_a_failure_of_its_work_instead_of_polling_for_ever():
+    from lidarloc.app.bench.s2m import gil_hold_ms
+
+    def fails():
+        raise RuntimeError("the matcher broke")
+
+    with pytest.raises(RuntimeError, match="the matcher broke"):
+        gil_hold_ms(fails)
+    held = gil_hold_ms(lambda: time.sleep(0.05))  # a sleep releases the GIL: the poll keeps waking
+    assert held["median"] < 40.0

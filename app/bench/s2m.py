@@ -62,7 +62,17 @@ def gil_hold_ms(work, poll_s: float = 0.001) -> dict:
     """How long ``work()`` (run on a second thread) keeps a Python thread that sleeps ``poll_s`` in a
     loop from waking up: ~poll_s if the work releases the GIL, the length of its calls if not."""
     done = threading.Event()
-    worker = threading.Thread(target=lambda: (work(), done.set()))
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            work()
+        except BaseException as e:  # handed to the caller: a failed work must not leave it polling
+            failure.append(e)
+        finally:
+            done.set()
+
+    worker = threading.Thread(target=run)
     gaps = []
     worker.start()
     t = time.perf_counter()
@@ -72,6 +82,8 @@ def gil_hold_ms(work, poll_s: float = 0.001) -> dict:
         gaps.append(t2 - t)
         t = t2
     worker.join()
+    if failure:
+        raise failure[0]
     g = np.asarray(gaps) * 1e3
     return {"median": float(np.median(g)), "p95": float(np.percentile(g, 95)), "max": float(g.max())}
 

@@ -21,6 +21,7 @@ from rich.markup import escape
 from ..core.config import Config
 from ..core.errors import LidarlocError
 from ..core.localizer import Interrupted, Localizer
+from ..core.localizer.deadline import RecentPeak
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
@@ -116,6 +117,8 @@ def localize(
     clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
     t_start = time.perf_counter()
     failure: str | None = None  # a block's failure that stopped the run (written into the summary)
+    writing = RecentPeak()  # real time: what recording a scan takes after its step (s)
+    deadline = None
     try:
         console.print(
             title or f"localizing {len(seq)} scans of {seq.name} (seed {cfg.seed}, {cfg.localize.clock} clock)"
@@ -134,15 +137,23 @@ def localize(
                         time.sleep(min(due - now, 0.05))
                         continue
                     lags.append(max(0.0, (now - due) * 1000.0))
+                    # the step's waits end in time for the next scan, after the writing below
+                    deadline = (
+                        t_start + seq.timestamp(loc.k + 1) - clock_origin - writing.value
+                        if loc.k + 1 < len(seq)
+                        else None
+                    )
                 try:
-                    snap = loc.step()
+                    snap = loc.step(deadline)
                 except Interrupted:
                     break
                 except LidarlocError as exc:  # one line naming the block: results up to the last scan
                     failure = str(exc)
                     raise
                 if writer is not None:
+                    written_from = time.perf_counter()
                     writer.on_scan(loc, snap)
+                    writing.add(time.perf_counter() - written_from)
                 warned = _warn_frames(console, loc.events, warned)
                 bar.update(
                     task,

@@ -474,3 +474,44 @@ def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
         finally:
             loc.s2m.matcher.close()
             loc.s2m.matcher = good
+
+
+def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
+    """Real time: the time a finished match waits for its scan's odometry, before and after
+    REALTIME_LAND_MAX_DEFERRALS tries, is cut to what is left before ``land_by`` (none once it
+    has passed), so a wait never makes the next scan late; without ``land_by`` the fixed bounds
+    hold. Checked on the scheduler's decision alone: which wait it asks the odometry for."""
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    from lidarloc.core.matching import schedule as schedule_module
+    from lidarloc.core.matching.schedule import S2MScheduler
+
+    class Odometry:  # never registered in time: records the wait it was asked for
+        def __init__(self):
+            self.asked = []
+
+        def registered_within(self, k, timeout, behind_too=False):
+            self.asked.append((round(timeout, 3), behind_too))
+            return False
+
+    def asked(deferrals, land_by):
+        future = Future()
+        future.set_result(SimpleNamespace(accepted=True))
+        job = SimpleNamespace(future=future, deferrals=deferrals)
+        odometry = Odometry()
+        ready = S2MScheduler._odometry_ready_to_land(None, job, 7, odometry, land_by)
+        assert not ready and job.deferrals == deferrals + 1
+        return odometry.asked[0]
+
+    short, patient = schedule_module.REALTIME_LAND_WAIT_S, schedule_module.REALTIME_LAND_PATIENT_WAIT_S
+    late_tries = schedule_module.REALTIME_LAND_MAX_DEFERRALS
+    now = time.perf_counter
+    assert asked(0, None) == (short, False)
+    assert asked(late_tries, None) == (patient, True)
+    assert asked(0, now() + 10.0) == (short, False)  # time enough: the fixed bounds
+    assert asked(late_tries, now() + 10.0) == (patient, True)
+    assert asked(0, now() - 0.01) == (0.0, False)  # the deadline has passed: no wait at all
+    assert asked(late_tries, now() - 0.01) == (0.0, True)
+    left = asked(late_tries, now() + 0.02)[0]  # 20 ms left: at most those
+    assert 0.0 < left <= 0.02

@@ -246,7 +246,7 @@ def test_achieved_rate_counts_a_step_that_is_still_running():
         def done(self):
             return False
 
-        def step(self):
+        def step(self, deadline=None):
             self.gate.wait()
             time.sleep(0.002)
             self.k += 1

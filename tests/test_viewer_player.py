@@ -29,7 +29,7 @@ class InstantSteps:
     def done(self):
         return self.k >= self.n
 
-    def step(self):
+    def step(self, deadline=None):
         time.sleep(0.001)
         self.k += 1
         return self.k
@@ -79,7 +79,7 @@ def test_player_pacing():
 
 def test_player_survives_a_failing_step():
     class Failing(InstantSteps):
-        def step(self):
+        def step(self, deadline=None):
             if self.k == 2:
                 raise LidarlocError("scan 2: corrupt file")
             return super().step()
@@ -121,7 +121,7 @@ def test_player_reports_how_far_behind_the_sensor_clock_it_is():
     class SlowSteps(InstantSteps):
         """Scans every 0.1 s on the sensor clock, each taking 0.25 s to process."""
 
-        def step(self):
+        def step(self, deadline=None):
             time.sleep(0.25)
             self.k += 1
             return self.k
@@ -191,7 +191,7 @@ def test_a_late_scan_leaves_every_threads_stack_in_the_trace_file(tmp_path, monk
     monkeypatch.setenv(TRACE_LATE_ENV, str(trace))
 
     class OneStall(InstantSteps):
-        def step(self):
+        def step(self, deadline=None):
             if self.k == 5:
                 self.stuck_in_scan_five()
             return super().step()
@@ -222,3 +222,40 @@ def test_no_trace_file_unless_asked_and_one_line_if_it_cannot_be_written(tmp_pat
     monkeypatch.setenv(TRACE_LATE_ENV, str(tmp_path / "no-such-folder" / "late.txt"))
     with pytest.raises(LidarlocError, match="LIDARLOC_TRACE_LATE: cannot write .*late.txt"):
         Player(InstantSteps(), lambda s: None, lambda m: None, clock="realtime")
+
+
+def test_realtime_steps_are_given_the_next_scans_arrival_less_the_publishing_as_their_deadline():
+    """Real time: each step is handed the ``time.perf_counter()`` by which it should end (the next
+    scan's arrival, less what publishing a snapshot took lately), so a landing's wait for the
+    odometry leaves the next scan on time; a single step while paused has none."""
+    publish_s = 0.03
+
+    class Recording(InstantSteps):
+        def __init__(self):
+            super().__init__()
+            self.calls = []  # (k, when the step started, its deadline)
+
+        def step(self, deadline=None):
+            self.calls.append((self.k, time.perf_counter(), deadline))
+            return super().step()
+
+    loc = Recording()
+    player = Player(loc, lambda s: time.sleep(publish_s), lambda m: None, clock="realtime")
+    player.start()
+    try:
+        time_scans(player, loc, 6)
+        k = loc.k
+        player.step_once()
+        assert player.wait_idle(5) and loc.k == k + 1
+    finally:
+        player.stop()
+    played, single = loc.calls[:-1], loc.calls[-1]
+    assert single[2] is None
+    assert all(d is not None for _, _, d in played)
+    # the first deadline is the next scan's arrival (nothing published yet): within a period of
+    # the step's start; every later one is its scan's next arrival less the publishing seen
+    # lately (≥ publish_s: a sleep never ends early), the arrivals 0.1 s apart
+    _, start0, d0 = played[0]
+    assert start0 < d0 <= start0 + 0.1 + 1e-6
+    for i, (_, _, d) in enumerate(played[1:], start=1):
+        assert d0 + 0.1 * i - 0.5 < d <= d0 + 0.1 * i - publish_s + 1e-6, (i, d - d0)

@@ -34,6 +34,7 @@ from typing import Protocol
 import numpy as np
 
 from ...core.errors import LidarlocError
+from ...core.localizer.deadline import RecentPeak
 from ...core.snapshot import Snapshot
 from .faults import block_of, describe
 from .style import RATE_WINDOW_S
@@ -100,7 +101,7 @@ class Steppable(Protocol):
     @property
     def done(self) -> bool: ...
 
-    def step(self) -> Snapshot: ...
+    def step(self, deadline: float | None = None) -> Snapshot: ...
 
 
 class Player:
@@ -143,6 +144,7 @@ class Player:
         self._lag: float | None = None  # realtime: how late the newest step started after its scan arrived
         self._playing_since: float | None = None  # wall time play() was last pressed
         self._tracer = LateTracer.from_env()
+        self._publishing = RecentPeak()  # what on_snapshot takes on the player thread (s)
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
 
     # ------------------------------------------------------------------ controls (any thread)
@@ -309,6 +311,18 @@ class Player:
         assert self._anchor is not None
         return self._anchor[0] + (float(self._loc.seq.timestamps[k]) - self._anchor[1])
 
+    def _step_deadline(self) -> float | None:
+        """Real time, playing: by when the step starting now should be over (the next scan's
+        arrival, less what publishing a snapshot takes here lately), so that its waits leave the
+        next scan on time (:mod:`lidarloc.core.localizer.deadline`); None otherwise. Called with
+        the lock held."""
+        if self._clock != "realtime" or not self._playing or self._anchor is None:
+            return None
+        k = self._loc.k
+        if k + 1 >= len(self._loc.seq.timestamps):
+            return None
+        return self._arrival(k + 1) - self._publishing.value
+
     def _scan_period(self) -> float:
         if self._period is None:
             stamps = np.asarray(self._loc.seq.timestamps, float)
@@ -382,6 +396,7 @@ class Player:
                     self._last_start = time.perf_counter()
                     self._lag = self._start_lag(self._last_start)
                     self._count()
+                    deadline = self._step_deadline()
             if finished:
                 # outside the lock: the callback may restart and play again (a loop)
                 try:
@@ -390,7 +405,7 @@ class Player:
                     self._on_error(f"playback: restarting at the end failed: {type(exc).__name__}: {exc}")
                 continue
             try:
-                snapshot = self._loc.step()
+                snapshot = self._loc.step(deadline)
             except LidarlocError as exc:
                 snapshot = None
                 self._fail(str(exc))
@@ -401,8 +416,10 @@ class Player:
             # Published before the busy flag drops, so whoever sees the player idle also sees
             # the snapshot of the last scan it processed.
             if snapshot is not None:
+                published_from = time.perf_counter()
                 try:
                     self._on_snapshot(snapshot)
+                    self._publishing.add(time.perf_counter() - published_from)
                 except Exception as exc:  # one line naming the block; the run pauses after its last complete scan
                     self._fail(
                         f"{block_of(exc)} failed after scan {getattr(snapshot, 'scan_index', self._loc.k - 1)}: {describe(exc)}; playback paused "

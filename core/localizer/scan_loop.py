@@ -98,6 +98,7 @@ from ..snapshot import Event, ScanRecord, Snapshot
 from ..worker_process import WorkerProxy
 from .blocks import BlockError, BlocksMixin, Interrupted
 from .controls import ControlsMixin
+from .deadline import LANDING_MARGIN_S, RecentPeak
 from .outputs import OutputsMixin
 from .state import StateMixin
 from .tables import TablesMixin
@@ -240,6 +241,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self.records: list[ScanRecord] = []
             self.est_trajectory: list[np.ndarray] = []
             self._prev_t: float | None = None
+            self._tail_after_landing = RecentPeak()  # real time: what a step does after its landing (s)
             self._confidence = ConfidenceWatch()
             self._frame_check = ScanFrameCheck()
             if self._init_pose is not None:
@@ -371,8 +373,10 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         return self.lookup.capped(self.cfg.pf.d_max)
 
     # ------------------------------------------------------------------------ one scan
-    def step(self) -> Snapshot:
-        """Process the next scan and return the new snapshot."""
+    def step(self, deadline: float | None = None) -> Snapshot:
+        """Process the next scan and return the new snapshot. ``deadline``: real time, the
+        ``time.perf_counter()`` by which the step should be over for the next scan to start on
+        time (see :mod:`.deadline`); it bounds the step's waits, never its work."""
         with self._lock:
             if self._closed:
                 raise LidarlocError("localizer is closed")
@@ -384,7 +388,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                 return self._snapshot
             events_before, job_before = len(self.events), self.s2m.job
             try:
-                return self._process_next_scan()
+                return self._process_next_scan(deadline)
             except Interrupted:
                 # The scan is not recorded, so neither are its events; a match that landed in
                 # it counts as still in flight (close() or restart() reports it cancelled).
@@ -397,7 +401,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                     raise
                 raise error from exc
 
-    def _process_next_scan(self) -> Snapshot:
+    def _process_next_scan(self, deadline: float | None = None) -> Snapshot:
         """The body of step(), with the lock held."""
         self._swap_rebuilt_tables()
         k = self.k
@@ -426,7 +430,9 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                 self.pf.set_lookup(table)
         self.pf.update(prepared)
         pf_s = time.perf_counter() - t0
-        s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there)
+        land_by = None if deadline is None else deadline - self._tail_after_landing.value - LANDING_MARGIN_S
+        s2m_ms = self.s2m.land(k, prepared, self.pf, self.odometry, self._fits_better_there, land_by)
+        landed_at = time.perf_counter()
         verdict = self.s2m.verdict
         relocalized = verdict is not None and verdict.kind == "relocalize"
         withdrawn = None if verdict is None else self.integrity.note_verdict(k, verdict)
@@ -502,6 +508,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self.est_trajectory.append(est.pose)
         self.records.append(ScanRecord.from_snapshot(snap, s2m_ms, reinit))
         self._snapshot = snap
+        self._tail_after_landing.add(time.perf_counter() - landed_at)
         return snap
 
     def run(self, n: int | None = None, should_stop: Callable[[], bool] | None = None) -> Snapshot:

@@ -41,7 +41,7 @@ class S2MNotReady:
     def due(self, k: int, localized: bool, check: bool = False) -> bool:
         return False
 
-    def land(self, k, prepared, pf, odometry, fits_better=None) -> None:
+    def land(self, k, prepared, pf, odometry, fits_better=None, land_by=None) -> None:
         return None
 
     def cancel(self, k: int, why: str) -> None:

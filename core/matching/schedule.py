@@ -39,6 +39,7 @@ moved it; and the pose carried forward to the landing scan.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -66,6 +67,8 @@ REALTIME_LAND_WAIT_S = 0.03
 # registrations (0.3–0.8 s at the same scans every loop) and made scans late …
 REALTIME_LAND_MAX_DEFERRALS = 20
 REALTIME_LAND_PATIENT_WAIT_S = 0.05
+# (Neither wait runs past the step's deadline when whoever paces the scans gives one: see
+# lidarloc.core.localizer.deadline.)
 # … and after how many tries in all it waits for the odometry however long it takes: under a
 # sustained backlog the landing still happens and the RPE queue stays bounded.
 REALTIME_LAND_FORCE_AFTER = 100
@@ -336,13 +339,16 @@ class S2MScheduler(MatcherMixin):
         pf,
         odometry: OdometryFeed,
         fits_better: Callable[[np.ndarray, np.ndarray], tuple[bool, str]] | None = None,
+        land_by: float | None = None,
     ) -> float | None:
         """Land the match in flight at scan k if it is due: an accepted one is carried forward
         to k with the ``odometry`` and written into its particle of ``pf``, which is then
         re-weighted with the ``prepared`` scan. Returns the match's time in ms if one landed;
         :attr:`verdict` says what it said about the estimate. ``fits_better(pose, prepared)``:
         whether the scan fits the map clearly better in 3D at a far whole-map check's pose than at
-        the estimate, and why (a "relocalize" verdict needs it; None: the BEV score decides)."""
+        the estimate, and why (a "relocalize" verdict needs it; None: the BEV score decides).
+        ``land_by``: real time, the ``time.perf_counter()`` after which waiting for the odometry
+        would make the next scan late (see :mod:`lidarloc.core.localizer.deadline`)."""
         self.verdict = None
         job = self.job
         if job is None:
@@ -354,7 +360,7 @@ class S2MScheduler(MatcherMixin):
         elif planned is not None:
             if k < planned:
                 return None
-        elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry):
+        elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry, land_by):
             return None  # real time: land at a scan after the match finished (see there)
         self.job = None
         what = f"the S2M match started at scan {job.started_at}"
@@ -449,7 +455,9 @@ class S2MScheduler(MatcherMixin):
         self.last = landed_view(job, k, outcome, accepted, pose_k, reason)
         return float(outcome.ms)
 
-    def _odometry_ready_to_land(self, job: S2MJob, k: int, odometry: OdometryFeed) -> bool:
+    def _odometry_ready_to_land(
+        self, job: S2MJob, k: int, odometry: OdometryFeed, land_by: float | None = None
+    ) -> bool:
         """Real time: an accepted match is carried forward with scan k's odometry, so it lands
         only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
         while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
@@ -458,16 +466,19 @@ class S2MScheduler(MatcherMixin):
         scan period), and after ``REALTIME_LAND_FORCE_AFTER`` tries it waits for the odometry
         however long it takes. Always blocking until the odometry was done stalled the PF behind
         KISS-ICP's backlog: one town scan takes KISS-ICP 0.65 s (``lidarloc bench rpe``), and the
-        landing that waited for it made 16 scans late. A failed or rejected match needs no
-        odometry and lands at once."""
+        landing that waited for it made 16 scans late. With ``land_by`` (the step's deadline
+        less its tail) neither wait runs past it: 50 ms a scan added to a step that already took
+        most of its period made a run of scans late behind one slow registration. A failed or
+        rejected match needs no odometry and lands at once."""
         if job.future.exception() is not None or not job.future.result().accepted:
             return True  # a failure (the landing reports it) or a rejection: no odometry needed
         if job.deferrals >= REALTIME_LAND_FORCE_AFTER:
             return True  # the landing waits for the odometry
-        if job.deferrals >= REALTIME_LAND_MAX_DEFERRALS:
-            ready = odometry.registered_within(k, REALTIME_LAND_PATIENT_WAIT_S, behind_too=True)
-        else:
-            ready = odometry.registered_within(k, REALTIME_LAND_WAIT_S)
+        patient = job.deferrals >= REALTIME_LAND_MAX_DEFERRALS
+        wait = REALTIME_LAND_PATIENT_WAIT_S if patient else REALTIME_LAND_WAIT_S
+        if land_by is not None:
+            wait = max(0.0, min(wait, land_by - time.perf_counter()))
+        ready = odometry.registered_within(k, wait, behind_too=patient)
         if not ready:
             job.deferrals += 1
             return False

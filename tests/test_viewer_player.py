@@ -259,3 +259,21 @@ def test_realtime_steps_are_given_the_next_scans_arrival_less_the_publishing_as_
     assert start0 < d0 <= start0 + 0.1 + 1e-6
     for i, (_, _, d) in enumerate(played[1:], start=1):
         assert d0 + 0.1 * i - 0.5 < d <= d0 + 0.1 * i - publish_s + 1e-6, (i, d - d0)
+
+
+def test_a_recent_peak_jumps_to_a_longer_duration_and_decays_slowly_after_it():
+    from lidarloc.core.localizer.deadline import RecentPeak
+
+    peak = RecentPeak(decay=0.1)
+    assert peak.value == 0.0
+    peak.add(0.02)
+    assert peak.value == 0.02  # a longer one is the mark at once
+    peak.add(0.2)
+    assert peak.value == 0.2
+    peak.add(0.0)  # shorter ones pull it down a tenth of the way each
+    assert peak.value == pytest.approx(0.18)
+    for _ in range(50):
+        peak.add(0.01)
+    assert 0.01 < peak.value < 0.02
+    peak.add(-1.0)  # a clock that stepped back counts as nothing, not as a negative duration
+    assert peak.value >= 0.0

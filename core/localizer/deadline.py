@@ -18,7 +18,7 @@ from __future__ import annotations
 
 # How much of the time before a deadline a landing leaves untouched, beyond the measured tails:
 # the scheduler's wake-up and the landing's own work (carrying the match forward, re-weighting
-# one particle: well under a millisecond each on the town).
+# the one particle it is written into).
 LANDING_MARGIN_S = 0.005
 
 

@@ -23,11 +23,11 @@ LANDING_MARGIN_S = 0.005
 
 
 class RecentPeak:
-    """A recent high-water mark of a duration (s): a new sample above it becomes the mark; below
-    it, the mark decays by ``decay`` toward the sample. Starts at ``initial``."""
+    """A recent high-water mark of a duration (s), from 0: a new sample above it becomes the
+    mark; below it, the mark decays by ``decay`` toward the sample."""
 
-    def __init__(self, initial: float = 0.0, decay: float = 0.05):
-        self.value = float(initial)
+    def __init__(self, decay: float = 0.05):
+        self.value = 0.0
         self._decay = float(decay)
 
     def add(self, seconds: float) -> None:

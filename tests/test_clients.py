@@ -59,6 +59,30 @@ def test_idle_tabs_run_at_the_idle_cpu_priority(tmp_path, monkeypatch):
             pass
 
 
+def test_hosted_tabs_are_clients_of_another_process_at_the_idle_priority(viewer):
+    """The benchmark's websocket tabs live in a process of their own at the idle CPU priority (their
+    reading is the clients' work, not the server's): a hosted tab is counted by the server, reads
+    what it sends and is let go when closed; a host whose process died says so in one line."""
+    from lidarloc.core.errors import LidarlocError
+
+    with clients.TabHost(viewer.port, "idle") as host:
+        assert host._proc.pid != os.getpid()
+        assert os.sched_getscheduler(host._proc.pid) == os.SCHED_IDLE
+        tab = host.open()
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the server to count the hosted tab")
+        read = tab.close()
+        assert read is not None and read > 0  # the scene, sent to every new tab
+        assert tab.close() == read  # closed once
+        wait_for(lambda: viewer.server.get_clients() == {}, what="the server to let the hosted tab go")
+        host._proc.kill()
+        host._proc.join()
+        with pytest.raises(LidarlocError, match="tabs' process ended with status -9"):
+            host.open()
+    assert host.stopped and not host._proc.is_alive()
+    with pytest.raises(ValueError, match="tab priority"):
+        clients.TabHost(viewer.port, "high")
+
+
 def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
     """Every connection's server-side state (viser's client handle, the viewer's camera folder for
     it) is let go when the tab disconnects: a websocket tab connecting and disconnecting in a loop
@@ -105,7 +129,7 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
         "2 websocket tabs + a websocket tab connecting and disconnecting",
         "2 websocket tabs + a slow client (1 message/s)",
     ]
-    assert r["tabs_connected"] == 2 and r["tab_priority"] is None
+    assert r["tabs_connected"] == 2 and r["tab_priority"] == "idle"
     seconds = [p["seconds"] for p in r["phases"]]
     assert seconds[2] >= 9.0 and max(seconds[:2] + seconds[3:]) < 9.0, seconds
     assert r["connections"] >= 10 and r["rss_mb_per_connection"] is not None, r

@@ -25,11 +25,18 @@ other process (browser and viewer on one small machine). ``tab_kind="socket"`` o
 tabs instead (:class:`SocketTab`: everything the server sends, read and not drawn): with no
 browser on the machine, the phases show what serving the tabs costs the viewer itself
 (``cpu_pct`` per phase: this process's CPU, every thread).
+
+The websocket clients (those tabs, the one that connects and disconnects, the slow one) live in a
+process of their own (:class:`TabHost`, at the tabs' priority), never in the viewer's: reading
+and parsing everything the server sends, or connecting hundreds of times a minute, is the
+clients' work, and inside the viewer's process it would take its CPU, its GIL and its memory and
+be counted as the server's.
 """
 
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
 import os
 import shutil
 import sys
@@ -40,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import load_avg, machine, rss_mb
+from ...core.errors import LidarlocError
+from .common import end_child, load_avg, machine, rss_mb
 
 CHROMIUM_ARGS = [
     "--no-sandbox",
@@ -148,6 +156,121 @@ class SocketTab:
         self._thread.join(timeout=5)
 
 
+class TabHost:
+    """Websocket tabs (:class:`SocketTab`) held by a process of their own, started at ``priority``
+    (``idle``: ``SCHED_IDLE``, as the browsers), so that what the clients do costs the viewer's
+    process nothing (the module docstring says why). ``open()`` returns a :class:`HostedTab`."""
+
+    def __init__(self, port: int, priority: str = "idle", reply_timeout_s: float = 60.0):
+        if priority not in TAB_PRIORITIES:
+            raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {priority!r}")
+        ctx = multiprocessing.get_context("spawn")  # spawn: the viewer's process runs threads
+        self._conn, theirs = ctx.Pipe()
+        self._lock = threading.Lock()  # one request at a time on the pipe
+        self._timeout = reply_timeout_s
+        self._proc = ctx.Process(
+            target=_host_tabs, args=(theirs, port, priority == "idle"), name="lidarloc-tabs", daemon=True
+        )
+        self._proc.start()
+        theirs.close()
+        self.stopped = False
+
+    def open(self, every_s: float | None = None) -> HostedTab:
+        """A new websocket tab, connected and its camera sent once this returns (the server
+        counts it a moment later); reading everything as it comes, or one message per
+        ``every_s`` seconds (a slow link)."""
+        return HostedTab(self, self.ask("open", every_s))
+
+    def ask(self, *request):
+        with self._lock:
+            if self.stopped:
+                raise LidarlocError("bench clients: the tabs' process was already stopped")
+            try:
+                self._conn.send(request)
+                deadline = time.perf_counter() + self._timeout
+                while not self._conn.poll(0.5):
+                    if not self._proc.is_alive():
+                        break
+                    if time.perf_counter() > deadline:
+                        raise TimeoutError(
+                            f"the tabs' process did not answer {request[0]!r} within {self._timeout:.0f} s"
+                        )
+                ok, value = self._conn.recv()
+            except (OSError, EOFError):  # its end of the pipe closed: the process died
+                self._proc.join(timeout=5)
+                raise LidarlocError(
+                    f"bench clients: the tabs' process ended with status {self._proc.exitcode}"
+                ) from None
+        if not ok:
+            raise LidarlocError(f"bench clients: a websocket tab failed: {value}")
+        return value
+
+    def stop(self) -> None:
+        """Close every tab still open and end the process (killed if it does not end within 10 s)."""
+        with self._lock:
+            if self.stopped:
+                return
+            self.stopped = True
+            with contextlib.suppress(OSError):  # a process that died has closed its end
+                self._conn.send(("stop",))
+        end_child(self._proc)
+        self._conn.close()
+
+    def __enter__(self) -> TabHost:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class HostedTab:
+    """One websocket tab of a :class:`TabHost`."""
+
+    def __init__(self, host: TabHost, tab_id: int):
+        self._host, self._id = host, tab_id
+        self.read: int | None = None  # messages read, known once closed
+
+    def close(self) -> int | None:
+        """Disconnect (once); the messages the tab read, or None if its process was already stopped."""
+        if self.read is None and not self._host.stopped:
+            self.read = self._host.ask("close", self._id)
+        return self.read
+
+
+def _host_tabs(conn, port: int, idle: bool) -> None:
+    """The tabs' process: opens and closes :class:`SocketTab` s as the pipe asks, until told to
+    stop or the viewer's process is gone."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the parent stops us
+    if idle:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    tabs: dict[int, SocketTab] = {}
+    next_id = 0
+    try:
+        while True:
+            try:
+                request = conn.recv()
+            except (EOFError, OSError):  # the viewer's process is gone
+                break
+            if request[0] == "stop":
+                break
+            try:
+                if request[0] == "open":
+                    tabs[next_id] = SocketTab(port, every_s=request[1])
+                    reply, next_id = next_id, next_id + 1
+                else:  # close
+                    tab = tabs.pop(request[1])
+                    tab.close()
+                    reply = tab.read
+                conn.send((True, reply))
+            except Exception as exc:  # said to the parent in one line
+                conn.send((False, f"{type(exc).__name__}: {exc}"))
+    finally:
+        for tab in tabs.values():
+            tab.close()
+
+
 def _timed(viewer, out: list) -> None:
     """Time every display update of ``viewer`` (the display thread's calls) into ``out`` (ms)."""
     inner = viewer.update_display
@@ -195,10 +318,11 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
     }
 
 
-def socket_churn(handle, seconds: float) -> dict:
-    """A websocket tab (:class:`SocketTab`) that connects, is counted by the server, disconnects
-    and is let go by it, in a loop for ``seconds``: the connections made and this process's RSS
-    after each one was let go.
+def socket_churn(handle, seconds: float, open_tab=None) -> dict:
+    """A websocket tab that connects, is counted by the server, disconnects and is let go by it,
+    in a loop for ``seconds``: the connections made and this process's RSS after each one was
+    let go. ``open_tab()`` opens the tab (default: a :class:`SocketTab` in this process;
+    ``bench clients`` passes its :class:`TabHost`'s, so that the RSS is the server's alone).
 
     ``rss_mb_per_connection`` is the least-squares slope of that RSS against the connection's
     number over the second half of the connections; ``rss_mb_first_half`` what the RSS rose
@@ -210,11 +334,13 @@ def socket_churn(handle, seconds: float) -> dict:
     outlives its connection (tested).
     """
     server = handle.server
+    if open_tab is None:
+        open_tab = lambda: SocketTab(handle.port)  # noqa: E731
     rss: list[float] = []
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         before = set(server.get_clients())
-        tab = SocketTab(handle.port)
+        tab = open_tab()
         try:
             _wait(lambda: set(server.get_clients()) - before, "the server to count the websocket tab")
         finally:
@@ -265,17 +391,19 @@ def run(
     tab_kind: str = "chromium",
     churn_s: float | None = None,
 ) -> dict:
-    """The phases above on a ready Localizer ``loc`` (closed by the caller); the tabs' Chromium at
-    ``tab_priority`` (see the module docstring). ``tab_kind="socket"``: the tabs are websocket
-    tabs (:class:`SocketTab`: everything the server sends, read and not drawn), so the phases
-    measure what serving them costs the viewer without any browser's rendering on the machine
-    (no browser tab connecting and disconnecting then). ``churn_s`` (default ``phase_s``): the
+    """The phases above on a ready Localizer ``loc`` (closed by the caller); the tabs' Chromium and
+    the websocket clients' process at ``tab_priority`` (see the module docstring).
+    ``tab_kind="socket"``: the tabs are websocket tabs (:class:`SocketTab`: everything the server
+    sends, read and not drawn), so the phases measure what serving them costs the viewer without
+    any browser's rendering on the machine (no browser tab connecting and disconnecting then). ``churn_s`` (default ``phase_s``): the
     length of the websocket tab's connect/disconnect phase alone: the allocator's pages come and
     go by tens of MB, so only thousands of connections pin the growth per connection down."""
     from ..viewer.serve import serve
 
     if tab_kind not in TAB_KINDS:
         raise ValueError(f"tab kind {tab_kind!r} is not one of {', '.join(TAB_KINDS)}")
+    if tab_priority not in TAB_PRIORITIES:
+        raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {tab_priority!r}")
     if tab_kind == "chromium" and not CHROMIUM.exists():
         raise RuntimeError("bench clients needs /usr/bin/chromium (apt-get install -y chromium)")
     with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout carries --json
@@ -293,6 +421,7 @@ def run(
     try:
         viewer.play()
         with contextlib.ExitStack() as stack:
+            host = stack.enter_context(TabHost(handle.port, tab_priority))
             browser = None
             if tab_kind == "chromium":
                 from playwright.sync_api import sync_playwright
@@ -304,7 +433,7 @@ def run(
             phases.append(_phase(viewer, updates, "no client", phase_s))
             for _ in range(tabs):
                 try:
-                    pages.append(_open_tab(browser, handle) if browser is not None else SocketTab(handle.port))
+                    pages.append(_open_tab(browser, handle) if browser is not None else host.open())
                 except TimeoutError:  # said in the result: the phases run with the tabs that got through
                     failed += 1
             stack.callback(lambda: [page.close() for page in pages])
@@ -334,16 +463,16 @@ def run(
                 updates,
                 f"{len(pages)} {kind} + a websocket tab connecting and disconnecting",
                 churn_s,
-                during=lambda: churn_stats.update(socket_churn(handle, churn_s)),
+                during=lambda: churn_stats.update(socket_churn(handle, churn_s, open_tab=host.open)),
             )
             sockets.update({f"socket_{k}": v for k, v in churn_stats.items()})
             phases.append(sockets)
-            slow = SocketTab(handle.port, every_s=1.0)
+            slow = host.open(every_s=1.0)
             try:
                 slowed = _phase(viewer, updates, f"{len(pages)} {kind} + a slow client (1 message/s)", phase_s)
-                slowed["slow_client_read"] = slow.read
             finally:
                 slow.close()
+            slowed["slow_client_read"] = slow.read
             phases.append(slowed)
     finally:
         with contextlib.redirect_stdout(sys.stderr):  # viser's "Server stopped": stdout carries --json
@@ -354,7 +483,7 @@ def run(
         "phases": phases,
         "tabs": tabs,
         "tab_kind": tab_kind,
-        "tab_priority": tab_priority if tab_kind == "chromium" else None,
+        "tab_priority": tab_priority,
         "tabs_connected": len(pages),
         "phase_s": phase_s,
         "churn_s": churn_s,

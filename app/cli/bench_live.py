@@ -84,8 +84,9 @@ def bench_clients(
         typer.Option(
             "--tab-priority",
             metavar="idle|normal",
-            help="CPU priority of the tabs' Chromium: idle (they use only what the viewer leaves, as "
-            "browsers on their users' own machines would) or normal (browser and viewer share the cores).",
+            help="CPU priority of the tabs' Chromium and of the websocket clients' process: idle (they use "
+            "only what the viewer leaves, as clients on their users' own machines would) or normal "
+            "(clients and viewer share the cores).",
         ),
     ] = "idle",
     tab_kind: Annotated[

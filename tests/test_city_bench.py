@@ -4,7 +4,7 @@ there, the tiled search agrees with the whole-map search, and a second run start
 import math
 
 import pytest
-from lidarloc.app.bench.city import judge, localize_figures, run
+from lidarloc.app.bench.city import GlobalRows, judge, localize_figures, run, scan_order
 from lidarloc.core.config import load_config
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -21,6 +21,62 @@ def test_judge_is_two_metres_and_five_degrees():
     assert judge(1.9, 0.0, math.radians(4.9), truth)[0]
     assert not judge(2.1, 0.0, 0.0, truth)[0] and not judge(0.0, 0.0, math.radians(5.1), truth)[0]
     assert judge(math.nan, 0.0, 0.0, truth) == (False, math.inf)
+
+
+def test_the_scans_of_a_shorter_run_are_the_first_of_a_longer_one():
+    few, many = scan_order(1000, 10, 7), scan_order(1000, 200, 7)
+    assert few == many[:10] and len(set(many)) == 200 and all(0 <= k < 1000 for k in many)
+    assert sorted(scan_order(5, 10, 7)) == [0, 1, 2, 3, 4]
+    assert scan_order(1000, 10, 8) != few
+
+
+def test_global_rows_resume_only_their_own_source_configuration_and_code(tmp_path):
+    """Rows kept after each scan come back as they were (numpy numbers as plain ones) for the same
+    identity; another identity, or a file that is not a rows file, is refused in one line."""
+    import numpy as np
+    from lidarloc.core.errors import LidarlocError
+
+    identity = {"source": "town", "config": {"seed": 0}, "code": "abc"}
+    rows = GlobalRows(tmp_path, identity)
+    assert rows.rows == {}
+    rows.add({"scan": np.int64(12), "tiled_ms": np.float64(1.5), "tiled_success": True, "tiled_err_m": math.inf})
+    rows.add({"scan": 3, "tiled_ms": 2.0, "tiled_success": False, "tiled_err_m": 40.0})
+    again = GlobalRows(tmp_path, dict(identity))
+    assert again.rows == {
+        12: {"scan": 12, "tiled_ms": 1.5, "tiled_success": True, "tiled_err_m": math.inf},
+        3: {"scan": 3, "tiled_ms": 2.0, "tiled_success": False, "tiled_err_m": 40.0},
+    }
+    assert [p.name for p in tmp_path.iterdir()] == ["rows.json"]  # no temporary file left
+    with pytest.raises(LidarlocError, match="another source, configuration or version"):
+        GlobalRows(tmp_path, {**identity, "code": "def"})
+    (tmp_path / "rows.json").write_text('{"rows": [{"no scan": 1}]')
+    with pytest.raises(LidarlocError, match="not a bench city rows file"):
+        GlobalRows(tmp_path, identity)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_stopped_bench_city_resumes_at_the_next_scan(cache_root, tmp_path, monkeypatch):
+    """With ``rows_dir`` each global match is kept as it is done: a longer run in the same
+    directory matches only the scans it does not hold (once more to compile, off the clock)."""
+    from lidarloc.app.bench import city
+
+    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+    kw = dict(cache_root=cache_root, peer_scans=0, tile_m=50.0, bev_tile_m=32.0, whole_map=False)
+    first = run(SourceSpec(), cfg, global_scans=2, rows_dir=tmp_path, **kw)
+    assert first["global_scans_resumed"] == 0 and len(first["rows"]) == 2
+    searched = []
+    search = city.match_global_tiled
+
+    def counted(bev, pts, step):
+        searched.append(len(pts))
+        return search(bev, pts, step)
+
+    monkeypatch.setattr(city, "match_global_tiled", counted)
+    longer = run(SourceSpec(), cfg, global_scans=3, rows_dir=tmp_path, **kw)
+    assert longer["global_scans_resumed"] == 2 and len(searched) == 2  # the warm-up and the new scan
+    assert longer["rows"][:2] == first["rows"] and longer["rows"][2]["scan"] == scan_order(40, 3, cfg.seed)[2]
+    assert longer["global_scans"] == 3 and longer["whole_map_ms_median"] is None
 
 
 @pytest.mark.slow

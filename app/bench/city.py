@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.cache import atomic_write_file
 from ...core.config import Config
+from ...core.errors import LidarlocError
 from ...core.maps.bev import load_or_build_pyramid
 from ...core.maps.mapping import flat_surface_mask, load_or_build_map, range_filter
 from ...core.maps.tiled_bev import TiledBEV
@@ -29,9 +31,13 @@ from ...core.matching.tiled_search import match_global_tiled
 from ...core.o3d import open3d
 from ...core.sequences.factory import SourceSpec
 from .common import load_avg, machine, median, open_source, rss_mb
+from .localize import code_fingerprint
 
 SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
 ROAD_REMOVAL_VOXEL = 0.3  # as the scan-to-map matcher prepares a scan
+# The code a global-match row depends on (the world and its scans, the map, the pyramid tiles,
+# the searches, this file's preparing and judging): rows resume only while all of it is unchanged.
+ROW_CODE = ("core/matching", "core/maps", "core/sequences", "core/config", "core/geometry.py", "app/bench/city.py")
 
 
 def prepare(scan: np.ndarray, cfg: Config) -> np.ndarray:
@@ -51,6 +57,45 @@ def judge(x: float, y: float, yaw: float, truth: np.ndarray) -> tuple[bool, floa
     m = math.hypot(x - truth[0, 3], y - truth[1, 3])
     dyaw = abs((yaw - math.atan2(truth[1, 0], truth[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
     return m <= SUCCESS_M and math.degrees(dyaw) <= SUCCESS_DEG, m
+
+
+class GlobalRows:
+    """The global matches done so far, one row a scan, kept in ``directory/rows.json`` (rewritten
+    whole after each scan, atomically) so that a run stopped at any moment resumes at the next
+    scan: 200 searches over a 16 km² city take hours. A directory holding another source's,
+    configuration's or code's rows is refused, never mixed in."""
+
+    def __init__(self, directory: Path, identity: dict):
+        self.path = Path(directory) / "rows.json"
+        self.identity = json.loads(json.dumps(identity, sort_keys=True, default=str))
+        self.rows: dict[int, dict] = {}
+        if self.path.is_file():
+            try:
+                kept = json.loads(self.path.read_text())
+                rows = {int(r["scan"]): r for r in kept["rows"]}
+                theirs = kept["identity"]
+            except (ValueError, KeyError, TypeError) as exc:
+                raise LidarlocError(
+                    f"{self.path}: not a bench city rows file ({exc}); remove it or use another --out"
+                ) from None
+            if theirs != self.identity:
+                raise LidarlocError(
+                    f"{self.path}: holds the global matches of another source, configuration or version of "
+                    "lidarloc's code; use another --out"
+                )
+            self.rows = rows
+
+    def add(self, row: dict) -> None:
+        self.rows[int(row["scan"])] = row
+        data = {"identity": self.identity, "rows": list(self.rows.values())}
+        text = json.dumps(data, indent=1, default=lambda v: v.item())  # numpy scalars as plain numbers
+        atomic_write_file(self.path, lambda tmp: tmp.write_text(text))
+
+
+def scan_order(n: int, count: int, seed: int) -> list[int]:
+    """``count`` scans of ``n`` in a seeded random order: the first ones of a longer list are the
+    same scans, so rows kept from a shorter or stopped run are a fair sample of the longer one."""
+    return [int(k) for k in np.random.default_rng(seed).permutation(n)[: min(count, n)]]
 
 
 def _tables(prior, map_dir: Path, cfg: Config, tile_m: float, bev_tile_m: float, progress):
@@ -76,7 +121,10 @@ def run(
     bev_tile_m: float = 256.0,
     whole_map: bool = True,
     progress=None,
+    rows_dir: Path | None = None,
 ) -> dict:
+    """The figures above; ``rows_dir``: keep the global matches there and resume those an earlier
+    run of the same source, configuration and code left (:class:`GlobalRows`)."""
     report = progress or (lambda what, f: None)
     seq = open_source(spec, cfg, "city", need_poses=True)
     t0 = time.perf_counter()
@@ -105,17 +153,35 @@ def run(
         "cache_mb": (_dir_bytes(map_dir)) / 1e6,
         "tiles_mb": (lookup.cache_bytes + bev.cache_bytes) / 1e6,
     }
-    rng = np.random.default_rng(cfg.seed)
-    idx = sorted(int(k) for k in rng.choice(len(seq), min(global_scans, len(seq)), replace=False))
-    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value if whole_map else None
-    rows = []
+    idx = scan_order(len(seq), global_scans, cfg.seed)
+    kept = None
+    if rows_dir is not None:
+        identity = {
+            "source": seq.name,
+            "scans": len(seq),
+            "config": cfg.to_dict(),
+            "bev_tile_m": bev_tile_m,
+            "whole_map": whole_map,
+            "code": code_fingerprint(ROW_CODE),
+        }
+        kept = GlobalRows(rows_dir, identity)
+    out["global_scans_resumed"] = sum(k in kept.rows for k in idx) if kept is not None else 0
+    pyramid = None
+    if whole_map and (kept is None or any(k not in kept.rows for k in idx)):
+        pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
+    rows, warm = [], False
     for j, k in enumerate(idx):
+        if kept is not None and k in kept.rows:
+            rows.append(kept.rows[k])
+            report("global matches", (j + 1) / len(idx))
+            continue
         truth, scan = seq.pose(k), prepare(seq.scan(k), cfg)
         row = {"scan": k}
-        if j == 0:  # numba's kernels compiled off the clock
+        if not warm:  # numba's kernels compiled off the clock
             match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
             if pyramid is not None:
                 m3rsm.match_global(pyramid, scan[:, :2], cfg.s2m.angle_step)
+            warm = True
         res = match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
         row["tiled_ms"], (row["tiled_success"], row["tiled_err_m"]) = res.ms, judge(res.x, res.y, res.yaw, truth)
         row["tiled_tiles_searched"] = res.nodes_per_level[0] if res.nodes_per_level else 0
@@ -128,6 +194,8 @@ def run(
             # what any exact search with these bounds must expand, whatever its order
             row["whole_nodes"] = whole.nodes_expanded
         rows.append(row)
+        if kept is not None:
+            kept.add(row)
         report("global matches", (j + 1) / len(idx))
     out["global_scans"] = len(rows)
     out["global_match_ms_median"] = median(r["tiled_ms"] for r in rows)
@@ -137,14 +205,14 @@ def run(
     ]
     out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in rows)
     out["tiled_nodes_median"] = median(r["tiled_nodes"] for r in rows)
-    if pyramid is not None:
+    if whole_map:
         out["whole_map_ms_median"] = median(r["whole_ms"] for r in rows)
         out["whole_map_success"] = float(np.mean([r["whole_success"] for r in rows]))
         out["tiled_score_equals_whole_map"] = float(np.mean([r["same_as_whole"] for r in rows]))
         out["whole_map_nodes_median"] = median(r["whole_nodes"] for r in rows)
     else:
         out["whole_map_ms_median"] = out["whole_map_success"] = None
-    out.update(_peers(seq, prior, cfg, idx[:peer_scans], report) if peer_scans > 0 else {})
+    out.update(_peers(seq, prior, cfg, sorted(idx[:peer_scans]), report) if peer_scans > 0 else {})
     out.update(_probe(seq, lookup, bev, cfg, idx))
     out["localize_success"] = None  # filled by localize_figures (``--localize-runs``)
     out["load_avg_end"] = load_avg()

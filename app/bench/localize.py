@@ -40,15 +40,15 @@ from .common import is_town
 from .localize_report import write_report
 
 
-def code_fingerprint() -> str:
-    """SHA-256 of lidarloc's own Python sources (core and app) and of the versions of the
-    libraries that compute its numbers: two benchmark runs resume into one report only if they
-    ran the same code."""
+def code_fingerprint(parts: tuple[str, ...] = ("core", "app")) -> str:
+    """SHA-256 of lidarloc's own Python sources under ``parts`` (folders or files relative to the
+    package's root; by default all of core and app) and of the versions of the libraries that
+    compute its numbers: two benchmark runs resume into one report only if they ran the same
+    code."""
     import hashlib
     from importlib import metadata
 
-    import lidarloc.app
-    import lidarloc.core
+    import lidarloc
 
     digest = hashlib.sha256()
     for dist in ("numpy", "numba", "scipy", "kiss-icp", "small_gicp", "open3d"):
@@ -56,10 +56,11 @@ def code_fingerprint() -> str:
             digest.update(f"{dist}=={metadata.version(dist)}\0".encode())
         except metadata.PackageNotFoundError:
             digest.update(f"{dist} missing\0".encode())
-    for package in (lidarloc.core, lidarloc.app):
-        root = Path(package.__file__).parent
-        for path in sorted(root.rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    root = Path(lidarloc.__file__).parent
+    for part in parts:
+        where = root / part
+        for path in sorted(where.rglob("*.py")) if where.is_dir() else [where]:
+            digest.update(path.relative_to(where).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
 
 

@@ -301,9 +301,14 @@ def bench_city(
         ),
     ] = 0,
     workers: Annotated[int, typer.Option("--workers", min=1, help="Worker processes for --localize-runs.")] = 2,
-    out: Annotated[Path, typer.Option("--out", help="Directory for the --localize-runs runs (resumable).")] = Path(
-        "out/bench-city"
-    ),
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            help="Directory for the global matches, one row a scan, and the --localize-runs runs: a run "
+            "stopped at any moment resumes there (same source, configuration and code).",
+        ),
+    ] = Path("out/bench-city"),
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
@@ -339,6 +344,7 @@ def bench_city(
             tile_m=tile_m,
             whole_map=whole_map,
             progress=progress,
+            rows_dir=out / "global",
         )
     if localize_runs:  # its own progress bar: after the one above has closed
         result.update(localize_figures(spec, cfg, localize_runs, workers, out / "localize", cache_root=cache))

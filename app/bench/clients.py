@@ -395,9 +395,10 @@ def run(
     the websocket clients' process at ``tab_priority`` (see the module docstring).
     ``tab_kind="socket"``: the tabs are websocket tabs (:class:`SocketTab`: everything the server
     sends, read and not drawn), so the phases measure what serving them costs the viewer without
-    any browser's rendering on the machine (no browser tab connecting and disconnecting then). ``churn_s`` (default ``phase_s``): the
-    length of the websocket tab's connect/disconnect phase alone: the allocator's pages come and
-    go by tens of MB, so only thousands of connections pin the growth per connection down."""
+    any browser's rendering on the machine (no browser tab connecting and disconnecting then).
+    ``churn_s`` (default ``phase_s``): the length of the websocket tab's connect/disconnect phase
+    alone: the allocator's pages come and go by tens of MB, so only thousands of connections pin
+    the growth per connection down."""
     from ..viewer.serve import serve
 
     if tab_kind not in TAB_KINDS:

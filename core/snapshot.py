@@ -57,6 +57,8 @@ class S2MView:
     gicp_correction: tuple = ()  # (metres, radians) GICP moved the 2D match
     stage: str = ""  # what GICP refined: "m3rsm" (the 2D match) or "refined_start" (the
     # start itself); "" if GICP never ran
+    carried_through: int | None = None  # real time: the scan whose odometry carried the match,
+    # when landed_at's own was not registered yet (then on at the odometry's last motion)
 
 
 @dataclass(frozen=True)

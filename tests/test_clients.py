@@ -66,9 +66,9 @@ def test_hosted_tabs_are_clients_of_another_process_at_the_idle_priority(viewer)
     from lidarloc.core.errors import LidarlocError
 
     with clients.TabHost(viewer.port, "idle") as host:
+        tab = host.open()  # answered: the process has set itself up
         assert host._proc.pid != os.getpid()
         assert os.sched_getscheduler(host._proc.pid) == os.SCHED_IDLE
-        tab = host.open()
         wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the server to count the hosted tab")
         read = tab.close()
         assert read is not None and read > 0  # the scene, sent to every new tab

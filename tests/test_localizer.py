@@ -409,6 +409,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
         loc.odometry.rpe.add = add
         instant_matcher(loc, accepted=True)
         monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 60.0)  # scans 0–2: always land
+        monkeypatch.setattr(schedule_module, "REALTIME_LAND_AHEAD_SCANS", 0)  # on their own scans; the waits alone
         loc.run(3)
         job = loc.s2m.job  # started at scan 1 or 2, whichever match was last
         assert job is not None and job.started_at <= 2
@@ -459,6 +460,48 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
         loc.close()
 
 
+def test_realtime_landing_goes_through_the_newest_registered_scan_when_close():
+    """Real time: a finished accepted match lands through its own scan's odometry when that is
+    registered; else through the newest registered scan, without waiting, if that is at most
+    REALTIME_LAND_AHEAD_SCANS behind and not before the match's start; else it waits (as
+    before) or tries again later. A rejection needs no odometry."""
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    from lidarloc.core.matching.schedule import REALTIME_LAND_AHEAD_SCANS, S2MScheduler
+
+    class Odometry:
+        def __init__(self, newest):
+            self.newest, self.asked = newest, []
+
+        def registered(self, k):
+            return self.newest is not None and k <= self.newest
+
+        def newest_registered(self):
+            return self.newest
+
+        def registered_within(self, k, timeout, behind_too=False):
+            self.asked.append(k)
+            return self.registered(k)
+
+    def through(k, newest, started_at=3, accepted=True):
+        future = Future()
+        future.set_result(SimpleNamespace(accepted=accepted))
+        job = SimpleNamespace(future=future, deferrals=0, started_at=started_at)
+        odometry = Odometry(newest)
+        got = S2MScheduler._landing_scan(None, job, k, odometry, None)
+        return got, odometry.asked, job.deferrals
+
+    assert REALTIME_LAND_AHEAD_SCANS >= 1
+    assert through(10, 10) == (10, [], 0)  # registered: its own scan
+    assert through(10, 9) == (9, [], 0)  # one behind: through it, no wait
+    assert through(10, 10 - REALTIME_LAND_AHEAD_SCANS) == (10 - REALTIME_LAND_AHEAD_SCANS, [], 0)
+    assert through(10, 9 - REALTIME_LAND_AHEAD_SCANS) == (None, [10], 1)  # farther: the waits, then later
+    assert through(10, 9, started_at=10) == (None, [10], 1)  # not before the match's own scan
+    assert through(10, None) == (None, [10], 1)
+    assert through(10, None, accepted=False) == (10, [], 0)
+
+
 def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
     """wait_ready() blocks until the child processes are set up, and a set-up failure is a clear
     one-line error there, before the real-time clock starts."""
@@ -491,6 +534,12 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
         def __init__(self):
             self.asked = []
 
+        def registered(self, k):
+            return False
+
+        def newest_registered(self):
+            return 3  # four scans behind scan 7: too far to land through it
+
         def registered_within(self, k, timeout, behind_too=False):
             self.asked.append((round(timeout, 3), behind_too))
             return False
@@ -498,10 +547,10 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
     def asked(deferrals, land_by):
         future = Future()
         future.set_result(SimpleNamespace(accepted=True))
-        job = SimpleNamespace(future=future, deferrals=deferrals)
+        job = SimpleNamespace(future=future, deferrals=deferrals, started_at=2)
         odometry = Odometry()
-        ready = S2MScheduler._odometry_ready_to_land(None, job, 7, odometry, land_by)
-        assert not ready and job.deferrals == deferrals + 1
+        through = S2MScheduler._landing_scan(None, job, 7, odometry, land_by)
+        assert through is None and job.deferrals == deferrals + 1
         return odometry.asked[0]
 
     short, patient = schedule_module.REALTIME_LAND_WAIT_S, schedule_module.REALTIME_LAND_PATIENT_WAIT_S

@@ -123,3 +123,57 @@ def test_kiss_convergence_setting_keeps_the_accuracy(kitti_raw_seq):
     assert ours["step_error_cm_median"] < 10.0
     assert ours["step_error_cm_median"] < fine["step_error_cm_median"] + 1.0
     assert ours["drift_10_pct"] < fine["drift_10_pct"] + 0.5
+
+
+class ConstantTwist:
+    """A scripted odometry driving an arc: 1 m forward and 3° of yaw (and a little pitch) a scan."""
+
+    def __init__(self):
+        from scipy.spatial.transform import Rotation
+
+        self.step = np.eye(4)
+        self.step[:3, :3] = Rotation.from_euler("zyx", [3.0, 0.5, 0.0], degrees=True).as_matrix()
+        self.step[:3, 3] = [1.0, 0.05, 0.0]
+        self.last_pose = np.eye(4)
+
+    def register_frame(self, points, timestamps):
+        self.last_pose = self.last_pose @ self.step
+
+
+def test_the_odometry_keeps_every_scan_from_a_match_in_flights_start():
+    """``keep_from(k)`` keeps scan k and all after it beyond the buffer (a match started at k is
+    carried forward from it when it lands, however late); None gives the buffer back its bound."""
+    rpe = RelativePoseEstimator(max_buffer=4, icp=ConstantTwist())
+    for k in range(3):
+        rpe.add(k, np.zeros((10, 4), np.float32), 0.1 * k)
+    rpe.keep_from(1)
+    for k in range(3, 12):
+        rpe.add(k, np.zeros((10, 4), np.float32), 0.1 * k)
+    assert not rpe.has(0) and all(rpe.has(k) for k in range(1, 12)) and len(rpe) == 11
+    rpe.keep_from(None)
+    assert len(rpe) == 4 and not rpe.has(7) and rpe.has(8)
+    with pytest.raises(KeyError, match="not in the odometry buffer"):
+        rpe.relative(1, 11)
+
+
+def test_the_odometry_predicts_a_scan_ahead_at_its_last_motion():
+    """``predicted(j, t)``: scan j's odometry pose moved on to time t at its last registration's
+    motion: exact for a constant twist a whole number of scan periods ahead, the pose itself at
+    its own time, and no motion before a second scan."""
+    rpe = RelativePoseEstimator(max_buffer=10, icp=ConstantTwist())
+    truth = ConstantTwist()
+    poses = []
+    for k in range(8):
+        rpe.add(k, np.zeros((10, 4), np.float32), 0.1 * k)
+        truth.register_frame(None, None)
+        poses.append(truth.last_pose.copy())
+    np.testing.assert_allclose(rpe.predicted(5, 0.5), rpe.odom_pose(5), atol=1e-12)
+    for ahead in (1, 2):
+        np.testing.assert_allclose(rpe.predicted(5, 0.1 * (5 + ahead)), poses[5 + ahead], atol=1e-9)
+    half = rpe.predicted(5, 0.55)  # half a period on: half the step's translation, half its yaw
+    step = inv_pose(rpe.odom_pose(5)) @ half
+    np.testing.assert_allclose(step[:3, 3], [0.5, 0.025, 0.0], atol=1e-9)
+    assert math.degrees(euler_zyx(step[:3, :3])[0]) == pytest.approx(1.5, abs=1e-3)
+    first = RelativePoseEstimator(max_buffer=4, icp=ConstantTwist())
+    first.add(0, np.zeros((10, 4), np.float32), 0.0)
+    np.testing.assert_allclose(first.predicted(0, 0.3), first.odom_pose(0))

@@ -413,7 +413,10 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self._prev_t = t
         if self.cfg.localize.deskew:
             scan = self._deskew(k, scan)
-        # RPE starts now and overlaps with the PF work below.
+        # RPE starts now and overlaps with the PF work below; the odometry keeps every scan from
+        # the match in flight's start on, however long ago: its landing carries it from there.
+        job = getattr(self.s2m, "job", None)
+        self.odometry.keep_from(None if job is None else job.started_at)
         self.odometry.submit(k, scan, t)
 
         # PF time excludes waiting for S2M (in replay the step blocks until the match is due).

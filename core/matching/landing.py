@@ -9,7 +9,9 @@ import numpy as np
 from ..snapshot import S2MView
 
 
-def landed_view(job, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason: str) -> S2MView:
+def landed_view(
+    job, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason: str, through: int | None = None
+) -> S2MView:
     """What the viewer shows of a landed match: the verdict and why, and what the search and
     GICP did on the way (any of them may be missing: a match refused before the search, or an
     outcome made by a stand-in matcher)."""
@@ -40,6 +42,7 @@ def landed_view(job, k: int, outcome, accepted: bool, pose_k: np.ndarray, reason
         gicp_fitness=None if gicp is None else float(gicp.inlier_ratio),
         gicp_correction=() if gicp is None else (float(gicp.correction_m), float(gicp.correction_rad)),
         stage=str(getattr(outcome, "stage", "") or ""),
+        carried_through=None if through is None or through == k else int(through),
     )
 
 

@@ -8,8 +8,8 @@ RPE relative pose and written into the particle it started from, which is then r
 (with ``s2m.reject_if_weight_drops``, the paper's rule, it is taken back if that lowered the
 particle's log-likelihood: see :func:`~.landing.write_unless_weight_drops`).
 ``replay`` lands it exactly ``n_s2m`` scans after it started (the step waits for it);
-``realtime`` lands it at the first scan after it finished whose odometry is ready (see
-:meth:`S2MScheduler._odometry_ready_to_land`).
+``realtime`` lands it at the first scan after it finished whose odometry is ready, or nearly
+(see :meth:`S2MScheduler._landing_scan`).
 
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
 ``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
@@ -26,7 +26,8 @@ level)`` may return the outcome a recorded run's matcher gave for exactly that m
 stands in for running the matcher. The matcher is a deterministic function of the scan (fixed by
 ``started_at`` and the source), the start pose, the S2M settings and ``level``, so this changes no
 number; anything that differs runs the matcher for real. In real time such a match lands at the
-scan the recorded run landed it at (there its timing chose it). ``last_landing`` is the raw
+scan the recorded run landed it at, carried through the scan it was carried through (there its
+timing chose both). ``last_landing`` is the raw
 outcome of the last match that landed, with the job it belonged to, for the recording.
 
 The last match that landed is kept as an :class:`~lidarloc.core.snapshot.S2MView` for the viewer's
@@ -70,8 +71,16 @@ REALTIME_LAND_PATIENT_WAIT_S = 0.05
 # (Neither wait runs past the step's deadline when whoever paces the scans gives one: see
 # lidarloc.core.localizer.deadline.)
 # … and after how many tries in all it waits for the odometry however long it takes: under a
-# sustained backlog the landing still happens and the RPE queue stays bounded.
+# sustained backlog the landing still happens and the RPE queue stays bounded (the odometry
+# keeps every scan from the match's start on, so such a landing can still carry it forward).
 REALTIME_LAND_FORCE_AFTER = 100
+# Before any wait: a match whose scan is not registered yet lands through the newest scan that
+# is, if that is at most this many scans behind: carried forward by the odometry to that scan,
+# then on to its own scan at the odometry's last motion (RelativePoseEstimator.predicted, exact
+# for a constant twist). KISS-ICP registers scan k while the PF weighs it, so scan k is rarely
+# done when the landing looks: waiting for it cost the step up to 30–50 ms a try, and under a
+# backlog matches waited tens of scans (one in five more than 20, on a quiet machine).
+REALTIME_LAND_AHEAD_SCANS = 2
 
 
 @dataclass
@@ -248,6 +257,7 @@ class S2MScheduler(MatcherMixin):
             done.set_result(outcome)
             # real time: the recorded run landed it at a scan its timing chose; so does the replay
             done.landing = getattr(self.recorded, "landing_scan", lambda k0: None)(k)
+            done.through = getattr(self.recorded, "landing_through", lambda k0: None)(k)
             return done
         if callable(scan):
             scan = scan()
@@ -360,8 +370,12 @@ class S2MScheduler(MatcherMixin):
         elif planned is not None:
             if k < planned:
                 return None
-        elif not job.future.done() or not self._odometry_ready_to_land(job, k, odometry, land_by):
-            return None  # real time: land at a scan after the match finished (see there)
+        elif not job.future.done():
+            return None  # real time: land at a scan after the match finished
+        else:
+            through = self._landing_scan(job, k, odometry, land_by)
+            if through is None:
+                return None  # its odometry is behind: try again at the next scan (see there)
         self.job = None
         what = f"the S2M match started at scan {job.started_at}"
         try:
@@ -373,6 +387,11 @@ class S2MScheduler(MatcherMixin):
         self.last_landing = (k, job, outcome)
         self.n_landed += 1
         accepted = bool(outcome.accepted)
+        if self.cfg.localize.clock == "replay":
+            through = k
+        elif planned is not None:  # as the recorded run carried it
+            recorded_through = getattr(job.future, "through", None)
+            through = k if recorded_through is None else int(recorded_through)
         pose_k = outcome.pose
         reason = outcome.reason
         # A search that nothing in its region beat: the start itself is the best place the
@@ -398,16 +417,21 @@ class S2MScheduler(MatcherMixin):
             self.cfg,
         )
         if accepted:
-            # Carry the match for scan k₀ forward to scan k with the RPE relative pose.
-            odometry.wait_registered(k)
+            # Carry the match for scan k₀ forward to scan k with the RPE relative pose (through
+            # the newest registered scan, and on at its last motion, if scan k's is not done).
+            odometry.wait_registered(through)
             if job.started_at < odometry.origin:
                 accepted, reason = False, "odometry restarted since the match started"
             else:
-                from .s2m import carry_forward
+                from .s2m import carry_forward, carry_forward_poses
 
                 try:
-                    pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
-                except KeyError:  # the odometry no longer holds scan k₀ (landed very late)
+                    if through == k:
+                        pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)
+                    else:
+                        odom_k = odometry.rpe.predicted(through, odometry.timestamp(k))
+                        pose_k = carry_forward_poses(outcome.pose, odometry.rpe.odom_pose(job.started_at), odom_k)
+                except KeyError:  # the odometry no longer holds scan k₀ (restarted meanwhile)
                     accepted, reason = False, f"odometry no longer holds scan {job.started_at}"
             if not accepted and verdict.kind == "relocalize":  # nowhere to move the filter to
                 verdict = dataclasses.replace(verdict, kind="look_alike")
@@ -434,8 +458,8 @@ class S2MScheduler(MatcherMixin):
         if accepted:
             state = pf.states[job.particle].copy()
             state[:6] = pose_to_xyz_ypr(pose_k)
-            state[6] = odometry.rpe.speed(k)
-            state[7:10] = odometry.rpe.rates(k)
+            state[6] = odometry.rpe.speed(through)
+            state[7:10] = odometry.rpe.rates(through)
             if self.cfg.s2m.reject_if_weight_drops:
                 accepted, reason = write_unless_weight_drops(pf, job.particle, state, prepared)
             else:
@@ -450,18 +474,19 @@ class S2MScheduler(MatcherMixin):
             "s2m_accepted" if accepted else "s2m_rejected",
             f"started {job.started_at}, score {outcome.score:.0f} vs {outcome.start_score:.0f}"
             + (f" ({reason})" if reason and not accepted else "")
-            + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}"),
+            + ("" if job.mode == "local" else f"; {job.mode} search: {VERDICT_TEXT[verdict.kind]}")
+            + (f"; odometry to scan {through}, then {k - through} scan(s) at its last motion" if through != k else ""),
         )
-        self.last = landed_view(job, k, outcome, accepted, pose_k, reason)
+        self.last = landed_view(job, k, outcome, accepted, pose_k, reason, through)
         return float(outcome.ms)
 
-    def _odometry_ready_to_land(
-        self, job: S2MJob, k: int, odometry: OdometryFeed, land_by: float | None = None
-    ) -> bool:
-        """Real time: an accepted match is carried forward with scan k's odometry, so it lands
-        only if KISS-ICP has registered scan k within ``REALTIME_LAND_WAIT_S`` (no wait at all
-        while scan k−1 is still pending: the odometry is then behind); otherwise it tries again
-        at the next scan, its particle still protected. After ``REALTIME_LAND_MAX_DEFERRALS``
+    def _landing_scan(self, job: S2MJob, k: int, odometry: OdometryFeed, land_by: float | None = None) -> int | None:
+        """Real time: the scan whose odometry carries a finished match forward to scan k (k
+        itself, or the newest registered scan), or None: it tries again at the next scan, its
+        particle still protected. Scan k if it is registered; else the newest registered scan
+        if it is at most ``REALTIME_LAND_AHEAD_SCANS`` behind (and not before the match's start);
+        else scan k if KISS-ICP registers it within ``REALTIME_LAND_WAIT_S`` (no wait at all
+        while scan k−1 is still pending: the odometry is then behind). After ``REALTIME_LAND_MAX_DEFERRALS``
         tries it waits ``REALTIME_LAND_PATIENT_WAIT_S`` a scan, backlog or not (still within a
         scan period), and after ``REALTIME_LAND_FORCE_AFTER`` tries it waits for the odometry
         however long it takes. Always blocking until the odometry was done stalled the PF behind
@@ -471,15 +496,19 @@ class S2MScheduler(MatcherMixin):
         most of its period made a run of scans late behind one slow registration. A failed or
         rejected match needs no odometry and lands at once."""
         if job.future.exception() is not None or not job.future.result().accepted:
-            return True  # a failure (the landing reports it) or a rejection: no odometry needed
+            return k  # a failure (the landing reports it) or a rejection: no odometry needed
         if job.deferrals >= REALTIME_LAND_FORCE_AFTER:
-            return True  # the landing waits for the odometry
+            return k  # the landing waits for the odometry
+        if odometry.registered(k):
+            return k  # registered (or failed: the landing reports it)
+        newest = odometry.newest_registered()
+        if newest is not None and job.started_at <= newest and k - newest <= REALTIME_LAND_AHEAD_SCANS:
+            return newest
         patient = job.deferrals >= REALTIME_LAND_MAX_DEFERRALS
         wait = REALTIME_LAND_PATIENT_WAIT_S if patient else REALTIME_LAND_WAIT_S
         if land_by is not None:
             wait = max(0.0, min(wait, land_by - time.perf_counter()))
-        ready = odometry.registered_within(k, wait, behind_too=patient)
-        if not ready:
-            job.deferrals += 1
-            return False
-        return True  # registered (or failed: the landing reports it)
+        if odometry.registered_within(k, wait, behind_too=patient):
+            return k
+        job.deferrals += 1
+        return None

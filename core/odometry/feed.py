@@ -265,6 +265,25 @@ class OdometryFeed:
                 self._revive(rpe, k, exc.worker)
         self.last_ms = (time.perf_counter() - t0) * 1000.0
 
+    def keep_from(self, k: int | None) -> None:
+        """Keep the odometry of every scan from k on (a match in flight started there and is
+        carried forward from it when it lands); None: the most recent scans only."""
+        if self.rpe is not None:
+            self.rpe.keep_from(k)
+
+    def registered(self, k: int) -> bool:
+        """Whether scan k is registered (without waiting)."""
+        registration = self.futures.get(k)
+        return registration is not None and registration.done()
+
+    def newest_registered(self) -> int | None:
+        """The newest scan whose odometry is done (None before the first)."""
+        return None if self.rpe is None else self.rpe.latest
+
+    def timestamp(self, k: int) -> float:
+        """The timestamp scan k was submitted with."""
+        return self._times[k]
+
     def wait_registered(self, k: int) -> None:
         """Block until scan k is registered (a failed registration raises here)."""
         self._wait(self.futures[k], "RPE", k)

@@ -42,8 +42,15 @@ def _rotation_angle(R: np.ndarray) -> float:
     return float(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
 
 
+#: The most scans :meth:`RelativePoseEstimator.keep_from` keeps beyond its buffer: ten minutes at
+#: 10 Hz (~2 MB of poses), longer than any match in flight takes, even a whole city's.
+MAX_KEPT = 6000
+
+
 class RelativePoseEstimator:
-    """KISS-ICP odometry over a bounded buffer of the most recent scans."""
+    """KISS-ICP odometry over a bounded buffer of the most recent scans (and of every scan from
+    the one :meth:`keep_from` names on: a scan-to-map match in flight carries its result forward
+    from its start scan, however long it took)."""
 
     def __init__(
         self,
@@ -82,6 +89,7 @@ class RelativePoseEstimator:
         # scan index → (odometry pose 4×4, timestamp, path length at this scan, rotation sum)
         self._buf: OrderedDict[int, tuple[np.ndarray, float, float, float]] = OrderedDict()
         self._latest: int | None = None
+        self._keep_from: int | None = None
 
     # ------------------------------------------------------------------------------- writer
     def registers(self, k: int) -> bool:
@@ -125,10 +133,25 @@ class RelativePoseEstimator:
             else:
                 path, turned = 0.0, 0.0
             self._buf[k] = (pose, float(timestamp), path, turned)
-            while len(self._buf) > self.max_buffer:
-                self._buf.popitem(last=False)
+            self._trim()
             self._latest = k
         return pose.copy()
+
+    def keep_from(self, k: int | None) -> None:
+        """Keep every scan from k on, beyond the buffer's ``max_buffer`` most recent (at most
+        :data:`MAX_KEPT` more); None: the buffer alone. The scans already dropped stay dropped."""
+        with self._lock:
+            self._keep_from = None if k is None else int(k)
+            self._trim()
+
+    def _trim(self) -> None:
+        """Drop the oldest scans beyond the buffer (the lock held)."""
+        while len(self._buf) > self.max_buffer:
+            oldest = next(iter(self._buf))
+            kept = self._keep_from is not None and oldest >= self._keep_from
+            if kept and len(self._buf) <= self.max_buffer + MAX_KEPT:
+                break
+            self._buf.popitem(last=False)
 
     def restore(self, entries) -> None:
         """Refill the buffer with (scan, T_odom←scan, timestamp, path length, rotation sum) entries
@@ -137,8 +160,7 @@ class RelativePoseEstimator:
             self._buf.clear()
             for k, pose, t, path, turned in entries:
                 self._buf[int(k)] = (np.array(pose, dtype=np.float64), float(t), float(path), float(turned))
-            while len(self._buf) > self.max_buffer:
-                self._buf.popitem(last=False)
+            self._trim()
             self._latest = next(reversed(self._buf)) if self._buf else None
 
     def entries(self, last: int | None = None) -> list[tuple[int, np.ndarray, float, float, float]]:
@@ -181,6 +203,28 @@ class RelativePoseEstimator:
             a = self._get(k_from)[0]
             b = self._get(k_to)[0]
         return inv_pose(a) @ b
+
+    def predicted(self, k: int, t: float) -> np.ndarray:
+        """T_odom←(the sensor at time t): scan k's odometry pose moved on from its timestamp to t
+        at the motion of its last registration, held constant (KISS-ICP's own prediction model):
+        that motion repeated once per whole scan period (exact for a constant twist), a fraction
+        of a period left scaled to first order (rotation vector and translation)."""
+        from scipy.spatial.transform import Rotation
+
+        with self._lock:
+            (p0, t0, _, _), (p1, t1, _, _), ok = self._previous(k, 1)
+        if not ok or t1 <= t0:
+            return p1.copy()  # no motion known yet
+        step = inv_pose(p0) @ p1
+        scale = max(0.0, (float(t) - t1) / (t1 - t0))
+        whole = int(math.floor(scale + 1e-6))
+        ahead = np.linalg.matrix_power(step, whole)  # exact for a constant twist
+        rest = np.eye(4)  # the fraction of a scan period left (none at a scan's time)
+        rest[:3, :3] = Rotation.from_rotvec(
+            Rotation.from_matrix(step[:3, :3]).as_rotvec() * (scale - whole)
+        ).as_matrix()
+        rest[:3, 3] = step[:3, 3] * (scale - whole)
+        return p1 @ ahead @ rest
 
     def _previous(self, k: int, window: int):
         """The entries of k and of the scan ``window`` registrations before it (clamped to the buffer)."""

@@ -299,6 +299,16 @@ class RecordedMatches:
             return int(self.rec.scan_index[row])
         return int(self.rec.scan_index[self.timing_until]) + 1
 
+    def landing_through(self, started_at: int) -> int | None:
+        """The scan whose odometry carried the match started at ``started_at`` when the recorded
+        run landed it before its own scan's odometry was done (real time), if the replay lands it
+        where the recorded run did; None: its landing scan's own."""
+        row = self.rows.get(int(started_at))
+        if row is None or row > self.timing_until:
+            return None
+        view = self.rec.s2m(row)
+        return None if view is None else view.carried_through
+
     def __call__(self, started_at: int, start_pose, cfg, level: bool):
         from .resume import recorded_outcome
 

@@ -364,12 +364,15 @@ class S2MScheduler(MatcherMixin):
         if job is None:
             return None
         planned = getattr(job.future, "landing", None)
+        through = k  # the scan whose odometry carries an accepted match to scan k
         if self.cfg.localize.clock == "replay":
             if k < job.started_at + self.cfg.s2m.n_s2m:
                 return None
         elif planned is not None:
             if k < planned:
                 return None
+            recorded_through = getattr(job.future, "through", None)  # as the recorded run carried it
+            through = k if recorded_through is None else int(recorded_through)
         elif not job.future.done():
             return None  # real time: land at a scan after the match finished
         else:
@@ -387,11 +390,6 @@ class S2MScheduler(MatcherMixin):
         self.last_landing = (k, job, outcome)
         self.n_landed += 1
         accepted = bool(outcome.accepted)
-        if self.cfg.localize.clock == "replay":
-            through = k
-        elif planned is not None:  # as the recorded run carried it
-            recorded_through = getattr(job.future, "through", None)
-            through = k if recorded_through is None else int(recorded_through)
         pose_k = outcome.pose
         reason = outcome.reason
         # A search that nothing in its region beat: the start itself is the best place the

@@ -12,8 +12,10 @@ from lidarloc.core.config import Config, load_config
 from lidarloc.core.geometry import pose_matrix
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.rules.integrity import (
+    CLEARED_DOUBT_HOLDS_SCANS,
     DISAGREEMENTS_FOR_CHECK,
     FIT_MIN_SAMPLES,
+    WITHDRAW_AFTER_POOR_FIT_SCANS,
     Integrity,
     fits_clearly_better,
     judge,
@@ -180,6 +182,49 @@ def test_a_poor_fit_the_whole_map_check_does_not_clear_withdraws_localized():
     assert integ.note_verdict(112, agrees) is None and integ.doubt is None and integ.poor_fit_scans == 0
 
 
+def test_a_poor_fit_no_whole_map_match_decides_in_time_withdraws_localized():
+    """S2M may not land in time (a long whole-map search, odometry behind the clock): a poor fit
+    that lasts WITHDRAW_AFTER_POOR_FIT_SCANS scans with no whole-map agreement withdraws
+    "localized" once, well before the loss; one the whole map agreed with lately does not."""
+    cfg = Config()
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    for k in range(1, FIT_MIN_SAMPLES + 5):
+        integ.note_fit(k, True, 0.9, 0.2)
+    assert 1 < WITHDRAW_AFTER_POOR_FIT_SCANS < cfg.localize.lost_after_scans
+    said = []
+    for k in range(20, 20 + cfg.localize.lost_after_scans - 1):
+        integ.note_fit(k, True, 0.9, 1.5)
+        said.append(integ.undecided_doubt(k))
+    withdrawn = [i for i, why in enumerate(said) if why is not None]
+    assert withdrawn == [WITHDRAW_AFTER_POOR_FIT_SCANS - 1]  # once, at the Nth scan in a row
+    assert "poorly for 5 scans (mean residual 1.50 m against 0.20 m lately)" in said[withdrawn[0]]
+    # a scan that fits ends the poor fit; the next one counts again from one
+    integ.note_fit(60, True, 0.9, 0.2)
+    assert integ.poor_fit_scans == 0
+    # a whole-map check that agrees in spite of the poor fit: the world changed there
+    integ.note_fit(61, True, 0.9, 1.5)
+    integ.note_verdict(63, judge("check", False, True, _pose(0, 0), _pose(0, 0), 5, 5, cfg))
+    assert integ.doubt_cleared_at == 63
+    held = []
+    for k in range(64, 64 + 2 * WITHDRAW_AFTER_POOR_FIT_SCANS):
+        integ.note_fit(k, True, 0.9, 1.5)
+        held.append(integ.undecided_doubt(k))
+    assert held == [None] * len(held) and integ.poor_fit_scans == 2 * WITHDRAW_AFTER_POOR_FIT_SCANS
+    # … for CLEARED_DOUBT_HOLDS_SCANS scans, then a new poor fit withdraws again
+    k0 = 63 + CLEARED_DOUBT_HOLDS_SCANS
+    integ.note_fit(k0, True, 0.9, 0.2)
+    for k in range(k0 + 1, k0 + 1 + WITHDRAW_AFTER_POOR_FIT_SCANS):
+        integ.note_fit(k, True, 0.9, 1.5)
+    assert integ.undecided_doubt(k) is not None
+    # the paper's rule (no S2M confirmation) has no such withdrawal
+    paper = Integrity(load_config(preset="paper"))
+    paper.on_localized(0)
+    for k in range(1, 1 + FIT_MIN_SAMPLES + WITHDRAW_AFTER_POOR_FIT_SCANS):
+        paper.note_fit(k, True, 0.9, 0.2 if k <= FIT_MIN_SAMPLES else 1.5)
+    assert paper.poor_fit_scans == WITHDRAW_AFTER_POOR_FIT_SCANS and paper.undecided_doubt(k) is None
+
+
 def test_far_poses_must_fit_clearly_better_in_3d():
     assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))  # 80 m off: 1.1 m vs 0.15 m
     assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))  # a VLP-16 look-alike
@@ -248,6 +293,30 @@ def test_an_estimate_moved_unannounced_is_noticed_and_relocalized(cache_root):
     after = [s for s in snaps if s.scan_index > moved[0].scan]
     assert all(s.error_m < 5.0 for s in after)
     assert all(s.truth_alarm is None for s in after)
+
+
+@pytest.mark.slow
+def test_an_estimate_moved_while_s2m_cannot_answer_is_withdrawn_within_the_undecided_doubt(cache_root):
+    """Once localized, S2M switched off and every particle moved 60 m: no match can decide the
+    poor fit, and "localized" is withdrawn after WITHDRAW_AFTER_POOR_FIT_SCANS scans (an
+    ``unconfirmed`` event), not left green until the loss 30 scans on."""
+    seq = short_town(70)
+    cfg = load_config(overrides=["localize.recorded_odometry=true"])
+    with Localizer(seq, cfg, cache_root) as loc:
+        while loc.k < 40:
+            loc.step()
+        assert loc.rules.localized
+        loc.set_params(s2m_enabled=False)
+        loc.move_estimate(0.0, 60.0)
+        snaps = [loc.step() for _ in range(20)]
+        events = list(loc.events)
+    withdrawn = [e for e in events if e.kind == "unconfirmed"]
+    assert len(withdrawn) == 1 and "no whole-map match has agreed" in withdrawn[0].detail
+    assert withdrawn[0].scan <= 40 + WITHDRAW_AFTER_POOR_FIT_SCANS + 1
+    assert not any(e.kind == "loss" for e in events)
+    green_and_wrong = [s.scan_index for s in snaps if s.localized and s.error_m > 5.0]
+    assert green_and_wrong == list(range(40, withdrawn[0].scan))
+    assert not any(s.localized for s in snaps if s.scan_index >= withdrawn[0].scan)
 
 
 def test_a_drive_that_ends_before_s2m_joins_is_not_counted_as_a_failed_recovery():

@@ -530,6 +530,8 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
     from lidarloc.core.matching import schedule as schedule_module
     from lidarloc.core.matching.schedule import S2MScheduler
 
+    newest = 6 - schedule_module.REALTIME_LAND_AHEAD_SCANS  # one scan too far behind scan 7 to land through it
+
     class Odometry:  # never registered in time: records the wait it was asked for
         def __init__(self):
             self.asked = []
@@ -538,7 +540,7 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
             return False
 
         def newest_registered(self):
-            return 3  # four scans behind scan 7: too far to land through it
+            return newest
 
         def registered_within(self, k, timeout, behind_too=False):
             self.asked.append((round(timeout, 3), behind_too))
@@ -547,7 +549,7 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
     def asked(deferrals, land_by):
         future = Future()
         future.set_result(SimpleNamespace(accepted=True))
-        job = SimpleNamespace(future=future, deferrals=deferrals, started_at=2)
+        job = SimpleNamespace(future=future, deferrals=deferrals, started_at=0)
         odometry = Odometry()
         through = S2MScheduler._landing_scan(None, job, 7, odometry, land_by)
         assert through is None and job.deferrals == deferrals + 1

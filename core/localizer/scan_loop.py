@@ -442,12 +442,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         if relocalized:
             self._relocalize(k, verdict)
         elif withdrawn is not None and self.rules.localized:
-            # green means both blocks agree: not any more (see core/rules/integrity.py)
-            self._event(k, "unconfirmed", f"no longer localized: {withdrawn}")
-            self.rules.reset()
-            if self.pf.n != self.cfg.pf.n_particles:  # tracking mode ends: the full filter searches again
-                self.s2m.cancel(k, "no longer localized: particle indices change")
-                self.pf.set_n_particles(self.cfg.pf.n_particles)
+            self._withdraw(k, withdrawn)
         t1 = time.perf_counter()
         # Estimate from the weighted posterior, before resampling adds Monte Carlo noise.
         est = self.pf.estimate()
@@ -477,6 +472,11 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         if lost is not None:
             self._event(k, "loss", lost)
             self.rules.reset()
+        elif not outcome.reinit and self.rules.localized:
+            undecided = self.integrity.undecided_doubt(k)
+            if undecided is not None and self._withdraw(k, undecided):
+                est = self.pf.estimate()  # tracking mode ended: the full filter's particles
+                n_weighed = self.pf.n
         if outcome.reinit or lost is not None:
             self.integrity.reset()
             why = "a loss" if lost is not None else f"a {outcome.event.replace('_', ' ')}"
@@ -513,6 +513,18 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self._snapshot = snap
         self._tail_after_landing.add(time.perf_counter() - landed_at)
         return snap
+
+    def _withdraw(self, k: int, why: str) -> bool:
+        """Green means both blocks agree: not any more (see core/rules/integrity.py). The
+        particles stay; S2M searches the whole map again and the rule must fire again with its
+        word. Returns whether the particle count changed (tracking mode ended)."""
+        self._event(k, "unconfirmed", f"no longer localized: {why}")
+        self.rules.reset()
+        if self.pf.n == self.cfg.pf.n_particles:
+            return False
+        self.s2m.cancel(k, "no longer localized: particle indices change")  # tracking mode ends
+        self.pf.set_n_particles(self.cfg.pf.n_particles)
+        return True
 
     def run(self, n: int | None = None, should_stop: Callable[[], bool] | None = None) -> Snapshot:
         """Process up to ``n`` scans (all remaining if None)."""

@@ -49,6 +49,16 @@ wrong place. Three checks close that gap:
   the check but do not withdraw: in the robustness matrix a VLP-16's local matches disagreed
   with a correct estimate three times in a row and its whole-map check found a look-alike (3 of
   the 12 VLP-16 cells would have withdrawn a correct estimate).
+- **Undecided doubt**: while localized, a poor fit that has lasted ``WITHDRAW_AFTER_POOR_FIT_SCANS``
+  scans in a row with no whole-map match agreeing with the estimate meanwhile withdraws
+  "localized" too, without waiting for the check: the check may not land in time (S2M busy with
+  a long whole-map search, its landing waiting for a lagging odometry, its child restarting), and
+  meanwhile the estimate is unconfirmed. Measured in a real-time soak of the town: the two runs
+  of 43 whose filter drifted away while S2M could not land (KISS-ICP behind the clock) had a poor
+  fit from 2.4–2.7 m off on, and were more than 5 m off 4–10 scans later, still green, until the
+  loss 30 scans on; on the same 51 600 scans no correct estimate fitted poorly for more than one
+  scan in a row. A whole-map match that agreed in spite of a poor fit (the world changed there)
+  keeps "localized" for ``CLEARED_DOUBT_HOLDS_SCANS`` scans.
 - **Loss** (``localize.lost_after_scans``): while localized, that many scans in a row that fit
   poorly, with no whole-map match agreeing with the estimate meanwhile, are a loss (re-initialise
   over the whole map), as the paper's std > 50 m.
@@ -77,6 +87,11 @@ FIT_BASELINE_SCANS = 50
 FIT_MIN_SAMPLES = 10
 #: Poor fit (module docstring): an inlier share below this share of its recent median.
 FIT_SHARE_RATIO = 0.8
+#: Undecided doubt (module docstring): a poor fit this many scans in a row, with no whole-map
+#: match agreeing meanwhile, withdraws "localized" (half a second at 10 Hz) …
+WITHDRAW_AFTER_POOR_FIT_SCANS = 5
+#: … unless a whole-map match agreed in spite of a poor fit within this many scans.
+CLEARED_DOUBT_HOLDS_SCANS = 50
 #: A far whole-map match moves the filter only if the scan's mean residual there is below this
 #: share of the estimate's (module docstring).
 RELOCALIZE_RESIDUAL_RATIO = 0.6
@@ -173,6 +188,8 @@ class Integrity:
         self.fit_baseline: list[float] = []  # mean residuals of scans that fitted well while localized
         self.share_baseline: list[float] = []  # their inlier shares
         self.doubt: str | None = None  # the poor fit the whole-map check in flight decides on
+        self.poor_fit_why: str | None = None  # why the latest scan fitted poorly
+        self.doubt_cleared_at: int | None = None  # a whole-map match agreed in spite of a poor fit
 
     _STATE = (
         "confirmed_at",
@@ -185,6 +202,8 @@ class Integrity:
         "fit_baseline",
         "share_baseline",
         "doubt",
+        "poor_fit_why",
+        "doubt_cleared_at",
     )
 
     def state(self) -> dict:
@@ -212,6 +231,8 @@ class Integrity:
         if verdict.kind == "agrees":
             self.confirmed_at = k
             if verdict.mode in ("global", "check"):
+                if self.poor_fit_scans > 0 or self.doubt is not None:
+                    self.doubt_cleared_at = k
                 self.poor_fit_scans = 0  # the whole map agrees: a poor fit is the world's change
         if verdict.mode == "local":
             self.rejections_in_row = 0 if verdict.kind == "agrees" else self.rejections_in_row + 1
@@ -292,6 +313,7 @@ class Integrity:
                 self.share_baseline = (self.share_baseline + [float(inlier_share)])[-FIT_BASELINE_SCANS:]
             return None
         self.poor_fit_scans += 1
+        self.poor_fit_why = why
         if self.cfg.s2m.global_check_interval > 0:
             self.want_check(k, why, doubt=True)
         if lc.lost_after_scans > 0 and self.poor_fit_scans >= lc.lost_after_scans:
@@ -301,6 +323,21 @@ class Integrity:
                 "whole-map match agreed with the estimate"
             )
         return None
+
+    def undecided_doubt(self, k: int) -> str | None:
+        """Why "localized" is withdrawn at scan k because a poor fit has lasted
+        ``WITHDRAW_AFTER_POOR_FIT_SCANS`` scans with no whole-map match agreeing (module
+        docstring), or None. Call after :meth:`note_fit`; says it once per poor fit. Only where
+        green needs S2M's word (``localize.require_s2m_confirmation``; the paper's rule has no
+        such withdrawal)."""
+        if not self.required or self.poor_fit_scans != WITHDRAW_AFTER_POOR_FIT_SCANS:
+            return None
+        if self.doubt_cleared_at is not None and k - self.doubt_cleared_at < CLEARED_DOUBT_HOLDS_SCANS:
+            return None
+        return (
+            f"the scan has fitted the map poorly for {self.poor_fit_scans} scans ({self.poor_fit_why}) "
+            "and no whole-map match has agreed with the estimate"
+        )
 
 
 def fits_clearly_better(candidate: tuple[float, float], estimate: tuple[float, float]) -> bool:

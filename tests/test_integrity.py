@@ -225,6 +225,32 @@ def test_a_poor_fit_no_whole_map_match_decides_in_time_withdraws_localized():
     assert paper.poor_fit_scans == WITHDRAW_AFTER_POOR_FIT_SCANS and paper.undecided_doubt(k) is None
 
 
+def test_s2ms_word_goes_stale_after_confirm_within_scans():
+    """The rule fires only on an agreement at most ``localize.confirm_within`` scans old, and
+    once localized an agreement that old withdraws "localized"; 0 = never stale; the paper's rule
+    has no such withdrawal."""
+    cfg = Config()
+    within = cfg.localize.confirm_within
+    assert within > 0
+    integ = Integrity(cfg)
+    integ.on_localized(0)
+    integ.note_verdict(10, judge("local", True, False, _pose(0.5, 0.0), _pose(0.0, 0.0), 200, 100, cfg))
+    assert integ.confirmed_at == 10
+    assert integ.confirmed_since(5, 10 + within) and not integ.confirmed_since(5, 11 + within)
+    assert integ.confirmed_since(5) and not integ.confirmed_since(11)  # no scan given: any age
+    assert integ.stale_word(10 + within) is None
+    why = integ.stale_word(11 + within)
+    assert why == f"no S2M match has agreed with the estimate for {within + 1} scans (since scan 10)"
+    # a disagreement is no word for the estimate
+    integ.note_verdict(30, judge("local", True, False, _pose(20.0, 0.0), _pose(0.0, 0.0), 200, 100, cfg))
+    assert integ.stale_word(11 + within) is not None
+    cfg.localize.confirm_within = 0
+    assert integ.stale_word(10_000) is None and integ.confirmed_since(5, 10_000)
+    paper = Integrity(load_config(preset="paper"))
+    paper.confirmed_at = 0
+    assert paper.stale_word(10_000) is None
+
+
 def test_far_poses_must_fit_clearly_better_in_3d():
     assert fits_clearly_better((0.95, 0.15), (0.88, 1.1))  # 80 m off: 1.1 m vs 0.15 m
     assert not fits_clearly_better((0.80, 1.0), (0.81, 0.9))  # a VLP-16 look-alike
@@ -317,6 +343,29 @@ def test_an_estimate_moved_while_s2m_cannot_answer_is_withdrawn_within_the_undec
     green_and_wrong = [s.scan_index for s in snaps if s.localized and s.error_m > 5.0]
     assert green_and_wrong == list(range(40, withdrawn[0].scan))
     assert not any(s.localized for s in snaps if s.scan_index >= withdrawn[0].scan)
+
+
+@pytest.mark.slow
+def test_localized_is_withdrawn_when_s2m_has_said_nothing_for_confirm_within_scans(cache_root):
+    """Once localized, S2M switched off (nothing moved, the estimate stays right): after
+    ``localize.confirm_within`` scans without an agreement "localized" is withdrawn, and the filter
+    says "PF only" as before localization."""
+    seq = short_town(70)
+    cfg = load_config(overrides=["localize.recorded_odometry=true", "localize.confirm_within=12"])
+    with Localizer(seq, cfg, cache_root) as loc:
+        while loc.k < 40:
+            loc.step()
+        assert loc.rules.localized
+        last = loc.integrity.confirmed_at
+        loc.set_params(s2m_enabled=False)
+        snaps = [loc.step() for _ in range(20)]
+        events = list(loc.events)
+    withdrawn = [e for e in events if e.kind == "unconfirmed"]
+    assert len(withdrawn) == 1 and withdrawn[0].scan == last + 13
+    assert f"for 13 scans (since scan {last})" in withdrawn[0].detail
+    assert all(s.localized == (s.scan_index < last + 13) for s in snaps)
+    assert all(s.error_m < 5.0 for s in snaps)  # right all along: honest amber, not a loss
+    assert not any(e.kind in ("loss", "false_fire") for e in events)
 
 
 def test_a_drive_that_ends_before_s2m_joins_is_not_counted_as_a_failed_recovery():

@@ -1,5 +1,6 @@
-"""``lidarloc bench soak``: the live viewer over a long run (memory, descriptors, threads, child
-processes, recordings, late scans)."""
+"""The live run's benchmarks: ``soak`` (the viewer over a long run: memory, descriptors, threads,
+child processes, recordings, late scans), ``clients`` (many tabs and bad ones), ``faults`` (a
+killed child process) and ``odometry-lag`` (KISS-ICP behind the clock)."""
 
 from __future__ import annotations
 
@@ -147,3 +148,25 @@ def bench_faults(
     from ..bench.faults import run
 
     show_bench_result("faults", run(scans, repeats, cache), as_json)
+
+
+@bench_app.command("odometry-lag")
+def bench_odometry_lag(
+    pause_ms: Annotated[
+        float,
+        typer.Option(
+            "--pause-ms", min=0.0, help="How long the KISS-ICP child is stopped in every 100 ms (0: not at all)."
+        ),
+    ] = 50.0,
+    runs: Annotated[int, typer.Option("--runs", min=1, help="Runs (seeds 0…N−1).")] = 3,
+    scans: Annotated[int | None, typer.Option("--scans", min=10, help="Scans of the built-in town per run.")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Folder for the runs.")] = Path("out/bench-odometry-lag"),
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """The odometry behind the clock: whether a filter that S2M cannot correct stays green while wrong.
+
+    The built-in town's drive in real time (`lidarloc run --clock realtime`, one process per run), its KISS-ICP child stopped --pause-ms of every 100 ms: a machine whose other work takes that share of the odometry's core. Per run: scans green while more than 5 m off, false fires, withdrawals, losses, RMSE after localization, matches landed and accepted, the odometry's lag behind the current scan, late scans."""
+    from ..bench.odometry_lag import run
+
+    show_bench_result("odometry-lag", run(out, pause_ms, runs, scans, cache), as_json)

@@ -217,6 +217,11 @@ class LocalizeConfig:
     require_s2m_confirmation: bool = True
     confirm_distance: float = 5.0  # m, the metrics' own "within 5 m"
     confirm_yaw: float = 15.0 * DEG  # rad
+    # S2M's word goes stale: the rule fires only on an agreement at most this many scans old, and
+    # "localized" is withdrawn once no S2M match has agreed with the estimate for this many scans
+    # (S2M busy with a long search, its landings waiting for a lagging odometry, switched off).
+    # Localized, a match lands about every 10 scans. 0 = an agreement never goes stale.
+    confirm_within: int = 50
     # Loss detection beyond the paper's std rule: while localized, a scan fitting the map poorly
     # (inlier share below min_inlier_share) for this many scans in a row, with no whole-map match
     # agreeing with the estimate meanwhile, is a loss (re-initialise). 0 = only the std rule.
@@ -306,6 +311,7 @@ class Config:
             (self.localize.confirm_distance > 0, "localize.confirm_distance must be > 0"),
             (0 < self.localize.confirm_yaw <= math.pi, "localize.confirm_yaw must be in (0, π]"),
             (self.localize.lost_after_scans >= 0, "localize.lost_after_scans must be ≥ 0 (0 = off)"),
+            (self.localize.confirm_within >= 0, "localize.confirm_within must be ≥ 0 (0 = never stale)"),
             (1 <= self.s2m.n_s2m <= 50, "s2m.n_s2m must be in 1..50 (the odometry keeps 100 scans)"),
             (self.seed >= 0 and self.town.seed >= 0, "seeds must be ≥ 0"),
             (self.localize.std_threshold > 0, "localize.std_threshold must be > 0"),

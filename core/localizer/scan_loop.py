@@ -455,7 +455,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         step_dist, yaw_odom = self.odometry.motion(k)
         for j, words in self.odometry.take_notices():  # KISS-ICP's child restarted (feed.py)
             self._event(j, "restarted", f"RPE: {words}")
-        confirmed = self.integrity.confirmed_since if self.integrity.required else None
+        confirmed = (lambda k0: self.integrity.confirmed_since(k0, k)) if self.integrity.required else None
         outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom, confirmed)
         reinit = relocalized
         if outcome.event is not None:
@@ -473,7 +473,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self._event(k, "loss", lost)
             self.rules.reset()
         elif not outcome.reinit and self.rules.localized:
-            undecided = self.integrity.undecided_doubt(k)
+            undecided = self.integrity.undecided_doubt(k) or self.integrity.stale_word(k)
             if undecided is not None and self._withdraw(k, undecided):
                 est = self.pf.estimate()  # tracking mode ended: the full filter's particles
                 n_weighed = self.pf.n

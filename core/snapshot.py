@@ -28,7 +28,8 @@ class Event:
     kind: str  # "localized", "false_positive", "loss", "relocalized", "false_fire", "reset",
     # "kidnap", "tracking", "confidence_low", "unconfirmed" (localized withdrawn: S2M no
     # longer confirms the estimate), "s2m_started", "s2m_accepted",
-    # "s2m_rejected", "s2m_cancelled", "s2m_ready", "error" (see EVENT_KINDS)
+    # "s2m_rejected", "s2m_cancelled", "s2m_agrees" (real time: a match agreed with the estimate
+    # before it could land), "s2m_ready", "restarted", "error"
     detail: str = ""
 
 

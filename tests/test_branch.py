@@ -383,3 +383,25 @@ def test_catching_up_after_a_checkpoint_registers_only_the_scans_after_its_newes
         assert read == [12, 13]
         for k in (12, 13):
             feed.wait_registered(k)
+
+
+def test_a_replay_hears_an_early_agreement_where_the_recorded_run_did():
+    """Real time: a match that agreed with the estimate before it could land (an ``s2m_agrees``
+    event) is heard at the same scan in a replay of the recording, if that step is replayed with
+    the recorded timing."""
+    from types import SimpleNamespace
+
+    from lidarloc.core.runs.branch import RecordedMatches
+    from lidarloc.core.snapshot import Event
+
+    agrees = "agrees with the estimate before it lands; the odometry is at scan 40"
+    events = [
+        (41, Event(41, "s2m_started", "particle 3")),
+        (44, Event(44, "s2m_agrees", f"started 41: {agrees}")),
+        (61, Event(61, "s2m_agrees", f"started 60: {agrees}")),
+    ]
+    rec = SimpleNamespace(n=80, field_names=[], events=events)
+    matches = RecordedMatches(rec)
+    assert matches.agreed_early_scan(41) == 44 and matches.agreed_early_scan(60) == 61
+    assert matches.agreed_early_scan(50) is None
+    assert RecordedMatches(rec, timing_until=50).agreed_early_scan(60) is None  # after the recorded timing

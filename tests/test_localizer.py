@@ -519,6 +519,45 @@ def test_wait_ready_reports_a_failed_set_up(town, cache_root, tmp_path):
             loc.s2m.matcher = good
 
 
+def test_a_finished_match_that_must_wait_to_land_reports_its_agreement_at_once():
+    """Real time: a finished match whose scan's odometry is too far behind to land still says at
+    once (its verdict, an ``s2m_agrees`` event) that the estimate it started from was right, once
+    per match; a far pose says nothing until it lands."""
+    from concurrent.futures import Future
+    from types import SimpleNamespace
+
+    from lidarloc.core.geometry import pose_matrix
+    from lidarloc.core.matching.schedule import S2MJob, S2MScheduler
+
+    events = []
+    sched = SimpleNamespace(cfg=Config(), verdict=None)
+    sched._event = lambda k, kind, detail: events.append((k, kind, detail))
+    sched._judge = lambda job, outcome: S2MScheduler._judge(sched, job, outcome)
+    odometry = SimpleNamespace(newest_registered=lambda: 12)
+
+    def job_for(x):
+        future = Future()
+        future.set_result(
+            SimpleNamespace(
+                accepted=True, pose=pose_matrix(x, 0, 0, 0, 0, 0), score=300.0, start_score=200.0, match=None
+            )
+        )
+        return S2MJob(10, 3, 0, np.eye(4), future, estimate_pose=np.eye(4))
+
+    near = job_for(0.5)
+    S2MScheduler._agree_early(sched, 20, near, odometry)
+    assert sched.verdict.kind == "agrees" and near.agreed_early
+    assert events == [
+        (20, "s2m_agrees", "started 10: agrees with the estimate before it lands; the odometry is at scan 12")
+    ]
+    sched.verdict = None
+    S2MScheduler._agree_early(sched, 21, near, odometry)  # once per match
+    assert sched.verdict is None and len(events) == 1
+    far = job_for(30.0)
+    S2MScheduler._agree_early(sched, 22, far, odometry)
+    assert sched.verdict is None and not far.agreed_early and len(events) == 1
+
+
 def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
     """Real time: the time a finished match waits for its scan's odometry, before and after
     REALTIME_LAND_MAX_DEFERRALS tries, is cut to what is left before ``land_by`` (none once it

@@ -6,8 +6,8 @@ it), its KISS-ICP child process stopped (SIGSTOP) ``P`` ms of every 100 ms and l
 (SIGCONT): a machine whose other work takes that share of the odometry's core. Finished scan-to-map
 matches then wait for the odometry to land, the filter goes uncorrected, and a drift must not
 stay green. Per run: scans green while more than 5 m off, false fires, withdrawals, losses, RMSE
-after localization, matches landed and accepted, the odometry's lag behind the current scan
-(median, 90th percentile, max) and late scans.
+after localization, matches landed, accepted and agreeing before they could land, the odometry's
+lag behind the current scan (median, 90th percentile, max) and late scans.
 """
 
 from __future__ import annotations
@@ -111,6 +111,7 @@ KEYS = (
     "rmse_after_localized_m",
     "s2m_landed",
     "s2m_accepted",
+    "s2m_agreed_early",
     "late_scans",
     "max_lag_ms",
 )

@@ -12,7 +12,9 @@ particle's log-likelihood: see :func:`~.landing.write_unless_weight_drops`).
 (see :meth:`S2MScheduler._landing_scan`).
 
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
-``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land).
+``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land). In real time a
+finished match that agrees with the estimate but must wait for the odometry to land says so at
+once with an ``s2m_agrees`` event (:meth:`S2MScheduler._agree_early`), before its landing.
 
 A dead S2M child (killed, out of memory) is found at the start of the next step
 (:meth:`S2MScheduler.check_matcher`) or by the landing of the match it was running, whichever
@@ -103,6 +105,7 @@ class S2MJob:
     level: bool = False  # whether the start's z, pitch and roll are ignored (see s2m.match_local)
     estimate_pose: np.ndarray | None = None  # the filter's estimate at k₀, 4×4: what the match is
     # judged against (core/rules/integrity.py)
+    agreed_early: bool = False  # real time: its agreement was reported before it could land
 
 
 class S2MScheduler(MatcherMixin):
@@ -262,6 +265,7 @@ class S2MScheduler(MatcherMixin):
             # real time: the recorded run landed it at a scan its timing chose; so does the replay
             done.landing = getattr(self.recorded, "landing_scan", lambda k0: None)(k)
             done.through = getattr(self.recorded, "landing_through", lambda k0: None)(k)
+            done.agreed_at = getattr(self.recorded, "agreed_early_scan", lambda k0: None)(k)
             return done
         if callable(scan):
             scan = scan()
@@ -374,6 +378,8 @@ class S2MScheduler(MatcherMixin):
                 return None
         elif planned is not None:
             if k < planned:
+                if k == getattr(job.future, "agreed_at", None):  # where the recorded run heard it
+                    self._agree_early(k, job, odometry)
                 return None
             recorded_through = getattr(job.future, "through", None)  # as the recorded run carried it
             through = k if recorded_through is None else int(recorded_through)
@@ -381,8 +387,9 @@ class S2MScheduler(MatcherMixin):
             return None  # real time: land at a scan after the match finished
         else:
             through = self._landing_scan(job, k, odometry, land_by)
-            if through is None:
-                return None  # its odometry is behind: try again at the next scan (see there)
+            if through is None:  # its odometry is behind: try again at the next scan (see there) …
+                self._agree_early(k, job, odometry)  # … but an agreement needs no odometry
+                return None
         self.job = None
         what = f"the S2M match started at scan {job.started_at}"
         try:
@@ -396,28 +403,7 @@ class S2MScheduler(MatcherMixin):
         accepted = bool(outcome.accepted)
         pose_k = outcome.pose
         reason = outcome.reason
-        # A search that nothing in its region beat: the start itself is the best place the
-        # matcher sees there (its word on the estimate, see core/rules/integrity.py).
-        match = getattr(outcome, "match", None)
-        unbeaten = (
-            not accepted
-            and match is not None
-            and not np.isfinite(getattr(match, "x", 0.0))
-            and np.isfinite(outcome.start_score)
-        )
-        # Judged at scan k₀, against the estimate the filter had then: independent of the match
-        # (after the landing the particle it is written into would agree with itself), and no
-        # odometry is needed to judge a rejection.
-        verdict = judge(
-            job.mode,
-            accepted,
-            unbeaten,
-            outcome.pose,
-            job.estimate_pose,
-            float(outcome.score),
-            float(outcome.start_score),
-            self.cfg,
-        )
+        verdict = self._judge(job, outcome)
         if accepted:
             # Carry the match for scan k₀ forward to scan k with the RPE relative pose (through
             # the newest registered scan, and on at its last motion, if scan k's is not done).
@@ -481,6 +467,49 @@ class S2MScheduler(MatcherMixin):
         )
         self.last = landed_view(job, k, outcome, accepted, pose_k, reason, through)
         return float(outcome.ms)
+
+    def _judge(self, job: S2MJob, outcome) -> Verdict:
+        """The match's word on the estimate, judged at scan k₀ against the estimate the filter had
+        then: independent of the match (after the landing the particle it is written into would
+        agree with itself), and no odometry is needed to judge it."""
+        accepted = bool(outcome.accepted)
+        # A search that nothing in its region beat: the start itself is the best place the
+        # matcher sees there (its word on the estimate, see core/rules/integrity.py).
+        match = getattr(outcome, "match", None)
+        unbeaten = (
+            not accepted
+            and match is not None
+            and not np.isfinite(getattr(match, "x", 0.0))
+            and np.isfinite(outcome.start_score)
+        )
+        return judge(
+            job.mode,
+            accepted,
+            unbeaten,
+            outcome.pose,
+            job.estimate_pose,
+            float(outcome.score),
+            float(outcome.start_score),
+            self.cfg,
+        )
+
+    def _agree_early(self, k: int, job: S2MJob, odometry: OdometryFeed) -> None:
+        """Real time: a finished match waiting for the odometry to land may already say that the
+        estimate it started from was right (its verdict needs no odometry). An agreement is reported
+        at once as this step's :attr:`verdict` and an ``s2m_agrees`` event, once per match; any other
+        verdict waits for the landing (a far pose is of use only carried to the current scan). Under
+        a KISS-ICP behind the clock, matches that agreed but could not land for 50 scans made the
+        estimate's confirmation go stale (core/rules/integrity.py) while the filter was right."""
+        if job.agreed_early or job.future.exception() is not None:
+            return
+        verdict = self._judge(job, job.future.result())
+        if verdict.kind != "agrees":
+            return
+        job.agreed_early = True
+        self.verdict = verdict
+        newest = odometry.newest_registered()
+        behind = "" if newest is None else f"; the odometry is at scan {newest}"
+        self._event(k, "s2m_agrees", f"started {job.started_at}: agrees with the estimate before it lands{behind}")
 
     def _landing_scan(self, job: S2MJob, k: int, odometry: OdometryFeed, land_by: float | None = None) -> int | None:
         """Real time: the scan whose odometry carries a finished match forward to scan k (k

@@ -285,6 +285,7 @@ class RecordedMatches:
         started = rec.field("s2m_landed_started") if "s2m_landed_started" in rec.field_names else np.zeros(0)
         self.rows = {int(s): i for i, s in enumerate(started) if s >= 0}
         self.reused = 0
+        self._agreed: dict[int, int] | None = None  # match start → the scan it agreed early at
 
     def landing_scan(self, started_at: int) -> int | None:
         """The scan at which the replay lands the match started at ``started_at`` (real time): the
@@ -308,6 +309,19 @@ class RecordedMatches:
             return None
         view = self.rec.s2m(row)
         return None if view is None else view.carried_through
+
+    def agreed_early_scan(self, started_at: int) -> int | None:
+        """The scan at which the recorded run heard the match started at ``started_at`` agree with
+        the estimate before it could land (an ``s2m_agrees`` event, real time), if that was in a
+        step up to ``timing_until``; None: it did not."""
+        if self._agreed is None:
+            self._agreed = {}
+            for step, ev in self.rec.events:
+                if ev.kind == "s2m_agrees" and 0 <= step <= self.timing_until:
+                    k0 = ev.detail.split(":", 1)[0].removeprefix("started ")
+                    if k0.isdigit():
+                        self._agreed.setdefault(int(k0), int(ev.scan))
+        return self._agreed.get(int(started_at))
 
     def __call__(self, started_at: int, start_pose, cfg, level: bool):
         from .resume import recorded_outcome

@@ -233,6 +233,7 @@ def summarize_run(
         "s2m_landed": kinds.count("s2m_accepted") + kinds.count("s2m_rejected"),
         "s2m_accepted": kinds.count("s2m_accepted"),
         "s2m_cancelled": kinds.count("s2m_cancelled"),
+        "s2m_agreed_early": kinds.count("s2m_agrees"),  # real time: agreed before the odometry let it land
         "false_positives": kinds.count("false_positive"),
         "losses": kinds.count("loss"),
         **integrity_summary(loc.events, recs),

@@ -5,7 +5,7 @@ The paper's localization rule reads only the particle filter's spread: a filter 
 a look-alike street meets it as well as one that converged on the truth. With S2M late (its
 tables still being built, a busy machine, a child process restarting) the rule fired on the
 particle filter alone, and once "localized" the S2M matches searched only ±(L_x, L_y) around the
-wrong place. Three checks close that gap:
+wrong place. These checks close that gap:
 
 - **Confirmation** (``localize.require_s2m_confirmation``): the rule fires only once an S2M match
   has *agreed* with the estimate during the rule's window: its pose, carried forward to the

@@ -146,7 +146,7 @@ def one_run(out: Path, seed: int, pause_ms: float, scans: int | None, cache_root
     return row
 
 
-def run(out: Path, pause_ms: float = 50.0, runs: int = 3, scans: int | None = None, cache_root=None) -> dict:
+def run(out: Path, pause_ms: float = 30.0, runs: int = 3, scans: int | None = None, cache_root=None) -> dict:
     if not 0.0 <= pause_ms < PERIOD_S * 1000.0:
         raise LidarlocError(f"--pause-ms must be in [0, {PERIOD_S * 1000:.0f}) (got {pause_ms:g})")
     load_start = load_avg()

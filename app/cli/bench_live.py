@@ -157,7 +157,7 @@ def bench_odometry_lag(
         typer.Option(
             "--pause-ms", min=0.0, help="How long the KISS-ICP child is stopped in every 100 ms (0: not at all)."
         ),
-    ] = 50.0,
+    ] = 30.0,
     runs: Annotated[int, typer.Option("--runs", min=1, help="Runs (seeds 0…N−1).")] = 3,
     scans: Annotated[int | None, typer.Option("--scans", min=10, help="Scans of the built-in town per run.")] = None,
     out: Annotated[Path, typer.Option("--out", help="Folder for the runs.")] = Path("out/bench-odometry-lag"),

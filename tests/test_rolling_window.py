@@ -179,8 +179,12 @@ def test_a_kept_step_branches_and_a_dropped_one_says_why(rolled, cache_root):
 
     first = rolled.trace[-1]["first"]
     kept = recording.segments.continuation_folders(rolled.run_dir / "recording")
-    assert len(kept) >= 3 and kept[0].name == f"{first:09d}"
-    assert all((folder / "resume" / "000000-checkpoint.npz").is_file() for folder in kept)
+    # a segment opens as soon as the one before is full: if the run ended right there, the last
+    # one holds no step (readers skip it), and so no checkpoint either
+    holding = [folder for folder in kept if (folder / recording.segments.STEPS).stat().st_size > 0]
+    assert holding == kept[: len(holding)] and len(kept) - len(holding) <= 1
+    assert len(holding) >= 3 and holding[0].name == f"{first:09d}"
+    assert all((folder / "resume" / "000000-checkpoint.npz").is_file() for folder in holding)
     with pytest.raises(LidarlocError, match=f"step {first - 1} was dropped by the recording budget"):
         open_branch(rolled.run_dir, first - 1, seq=rolled.seq, cache_root=cache_root)
     at = first + 2

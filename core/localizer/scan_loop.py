@@ -461,7 +461,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         if outcome.event is not None:
             detail = f"max std {float(np.max(est.std_xyz)):.1f} m"
             if outcome.event == "localized" and self.integrity.required:
-                detail += f", confirmed by the S2M match landed at scan {self.integrity.confirmed_at}"
+                detail += f", confirmed by the S2M match that agreed at scan {self.integrity.confirmed_at}"
             self._event(k, outcome.event, detail)
         if outcome.event == "localized":
             self.integrity.on_localized(k)

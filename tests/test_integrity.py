@@ -3,6 +3,7 @@ loss detection from the scan's fit (core/rules/integrity.py), and how a run repo
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -298,17 +299,23 @@ def test_a_late_s2m_holds_the_rule_back_and_the_filter_recovers_once_it_joins(ca
     assert snaps[onset].confirmed_at is not None and snaps[onset].confirmed_at >= 40
 
 
+@contextlib.contextmanager
+def _localized_at_40(cache_root, *overrides):
+    """The short town's first 70 scans (recorded odometry), played to scan 40, localized there."""
+    cfg = load_config(overrides=["localize.recorded_odometry=true", *overrides])
+    with Localizer(short_town(70), cfg, cache_root) as loc:
+        while loc.k < 40:
+            loc.step()
+        assert loc.rules.localized
+        yield loc
+
+
 @pytest.mark.slow
 def test_an_estimate_moved_unannounced_is_noticed_and_relocalized(cache_root):
     """Once localized, every particle moved 60 m without telling the filter: it is green and wrong
     for a few scans (a false_fire event and the truth alarm say so), then the poor fit asks for the
     whole-map check, which moves the filter back (a relocalized event with both scores)."""
-    seq = short_town(70)
-    cfg = load_config(overrides=["localize.recorded_odometry=true"])
-    with Localizer(seq, cfg, cache_root) as loc:
-        while loc.k < 40:
-            loc.step()
-        assert loc.rules.localized
+    with _localized_at_40(cache_root) as loc:
         loc.move_estimate(0.0, 60.0)
         snaps = [loc.step() for _ in range(30)]
         events = list(loc.events)
@@ -326,12 +333,7 @@ def test_an_estimate_moved_while_s2m_cannot_answer_is_withdrawn_within_the_undec
     """Once localized, S2M switched off and every particle moved 60 m: no match can decide the
     poor fit, and "localized" is withdrawn after WITHDRAW_AFTER_POOR_FIT_SCANS scans (an
     ``unconfirmed`` event), not left green until the loss 30 scans on."""
-    seq = short_town(70)
-    cfg = load_config(overrides=["localize.recorded_odometry=true"])
-    with Localizer(seq, cfg, cache_root) as loc:
-        while loc.k < 40:
-            loc.step()
-        assert loc.rules.localized
+    with _localized_at_40(cache_root) as loc:
         loc.set_params(s2m_enabled=False)
         loc.move_estimate(0.0, 60.0)
         snaps = [loc.step() for _ in range(20)]
@@ -350,12 +352,7 @@ def test_localized_is_withdrawn_when_s2m_has_said_nothing_for_confirm_within_sca
     """Once localized, S2M switched off (nothing moved, the estimate stays right): after
     ``localize.confirm_within`` scans without an agreement "localized" is withdrawn, and the filter
     says "PF only" as before localization."""
-    seq = short_town(70)
-    cfg = load_config(overrides=["localize.recorded_odometry=true", "localize.confirm_within=12"])
-    with Localizer(seq, cfg, cache_root) as loc:
-        while loc.k < 40:
-            loc.step()
-        assert loc.rules.localized
+    with _localized_at_40(cache_root, "localize.confirm_within=12") as loc:
         last = loc.integrity.confirmed_at
         loc.set_params(s2m_enabled=False)
         snaps = [loc.step() for _ in range(20)]

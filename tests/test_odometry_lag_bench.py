@@ -49,6 +49,7 @@ def test_a_short_run_behind_a_paused_odometry_reports_its_figures(tmp_path):
     result = run(tmp_path, pause_ms=30.0, runs=1, scans=40)
     (row,) = result["runs"]
     assert row["seed"] == 0 and row["lag_scans_max"] is not None and row["lag_scans_max"] >= 0
+    assert row["pauses"] > 0  # the KISS-ICP child was found and paused
     assert isinstance(row["localized_wrong_scans"], int) and row["late_scans"] is not None
     assert result["localized_wrong_scans"] == row["localized_wrong_scans"]
     assert (tmp_path / "run-0" / "summary.json").exists()

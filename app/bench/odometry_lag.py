@@ -140,15 +140,20 @@ def one_run(out: Path, seed: int, pause_ms: float, scans: int | None, cache_root
     if code != 0:
         last = (out / "run.err").read_text(errors="replace").strip().splitlines()[-1:] or ["no message"]
         raise LidarlocError(f"the run with seed {seed} failed (exit {code}): {last[0]}")
+    pauses = 0 if pauser is None else pauser.pauses
+    if pause_ms > 0 and pauses == 0:
+        raise LidarlocError(f"the run with seed {seed}: its KISS-ICP child was never found to pause")
     summary = json.loads((out / "summary.json").read_text())
     row = {key: summary.get(key) for key in KEYS}
-    row.update(_lag(out), seed=seed)
+    row.update(_lag(out), seed=seed, pauses=pauses)
     return row
 
 
 def run(out: Path, pause_ms: float = 30.0, runs: int = 3, scans: int | None = None, cache_root=None) -> dict:
     if not 0.0 <= pause_ms < PERIOD_S * 1000.0:
         raise LidarlocError(f"--pause-ms must be in [0, {PERIOD_S * 1000:.0f}) (got {pause_ms:g})")
+    if pause_ms > 0 and not Path("/proc").is_dir():
+        raise LidarlocError("bench odometry-lag finds the KISS-ICP child in /proc (Linux only)")
     load_start = load_avg()
     t0 = time.perf_counter()
     rows = [one_run(Path(out) / f"run-{seed}", seed, pause_ms, scans, cache_root) for seed in range(runs)]

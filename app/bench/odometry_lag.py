@@ -32,18 +32,17 @@ ODOMETRY_CHILD = "lidarloc.core.odometry.worker"  # the KISS-ICP child's module 
 
 def odometry_child(parent: int) -> int | None:
     """The pid of ``parent``'s KISS-ICP child process, or None (not started yet, or gone)."""
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
+    import psutil
+
+    try:
+        children = psutil.Process(parent).children()
+    except psutil.Error:  # the run ended
+        return None
+    for child in children:
         try:
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            if ppid != parent:
-                continue
-            with open(f"/proc/{entry}/cmdline", "rb") as f:
-                if ODOMETRY_CHILD in f.read().decode(errors="replace"):
-                    return int(entry)
-        except (OSError, ValueError, IndexError):
+            if ODOMETRY_CHILD in child.cmdline():
+                return child.pid
+        except psutil.Error:  # ended meanwhile
             continue
     return None
 
@@ -152,8 +151,8 @@ def one_run(out: Path, seed: int, pause_ms: float, scans: int | None, cache_root
 def run(out: Path, pause_ms: float = 30.0, runs: int = 3, scans: int | None = None, cache_root=None) -> dict:
     if not 0.0 <= pause_ms < PERIOD_S * 1000.0:
         raise LidarlocError(f"--pause-ms must be in [0, {PERIOD_S * 1000:.0f}) (got {pause_ms:g})")
-    if pause_ms > 0 and not Path("/proc").is_dir():
-        raise LidarlocError("bench odometry-lag finds the KISS-ICP child in /proc (Linux only)")
+    if pause_ms > 0 and not hasattr(signal, "SIGSTOP"):
+        raise LidarlocError("bench odometry-lag pauses the KISS-ICP child with SIGSTOP (POSIX only)")
     load_start = load_avg()
     t0 = time.perf_counter()
     rows = [one_run(Path(out) / f"run-{seed}", seed, pause_ms, scans, cache_root) for seed in range(runs)]

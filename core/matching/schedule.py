@@ -89,6 +89,18 @@ REALTIME_LAND_FORCE_AFTER = 100
 REALTIME_LAND_AHEAD_SCANS = 5
 
 
+def early_agreement_detail(started_at: int, newest: int | None) -> str:
+    """An ``s2m_agrees`` event's detail; :func:`early_agreement_start` reads the match's start back."""
+    behind = "" if newest is None else f"; the odometry is at scan {newest}"
+    return f"started {started_at}: agrees with the estimate before it lands{behind}"
+
+
+def early_agreement_start(detail: str) -> int | None:
+    """The start scan of the match an ``s2m_agrees`` event's detail names (None: not one)."""
+    k0 = detail.split(":", 1)[0].removeprefix("started ")
+    return int(k0) if k0.isdigit() else None
+
+
 @dataclass
 class S2MJob:
     """The match in flight."""
@@ -507,9 +519,7 @@ class S2MScheduler(MatcherMixin):
             return
         job.agreed_early = True
         self.verdict = verdict
-        newest = odometry.newest_registered()
-        behind = "" if newest is None else f"; the odometry is at scan {newest}"
-        self._event(k, "s2m_agrees", f"started {job.started_at}: agrees with the estimate before it lands{behind}")
+        self._event(k, "s2m_agrees", early_agreement_detail(job.started_at, odometry.newest_registered()))
 
     def _landing_scan(self, job: S2MJob, k: int, odometry: OdometryFeed, land_by: float | None = None) -> int | None:
         """Real time: the scan whose odometry carries a finished match forward to scan k (k

@@ -230,14 +230,18 @@ class Integrity:
         within the last ``localize.confirm_within`` scans)."""
         if self.confirmed_at is None or k0 is None or self.confirmed_at < k0:
             return False
+        return k is None or not self._stale(k)
+
+    def _stale(self, k: int) -> bool:
+        """Whether the last agreement is more than ``localize.confirm_within`` scans old at scan k
+        (never with 0; there must have been one)."""
         within = self.cfg.localize.confirm_within
-        return k is None or within <= 0 or k - self.confirmed_at <= within
+        return within > 0 and self.confirmed_at is not None and k - self.confirmed_at > within
 
     def stale_word(self, k: int) -> str | None:
         """Why "localized" is withdrawn at scan k because no S2M match has agreed with the
         estimate for ``localize.confirm_within`` scans (module docstring), or None."""
-        within = self.cfg.localize.confirm_within
-        if not self.required or within <= 0 or self.confirmed_at is None or k - self.confirmed_at <= within:
+        if not self.required or not self._stale(k):
             return None
         return f"no S2M match has agreed with the estimate for {k - self.confirmed_at} scans (since scan {self.confirmed_at})"
 

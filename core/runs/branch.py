@@ -315,12 +315,14 @@ class RecordedMatches:
         the estimate before it could land (an ``s2m_agrees`` event, real time), if that was in a
         step up to ``timing_until``; None: it did not."""
         if self._agreed is None:
+            from ..matching.schedule import early_agreement_start
+
             self._agreed = {}
             for step, ev in self.rec.events:
                 if ev.kind == "s2m_agrees" and 0 <= step <= self.timing_until:
-                    k0 = ev.detail.split(":", 1)[0].removeprefix("started ")
-                    if k0.isdigit():
-                        self._agreed.setdefault(int(k0), int(ev.scan))
+                    k0 = early_agreement_start(ev.detail)
+                    if k0 is not None:
+                        self._agreed.setdefault(k0, int(ev.scan))
         return self._agreed.get(int(started_at))
 
     def __call__(self, started_at: int, start_pose, cfg, level: bool):

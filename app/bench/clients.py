@@ -26,6 +26,11 @@ tabs instead (:class:`SocketTab`: everything the server sends, read and not draw
 browser on the machine, the phases show what serving the tabs costs the viewer itself
 (``cpu_pct`` per phase: this process's CPU, every thread).
 
+The viewer lets new websocket connections in at a bounded rate (:mod:`lidarloc.app.viewer.pacing`):
+the tab that connects and disconnects as fast as it can is held in its opening handshake beyond
+that rate, as any client in such a loop would be; ``connections_paced`` and
+``connections_refused`` say how often.
+
 The websocket clients (those tabs, the one that connects and disconnects, the slow one) live in a
 process of their own (:class:`TabHost`, at the tabs' priority), never in the viewer's: reading
 and parsing everything the server sends, or connecting hundreds of times a minute, is the
@@ -67,14 +72,19 @@ TAB_PRIORITIES = ("idle", "normal")
 TAB_KINDS = ("chromium", "socket")
 
 
+def check_tab_priority(priority: str) -> None:
+    """Refuse a tab priority the benchmark does not know, naming those it does."""
+    if priority not in TAB_PRIORITIES:
+        raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {priority!r}")
+
+
 @contextlib.contextmanager
 def chromium_at(priority: str):
     """The Chromium executable to launch at ``priority``: ``normal`` is Chromium itself; ``idle``
     a wrapper that starts it under ``chrt --idle 0`` (every process it starts inherits the
     policy: a scheduling policy, unlike a nice value, is not undone by Chromium raising its GPU
     process's priority)."""
-    if priority not in TAB_PRIORITIES:
-        raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {priority!r}")
+    check_tab_priority(priority)
     if priority == "normal":
         yield CHROMIUM
         return
@@ -162,8 +172,7 @@ class TabHost:
     process nothing (the module docstring says why). ``open()`` returns a :class:`HostedTab`."""
 
     def __init__(self, port: int, priority: str = "idle", reply_timeout_s: float = 60.0):
-        if priority not in TAB_PRIORITIES:
-            raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {priority!r}")
+        check_tab_priority(priority)
         ctx = multiprocessing.get_context("spawn")  # spawn: the viewer's process runs threads
         self._conn, theirs = ctx.Pipe()
         self._lock = threading.Lock()  # one request at a time on the pipe
@@ -403,8 +412,7 @@ def run(
 
     if tab_kind not in TAB_KINDS:
         raise ValueError(f"tab kind {tab_kind!r} is not one of {', '.join(TAB_KINDS)}")
-    if tab_priority not in TAB_PRIORITIES:
-        raise ValueError(f"tab priority must be one of {', '.join(TAB_PRIORITIES)}; got {tab_priority!r}")
+    check_tab_priority(tab_priority)
     if tab_kind == "chromium" and not CHROMIUM.exists():
         raise RuntimeError("bench clients needs /usr/bin/chromium (apt-get install -y chromium)")
     with contextlib.redirect_stdout(sys.stderr):  # viser's banner: stdout carries --json
@@ -478,6 +486,7 @@ def run(
     finally:
         with contextlib.redirect_stdout(sys.stderr):  # viser's "Server stopped": stdout carries --json
             handle.stop()
+    pacer = handle.server.lidarloc_pacer
     base = phases[0]["scans_per_s"]
     late_with_tabs = sum(p["late_scans"] for p in phases[1:])
     return {
@@ -504,6 +513,10 @@ def run(
         "rss_mb_first_half_of_connections": churn_stats.get("rss_mb_first_half"),
         "rss_mb_second_half_of_connections": churn_stats.get("rss_mb_second_half"),
         "rss_mb_per_browser_connection": round(browser_growth / connects, 2) if connects else None,
+        # the server's pacing of new websocket connections (app/viewer/pacing.py), over the run
+        "connections_admitted": pacer.admitted,
+        "connections_paced": pacer.delayed,
+        "connections_refused": pacer.refused,
         "targets": {"update_ms_median": 20.0, "rss_mb_per_connection": 0.0},
         "load_average_1min": round(load_avg(), 2),
         "machine": machine(),

@@ -80,6 +80,7 @@ def scrub(
     import viser
 
     from ..viewer.app import Viewer
+    from ..viewer.loop_wakeups import install as install_loop_wakeups
     from ..viewer.runs import load_run, show_runs
     from .viewer import _DrainingClient
 
@@ -101,6 +102,7 @@ def scrub(
         run, context = load_run(run_dir, cache_root)
         open_s = time.perf_counter() - t0
         # viser prints its banner and "Server stopped" on stdout, which carries only the result
+        install_loop_wakeups()  # as the viewer's own server (app/viewer/token_gate.py)
         with contextlib.redirect_stdout(sys.stderr):
             server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
             client = None

@@ -149,7 +149,9 @@ def _measure(rng, n_updates: int, n_particles: int, n_scan: int, map_points: int
     import viser
 
     from ..viewer.app import Viewer
+    from ..viewer.loop_wakeups import install
 
+    install()  # as the viewer's own server (app/viewer/token_gate.py)
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     client = None
     try:

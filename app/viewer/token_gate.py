@@ -13,12 +13,16 @@ thread's "ready"), so every ``serve`` call of a server happens while its constru
 that time only, :func:`start_server` replaces ``websockets.asyncio.server.serve`` with a function
 that puts :func:`_gate` in front of viser's ``process_request`` (the one place websockets lets a
 server answer the opening request of an HTTP page and of a websocket alike), and restores it
-afterwards. A module lock keeps two gated starts from overlapping. Should a later viser no
+afterwards. A module lock keeps two starts from overlapping. Should a later viser no
 longer call ``serve`` that way, the new server is stopped and :func:`start_server` raises: the
 viewer never serves without the gate it was asked for.
 
-While a gated server starts, any other ``websockets.asyncio.server.serve`` call in the process
-would be gated too; lidarloc starts no other websockets server meanwhile.
+The same hook paces new websocket connections, with or without a token
+(:mod:`lidarloc.app.viewer.pacing`: a client reconnecting in a loop cannot take the filter's
+CPU); without a token a viser that no longer calls ``serve`` that way serves unpaced.
+
+While a server starts, any other ``websockets.asyncio.server.serve`` call in the process
+would be hooked too; lidarloc starts no other websockets server meanwhile.
 """
 
 from __future__ import annotations
@@ -139,20 +143,28 @@ def _gate(token: str, delegate: Callable[..., Any] | None) -> Callable[..., Any]
 
 def start_server(token: str | None, **kwargs: Any) -> viser.ViserServer:
     """``viser.ViserServer(**kwargs)``, behind the token gate when ``token`` is given (see the
-    module's docstring). LidarlocError if the gate could not be put in place."""
+    module's docstring), its new websocket connections paced (its ``lidarloc_pacer``, a
+    :class:`~lidarloc.app.viewer.pacing.ConnectionPacer`, counts them). LidarlocError if the gate
+    could not be put in place."""
     import viser  # here, not at the top: the command line reads tokens without loading viser
     import websockets.asyncio.server as ws_server
 
-    if token is None:
-        return viser.ViserServer(**kwargs)
-    if resolve_token(token) != token:  # checks it; "auto" must be resolved by the caller, who prints it
+    from .loop_wakeups import install
+    from .pacing import ConnectionPacer
+
+    install()  # the buffers of the server made below wake their readers on its loop only
+    if token is not None and resolve_token(token) != token:  # "auto" must be resolved by the caller, who prints it
         raise ValueError("start_server needs the token itself, not auto")
+    pacer = ConnectionPacer()
     with _starting:
         original = ws_server.serve
         gated = []
 
         def serve(*args: Any, **serve_kwargs: Any) -> Any:
-            serve_kwargs["process_request"] = _gate(token, serve_kwargs.get("process_request"))
+            hook = serve_kwargs.get("process_request")
+            if token is not None:
+                hook = _gate(token, hook)
+            serve_kwargs["process_request"] = pacer.in_front_of(hook)
             gated.append(True)
             return original(*args, **serve_kwargs)
 
@@ -160,11 +172,12 @@ def start_server(token: str | None, **kwargs: Any) -> viser.ViserServer:
         try:
             # viser's banner names the address without the token, a link that leads only to the
             # refusal: the caller prints the URL with the token instead
-            with contextlib.redirect_stdout(io.StringIO()):
+            with contextlib.redirect_stdout(io.StringIO()) if token is not None else contextlib.nullcontext():
                 server = viser.ViserServer(**kwargs)
         finally:
             ws_server.serve = original
-    if not gated:
+    server.lidarloc_pacer = pacer  # what it admitted, delayed and refused (benchmarks read it)
+    if not gated and token is not None:
         server.stop()
         raise LidarlocError(
             f"--token: viser {viser.__version__} no longer starts its server through "

@@ -134,6 +134,18 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
     assert seconds[2] >= 9.0 and max(seconds[:2] + seconds[3:]) < 9.0, seconds
     assert r["connections"] >= 10 and r["rss_mb_per_connection"] is not None, r
     assert all(p["cpu_pct"] > 0 and p["scans_per_s"] > 0 for p in r["phases"]), r["phases"]
+    # where the CPU went: the clients' process works while the tab churns (it is none of the
+    # localizer's children, which register scans in every phase), and the machine is busier than
+    # the viewer's process alone
+    import os
+
+    churn = r["phases"][2]
+    assert churn["clients_cpu_pct"] > 0, churn
+    assert all(p["localizer_children_cpu_pct"] > 0 for p in r["phases"]), r["phases"]
+    assert all(p["cpu_pct"] * 0.5 < p["machine_busy_pct"] <= 100.0 * os.cpu_count() + 5 for p in r["phases"]), r[
+        "phases"
+    ]
+    assert r["connections_admitted"] >= r["connections"] and r["connections_refused"] == 0, r
     assert r["rss_mb_per_browser_connection"] is None  # no browser tab came and went
     with pytest.raises(ValueError, match="tab kind"):
         clients.run(loc, tab_kind="firefox")

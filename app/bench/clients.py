@@ -8,7 +8,10 @@ browser tab makes a few); the five and a slow client (a websocket that reads one
 second). Per phase: the filter's scans per second and late
 scans (the player's counts), the server-side display update (median, p95 ms: the whole
 ``update_display`` on the display thread, for the updates that drew a new snapshot), this
-process's RSS. ``rss_mb_per_connection`` is the slope of the RSS against the websocket tab's
+process's RSS, and where the CPU went (% of one core): this process, the localizer's child
+processes, the clients (browsers, Playwright's driver, the websocket tabs' process; processes that
+ended within the phase are not counted), and the whole machine (``machine_busy_pct``, 200 on two
+busy cores). ``rss_mb_per_connection`` is the slope of the RSS against the websocket tab's
 connections over their second half (``rss_mb_per_browser_connection``: the browser tab's phase's RSS growth divided by
 its few connections).
 Targets: the real-time rate kept, the update ≤ 20 ms, no memory growth per connection, a slow
@@ -294,10 +297,41 @@ def _timed(viewer, out: list) -> None:
     setattr(viewer, "update_display", update_display)  # noqa: B010  (this viewer only)
 
 
+def _cpu_by_role() -> dict[int, tuple[str, float]]:
+    """pid → (role, CPU seconds) of this process's descendants: ``localizer`` for the localizer's
+    own child processes (KISS-ICP, S2M), ``clients`` for the rest (the browsers and Playwright's
+    driver, the websocket tabs' process)."""
+    import psutil
+
+    out = {}
+    for child in psutil.Process().children(recursive=True):
+        try:
+            times = child.cpu_times()
+            role = "localizer" if any(".core." in part for part in child.cmdline()) else "clients"
+        except psutil.Error:  # gone meanwhile
+            continue
+        out[child.pid] = (role, times.user + times.system)
+    return out
+
+
+def _cpu_pct_of_roles(before: dict, after: dict, elapsed: float) -> dict[str, float]:
+    """The CPU (% of one core) each role's processes used between two :func:`_cpu_by_role`
+    readings: those alive at the end, from their first reading (a process that ended within the
+    phase is not counted, so the figures are lower bounds)."""
+    used = {"localizer": 0.0, "clients": 0.0}
+    for pid, (role, seconds) in after.items():
+        start = before.get(pid)
+        used[role] += seconds - (start[1] if start is not None and start[0] == role else 0.0)
+    return {role: round(100.0 * s / elapsed, 1) for role, s in used.items()}
+
+
 def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dict:
     """Run for ``seconds`` (``during()`` called in a loop meanwhile): the phase's figures."""
+    import psutil
+
     updates.clear()
     viewer.player.take_counts()
+    machine0, roles0 = psutil.cpu_times(), _cpu_by_role()
     rss0, t0, cpu0 = rss_mb(), time.perf_counter(), time.process_time()
     loops = 0
     while time.perf_counter() - t0 < seconds:
@@ -308,6 +342,10 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
             time.sleep(0.5)
     elapsed = time.perf_counter() - t0
     cpu_pct = (time.process_time() - cpu0) / elapsed * 100.0  # this process, every thread
+    roles = _cpu_pct_of_roles(roles0, _cpu_by_role(), elapsed)
+    machine1 = psutil.cpu_times()
+    idle = (machine1.idle - machine0.idle) + (getattr(machine1, "iowait", 0.0) - getattr(machine0, "iowait", 0.0))
+    busy_pct = 100.0 * (psutil.cpu_count() - idle / elapsed)  # % of one core: 200 is two cores
     counts = viewer.player.take_counts()
     ms = np.array(updates) if updates else np.array([np.nan])
     return {
@@ -323,6 +361,9 @@ def _phase(viewer, updates: list, name: str, seconds: float, during=None) -> dic
         "rss_mb_end": round(rss_mb(), 1),
         "loops": loops,
         "cpu_pct": round(cpu_pct, 1),
+        "localizer_children_cpu_pct": roles["localizer"],
+        "clients_cpu_pct": roles["clients"],
+        "machine_busy_pct": round(busy_pct, 1),
         "load_1min": round(load_avg(), 2),
     }
 

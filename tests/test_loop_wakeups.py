@@ -39,6 +39,26 @@ def on_loop(loop, coro, timeout=10.0):
     return asyncio.run_coroutine_threadsafe(coro, loop).result(timeout=timeout)
 
 
+def start_reader(loop, event):
+    """A reader waiting on ``event`` on ``loop`` (its task)."""
+
+    async def start():
+        return asyncio.ensure_future(event.wait())
+
+    reader = on_loop(loop, start())
+    on_loop(loop, asyncio.sleep(0))  # the reader is waiting
+    return reader
+
+
+def woken(loop, reader) -> bool:
+    """What the reader's wait returned, within 5 s."""
+
+    async def result():
+        return await asyncio.wait_for(asyncio.shield(reader), timeout=5)
+
+    return on_loop(loop, result())
+
+
 def test_a_message_written_from_another_thread_wakes_its_readers_on_the_loop(loop):
     from viser._messages import RunJavascriptMessage
     from viser.infra._async_message_buffer import AsyncMessageBuffer
@@ -50,18 +70,10 @@ def test_a_message_written_from_another_thread_wakes_its_readers_on_the_loop(loo
     waiters = RecordingDeque()
     buffer.message_event._waiters = waiters
 
-    async def start_reader():
-        return asyncio.ensure_future(buffer.message_event.wait())
-
-    reader = on_loop(loop, start_reader())
-    on_loop(loop, asyncio.sleep(0))  # the reader is waiting
+    reader = start_reader(loop, buffer.message_event)
     assert len(waiters) == 1
     buffer.push(RunJavascriptMessage(source="1"))  # the display thread writes a message
-
-    async def woken():
-        return await asyncio.wait_for(asyncio.shield(reader), timeout=5)
-
-    assert on_loop(loop, woken()) is True
+    assert woken(loop, reader) is True
     assert buffer.message_event.is_set()
     assert waiters.walked_by == {"server-loop"}  # never walked by the writing thread
 
@@ -71,18 +83,10 @@ def test_a_flag_raised_off_the_loop_still_wakes_a_reader_that_was_waiting(loop):
     the readers even though the flag is already up."""
     event = LoopWakeEvent(loop)
 
-    async def start_reader():
-        return asyncio.ensure_future(event.wait())
-
-    reader = on_loop(loop, start_reader())
-    on_loop(loop, asyncio.sleep(0))
+    reader = start_reader(loop, event)
     event.set()  # from this thread: the flag, no wake
     assert event.is_set()
     on_loop(loop, asyncio.sleep(0.01))
     assert not reader.done()
     loop.call_soon_threadsafe(event.set)
-
-    async def woken():
-        return await asyncio.wait_for(asyncio.shield(reader), timeout=5)
-
-    assert on_loop(loop, woken()) is True
+    assert woken(loop, reader) is True

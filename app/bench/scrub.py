@@ -77,11 +77,9 @@ def scrub(
 ) -> dict:
     """Time ``moves`` slider moves over the recorded run ``run_dir`` (else one recorded from ``seq``
     with ``cfg``, see the module docstring)."""
-    import viser
-
     from ..viewer.app import Viewer
-    from ..viewer.loop_wakeups import install as install_loop_wakeups
     from ..viewer.runs import load_run, show_runs
+    from ..viewer.token_gate import start_server
     from .viewer import _DrainingClient
 
     with contextlib.ExitStack() as stack:
@@ -102,9 +100,8 @@ def scrub(
         run, context = load_run(run_dir, cache_root)
         open_s = time.perf_counter() - t0
         # viser prints its banner and "Server stopped" on stdout, which carries only the result
-        install_loop_wakeups()  # as the viewer's own server (app/viewer/token_gate.py)
         with contextlib.redirect_stdout(sys.stderr):
-            server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+            server = start_server(None, host="127.0.0.1", port=0, verbose=False)  # as the viewer's own
             client = None
             try:
                 viewer = Viewer(server, autoplay=False, display_thread=False)

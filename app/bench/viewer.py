@@ -146,13 +146,10 @@ def _time_updates(viewer, rng, n_updates, n_particles, n_scan) -> tuple[list, li
 
 
 def _measure(rng, n_updates: int, n_particles: int, n_scan: int, map_points: int) -> tuple:
-    import viser
-
     from ..viewer.app import Viewer
-    from ..viewer.loop_wakeups import install
+    from ..viewer.token_gate import start_server
 
-    install()  # as the viewer's own server (app/viewer/token_gate.py)
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server = start_server(None, host="127.0.0.1", port=0, verbose=False)  # as the viewer's own
     client = None
     try:
         viewer = Viewer(server, autoplay=False, display_thread=False)

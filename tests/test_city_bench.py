@@ -111,6 +111,8 @@ def test_bench_city_reports_every_figure(cache_root, monkeypatch):
     assert again["build_parts_s"] == out["build_parts_s"]  # the tiles came from the cache
     assert [r["tiled_err_m"] for r in again["rows"]] == [r["tiled_err_m"] for r in out["rows"]]
     assert again["fpfh_ransac_success"] == out["fpfh_ransac_success"]
+    assert out["fpfh_ransac_status"] == "done" and out["fpfh_ransac_scans_done"] == 1
+    assert out["fpfh_feature_points"] > 0 and out["fpfh_peak_rss_mb"] > 0
 
 
 @pytest.mark.slow
@@ -127,3 +129,51 @@ def test_localize_runs_give_localize_success(cache_root, tmp_path):
     assert got["localize_runs"] == 1 and got["localize_success"] in (0.0, 1.0)
     assert got["localize_success"] == summary["within_5m_to_end_ratio"]
     assert got["localize_false_fire_rate"] == summary["false_fire_rate"]
+
+
+class _Drive:
+    """Two scans of random points around the origin, their truth the identity."""
+
+    def scan(self, k):
+        import numpy as np
+
+        rng = np.random.default_rng(k)
+        return np.c_[rng.uniform(-30, 30, (2000, 3)), np.zeros(2000)]
+
+    def pose(self, k):
+        import numpy as np
+
+        return np.eye(4)
+
+
+def test_fpfh_ransac_is_stopped_at_its_budget_and_says_where(tmp_path):
+    """FPFH + RANSAC runs in a process of its own: past its time or memory budget it is killed,
+    and the bench says which budget stopped it, where, and what it had finished; a process
+    that fails says why in one line. None is left running."""
+    import numpy as np
+    import psutil
+    from lidarloc.app.bench.city import peers
+
+    cfg = load_config()
+    map_file = tmp_path / "map.npy"
+    # a million feature points: seconds of features, where the budgets below stop it within one
+    np.save(map_file, np.random.default_rng(0).uniform(-50, 50, (2_000_000, 3)).astype(np.float32))
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    quiet = lambda what, f: None  # noqa: E731
+
+    timed = peers(_Drive(), map_file, cfg, [0, 1], quiet, budget_s=0.0, budget_mb=1e9)
+    assert timed["fpfh_ransac_status"] == "stopped at the time budget (0 min) while building the map's features"
+    assert timed["fpfh_ransac_scans_done"] == 0 and timed["fpfh_ransac_scans"] == 2
+    assert timed["fpfh_ransac_ms_median"] is None and timed["fpfh_ransac_success"] is None
+    assert timed["fpfh_map_build_s"] is None
+
+    full = peers(_Drive(), map_file, cfg, [0, 1], quiet, budget_s=600.0, budget_mb=1.0)
+    assert full["fpfh_ransac_status"].startswith("stopped at the memory budget (")
+    assert full["fpfh_peak_rss_mb"] > 1.0
+
+    failed = peers(_Drive(), tmp_path / "no-map.npy", cfg, [0], quiet, budget_s=600.0, budget_mb=1e9)
+    status = failed["fpfh_ransac_status"]
+    assert status.startswith("failed (exit code 1): FileNotFoundError") and "no-map.npy" in status
+    assert "\n" not in status and failed["fpfh_ransac_scans_done"] == 0
+
+    assert {p.pid for p in psutil.Process().children(recursive=True)} <= before

@@ -287,6 +287,24 @@ def bench_city(
     peer_scans: Annotated[
         int, typer.Option("--peer-scans", min=0, help="Of those, how many FPFH + RANSAC registers (seconds each).")
     ] = 20,
+    peer_budget_min: Annotated[
+        float,
+        typer.Option(
+            "--peer-budget-min",
+            min=0.0,
+            help="FPFH + RANSAC is stopped after this many minutes (building its feature map included) and "
+            "reports the scans it finished and where it stopped.",
+        ),
+    ] = 60.0,
+    peer_budget_gb: Annotated[
+        float | None,
+        typer.Option(
+            "--peer-budget-gb",
+            min=0.0,
+            help="FPFH + RANSAC is also stopped once its own memory passes this many GB (the mapped map's "
+            "pages not counted; default: three quarters of this machine's).",
+        ),
+    ] = None,
     tile_m: Annotated[float, typer.Option("--tile-m", help="Side of the lookup table's tiles (m).")] = 400.0,
     whole_map: Annotated[
         bool, typer.Option("--whole-map/--no-whole-map", help="Also today's whole-map search on the same scans.")
@@ -341,6 +359,8 @@ def bench_city(
             cache_root=cache,
             global_scans=global_scans,
             peer_scans=peer_scans,
+            peer_budget_s=peer_budget_min * 60.0,
+            peer_budget_mb=None if peer_budget_gb is None else peer_budget_gb * 1024.0,
             tile_m=tile_m,
             whole_map=whole_map,
             progress=progress,

@@ -272,7 +272,7 @@ class PriorMap:
         self._bounds = (lo.astype(self.points.dtype), hi.astype(self.points.dtype))
 
     def save(self, directory: Path) -> None:
-        np.save(directory / "map_points.npy", self.points)
+        np.save(directory / MAP_FILE, self.points)
         if self.points_bev is not None:
             np.save(directory / BEV_FILE, self.points_bev)
 
@@ -296,7 +296,7 @@ class PriorMap:
             return check_points(np.load(path, mmap_mode="r"), path.name, values=False)
 
         return cls(
-            points=read(directory / "map_points.npy"),
+            points=read(directory / MAP_FILE),
             points_bev=read(bev) if bev.is_file() else None,
             voxel_size=float(meta["map"]["voxel_size"]),
             source=meta.get("source", ""),
@@ -304,6 +304,8 @@ class PriorMap:
         )
 
 
+#: the map's points in a map's cache directory
+MAP_FILE = "map_points.npy"
 #: the road-removed map's file in a map's cache directory (written after the map itself when
 #: road removal is deferred)
 BEV_FILE = "map_points_bev.npy"

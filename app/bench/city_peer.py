@@ -18,13 +18,7 @@ import time
 
 import numpy as np
 
-
-def peak_rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return float(line.split()[1]) / 1024.0
-    return float("nan")
+from .city_probe import peak_rss_mb
 
 
 def say(line: dict) -> None:

@@ -285,7 +285,10 @@ def bench_city(
         int, typer.Option("--global-scans", min=1, help="Scans along the city's drive matched against the whole city.")
     ] = 200,
     peer_scans: Annotated[
-        int, typer.Option("--peer-scans", min=0, help="Of those, how many FPFH + RANSAC registers (seconds each).")
+        int,
+        typer.Option(
+            "--peer-scans", min=0, help="Of those, how many FPFH + RANSAC registers (seconds each on the town)."
+        ),
     ] = 20,
     peer_budget_min: Annotated[
         float,

@@ -4,7 +4,8 @@ there, the tiled search agrees with the whole-map search, and a second run start
 import math
 
 import pytest
-from lidarloc.app.bench.city import GlobalRows, judge, localize_figures, run, scan_order
+from lidarloc.app.bench.city import localize_figures, run
+from lidarloc.app.bench.city_rows import GlobalRows, judge, scan_order
 from lidarloc.core.config import load_config
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -54,25 +55,78 @@ def test_global_rows_resume_only_their_own_source_configuration_and_code(tmp_pat
         GlobalRows(tmp_path, identity)
 
 
+_ROW_MODULES = """
+import json, sys, tempfile
+from pathlib import Path
+import lidarloc
+from lidarloc.app.bench.city_rows import match_row, prepare, warm_up
+from lidarloc.app.bench.common import open_source
+from lidarloc.core.config import load_config
+from lidarloc.core.maps.bev import load_or_build_pyramid
+from lidarloc.core.maps.mapping import load_or_build_map
+from lidarloc.core.maps.tiled_bev import TiledBEV
+from lidarloc.core.sequences.factory import SourceSpec
+cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+seq = open_source(SourceSpec(), cfg, "city", need_poses=True)
+prior, map_dir, _ = load_or_build_map(seq.map_source, cfg.map, None, memory_map=True)
+with tempfile.TemporaryDirectory() as tmp:
+    kind = "binary" if cfg.s2m.binary_cells else None
+    bev = TiledBEV.load_or_build(prior.points_bev, Path(tmp), map_dir.name, cfg.s2m.match_resolution, 32.0, kind)
+    pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
+    scan = prepare(seq.scan(3), cfg)
+    warm_up(bev, pyramid, scan, cfg.s2m.angle_step)
+    row = match_row(3, scan, seq.pose(3), bev, pyramid, cfg.s2m.angle_step)
+root = Path(lidarloc.__file__).parent
+files = [getattr(m, "__file__", None) for n, m in list(sys.modules.items()) if n.startswith("lidarloc.")]
+print(json.dumps({"row": row, "loaded": sorted(Path(f).relative_to(root).as_posix() for f in files if f)}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_global_match_row_never_reads_the_code_its_fingerprint_leaves_out(cache_root):
+    """Rows resume across changes to the lookup table's modules only because no row reads them:
+    preparing, searching (tiled and whole-map) and judging a scan, in a fresh process, imports
+    none of them, and every file left out still exists (a renamed one would be fingerprinted)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import lidarloc
+    from lidarloc.app.bench.city_rows import ROW_CODE_EXCLUDED
+
+    env = {**os.environ, "LIDARLOC_CACHE": str(cache_root)}
+    done = subprocess.run([sys.executable, "-c", _ROW_MODULES], env=env, capture_output=True, text=True, timeout=280)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["row"]["tiled_success"] and got["row"]["same_as_whole"]  # a real row was made
+    assert "core/maps/tiled_bev.py" in got["loaded"] and "core/matching/tiled_search.py" in got["loaded"]
+    assert not set(ROW_CODE_EXCLUDED) & set(got["loaded"])
+    root = Path(lidarloc.__file__).parent
+    assert all((root / f).is_file() for f in ROW_CODE_EXCLUDED)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_a_stopped_bench_city_resumes_at_the_next_scan(cache_root, tmp_path, monkeypatch):
     """With ``rows_dir`` each global match is kept as it is done: a longer run in the same
     directory matches only the scans it does not hold (once more to compile, off the clock)."""
-    from lidarloc.app.bench import city
+    from lidarloc.app.bench import city_rows
 
     cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
     kw = dict(cache_root=cache_root, peer_scans=0, tile_m=50.0, bev_tile_m=32.0, whole_map=False)
     first = run(SourceSpec(), cfg, global_scans=2, rows_dir=tmp_path, **kw)
     assert first["global_scans_resumed"] == 0 and len(first["rows"]) == 2
     searched = []
-    search = city.match_global_tiled
+    search = city_rows.match_global_tiled
 
     def counted(bev, pts, step):
         searched.append(len(pts))
         return search(bev, pts, step)
 
-    monkeypatch.setattr(city, "match_global_tiled", counted)
+    monkeypatch.setattr(city_rows, "match_global_tiled", counted)
     longer = run(SourceSpec(), cfg, global_scans=3, rows_dir=tmp_path, **kw)
     assert longer["global_scans_resumed"] == 2 and len(searched) == 2  # the warm-up and the new scan
     assert longer["rows"][:2] == first["rows"] and longer["rows"][2]["scan"] == scan_order(40, 3, cfg.seed)[2]

@@ -12,7 +12,6 @@ feature map alone outgrows what a 2-core, 24 GB machine gives it).
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 import tempfile
@@ -22,85 +21,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.cache import atomic_write_file
 from ...core.config import Config
-from ...core.errors import LidarlocError
 from ...core.maps.bev import load_or_build_pyramid
-from ...core.maps.mapping import MAP_FILE, flat_surface_mask, load_or_build_map, range_filter
+from ...core.maps.mapping import MAP_FILE, load_or_build_map, range_filter
 from ...core.maps.tiled_bev import TiledBEV
 from ...core.maps.tiled_lookup import TiledLookup
-from ...core.matching import m3rsm
-from ...core.matching.tiled_search import match_global_tiled
-from ...core.o3d import open3d
 from ...core.sequences.factory import SourceSpec
 from ...core.worker_process import exit_words
+from .city_rows import ROW_CODE, ROW_CODE_EXCLUDED, GlobalRows, match_row, prepare, scan_order, warm_up
 from .common import load_avg, machine, median, open_source, rss_mb
 from .localize import code_fingerprint
 
-SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
-ROAD_REMOVAL_VOXEL = 0.3  # as the scan-to-map matcher prepares a scan
 PEER_SAMPLE_S = 0.5  # how often FPFH + RANSAC's memory is read against its budget
-# The code a global-match row depends on (the world and its scans, the map, the pyramid tiles,
-# the searches, this file's preparing and judging): rows resume only while all of it is unchanged.
-ROW_CODE = ("core/matching", "core/maps", "core/sequences", "core/config", "core/geometry.py", "app/bench/city.py")
-
-
-def prepare(scan: np.ndarray, cfg: Config) -> np.ndarray:
-    """The scan's road-removed points (sensor frame), as the scan-to-map matcher prepares them."""
-    pts = range_filter(np.asarray(scan)[:, :3].astype(np.float64), cfg.map)
-    o3d = open3d()
-    down = np.asarray(
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(ROAD_REMOVAL_VOXEL).points
-    )
-    return down[~flat_surface_mask(down, cfg.map)] if len(down) >= 3 else down
-
-
-def judge(x: float, y: float, yaw: float, truth: np.ndarray) -> tuple[bool, float]:
-    """(within 2 m and 5°, metres off) of a 2D pose against a 4 × 4 true pose."""
-    if not math.isfinite(x):
-        return False, math.inf
-    m = math.hypot(x - truth[0, 3], y - truth[1, 3])
-    dyaw = abs((yaw - math.atan2(truth[1, 0], truth[0, 0]) + math.pi) % (2 * math.pi) - math.pi)
-    return m <= SUCCESS_M and math.degrees(dyaw) <= SUCCESS_DEG, m
-
-
-class GlobalRows:
-    """The global matches done so far, one row a scan, kept in ``directory/rows.json`` (rewritten
-    whole after each scan, atomically) so that a run stopped at any moment resumes at the next
-    scan: 200 searches over a 16 km² city take hours. A directory holding another source's,
-    configuration's or code's rows is refused, never mixed in."""
-
-    def __init__(self, directory: Path, identity: dict):
-        self.path = Path(directory) / "rows.json"
-        self.identity = json.loads(json.dumps(identity, sort_keys=True, default=str))
-        self.rows: dict[int, dict] = {}
-        if self.path.is_file():
-            try:
-                kept = json.loads(self.path.read_text())
-                rows = {int(r["scan"]): r for r in kept["rows"]}
-                theirs = kept["identity"]
-            except (ValueError, KeyError, TypeError) as exc:
-                raise LidarlocError(
-                    f"{self.path}: not a bench city rows file ({exc}); remove it or use another --out"
-                ) from None
-            if theirs != self.identity:
-                raise LidarlocError(
-                    f"{self.path}: holds the global matches of another source, configuration or version of "
-                    "lidarloc's code; use another --out"
-                )
-            self.rows = rows
-
-    def add(self, row: dict) -> None:
-        self.rows[int(row["scan"])] = row
-        data = {"identity": self.identity, "rows": list(self.rows.values())}
-        text = json.dumps(data, indent=1, default=lambda v: v.item())  # numpy scalars as plain numbers
-        atomic_write_file(self.path, lambda tmp: tmp.write_text(text))
-
-
-def scan_order(n: int, count: int, seed: int) -> list[int]:
-    """``count`` scans of ``n`` in a seeded random order: the first ones of a longer list are the
-    same scans, so rows kept from a shorter or stopped run are a fair sample of the longer one."""
-    return [int(k) for k in np.random.default_rng(seed).permutation(n)[: min(count, n)]]
 
 
 def _tables(prior, map_dir: Path, cfg: Config, tile_m: float, bev_tile_m: float, progress):
@@ -171,7 +103,7 @@ def run(
             "config": cfg.to_dict(),
             "bev_tile_m": bev_tile_m,
             "whole_map": whole_map,
-            "code": code_fingerprint(ROW_CODE),
+            "code": code_fingerprint(ROW_CODE, exclude=ROW_CODE_EXCLUDED),
         }
         kept = GlobalRows(rows_dir, identity)
     out["global_scans_resumed"] = sum(k in kept.rows for k in idx) if kept is not None else 0
@@ -185,23 +117,10 @@ def run(
             report("global matches", (j + 1) / len(idx))
             continue
         truth, scan = seq.pose(k), prepare(seq.scan(k), cfg)
-        row = {"scan": k}
         if not warm:  # numba's kernels compiled off the clock
-            match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
-            if pyramid is not None:
-                m3rsm.match_global(pyramid, scan[:, :2], cfg.s2m.angle_step)
+            warm_up(bev, pyramid, scan, cfg.s2m.angle_step)
             warm = True
-        res = match_global_tiled(bev, scan[:, :2], cfg.s2m.angle_step)
-        row["tiled_ms"], (row["tiled_success"], row["tiled_err_m"]) = res.ms, judge(res.x, res.y, res.yaw, truth)
-        row["tiled_tiles_searched"] = res.nodes_per_level[0] if res.nodes_per_level else 0
-        row["tiled_nodes"] = res.nodes_expanded
-        if pyramid is not None:
-            whole = m3rsm.match_global(pyramid, scan[:, :2], cfg.s2m.angle_step)
-            row["whole_ms"], (row["whole_success"], _) = whole.ms, judge(whole.x, whole.y, whole.yaw, truth)
-            row["same_as_whole"] = bool(whole.score == res.score)
-            # best first over the whole map expands only the nodes whose bound beats the optimum:
-            # what any exact search with these bounds must expand, whatever its order
-            row["whole_nodes"] = whole.nodes_expanded
+        row = match_row(k, scan, truth, bev, pyramid, cfg.s2m.angle_step)
         rows.append(row)
         if kept is not None:
             kept.add(row)

@@ -26,7 +26,7 @@ def say(line: dict) -> None:
 
 
 def register(args: dict) -> None:
-    from .city import judge
+    from .city_rows import judge
     from .peers_global import FeatureMap
 
     scans = np.load(args["scans"])

@@ -40,11 +40,11 @@ from .common import is_town
 from .localize_report import write_report
 
 
-def code_fingerprint(parts: tuple[str, ...] = ("core", "app")) -> str:
+def code_fingerprint(parts: tuple[str, ...] = ("core", "app"), exclude: tuple[str, ...] = ()) -> str:
     """SHA-256 of lidarloc's own Python sources under ``parts`` (folders or files relative to the
-    package's root; by default all of core and app) and of the versions of the libraries that
-    compute its numbers: two benchmark runs resume into one report only if they ran the same
-    code."""
+    package's root; by default all of core and app), but for the files named in ``exclude``, and
+    of the versions of the libraries that compute its numbers: two benchmark runs resume into one
+    report only if they ran the same code."""
     import hashlib
     from importlib import metadata
 
@@ -60,6 +60,8 @@ def code_fingerprint(parts: tuple[str, ...] = ("core", "app")) -> str:
     for part in parts:
         where = root / part
         for path in sorted(where.rglob("*.py")) if where.is_dir() else [where]:
+            if path.relative_to(root).as_posix() in exclude:
+                continue
             digest.update(path.relative_to(where).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
 

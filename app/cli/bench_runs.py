@@ -342,12 +342,18 @@ def bench_city(
     the tiled tables' build and cache size, a later start and the memory a drive keeps resident
     (in a fresh process), and the exact tiled global search beside the whole-map search and
     FPFH + RANSAC; with --localize-runs N, N seeded runs of full localization from a start
-    spread over the whole city. --set town.extent_m=E (or any source option) measures another city."""
+    spread over the whole city. --set town.extent_m=E (or any source option) measures another city.
+    The city's tables are the lookup at 0.5 m read by tiles (pf.lookup_resolution=0.5,
+    pf.lookup_tile_m=400) unless --set says otherwise."""
     from ..bench.city import localize_figures
     from ..bench.city import run as run_bench
 
-    overrides = ["town.extent_m=4000", "town.n_scans=6000", *(set_ or [])]
-    cfg = config_from(config, overrides, seed=seed, preset=preset)
+    # A city's tables: the lookup at 0.5 m, read by tiles. At the default 0.25 m a 16 km² city's
+    # lookup tiles store 5–7 times the bricks and take 5–6 times the CPU to build (~15 min on 2
+    # cores, over the 10 the build is given); at 0.5 m runs on the city localize to 0.10–0.19 m
+    # RMSE (BENCHMARKS.md, "A city").
+    overrides = ["town.extent_m=4000", "town.n_scans=6000", "pf.lookup_resolution=0.5", "pf.lookup_tile_m=400"]
+    cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
     with progress_bar() as bar:
         tasks: dict = {}
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 from lidarloc.app.bench.city import localize_figures, run
-from lidarloc.app.bench.city_rows import GlobalRows, judge, scan_order
+from lidarloc.app.bench.city_rows import GlobalRows, judge, missed, scan_order
 from lidarloc.core.config import load_config
 from lidarloc.core.sequences.factory import SourceSpec
 
@@ -22,6 +22,21 @@ def test_judge_is_two_metres_and_five_degrees():
     assert judge(1.9, 0.0, math.radians(4.9), truth)[0]
     assert not judge(2.1, 0.0, 0.0, truth)[0] and not judge(0.0, 0.0, math.radians(5.1), truth)[0]
     assert judge(math.nan, 0.0, 0.0, truth) == (False, math.inf)
+
+
+def test_a_scan_placed_elsewhere_is_named_with_both_places():
+    import numpy as np
+
+    truth = np.eye(4)
+    truth[:2, 3] = (10.0, 20.0)
+    row = {"scan": 7, "tiled_err_m": 812.0, "tiled_pose": [700.0, 420.0, math.pi / 2], "tiled_score": 93.0}
+    got = missed(row, truth, lambda x, y: "downtown" if x < 100 else "suburb")
+    assert got == {
+        "scan": 7, "err_m": 812.0, "truth_xy": [10.0, 20.0], "matched_xy_yaw_deg": [700.0, 420.0, 90.0],
+        "score": 93.0, "truth_district": "downtown", "matched_district": "suburb",
+    }  # fmt: skip
+    nothing = missed({**row, "tiled_pose": [math.nan, math.nan, math.nan]}, truth, lambda x, y: "park")
+    assert nothing["matched_district"] is None and "truth_district" not in missed(row, truth)
 
 
 def test_the_scans_of_a_shorter_run_are_the_first_of_a_longer_one():

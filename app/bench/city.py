@@ -28,7 +28,7 @@ from ...core.maps.tiled_bev import TiledBEV
 from ...core.maps.tiled_lookup import TiledLookup
 from ...core.sequences.factory import SourceSpec
 from ...core.worker_process import exit_words
-from .city_rows import ROW_CODE, ROW_CODE_EXCLUDED, GlobalRows, match_row, prepare, scan_order, warm_up
+from .city_rows import ROW_CODE, ROW_CODE_EXCLUDED, GlobalRows, match_row, missed, prepare, scan_order, warm_up
 from .common import load_avg, machine, median, open_source, rss_mb
 from .localize import code_fingerprint
 
@@ -128,9 +128,8 @@ def run(
     out["global_scans"] = len(rows)
     out["global_match_ms_median"] = median(r["tiled_ms"] for r in rows)
     out["global_success"] = float(np.mean([r["tiled_success"] for r in rows]))
-    out["global_failed_scans"] = [
-        {"scan": r["scan"], "err_m": r["tiled_err_m"]} for r in rows if not r["tiled_success"]
-    ]
+    district_at = _district_namer(seq)
+    out["global_failed_scans"] = [missed(r, seq.pose(r["scan"]), district_at) for r in rows if not r["tiled_success"]]
     out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in rows)
     out["tiled_nodes_median"] = median(r["tiled_nodes"] for r in rows)
     if whole_map:
@@ -167,6 +166,16 @@ def localize_figures(spec: SourceSpec, cfg: Config, runs: int, workers: int, out
         "localize_rmse_after_localized_m_median": agg.get("rmse_after_localized_m_median"),
         "localize_out": str(out_dir),
     }
+
+
+def _district_namer(seq):
+    """``(x, y) → district name`` on a generated city (its district map), else None."""
+    districts = getattr(getattr(seq, "town", None), "districts", None)
+    if districts is None:
+        return None
+    from ...core.sequences.town.districts import STYLE_NAMES
+
+    return lambda x, y: STYLE_NAMES[int(districts.style_at(x, y))]
 
 
 def _dir_bytes(directory: Path) -> int:

@@ -58,6 +58,23 @@ def judge(x: float, y: float, yaw: float, truth: np.ndarray) -> tuple[bool, floa
     return m <= SUCCESS_M and math.degrees(dyaw) <= SUCCESS_DEG, m
 
 
+def missed(row: dict, truth: np.ndarray, district_at=None) -> dict:
+    """A scan the search placed elsewhere, named: where it is, where it matched, how far off and
+    at what score; with ``district_at(x, y)`` (a generated city) the districts of both places."""
+    x, y, yaw = row["tiled_pose"]
+    out = {
+        "scan": row["scan"],
+        "err_m": row["tiled_err_m"],
+        "truth_xy": [float(truth[0, 3]), float(truth[1, 3])],
+        "matched_xy_yaw_deg": [x, y, math.degrees(yaw) if math.isfinite(yaw) else yaw],
+        "score": row["tiled_score"],
+    }
+    if district_at is not None:
+        out["truth_district"] = district_at(truth[0, 3], truth[1, 3])
+        out["matched_district"] = district_at(x, y) if math.isfinite(x) else None
+    return out
+
+
 def warm_up(bev, pyramid, scan: np.ndarray, angle_step: float) -> None:
     """Both searches once, so that numba's kernels are compiled off the clock."""
     match_global_tiled(bev, scan[:, :2], angle_step)
@@ -71,6 +88,8 @@ def match_row(k: int, scan: np.ndarray, truth: np.ndarray, bev, pyramid, angle_s
     row: dict = {"scan": int(k)}
     res = match_global_tiled(bev, scan[:, :2], angle_step)
     row["tiled_ms"], (row["tiled_success"], row["tiled_err_m"]) = res.ms, judge(res.x, res.y, res.yaw, truth)
+    # where it matched, so that a scan the search placed elsewhere can be named and looked at
+    row["tiled_pose"], row["tiled_score"] = [res.x, res.y, res.yaw], res.score
     row["tiled_tiles_searched"] = res.nodes_per_level[0] if res.nodes_per_level else 0
     row["tiled_nodes"] = res.nodes_expanded
     if pyramid is not None:

@@ -215,7 +215,7 @@ class _Drive:
         return np.eye(4)
 
 
-def test_fpfh_ransac_is_stopped_at_its_budget_and_says_where(tmp_path):
+def test_fpfh_ransac_is_stopped_at_its_budget_and_says_where(tmp_path, monkeypatch):
     """FPFH + RANSAC runs in a process of its own: past its time or memory budget it is killed,
     and the bench says which budget stopped it, where, and what it had finished; a process
     that fails says why in one line. None is left running."""
@@ -239,6 +239,16 @@ def test_fpfh_ransac_is_stopped_at_its_budget_and_says_where(tmp_path):
     full = peers(_Drive(), map_file, cfg, [0, 1], quiet, budget_s=600.0, budget_mb=1.0)
     assert full["fpfh_ransac_status"].startswith("stopped at the memory budget (")
     assert full["fpfh_peak_own_mb"] > 1.0 and full["fpfh_peak_rss_mb"] >= full["fpfh_peak_own_mb"]
+
+    # whatever else runs beside it, the machine is never run out of memory: it stops at the reserve
+    from lidarloc.app.bench import city
+
+    monkeypatch.setattr(city, "memory_reserve", lambda: psutil.virtual_memory().total)
+    short = peers(_Drive(), map_file, cfg, [0, 1], quiet, budget_s=600.0, budget_mb=1e9)
+    assert short["fpfh_ransac_status"].startswith("stopped at the machine's memory (")
+    assert " GB left, at " in short["fpfh_ransac_status"] and short["fpfh_ransac_scans_done"] == 0
+    monkeypatch.undo()
+    assert 0 < city.default_peer_budget_mb() * 2**20 <= 0.75 * psutil.virtual_memory().total
 
     failed = peers(_Drive(), tmp_path / "no-map.npy", cfg, [0], quiet, budget_s=600.0, budget_mb=1e9)
     status = failed["fpfh_ransac_status"]

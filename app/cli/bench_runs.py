@@ -305,7 +305,9 @@ def bench_city(
             "--peer-budget-gb",
             min=0.0,
             help="FPFH + RANSAC is also stopped once its own memory passes this many GB (the mapped map's "
-            "pages not counted; default: three quarters of this machine's).",
+            "pages not counted; default: what the machine has available when it starts, less a reserve of 5 % "
+            "of its memory (at least 1 GB), at most three quarters of it); it is also stopped whenever the "
+            "machine's available memory falls to that reserve.",
         ),
     ] = None,
     tile_m: Annotated[float, typer.Option("--tile-m", help="Side of the lookup table's tiles (m).")] = 400.0,

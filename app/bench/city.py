@@ -6,7 +6,7 @@ Global matches are M3RSM's 2D optimum (no GICP), judged against the truth: withi
 The whole-map search runs where its pyramid fits in memory (always, up to a 6 km city at 1 m
 cells: 144 MB of L0); FPFH + RANSAC runs on ``peer_scans`` of the same scans, in a process of
 its own stopped at a time and memory budget (on the town seconds a scan; on a 16 km² city its
-feature map alone outgrows what a 2-core, 24 GB machine gives it).
+feature map alone takes most of an hour and 12 GB on 2 cores).
 """
 
 from __future__ import annotations
@@ -184,12 +184,13 @@ def _dir_bytes(directory: Path) -> int:
 
 def peers(seq, map_file: Path, cfg: Config, idx: list[int], report, budget_s: float, budget_mb: float) -> dict:
     """FPFH + RANSAC on the scans ``idx`` against the whole map, in a process of its own
-    (:mod:`.city_peer`), stopped once it has run ``budget_s`` or its own memory passes
-    ``budget_mb``: on a 16 km² city the feature map alone took 35 min and 18.5 GB without an
-    answer. Its own memory is its anonymous resident memory: the pages of the memory-mapped map it
-    has read count in its RSS too, but the system takes them back when it needs them. What it
-    finished before a stop is reported, with how and where it stopped (``fpfh_ransac_status``)
-    and its peak memory; a stop is a figure, not a failure of the bench."""
+    (:mod:`.city_peer`), stopped once it has run ``budget_s``, its own memory passes ``budget_mb``
+    or the machine's available memory falls to :func:`memory_reserve`: on a 16 km² city the
+    feature map alone takes ~47 min and 12 GB on 2 cores. Its own memory is its anonymous resident
+    memory: the pages of the memory-mapped map it has read count in its RSS too, but the system
+    takes them back when it needs them. What it finished before a stop is reported, with how and
+    where it stopped (``fpfh_ransac_status``) and its peak memory; a stop is a figure, not a
+    failure of the bench."""
     with tempfile.TemporaryDirectory() as tmp:
         scans = [np.asarray(range_filter(seq.scan(k), cfg.map)[:, :3], dtype=np.float64) for k in idx]
         np.savez(

@@ -11,8 +11,8 @@ scans and maps are compared by what they hold per 4 m cell of the ground plane â
 the sum of their heights and of their intensities â€” with tolerances a last-bit difference stays
 far below and a real change in the town exceeds (``test_the_cell_summary_sees_a_two_centimetre_shift``
 checks that). The reference, ``data/town_reference.npz``, was written from the same code; a
-library upgrade that changes the numbers more than that shows up here first (re-derive it only
-after checking that the town itself did not change)."""
+library upgrade that changes the numbers more than that shows up here first (re-derive it, with
+``python tests/test_town_unchanged.py``, only after checking that the town itself did not change)."""
 
 from __future__ import annotations
 
@@ -56,13 +56,15 @@ def differences(reference: tuple[np.ndarray, np.ndarray], points) -> list[str]:
     """What sets ``points`` apart from a reference summary beyond the tolerances (empty: the same)."""
     ref_cells, ref_stats = reference
     cells, stats = summary(points)
-    union = np.unique(np.concatenate([ref_cells, cells]), axis=0)
+    if ref_stats.shape[1] != stats.shape[1]:
+        return [f"columns {ref_stats.shape[1] + 1} != {stats.shape[1] + 1}"]
+    # both summaries laid on the union of their cells (a cell one of them lacks holds zeros)
+    union, row = np.unique(np.concatenate([ref_cells, cells]), axis=0, return_inverse=True)
+    row = row.ravel()
     a = np.zeros((len(union), ref_stats.shape[1]))
-    b = np.zeros((len(union), stats.shape[1]))
-    a[_rows_of(union, ref_cells)] = ref_stats
-    b[_rows_of(union, cells)] = stats
-    if a.shape[1] != b.shape[1]:
-        return [f"columns {a.shape[1] + 1} != {b.shape[1] + 1}"]
+    b = np.zeros_like(a)
+    a[row[: len(ref_cells)]] = ref_stats
+    b[row[len(ref_cells) :]] = stats
     n = a[:, 0].sum()
     out = []
     moved = np.abs(a[:, 0] - b[:, 0]).sum()
@@ -73,12 +75,6 @@ def differences(reference: tuple[np.ndarray, np.ndarray], points) -> list[str]:
         if diff > SUM_SHARE * scale + 1e-9:
             out.append(f"column {c + 2}: cell sums differ by {diff:.4g} (of {scale:.4g})")
     return out
-
-
-def _rows_of(union: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Row of every cell of ``cells`` in the sorted ``union``."""
-    u = union[:, 0] * (1 << 32) + union[:, 1]
-    return np.searchsorted(u, cells[:, 0] * (1 << 32) + cells[:, 1])
 
 
 @pytest.fixture(scope="module")
@@ -175,3 +171,27 @@ def test_default_town_map_is_unchanged(town, reference, tmp_path):
     prior = load_or_build_map(town.map_source, Config().map, tmp_path).value
     assert differences(reference["map"], prior.points) == []
     assert differences(reference["map_road_removed"], prior.points_bev) == []
+
+
+def write_reference(path: Path = REFERENCE) -> None:
+    """Writes the reference summaries from this machine: the scans and the map the tests read."""
+    import tempfile
+
+    from lidarloc.core.maps.mapping import load_or_build_map
+
+    town = TownSequence.from_config(TownConfig(), seed=0)
+    clouds = {f"scan{i}": town.scan(i) for i in SCANS}
+    clouds["route2_scan5"] = town.with_world(route=2).scan(5)
+    clouds["lived_in_scan50"] = town.with_world(changes=0.3, traffic=True, skew=True, sensor="vlp16").scan(50)
+    with tempfile.TemporaryDirectory() as cache:
+        prior = load_or_build_map(town.map_source, Config().map, Path(cache)).value
+        clouds["map"], clouds["map_road_removed"] = prior.points, prior.points_bev
+    arrays = {}
+    for name, points in clouds.items():
+        arrays[f"{name}/cells"], arrays[f"{name}/stats"] = summary(points)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **arrays)
+
+
+if __name__ == "__main__":
+    write_reference()

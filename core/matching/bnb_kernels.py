@@ -271,43 +271,28 @@ def _keep_best(ts, tr, tx, ty, m, s, r, kx, ky):
 
 
 @nb.njit(cache=True, nogil=True)
-def _branch_and_bound(
-    L0,
-    G,
-    gnx,
-    gny,
-    goff,
-    S,
-    snx,
-    sny,
-    soff,
-    dense_upto,
-    cx,
-    cy,
-    ex,
-    ey,
-    ec,
-    ew,
-    eoff,
-    top,
-    kx_lo,
-    kx_hi,
-    ky_lo,
-    ky_hi,
-    best_in,
-    keep,
-):
-    """Best-first search over angles r and lattice translations k ∈ [kx_lo, kx_hi] × [ky_lo, ky_hi].
-    Returns (best score, r, kx, ky, nodes expanded, nodes expanded per level, the ``keep`` best
-    leaves scored as (scores, r, kx, ky, count)). ``best_in`` is a score to beat (−1 for none):
-    only strictly better optima are reported (r = −1 if none). Keeping the leaves costs one
-    comparison per leaf scored; it changes neither the order of the search nor its result."""
+def _node_score(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, h, r, kx, ky):
+    """Score of a leaf (h = 0) or bound of the level-h block at (kx, ky) under angle r."""
+    if h == 0:
+        return score_l0(L0, cx[r], cy[r], kx, ky)
+    if h <= dense_upto:
+        return bound_dense(S, snx, sny, soff, h, cx[r], cy[r], kx, ky)
+    return bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1], kx >> h, ky >> h)
+
+
+@nb.njit(cache=True, nogil=True)
+def _bnb_roots(
+    L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
+    kx_lo, kx_hi, ky_lo, ky_hi, best, keep,
+):  # fmt: skip
+    """Start a best-first search (see :func:`_branch_and_bound`): the root blocks of level ``top``
+    tiling [kx_lo, kx_hi] × [ky_lo, ky_hi] from an aligned corner, every angle, pushed on a new heap
+    if their bound beats ``best`` (scored directly when ``top`` is 0). Returns the search's state:
+    (best, r, kx, ky, heap arrays, heap size, kept leaves, their count, nodes per level)."""
     R = cx.shape[0]
-    best = best_in
     best_r = -1
     best_kx = 0
     best_ky = 0
-    nodes = 0
     per_level = np.zeros(top + 1, np.int64)
     ts = np.empty(keep, np.float64)
     tr = np.empty(keep, np.int64)
@@ -337,25 +322,60 @@ def _branch_and_bound(
                         if s > best:
                             best, best_r, best_kx, best_ky = s, r, kx, ky
                 else:
-                    if top <= dense_upto:
-                        s = bound_dense(S, snx, sny, soff, top, cx[r], cy[r], kx, ky)
-                    else:
-                        s = bound(
-                            G, gnx, gny, goff, top, ex, ey, ec, ew, eoff[top, r], eoff[top, r + 1], kx >> top, ky >> top
-                        )
+                    s = _node_score(
+                        L0,
+                        G,
+                        gnx,
+                        gny,
+                        goff,
+                        S,
+                        snx,
+                        sny,
+                        soff,
+                        dense_upto,
+                        cx,
+                        cy,
+                        ex,
+                        ey,
+                        ec,
+                        ew,
+                        eoff,
+                        top,
+                        r,
+                        kx,
+                        ky,
+                    )
                     if s > best:
                         hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, s, top, r, kx, ky)
                 ky += step
             kx += step
+    return best, best_r, best_kx, best_ky, hs, hl, hr, hx, hy, n, ts, tr, tx, ty, m, per_level
+
+
+@nb.njit(cache=True, nogil=True)
+def _bnb_expand(
+    L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff,
+    kx_lo, kx_hi, ky_lo, ky_hi, best, hs, hl, hr, hx, hy, n, ts, tr, tx, ty, m, per_level, above,
+):  # fmt: skip
+    """Go on with a best-first search from its state: pop and split blocks while the heap's best
+    bound beats both ``best`` and ``above``. A block whose bound does not beat ``above`` stays on
+    the heap, so a later call with a lower ``above`` resumes the search where it stopped (−inf:
+    to the end). Returns (best, r, kx, ky of a leaf strictly better than the ``best`` passed in,
+    r = −1 if none; the heap arrays, its size, the kept leaves' count, nodes expanded)."""
+    keep = ts.shape[0]
+    best_r = -1
+    best_kx = 0
+    best_ky = 0
+    nodes = 0
     while n > 0:
         s = hs[0]
+        if s <= best or s <= above:
+            break  # no block left beats the best leaf found (or this call's threshold)
         l = hl[0]
         r = hr[0]
         kx = hx[0]
         ky = hy[0]
         n = _heap_pop(hs, hl, hr, hx, hy, n)
-        if s <= best:
-            break  # no block left can hold a better translation than the best leaf found
         nodes += 1
         per_level[l] += 1
         h = l - 1
@@ -365,19 +385,41 @@ def _branch_and_bound(
             cky = ky + (q >> 1) * half
             if ckx > kx_hi or cky > ky_hi or ckx + half - 1 < kx_lo or cky + half - 1 < ky_lo:
                 continue  # quadrant entirely outside the search region
+            cs = _node_score(
+                L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, h, r, ckx, cky
+            )
             if h == 0:
-                cs = score_l0(L0, cx[r], cy[r], ckx, cky)
                 if keep > 0 and (m < keep or cs > ts[keep - 1]):
                     m = _keep_best(ts, tr, tx, ty, m, cs, r, ckx, cky)
                 if cs > best:
                     best, best_r, best_kx, best_ky = cs, r, ckx, cky
-            else:
-                if h <= dense_upto:
-                    cs = bound_dense(S, snx, sny, soff, h, cx[r], cy[r], ckx, cky)
-                else:
-                    cs = bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1], ckx >> h, cky >> h)
-                if cs > best:
-                    hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
+            elif cs > best:
+                hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
+    return best, best_r, best_kx, best_ky, hs, hl, hr, hx, hy, n, m, nodes
+
+
+@nb.njit(cache=True, nogil=True)
+def _branch_and_bound(
+    L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
+    kx_lo, kx_hi, ky_lo, ky_hi, best_in, keep,
+):  # fmt: skip
+    """Best-first search over angles r and lattice translations k ∈ [kx_lo, kx_hi] × [ky_lo, ky_hi].
+    Returns (best score, r, kx, ky, nodes expanded, nodes expanded per level, the ``keep`` best
+    leaves scored as (scores, r, kx, ky, count)). ``best_in`` is a score to beat (−1 for none):
+    only strictly better optima are reported (r = −1 if none). Keeping the leaves costs one
+    comparison per leaf scored; it changes neither the order of the search nor its result."""
+    best, best_r, best_kx, best_ky, hs, hl, hr, hx, hy, n, ts, tr, tx, ty, m, per_level = _bnb_roots(
+        L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
+        kx_lo, kx_hi, ky_lo, ky_hi, best_in, keep,
+    )  # fmt: skip
+    out = _bnb_expand(
+        L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff,
+        kx_lo, kx_hi, ky_lo, ky_hi, best, hs, hl, hr, hx, hy, n, ts, tr, tx, ty, m, per_level, -np.inf,
+    )  # fmt: skip
+    if out[1] >= 0:  # a leaf of the expansion beat the roots' best
+        best, best_r, best_kx, best_ky = out[0], out[1], out[2], out[3]
+    nodes = out[11]
+    m = out[10]
     return best, best_r, best_kx, best_ky, nodes, per_level, ts, tr, tx, ty, m
 
 

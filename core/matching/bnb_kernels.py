@@ -271,16 +271,6 @@ def _keep_best(ts, tr, tx, ty, m, s, r, kx, ky):
 
 
 @nb.njit(cache=True, nogil=True)
-def _node_score(L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, h, r, kx, ky):
-    """Score of a leaf (h = 0) or bound of the level-h block at (kx, ky) under angle r."""
-    if h == 0:
-        return score_l0(L0, cx[r], cy[r], kx, ky)
-    if h <= dense_upto:
-        return bound_dense(S, snx, sny, soff, h, cx[r], cy[r], kx, ky)
-    return bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1], kx >> h, ky >> h)
-
-
-@nb.njit(cache=True, nogil=True)
 def _bnb_roots(
     L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, top,
     kx_lo, kx_hi, ky_lo, ky_hi, best, keep,
@@ -322,29 +312,12 @@ def _bnb_roots(
                         if s > best:
                             best, best_r, best_kx, best_ky = s, r, kx, ky
                 else:
-                    s = _node_score(
-                        L0,
-                        G,
-                        gnx,
-                        gny,
-                        goff,
-                        S,
-                        snx,
-                        sny,
-                        soff,
-                        dense_upto,
-                        cx,
-                        cy,
-                        ex,
-                        ey,
-                        ec,
-                        ew,
-                        eoff,
-                        top,
-                        r,
-                        kx,
-                        ky,
-                    )
+                    if top <= dense_upto:
+                        s = bound_dense(S, snx, sny, soff, top, cx[r], cy[r], kx, ky)
+                    else:
+                        s = bound(
+                            G, gnx, gny, goff, top, ex, ey, ec, ew, eoff[top, r], eoff[top, r + 1], kx >> top, ky >> top
+                        )
                     if s > best:
                         hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, s, top, r, kx, ky)
                 ky += step
@@ -385,16 +358,19 @@ def _bnb_expand(
             cky = ky + (q >> 1) * half
             if ckx > kx_hi or cky > ky_hi or ckx + half - 1 < kx_lo or cky + half - 1 < ky_lo:
                 continue  # quadrant entirely outside the search region
-            cs = _node_score(
-                L0, G, gnx, gny, goff, S, snx, sny, soff, dense_upto, cx, cy, ex, ey, ec, ew, eoff, h, r, ckx, cky
-            )
             if h == 0:
+                cs = score_l0(L0, cx[r], cy[r], ckx, cky)
                 if keep > 0 and (m < keep or cs > ts[keep - 1]):
                     m = _keep_best(ts, tr, tx, ty, m, cs, r, ckx, cky)
                 if cs > best:
                     best, best_r, best_kx, best_ky = cs, r, ckx, cky
-            elif cs > best:
-                hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
+            else:
+                if h <= dense_upto:
+                    cs = bound_dense(S, snx, sny, soff, h, cx[r], cy[r], ckx, cky)
+                else:
+                    cs = bound(G, gnx, gny, goff, h, ex, ey, ec, ew, eoff[h, r], eoff[h, r + 1], ckx >> h, cky >> h)
+                if cs > best:
+                    hs, hl, hr, hx, hy, n = _heap_push(hs, hl, hr, hx, hy, n, cs, h, r, ckx, cky)
     return best, best_r, best_kx, best_ky, hs, hl, hr, hx, hy, n, m, nodes
 
 

@@ -15,8 +15,8 @@ whole-map search expands, and not each tile's own runners-up, the tiles' searche
 best-first search: every tile keeps its heap between visits, and the search goes in sweeps, each
 of which takes the tiles whose best bound lies within 1 % of the highest one left and expands
 their blocks down to that threshold (a block below it stays on its tile's heap for a later
-sweep). A tile is mapped in at its first visit and let go once its heap is empty; the search
-stops when no tile's bound beats the best score found. Only the order in which blocks are
+sweep). A tile is mapped in at its first visit and let go once nothing on its heap can beat the
+best score found; the search stops when no tile's bound beats it. Only the order in which blocks are
 expanded differs from the whole-map search, never what is pruned: no block is dropped whose
 bound beats the best score found, so the optimum is the whole-map search's
 (tests/test_tiles_search.py compares them). A sweep's tiles are visited a few at once, one per

@@ -177,14 +177,19 @@ def bound_dense(S, snx, sny, soff, l, cxr, cyr, kx, ky):
 
 @nb.njit(cache=True, nogil=True)
 def _heap_push(hs, hl, hr, hx, hy, n, s, l, r, x, y):
-    """Push into the max-heap (ties: deeper level first, so leaves surface sooner)."""
+    """Push into the max-heap (ties: deeper level first, so leaves surface sooner).
+
+    A block takes 21 bytes: its bound in float64 (the sums the search compares exactly), its level
+    in int8, its angle in int32 and its lattice corner in int32 (a city's grid is thousands of
+    cells a side). A global search over a 16 km² city holds up to ~34 M blocks at once: 0.7 GB
+    at 21 bytes, 1.1 GB with int32 levels and int64 corners."""
     if n == hs.shape[0]:
         cap = 2 * n
         hs2 = np.empty(cap, np.float64)
-        hl2 = np.empty(cap, np.int32)
+        hl2 = np.empty(cap, np.int8)
         hr2 = np.empty(cap, np.int32)
-        hx2 = np.empty(cap, np.int64)
-        hy2 = np.empty(cap, np.int64)
+        hx2 = np.empty(cap, np.int32)
+        hy2 = np.empty(cap, np.int32)
         hs2[:n] = hs
         hl2[:n] = hl
         hr2[:n] = hr
@@ -291,10 +296,10 @@ def _bnb_roots(
     m = 0
     cap = 1024
     hs = np.empty(cap, np.float64)
-    hl = np.empty(cap, np.int32)
+    hl = np.empty(cap, np.int8)
     hr = np.empty(cap, np.int32)
-    hx = np.empty(cap, np.int64)
-    hy = np.empty(cap, np.int64)
+    hx = np.empty(cap, np.int32)
+    hy = np.empty(cap, np.int32)
     n = 0
     step = np.int64(1) << top
     x_start = (kx_lo >> top) << top  # aligned root tiling (floor to a multiple of 2^top)

@@ -95,6 +95,42 @@ def test_branch_and_bound_finds_the_exhaustive_optimum(monkeypatch, dense_upto):
     assert same_pose >= 12
 
 
+def test_a_heap_block_takes_21_bytes_and_keeps_what_a_search_puts_in_it():
+    """A city's global search holds tens of millions of blocks: each in 21 bytes (bound float64,
+    level int8, angle int32, lattice corner int32), popped best first (ties: deeper level first)
+    with its level, angle and corner as pushed, negative corners (a local search's region) and a
+    grid of a million cells a side included."""
+    *heap, n = bnb_kernels._bnb_roots(*_empty_kernel_args(), 0, 0, 0, 0, 0, 1.0, 0)[4:10]
+    assert n == 0
+    assert sum(a.dtype.itemsize for a in heap) == 21
+    rng = np.random.default_rng(3)
+    blocks = [
+        (float(rng.integers(0, 50)), int(rng.integers(0, 40)), int(rng.integers(0, 3600)),
+         int(rng.integers(-(10**6), 10**6)), int(rng.integers(-(10**6), 10**6)))
+        for _ in range(3000)
+    ]  # fmt: skip
+    for s, l, r, x, y in blocks:
+        *heap, n = bnb_kernels._heap_push(*heap, n, s, l, r, x, y)
+    popped = []
+    while n > 0:
+        hs, hl, hr, hx, hy = heap
+        popped.append((float(hs[0]), int(hl[0]), int(hr[0]), int(hx[0]), int(hy[0])))
+        n = bnb_kernels._heap_pop(*heap, n)
+    assert sorted(popped) == sorted(blocks)
+    keys = [(-s, l) for s, l, *_ in popped]
+    assert keys == sorted(keys)
+
+
+def _empty_kernel_args():
+    """The kernels' arguments for a 1 × 1 map and a one-point scan at one angle."""
+    L0 = np.zeros((1, 1), np.float32)
+    one = np.ones(1, np.int64)
+    flat, offsets = np.zeros(1, np.float32), np.zeros(1, np.int64)
+    cxy = np.zeros((1, 1), np.int64)
+    entries = bnb_kernels.level_entries(cxy, cxy, 1, 0)
+    return (L0, flat, one, one, offsets, flat, one, one, offsets, 0, cxy, cxy, *entries)
+
+
 @pytest.mark.parametrize("cell_value", ["sat8", "binary", "count", "log"])
 def test_grids_in_the_narrowest_exact_type_change_no_result(monkeypatch, cell_value):
     """Integer cells (saturated counts, binary) are searched from one-byte grids; the search is

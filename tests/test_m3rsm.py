@@ -100,10 +100,16 @@ def test_a_heap_block_takes_21_bytes_and_keeps_what_a_search_puts_in_it():
     level int8, angle int32, lattice corner int32), popped best first (ties: deeper level first)
     with its level, angle and corner as pushed, negative corners (a local search's region) and a
     grid of a million cells a side included."""
-    *heap, n = bnb_kernels._bnb_roots(*_empty_kernel_args(), 0, 0, 0, 0, 0, 1.0, 0)[4:10]
+    rng = np.random.default_rng(3)
+    pyr = BEVPyramid.build(random_segments(rng, 4, 20, 8), 1.0)
+    prep = m3rsm._Prepared(pyr, m3rsm.DENSE_UPTO)
+    cx, cy = m3rsm.angle_cells(pyr, m3rsm.scan_cells(rng.uniform(-5, 5, (20, 2)), 1.0), np.zeros(1), (0.5, 0.5))
+    kernel_args = (prep.L0, prep.G, prep.gnx, prep.gny, prep.goff, prep.S, prep.snx, prep.sny, prep.soff,
+                   m3rsm.DENSE_UPTO, cx, cy, *bnb_kernels.level_entries(cx, cy, m3rsm.DENSE_UPTO + 1, 0))  # fmt: skip
+    # the heap a search starts with: level 0 only scores leaves, so nothing is pushed on it
+    *heap, n = bnb_kernels._bnb_roots(*kernel_args, 0, 0, 0, 0, 0, -1.0, 0)[4:10]
     assert n == 0
     assert sum(a.dtype.itemsize for a in heap) == 21
-    rng = np.random.default_rng(3)
     blocks = [
         (float(rng.integers(0, 50)), int(rng.integers(0, 40)), int(rng.integers(0, 3600)),
          int(rng.integers(-(10**6), 10**6)), int(rng.integers(-(10**6), 10**6)))
@@ -119,16 +125,6 @@ def test_a_heap_block_takes_21_bytes_and_keeps_what_a_search_puts_in_it():
     assert sorted(popped) == sorted(blocks)
     keys = [(-s, l) for s, l, *_ in popped]
     assert keys == sorted(keys)
-
-
-def _empty_kernel_args():
-    """The kernels' arguments for a 1 × 1 map and a one-point scan at one angle."""
-    L0 = np.zeros((1, 1), np.float32)
-    one = np.ones(1, np.int64)
-    flat, offsets = np.zeros(1, np.float32), np.zeros(1, np.int64)
-    cxy = np.zeros((1, 1), np.int64)
-    entries = bnb_kernels.level_entries(cxy, cxy, 1, 0)
-    return (L0, flat, one, one, offsets, flat, one, one, offsets, 0, cxy, cxy, *entries)
 
 
 @pytest.mark.parametrize("cell_value", ["sat8", "binary", "count", "log"])

@@ -363,6 +363,8 @@ def _bnb_expand(
             cky = ky + (q >> 1) * half
             if ckx > kx_hi or cky > ky_hi or ckx + half - 1 < kx_lo or cky + half - 1 < ky_lo:
                 continue  # quadrant entirely outside the search region
+            # scored here, not through a helper shared with _bnb_roots: passing the kernels'
+            # sixteen arrays through one more call cost 17 % of a 16 km² city's search
             if h == 0:
                 cs = score_l0(L0, cx[r], cy[r], ckx, cky)
                 if keep > 0 and (m < keep or cs > ts[keep - 1]):

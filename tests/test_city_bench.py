@@ -256,3 +256,82 @@ def test_fpfh_ransac_is_stopped_at_its_budget_and_says_where(tmp_path, monkeypat
     assert "\n" not in status and failed["fpfh_ransac_scans_done"] == 0
 
     assert {p.pid for p in psutil.Process().children(recursive=True)} <= before
+
+
+# ``lidarloc bench city`` whose second global match is a stand-in that spins inside numba for many
+# minutes, releasing the GIL, as a search over a city does: Python runs no signal handler there.
+_SPINNING_BENCH = """
+import os, sys
+import numba
+import numpy as np
+from lidarloc.app.bench import city
+from lidarloc.app.cli import main
+
+@numba.njit(nogil=True)
+def spin(n):
+    x = np.uint64(88172645463325252)
+    for _ in range(n):
+        x ^= x << np.uint64(13)
+        x ^= x >> np.uint64(7)
+        x ^= x << np.uint64(17)
+    return x
+
+spin(1)
+real, calls = city.match_row, []
+
+def match_row(*args):
+    calls.append(args[0])
+    if len(calls) == 1:
+        return real(*args)
+    open(os.environ["SPIN_MARK"], "w").close()
+    spin(10**13)
+    raise AssertionError("the stand-in search ended")
+
+city.match_row = match_row
+sys.argv = ["lidarloc", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_stop_during_a_long_search_ends_bench_city_at_once_and_keeps_its_rows(cache_root, tmp_path):
+    """SIGTERM (as Ctrl-C) in the middle of a global search that would run for many minutes ends
+    the command within seconds, exit code 130, with one line that says how many matches are kept
+    and where; the rows done before it are on disk for the next run to resume from."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from helpers import wait_for
+
+    mark, out = tmp_path / "spinning", tmp_path / "bench"
+    cmd = [sys.executable, "-c", _SPINNING_BENCH, "bench", "city", "--set", "town.extent_m=150"]
+    cmd += ["--set", "town.n_scans=40", "--global-scans", "3", "--peer-scans", "0", "--no-whole-map"]
+    cmd += ["--tile-m", "50", "--out", str(out), "--cache", str(cache_root), "--json"]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "SPIN_MARK": str(mark)}
+    )
+    try:
+        wait_for(lambda: mark.exists() or proc.poll() is not None, timeout=300, what="the second search")
+        assert proc.poll() is None, proc.communicate()[1]
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=120)
+        stop_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, stderr
+    assert stop_s < 3.0  # the search itself would have run on for many minutes
+    rows = out / "global" / "rows.json"
+    assert stderr.strip().splitlines()[-1] == (
+        f"stopped: 1 global matches kept in {rows}; the same command resumes at the next scan"
+    )
+    assert stdout == ""  # no figures from a stopped bench
+    kept = json.loads(rows.read_text())["rows"]
+    assert [r["scan"] for r in kept] == scan_order(40, 1, load_config().seed)

@@ -28,11 +28,45 @@ from ...core.maps.tiled_bev import TiledBEV
 from ...core.maps.tiled_lookup import TiledLookup
 from ...core.sequences.factory import SourceSpec
 from ...core.worker_process import exit_words
+from ..console import SIGNAL_POLL_S
 from .city_rows import ROW_CODE, ROW_CODE_EXCLUDED, GlobalRows, match_row, missed, prepare, scan_order, warm_up
 from .common import load_avg, machine, median, open_source, rss_mb
 from .localize import code_fingerprint
 
 PEER_SAMPLE_S = 0.5  # how often FPFH + RANSAC's memory is read against its budget
+
+
+def stoppable(fn, *args):
+    """``fn(*args)`` on a thread of its own, this thread waiting on it in short joins. A global
+    search over a city runs for a minute or more inside numba, where Python runs no signal handler:
+    called on the main thread, a Ctrl-C or SIGTERM would wait for it to end. Here the stop's
+    KeyboardInterrupt is raised at once, and the search, on a daemon thread, is left to the
+    process's exit (the rows done so far are on disk already)."""
+    done: dict = {}
+
+    def call() -> None:
+        try:
+            done["value"] = fn(*args)
+        except BaseException as exc:  # handed to the waiting thread, raised there
+            done["error"] = exc
+
+    worker = threading.Thread(target=call, name="lidarloc-global-match", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(SIGNAL_POLL_S)
+    if "error" in done:
+        raise done["error"]
+    return done["value"]
+
+
+def stopped_line(rows_dir: Path) -> str:
+    """What a stopped ``bench city`` says: how many global matches it keeps, where, and how to go on."""
+    path = Path(rows_dir) / "rows.json"
+    try:
+        kept = len(json.loads(path.read_text())["rows"]) if path.is_file() else 0
+    except (OSError, ValueError, KeyError, TypeError):  # a file it refused at the start
+        kept = 0
+    return f"stopped: {kept} global matches kept in {path}; the same command resumes at the next scan"
 
 
 def _tables(prior, map_dir: Path, cfg: Config, tile_m: float, bev_tile_m: float, progress):
@@ -118,9 +152,9 @@ def run(
             continue
         truth, scan = seq.pose(k), prepare(seq.scan(k), cfg)
         if not warm:  # numba's kernels compiled off the clock
-            warm_up(bev, pyramid, scan, cfg.s2m.angle_step)
+            stoppable(warm_up, bev, pyramid, scan, cfg.s2m.angle_step)
             warm = True
-        row = match_row(k, scan, truth, bev, pyramid, cfg.s2m.angle_step)
+        row = stoppable(match_row, k, scan, truth, bev, pyramid, cfg.s2m.angle_step)
         rows.append(row)
         if kept is not None:
             kept.add(row)

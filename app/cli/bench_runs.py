@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -347,7 +349,7 @@ def bench_city(
     spread over the whole city. --set town.extent_m=E (or any source option) measures another city.
     The city's tables are the lookup at 0.5 m read by tiles (pf.lookup_resolution=0.5,
     pf.lookup_tile_m=400) unless --set says otherwise."""
-    from ..bench.city import localize_figures
+    from ..bench.city import localize_figures, stopped_line
     from ..bench.city import run as run_bench
 
     # A city's tables: the lookup at 0.5 m, read by tiles. At the default 0.25 m a 16 km² city's
@@ -356,27 +358,36 @@ def bench_city(
     # RMSE (BENCHMARKS.md, "A city").
     overrides = ["town.extent_m=4000", "town.n_scans=6000", "pf.lookup_resolution=0.5", "pf.lookup_tile_m=400"]
     cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
-    with progress_bar() as bar:
-        tasks: dict = {}
+    try:
+        with progress_bar() as bar:
+            tasks: dict = {}
 
-        def progress(what, fraction):
-            if what not in tasks:
-                tasks[what] = bar.add_task(what, total=1.0)
-            bar.update(tasks[what], completed=fraction)
+            def progress(what, fraction):
+                if what not in tasks:
+                    tasks[what] = bar.add_task(what, total=1.0)
+                bar.update(tasks[what], completed=fraction)
 
-        result = run_bench(
-            spec,
-            cfg,
-            cache_root=cache,
-            global_scans=global_scans,
-            peer_scans=peer_scans,
-            peer_budget_s=peer_budget_min * 60.0,
-            peer_budget_mb=None if peer_budget_gb is None else peer_budget_gb * 1024.0,
-            tile_m=tile_m,
-            whole_map=whole_map,
-            progress=progress,
-            rows_dir=out / "global",
-        )
+            result = run_bench(
+                spec,
+                cfg,
+                cache_root=cache,
+                global_scans=global_scans,
+                peer_scans=peer_scans,
+                peer_budget_s=peer_budget_min * 60.0,
+                peer_budget_mb=None if peer_budget_gb is None else peer_budget_gb * 1024.0,
+                tile_m=tile_m,
+                whole_map=whole_map,
+                progress=progress,
+                rows_dir=out / "global",
+            )
+    except KeyboardInterrupt:
+        sys.stdout.flush()
+        sys.stderr.write(stopped_line(out / "global") + "\n")  # one unwrapped line, as fail() writes
+        sys.stderr.flush()
+        # Not a normal exit: the interrupted search is still running in numba on its threads,
+        # which the interpreter's exit would wait for (a minute or more over a city). Every row
+        # done is on disk, and FPFH + RANSAC's process and the probe's are gone already.
+        os._exit(130)
     if localize_runs:  # its own progress bar: after the one above has closed
         result.update(localize_figures(spec, cfg, localize_runs, workers, out / "localize", cache_root=cache))
     show_bench_result("city", result, as_json)

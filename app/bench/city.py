@@ -64,7 +64,7 @@ def stopped_line(rows_dir: Path) -> str:
     path = Path(rows_dir) / "rows.json"
     try:
         kept = len(json.loads(path.read_text())["rows"]) if path.is_file() else 0
-    except (OSError, ValueError, KeyError, TypeError):  # a file it refused at the start
+    except (OSError, ValueError, KeyError, TypeError):  # not a rows file: the run refuses it
         kept = 0
     return f"stopped: {kept} global matches kept in {path}; the same command resumes at the next scan"
 

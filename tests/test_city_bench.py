@@ -335,3 +335,84 @@ def test_a_stop_during_a_long_search_ends_bench_city_at_once_and_keeps_its_rows(
     assert stdout == ""  # no figures from a stopped bench
     kept = json.loads(rows.read_text())["rows"]
     assert [r["scan"] for r in kept] == scan_order(40, 1, load_config().seed)
+
+
+def test_fpfh_features_are_kept_beside_the_map_and_rebuilt_when_cut_short_or_foreign(tmp_path, caplog):
+    """The feature map a city takes ~40 minutes to compute is kept in the map's directory and
+    read back exactly; a file cut short, or features of another voxel, are computed again."""
+    import json
+
+    import numpy as np
+    from lidarloc.app.bench.peers_global import FeatureMap
+
+    points = np.random.default_rng(1).uniform(-40, 40, (60_000, 3)).astype(np.float32)
+    built = FeatureMap(points, cache_dir=tmp_path)
+    read = FeatureMap(points, cache_dir=tmp_path)
+    assert not built.cached and read.cached and read.build_s == built.build_s
+    assert np.array_equal(np.asarray(read.cloud.points), np.asarray(built.cloud.points))
+    assert np.array_equal(np.asarray(read.fpfh.data), np.asarray(built.fpfh.data))
+
+    fpfh = tmp_path / "fpfh-1m" / "fpfh.npy"
+    fpfh.write_bytes(fpfh.read_bytes()[: fpfh.stat().st_size // 2])
+    again = FeatureMap(points, cache_dir=tmp_path)
+    assert not again.cached and "unreadable cache entry" in caplog.text
+    assert np.array_equal(np.asarray(again.fpfh.data), np.asarray(built.fpfh.data))
+    assert FeatureMap(points, cache_dir=tmp_path).cached  # written whole again
+
+    record = tmp_path / "fpfh-1m" / "features.json"
+    record.write_text(json.dumps({**json.loads(record.read_text()), "voxel": 2.0}))
+    assert not FeatureMap(points, cache_dir=tmp_path).cached
+
+
+def test_fpfh_ransac_registrations_are_kept_and_a_longer_run_registers_only_the_new_scans(tmp_path, monkeypatch):
+    """With rows kept, each registration is on disk as it ends; a run over more scans reads the
+    kept ones and the kept feature map and registers only the scans it lacks; a run with nothing
+    left to do starts no process at all."""
+    import numpy as np
+    import psutil
+    from lidarloc.app.bench import city
+    from lidarloc.app.bench.city import peers
+
+    cfg = load_config()
+    map_file = tmp_path / "map.npy"
+    np.save(map_file, np.random.default_rng(0).uniform(-50, 50, (200_000, 3)).astype(np.float32))
+    quiet = lambda what, f: None  # noqa: E731
+    rows = tmp_path / "fpfh-ransac"
+    identity = {"method": "FPFH + RANSAC", "map": "random"}
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+
+    first = peers(_Drive(), map_file, cfg, [0], quiet, 600.0, 1e9, GlobalRows(rows, identity))
+    assert first["fpfh_ransac_status"] == "done" and first["fpfh_ransac_scans_resumed"] == 0
+    assert first["fpfh_features_cached"] is False and first["fpfh_map_build_s"] > 0
+    assert [r["scan"] for r in GlobalRows(rows, identity).rows.values()] == [0]
+
+    longer = peers(_Drive(), map_file, cfg, [0, 1], quiet, 600.0, 1e9, GlobalRows(rows, identity))
+    assert longer["fpfh_ransac_status"] == "done" and longer["fpfh_ransac_scans_done"] == 2
+    assert longer["fpfh_ransac_scans_resumed"] == 1 and longer["fpfh_features_cached"] is True
+    assert longer["fpfh_map_build_s"] == first["fpfh_map_build_s"]
+    assert longer["fpfh_ransac_rows"][0] == first["fpfh_ransac_rows"][0]  # read back, not run again
+    assert [r["scan"] for r in longer["fpfh_ransac_rows"]] == [0, 1]
+
+    started, real = [], city._PeerChild
+    monkeypatch.setattr(city, "_PeerChild", lambda *a: started.append(a) or real(*a))
+    nothing = peers(_Drive(), map_file, cfg, [1, 0], quiet, 600.0, 1e9, GlobalRows(rows, identity))
+    assert started == [] and nothing["fpfh_ransac_status"] == "done"
+    assert nothing["fpfh_ransac_scans_resumed"] == 2 and nothing["fpfh_ransac_success"] == longer["fpfh_ransac_success"]
+    assert nothing["fpfh_feature_points"] == longer["fpfh_feature_points"]
+    assert {p.pid for p in psutil.Process().children(recursive=True)} <= before
+
+
+def test_a_stopped_bench_city_names_the_fpfh_ransac_registrations_it_keeps(tmp_path):
+    from lidarloc.app.bench.city import stopped_line
+
+    GlobalRows(tmp_path / "global", {"a": 1}).add({"scan": 3})
+    line = f"stopped: 1 global matches kept in {tmp_path / 'global' / 'rows.json'}"
+    assert stopped_line(tmp_path / "global", tmp_path / "fpfh-ransac") == (
+        line + "; the same command resumes at the next scan"
+    )
+    for k in (3, 5):
+        GlobalRows(tmp_path / "fpfh-ransac", {"b": 1}).add({"scan": k})
+    assert stopped_line(tmp_path / "global", tmp_path / "fpfh-ransac") == (
+        f"{line} and 2 FPFH + RANSAC registrations in {tmp_path / 'fpfh-ransac' / 'rows.json'}; "
+        "the same command resumes at the next scan"
+    )

@@ -34,6 +34,8 @@ from .common import load_avg, machine, median, open_source, rss_mb
 from .localize import code_fingerprint
 
 PEER_SAMPLE_S = 0.5  # how often FPFH + RANSAC's memory is read against its budget
+# What FPFH + RANSAC's registrations depend on beyond the global matches' code (ROW_CODE).
+PEER_CODE = ("app/bench/city_peer.py", "app/bench/peers_global.py", "core/o3d.py")
 
 
 def stoppable(fn, *args):
@@ -59,14 +61,37 @@ def stoppable(fn, *args):
     return done["value"]
 
 
-def stopped_line(rows_dir: Path) -> str:
-    """What a stopped ``bench city`` says: how many global matches it keeps, where, and how to go on."""
-    path = Path(rows_dir) / "rows.json"
+def peer_identity(seq, cfg: Config) -> dict:
+    """What FPFH + RANSAC's kept registrations depend on: the source, the configuration (the map's
+    and the seed), open3d and the code that maps, prepares, registers and judges them."""
+    from ...core.o3d import open3d
+
+    return {
+        "method": "FPFH + RANSAC",
+        "source": seq.name,
+        "scans": len(seq),
+        "config": cfg.to_dict(),
+        "open3d": open3d().__version__,
+        "code": code_fingerprint(ROW_CODE + PEER_CODE, exclude=ROW_CODE_EXCLUDED),
+    }
+
+
+def _kept(path: Path) -> int:
     try:
-        kept = len(json.loads(path.read_text())["rows"]) if path.is_file() else 0
+        return len(json.loads(path.read_text())["rows"]) if path.is_file() else 0
     except (OSError, ValueError, KeyError, TypeError):  # not a rows file: the run refuses it
-        kept = 0
-    return f"stopped: {kept} global matches kept in {path}; the same command resumes at the next scan"
+        return 0
+
+
+def stopped_line(rows_dir: Path, peer_rows_dir: Path | None = None) -> str:
+    """What a stopped ``bench city`` says: how many global matches (and FPFH + RANSAC
+    registrations, where it keeps some) it keeps, where, and how to go on."""
+    path = Path(rows_dir) / "rows.json"
+    kept = f"{_kept(path)} global matches kept in {path}"
+    peer_path = None if peer_rows_dir is None else Path(peer_rows_dir) / "rows.json"
+    if peer_path is not None and peer_path.is_file():
+        kept += f" and {_kept(peer_path)} FPFH + RANSAC registrations in {peer_path}"
+    return f"stopped: {kept}; the same command resumes at the next scan"
 
 
 def _tables(prior, map_dir: Path, cfg: Config, tile_m: float, bev_tile_m: float, progress):
@@ -95,11 +120,13 @@ def run(
     rows_dir: Path | None = None,
     peer_budget_s: float = 3600.0,
     peer_budget_mb: float | None = None,
+    peer_rows_dir: Path | None = None,
 ) -> dict:
     """The figures above; ``rows_dir``: keep the global matches there and resume those an earlier
-    run of the same source, configuration and code left (:class:`GlobalRows`); FPFH + RANSAC is
-    stopped at ``peer_budget_s`` of wall time or ``peer_budget_mb`` of resident memory (default:
-    three quarters of the machine's) and says so (:func:`peers`)."""
+    run of the same source, configuration and code left (:class:`GlobalRows`); ``peer_rows_dir``:
+    the same for FPFH + RANSAC's registrations. FPFH + RANSAC is stopped at ``peer_budget_s`` of
+    wall time or ``peer_budget_mb`` of resident memory (default: three quarters of the machine's)
+    and says so (:func:`peers`)."""
     report = progress or (lambda what, f: None)
     seq = open_source(spec, cfg, "city", need_poses=True)
     t0 = time.perf_counter()
@@ -129,7 +156,7 @@ def run(
         "tiles_mb": (lookup.cache_bytes + bev.cache_bytes) / 1e6,
     }
     idx = scan_order(len(seq), global_scans, cfg.seed)
-    kept = None
+    kept = kept_peer = None
     if rows_dir is not None:
         identity = {
             "source": seq.name,
@@ -140,6 +167,8 @@ def run(
             "code": code_fingerprint(ROW_CODE, exclude=ROW_CODE_EXCLUDED),
         }
         kept = GlobalRows(rows_dir, identity)
+    if peer_rows_dir is not None and peer_scans > 0:
+        kept_peer = GlobalRows(peer_rows_dir, peer_identity(seq, cfg))
     out["global_scans_resumed"] = sum(k in kept.rows for k in idx) if kept is not None else 0
     pyramid = None
     if whole_map and (kept is None or any(k not in kept.rows for k in idx)):
@@ -175,7 +204,8 @@ def run(
         out["whole_map_ms_median"] = out["whole_map_success"] = None
     if peer_scans > 0:
         budget_mb = default_peer_budget_mb() if peer_budget_mb is None else peer_budget_mb
-        out.update(peers(seq, map_dir / MAP_FILE, cfg, sorted(idx[:peer_scans]), report, peer_budget_s, budget_mb))
+        chosen = sorted(idx[:peer_scans])
+        out.update(peers(seq, map_dir / MAP_FILE, cfg, chosen, report, peer_budget_s, budget_mb, kept_peer))
     out.update(_probe(seq, lookup, bev, cfg, idx))
     out["localize_success"] = None  # filled by localize_figures (``--localize-runs``)
     out["load_avg_end"] = load_avg()
@@ -216,59 +246,103 @@ def _dir_bytes(directory: Path) -> int:
     return sum(p.stat().st_size for p in Path(directory).rglob("*") if p.is_file())
 
 
-def peers(seq, map_file: Path, cfg: Config, idx: list[int], report, budget_s: float, budget_mb: float) -> dict:
+def peers(
+    seq, map_file: Path, cfg: Config, idx: list[int], report, budget_s: float, budget_mb: float, kept=None
+) -> dict:
     """FPFH + RANSAC on the scans ``idx`` against the whole map, in a process of its own
     (:mod:`.city_peer`), stopped once it has run ``budget_s``, its own memory passes ``budget_mb``
     or the machine's available memory falls to :func:`memory_reserve`: on a 16 km² city the
-    feature map alone takes ~47 min and 12 GB on 2 cores. Its own memory is its anonymous resident
-    memory: the pages of the memory-mapped map it has read count in its RSS too, but the system
-    takes them back when it needs them. What it finished before a stop is reported, with how and
-    where it stopped (``fpfh_ransac_status``) and its peak memory; a stop is a figure, not a
-    failure of the bench."""
-    with tempfile.TemporaryDirectory() as tmp:
-        scans = [np.asarray(range_filter(seq.scan(k), cfg.map)[:, :3], dtype=np.float64) for k in idx]
-        np.savez(
-            Path(tmp) / "scans.npz",
-            points=np.concatenate(scans) if scans else np.zeros((0, 3)),
-            ends=np.cumsum([len(s) for s in scans], dtype=np.int64),
-            truth=np.stack([seq.pose(k) for k in idx]) if idx else np.zeros((0, 4, 4)),
-            scan=np.asarray(idx, dtype=np.int64),
-        )
-        args = {"map": str(map_file), "scans": str(Path(tmp) / "scans.npz"), "seed": cfg.seed}
-        with open(Path(tmp) / "stderr.txt", "w+") as err:
-            child = _PeerChild([sys.executable, "-m", f"{__package__}.city_peer", json.dumps(args)], err)
-            stop = child.watch(budget_s, budget_mb, lambda done: report("FPFH + RANSAC", done / max(len(idx), 1)))
-            err.seek(0)
-            last_error = ([ln.strip() for ln in err if ln.strip()] or [""])[-1]
-    features = next((ln for ln in child.lines if "features_s" in ln), None)
-    done = [ln for ln in child.lines if "scan" in ln]
-    if stop is not None:
+    feature map alone takes ~40 min and 12 GB on 2 cores (it is kept beside the map, so only the
+    first run pays for it). Its own memory is its anonymous resident memory: the pages of the
+    memory-mapped map it has read count in its RSS too, but the system takes them back when it
+    needs them. What it finished before a stop is reported, with how and where it stopped
+    (``fpfh_ransac_status``) and its peak memory; a stop is a figure, not a failure of the bench.
+    ``kept`` (a :class:`GlobalRows`): the registrations are kept there as they are done and those
+    it holds are not run again."""
+    resumed = {k: kept.rows[k] for k in idx if kept is not None and k in kept.rows}
+    todo = [k for k in idx if k not in resumed]
+    new: list[dict] = []
+
+    def take(line: dict) -> None:  # on the child's reader thread, as each registration ends
+        if "scan" in line:
+            new.append(line)
+            if kept is not None:
+                kept.add(line)
+
+    child = None
+    if todo:
+        with tempfile.TemporaryDirectory() as tmp:
+            scans = [np.asarray(range_filter(seq.scan(k), cfg.map)[:, :3], dtype=np.float64) for k in todo]
+            np.savez(
+                Path(tmp) / "scans.npz",
+                points=np.concatenate(scans),
+                ends=np.cumsum([len(s) for s in scans], dtype=np.int64),
+                truth=np.stack([seq.pose(k) for k in todo]),
+                scan=np.asarray(todo, dtype=np.int64),
+            )
+            args = {
+                "map": str(map_file),
+                "features_dir": str(Path(map_file).parent),
+                "scans": str(Path(tmp) / "scans.npz"),
+                "seed": cfg.seed,
+            }
+            with open(Path(tmp) / "stderr.txt", "w+") as err:
+                child = _PeerChild([sys.executable, "-m", f"{__package__}.city_peer", json.dumps(args)], err, take)
+                stop = child.watch(
+                    budget_s, budget_mb, lambda n: report("FPFH + RANSAC", (len(resumed) + n) / max(len(idx), 1))
+                )
+                err.seek(0)
+                last_error = ([ln.strip() for ln in err if ln.strip()] or [""])[-1]
+    features = next((ln for ln in child.lines if "features_s" in ln), None) if child else None
+    if features is None:  # nothing run, or stopped before: what the kept feature map's record says
+        features = _cached_features(Path(map_file).parent)
+    done = [resumed.get(k) or next((ln for ln in new if ln["scan"] == k), None) for k in idx]
+    done = [ln for ln in done if ln is not None]
+    if child is None:
+        status = "done"
+    elif stop is not None:
         where = "while building the map's features" if features is None else f"after {len(done)} of {len(idx)} scans"
         status = f"stopped at {stop} {where}"
     elif child.returncode != 0 or len(done) < len(idx):
         status = f"failed ({exit_words(child.returncode)}): {last_error}"
     else:
         status = "done"
+    peak_rss = max([child.peak_rss_mb if child else 0.0] + [ln["rss_peak_mb"] for ln in done])
     return {
         "fpfh_ransac_scans": len(idx),
         "fpfh_ransac_scans_done": len(done),
+        "fpfh_ransac_scans_resumed": len(resumed),
         "fpfh_ransac_ms_median": median(ln["ms"] for ln in done),
         "fpfh_ransac_success": float(np.mean([ln["ok"] for ln in done])) if done else None,
         "fpfh_ransac_status": status,
         "fpfh_map_build_s": features["features_s"] if features else None,
+        "fpfh_features_cached": features.get("features_cached", True) if features else None,
         "fpfh_feature_points": features["feature_points"] if features else None,
-        "fpfh_peak_rss_mb": round(max([child.peak_rss_mb] + [ln["rss_peak_mb"] for ln in child.lines]), 1),
-        "fpfh_peak_own_mb": round(child.peak_own_mb, 1),
-        "fpfh_wall_s": round(child.wall_s, 1),
+        "fpfh_peak_rss_mb": round(peak_rss, 1),
+        "fpfh_peak_own_mb": round(child.peak_own_mb, 1) if child else None,
+        "fpfh_wall_s": round(child.wall_s, 1) if child else 0.0,
+        "fpfh_ransac_rows": done,
     }
+
+
+def _cached_features(map_dir: Path) -> dict | None:
+    """The record of the FPFH feature map kept in ``map_dir``, as the child reports it, or None."""
+    from .peers_global import FEATURE_VOXEL, FEATURES_RECORD
+
+    try:
+        record = json.loads((map_dir / f"fpfh-{FEATURE_VOXEL:g}m" / FEATURES_RECORD).read_text())
+        return {"features_s": record["build_s"], "features_cached": True, "feature_points": record["feature_points"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 class _PeerChild:
     """The FPFH + RANSAC process, its JSON lines read on a thread as they come."""
 
-    def __init__(self, cmd: list[str], stderr):
+    def __init__(self, cmd: list[str], stderr, on_line=None):
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=stderr, text=True)
         self.lines: list[dict] = []
+        self._on_line = on_line or (lambda line: None)
         self.peak_rss_mb = 0.0
         self.peak_own_mb = 0.0  # anonymous: the RSS without the mapped map's pages
         self.wall_s = 0.0
@@ -279,9 +353,11 @@ class _PeerChild:
         for line in self.proc.stdout:
             if line.startswith("{"):  # open3d may print its own lines on stdout
                 try:
-                    self.lines.append(json.loads(line))
+                    parsed = json.loads(line)
                 except ValueError:
-                    pass
+                    continue
+                self.lines.append(parsed)
+                self._on_line(parsed)
 
     @property
     def returncode(self) -> int | None:

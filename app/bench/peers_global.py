@@ -4,12 +4,14 @@ on the same scans, map and machine."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ...core.cache import atomic_write_dir, cache_rebuilt, log
 from ...core.config import Config
 from ...core.maps.bev import load_or_build_pyramid
 from ...core.maps.mapping import load_or_build_map, range_filter, voxel_centroids
@@ -18,20 +20,76 @@ from .common import median, open_source, pose_error
 
 SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
 FEATURE_VOXEL = 1.0  # m, the peers' map and scan voxel
+NORMAL_RADIUS_VOXELS, FPFH_RADIUS_VOXELS = 2, 5  # the normals' and the features' search radii, in voxels
+FEATURES_RECORD = "features.json"  # a cached feature map's record: what it was computed with
+FEATURES_VERSION = 1  # of the cached feature map's layout
 
 
 # ------------------------------------------------------------------------------ global localization
 class FeatureMap:
-    """The map's down-sampled points and FPFH features, computed once (open3d)."""
+    """The map's down-sampled points and FPFH features, computed once (open3d). With
+    ``cache_dir`` they are kept there (``fpfh-<voxel>m/``) and read back by a later run: on a
+    16 km² city they take ~40 minutes to compute and ~5 GB on disk. ``build_s`` is the time the
+    features took to compute (read from the cache's record when they came from it), ``load_s``
+    the time this object took to have them."""
 
-    def __init__(self, points: np.ndarray, voxel: float = FEATURE_VOXEL):
+    def __init__(self, points: np.ndarray, voxel: float = FEATURE_VOXEL, cache_dir: Path | None = None):
         from ...core.o3d import open3d
 
         self.o3d = open3d()
         self.voxel = voxel
+        self.directory = None if cache_dir is None else Path(cache_dir) / f"fpfh-{voxel:g}m"
+        self.cached = False
         t0 = time.perf_counter()
-        self.cloud, self.fpfh = self.features(points)
-        self.build_s = time.perf_counter() - t0
+        if self.directory is not None and (self.directory / FEATURES_RECORD).is_file():
+            try:
+                self.cloud, self.fpfh, self.build_s = self._load(self.directory)
+                self.cached = True
+            except (OSError, ValueError, KeyError, TypeError) as exc:  # cut short or foreign: built again
+                cache_rebuilt(self.directory, str(exc))
+        if not self.cached:
+            self.cloud, self.fpfh = self.features(points)
+            self.build_s = time.perf_counter() - t0
+            if self.directory is not None:
+                try:
+                    atomic_write_dir(self.directory, self._save)
+                except OSError as exc:  # a full disk costs the next run the features, not this run
+                    log.warning(
+                        "lidarloc: warning: %s: cannot keep the FPFH features (%s)", self.directory, exc.strerror
+                    )
+        self.load_s = time.perf_counter() - t0
+
+    def _record(self) -> dict:
+        """What the cached features depend on besides the map (whose cache directory holds them)."""
+        return {
+            "version": FEATURES_VERSION,
+            "voxel": self.voxel,
+            "normal_radius": NORMAL_RADIUS_VOXELS * self.voxel,
+            "fpfh_radius": FPFH_RADIUS_VOXELS * self.voxel,
+            "open3d": self.o3d.__version__,
+        }
+
+    def _save(self, directory: Path) -> None:
+        np.save(directory / "points.npy", np.asarray(self.cloud.points))
+        np.save(directory / "fpfh.npy", np.asarray(self.fpfh.data))
+        record = {**self._record(), "feature_points": len(self.cloud.points), "build_s": self.build_s}
+        (directory / FEATURES_RECORD).write_text(json.dumps(record, indent=1))
+
+    def _load(self, directory: Path):
+        record = json.loads((directory / FEATURES_RECORD).read_text())
+        theirs = {k: record.get(k) for k in self._record()}
+        if theirs != self._record():
+            raise ValueError(f"features of another voxel, radius or open3d ({theirs})")
+        n = int(record["feature_points"])
+        # copy-on-write maps: open3d copies them into its own arrays (and wants them writeable)
+        points = np.load(directory / "points.npy", mmap_mode="c")  # a cut-short file raises here
+        fpfh = np.load(directory / "fpfh.npy", mmap_mode="c")
+        if points.shape != (n, 3) or fpfh.shape != (33, n) or points.dtype != np.float64 or fpfh.dtype != np.float64:
+            raise ValueError(f"arrays of shape {points.shape} and {fpfh.shape}, not ({n}, 3) and (33, {n})")
+        cloud = self.o3d.geometry.PointCloud(self.o3d.utility.Vector3dVector(points))
+        feature = self.o3d.pipelines.registration.Feature()
+        feature.data = fpfh  # copied into open3d's own matrix, exactly as computed
+        return cloud, feature, float(record["build_s"])
 
     def features(self, points: np.ndarray):
         o3d, v = self.o3d, self.voxel
@@ -40,9 +98,9 @@ class FeatureMap:
         centroids = voxel_centroids(points, v)
         assert centroids is not None  # no cap
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centroids.astype(np.float64)))
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * v, max_nn=30))
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100)
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * v, max_nn=100)
         )
         return pcd, fpfh
 

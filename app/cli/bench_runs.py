@@ -297,8 +297,9 @@ def bench_city(
         typer.Option(
             "--peer-budget-min",
             min=0.0,
-            help="FPFH + RANSAC is stopped after this many minutes (building its feature map included) and "
-            "reports the scans it finished and where it stopped.",
+            help="FPFH + RANSAC is stopped after this many minutes (building its feature map included; the "
+            "map's features are kept beside it for the next run) and reports the scans it finished and where "
+            "it stopped.",
         ),
     ] = 60.0,
     peer_budget_gb: Annotated[
@@ -330,8 +331,9 @@ def bench_city(
         Path,
         typer.Option(
             "--out",
-            help="Directory for the global matches, one row a scan, and the --localize-runs runs: a run "
-            "stopped at any moment resumes there (same source, configuration and code).",
+            help="Directory for the global matches and FPFH + RANSAC's registrations, one row a scan, and "
+            "the --localize-runs runs: a run stopped at any moment resumes there (same source, configuration "
+            "and code).",
         ),
     ] = Path("out/bench-city"),
     seed: SeedOpt = None,
@@ -379,10 +381,12 @@ def bench_city(
                 whole_map=whole_map,
                 progress=progress,
                 rows_dir=out / "global",
+                peer_rows_dir=out / "fpfh-ransac",
             )
     except KeyboardInterrupt:
         sys.stdout.flush()
-        sys.stderr.write(stopped_line(out / "global") + "\n")  # one unwrapped line, as fail() writes
+        line = stopped_line(out / "global", out / "fpfh-ransac")
+        sys.stderr.write(line + "\n")  # one unwrapped line, as fail() writes
         sys.stderr.flush()
         # Not a normal exit: the interrupted search is still running in numba on its threads,
         # which the interpreter's exit would wait for (a minute or more over a city). Every row

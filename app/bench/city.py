@@ -261,13 +261,10 @@ def peers(
     it holds are not run again."""
     resumed = {k: kept.rows[k] for k in idx if kept is not None and k in kept.rows}
     todo = [k for k in idx if k not in resumed]
-    new: list[dict] = []
 
-    def take(line: dict) -> None:  # on the child's reader thread, as each registration ends
-        if "scan" in line:
-            new.append(line)
-            if kept is not None:
-                kept.add(line)
+    def keep(line: dict) -> None:  # on the child's reader thread, as each registration ends
+        if kept is not None and "scan" in line:
+            kept.add(line)
 
     child = None
     if todo:
@@ -287,17 +284,18 @@ def peers(
                 "seed": cfg.seed,
             }
             with open(Path(tmp) / "stderr.txt", "w+") as err:
-                child = _PeerChild([sys.executable, "-m", f"{__package__}.city_peer", json.dumps(args)], err, take)
+                child = _PeerChild([sys.executable, "-m", f"{__package__}.city_peer", json.dumps(args)], err, keep)
                 stop = child.watch(
                     budget_s, budget_mb, lambda n: report("FPFH + RANSAC", (len(resumed) + n) / max(len(idx), 1))
                 )
                 err.seek(0)
                 last_error = ([ln.strip() for ln in err if ln.strip()] or [""])[-1]
-    features = next((ln for ln in child.lines if "features_s" in ln), None) if child else None
+    lines = child.lines if child else []
+    features = next((ln for ln in lines if "features_s" in ln), None)
     if features is None:  # nothing run, or stopped before: what the kept feature map's record says
         features = _cached_features(Path(map_file).parent)
-    done = [resumed.get(k) or next((ln for ln in new if ln["scan"] == k), None) for k in idx]
-    done = [ln for ln in done if ln is not None]
+    registered = {**resumed, **{ln["scan"]: ln for ln in lines if "scan" in ln}}
+    done = [registered[k] for k in idx if k in registered]
     if child is None:
         status = "done"
     elif stop is not None:
@@ -316,7 +314,7 @@ def peers(
         "fpfh_ransac_success": float(np.mean([ln["ok"] for ln in done])) if done else None,
         "fpfh_ransac_status": status,
         "fpfh_map_build_s": features["features_s"] if features else None,
-        "fpfh_features_cached": features.get("features_cached", True) if features else None,
+        "fpfh_features_cached": features["features_cached"] if features else None,
         "fpfh_feature_points": features["feature_points"] if features else None,
         "fpfh_peak_rss_mb": round(peak_rss, 1),
         "fpfh_peak_own_mb": round(child.peak_own_mb, 1) if child else None,
@@ -327,10 +325,10 @@ def peers(
 
 def _cached_features(map_dir: Path) -> dict | None:
     """The record of the FPFH feature map kept in ``map_dir``, as the child reports it, or None."""
-    from .peers_global import FEATURE_VOXEL, FEATURES_RECORD
+    from .peers_global import FEATURES_RECORD, features_dir
 
     try:
-        record = json.loads((map_dir / f"fpfh-{FEATURE_VOXEL:g}m" / FEATURES_RECORD).read_text())
+        record = json.loads((features_dir(map_dir) / FEATURES_RECORD).read_text())
         return {"features_s": record["build_s"], "features_cached": True, "feature_points": record["feature_points"]}
     except (OSError, ValueError, KeyError, TypeError):
         return None

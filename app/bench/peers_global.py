@@ -26,6 +26,11 @@ FEATURES_VERSION = 1  # of the cached feature map's layout
 
 
 # ------------------------------------------------------------------------------ global localization
+def features_dir(cache_dir: Path, voxel: float = FEATURE_VOXEL) -> Path:
+    """Where the FPFH features of the map whose cache directory is ``cache_dir`` are kept."""
+    return Path(cache_dir) / f"fpfh-{voxel:g}m"
+
+
 class FeatureMap:
     """The map's down-sampled points and FPFH features, computed once (open3d). With
     ``cache_dir`` they are kept there (``fpfh-<voxel>m/``) and read back by a later run: on a
@@ -38,7 +43,7 @@ class FeatureMap:
 
         self.o3d = open3d()
         self.voxel = voxel
-        self.directory = None if cache_dir is None else Path(cache_dir) / f"fpfh-{voxel:g}m"
+        self.directory = None if cache_dir is None else features_dir(cache_dir, voxel)
         self.cached = False
         t0 = time.perf_counter()
         if self.directory is not None and (self.directory / FEATURES_RECORD).is_file():

@@ -364,6 +364,38 @@ def test_fpfh_features_are_kept_beside_the_map_and_rebuilt_when_cut_short_or_for
     assert not FeatureMap(points, cache_dir=tmp_path).cached
 
 
+def test_fpfh_ransac_with_its_feature_index_built_once_registers_exactly_as_open3d_s_one_call():
+    """The map's feature index built once and the reverse check asked only of the map points a scan
+    point chose: the same correspondences reach the same RANSAC, so the same pose as open3d's
+    registration_ransac_based_on_feature_matching (which builds the index on every call)."""
+    import numpy as np
+    from lidarloc.app.bench.peers_global import FeatureMap
+
+    rng = np.random.default_rng(1)
+    g = rng.uniform(-40, 40, (30_000, 2))
+    parts = [np.c_[g, rng.normal(0, 0.03, len(g))]]
+    for _ in range(20):  # boxes' walls on the ground
+        corner, size = rng.uniform(-35, 35, 2), rng.uniform(2, 8, 3)
+        p = rng.uniform(0, 1, (2_500, 3)) * size + [*corner, 0]
+        side = rng.integers(0, 4, len(p))
+        p[side == 0, 0], p[side == 1, 0] = corner[0], corner[0] + size[0]
+        p[side == 2, 1], p[side == 3, 1] = corner[1], corner[1] + size[1]
+        parts.append(p)
+    world = np.vstack(parts)
+    features = FeatureMap(world)
+    right = 0
+    for k in range(3):
+        yaw, centre = rng.uniform(-np.pi, np.pi), rng.uniform(-15, 15, 2)
+        c, s = np.cos(yaw), np.sin(yaw)
+        scan = world[np.linalg.norm(world[:, :2] - centre, axis=1) < 25] - [*centre, 0]
+        scan = scan @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) + rng.normal(0, 0.02, scan.shape)
+        T = features.ransac(scan, 7 + k)
+        assert np.array_equal(T, features.ransac_open3d(scan, 7 + k))
+        right += bool(np.abs(T[:2, 3] - centre).max() < 0.5)
+    assert right >= 1  # a registration that finds the place, not only two that agree on nothing
+    assert features.index_s > 0
+
+
 def test_fpfh_ransac_registrations_are_kept_and_a_longer_run_registers_only_the_new_scans(tmp_path, monkeypatch):
     """With rows kept, each registration is on disk as it ends; a run over more scans reads the
     kept ones and the kept feature map and registers only the scans it lacks; a run with nothing

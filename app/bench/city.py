@@ -315,6 +315,7 @@ def peers(
         "fpfh_ransac_status": status,
         "fpfh_map_build_s": features["features_s"] if features else None,
         "fpfh_features_cached": features["features_cached"] if features else None,
+        "fpfh_index_s": features.get("index_s") if features else None,
         "fpfh_feature_points": features["feature_points"] if features else None,
         "fpfh_peak_rss_mb": round(peak_rss, 1),
         "fpfh_peak_own_mb": round(child.peak_own_mb, 1) if child else None,

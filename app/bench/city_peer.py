@@ -6,7 +6,7 @@ Reads the cached map (memory-mapped) and the prepared scans with their truth, bu
 FPFH feature map (or reads it from the map's cache directory, where the first run keeps it),
 registers each scan to it with RANSAC and prints one JSON line per step as it goes (so that a stop
 at the budget still tells how far it got): ``{"features_s", "features_cached", "features_load_s",
-"feature_points", "rss_peak_mb"}`` once the map's features are there, then ``{"scan", "ms", "ok",
+"index_s", "feature_points", "rss_peak_mb"}`` once the map's features and their index are there, then ``{"scan", "ms", "ok",
 "err_m", "rss_peak_mb"}`` per scan. Each scan's RANSAC is seeded with the run's seed plus the
 scan's number, so a resumed run registers a scan as a whole one would.
 """
@@ -36,11 +36,13 @@ def register(args: dict) -> None:
     starts = np.r_[0, ends[:-1]]
     points = np.load(args["map"], mmap_mode="r")  # the city's map stays on disk, paged in chunk by chunk
     features = FeatureMap(points, cache_dir=args.get("features_dir"))
+    features.index()  # the map's feature index, built once before the first scan's clock starts
     say(
         {
             "features_s": features.build_s,
             "features_cached": features.cached,
             "features_load_s": features.load_s,
+            "index_s": features.index_s,
             "feature_points": len(features.cloud.points),
             "rss_peak_mb": peak_rss_mb(),
         }

@@ -63,6 +63,8 @@ class FeatureMap:
                         "lidarloc: warning: %s: cannot keep the FPFH features (%s)", self.directory, exc.strerror
                     )
         self.load_s = time.perf_counter() - t0
+        self._index = None  # the map's features in a k-d tree, built on the first registration
+        self.index_s = 0.0
 
     def _record(self) -> dict:
         """What the cached features depend on besides the map (whose cache directory holds them)."""
@@ -109,7 +111,58 @@ class FeatureMap:
         )
         return pcd, fpfh
 
+    def index(self):
+        """The map's features in open3d's k-d tree, built once (``index_s``): open3d's
+        ``registration_ransac_based_on_feature_matching`` builds it again on every call, which on a
+        city is most of a registration. hdl_global_localization, whose alternative to BBS this
+        stands for, builds it once when the map is loaded, as lidarloc builds its pyramid."""
+        if self._index is None:
+            t = time.perf_counter()
+            self._index = self.o3d.geometry.KDTreeFlann(self.fpfh)
+            self.index_s = time.perf_counter() - t
+        return self._index
+
+    def correspondences(self, src_features, ransac_n: int = 3) -> np.ndarray:
+        """The (scan point, map point) pairs open3d's ``registration_ransac_based_on_feature_matching``
+        hands to its RANSAC with ``mutual_filter=True``, the same pairs in the same order: each scan
+        point's nearest map feature, kept where that map point's nearest scan feature is the scan
+        point again (all pairs when fewer than ``3 ransac_n`` survive). open3d asks the reverse
+        question of every map point; only those some scan point chose can answer it, so only they
+        are asked."""
+        index, o3d = self.index(), self.o3d
+        src = np.asarray(src_features.data)
+        ahead = np.array([index.search_knn_vector_xd(src[:, i], 1)[1][0] for i in range(src.shape[1])], np.int64)
+        back_index = o3d.geometry.KDTreeFlann(src_features)
+        target = np.asarray(self.fpfh.data)
+        back = {int(j): back_index.search_knn_vector_xd(target[:, j], 1)[1][0] for j in np.unique(ahead)}
+        pairs = np.column_stack([np.arange(len(ahead)), ahead]).astype(np.int32)
+        mutual = pairs[[back[int(j)] == i for i, j in pairs]] if len(pairs) else pairs
+        return mutual if len(mutual) >= 3 * ransac_n else pairs
+
     def ransac(self, scan: np.ndarray, seed: int) -> np.ndarray:
+        """open3d's FPFH + RANSAC global registration of ``scan`` to the map, with open3d's
+        parameters as before; the feature correspondences from :meth:`correspondences` (the map's
+        feature index built once), RANSAC by open3d's ``registration_ransac_based_on_correspondence``,
+        which is what its feature-matching call runs on them."""
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        src, src_f = self.features(scan)
+        corres = self.correspondences(src_f)
+        self.o3d.utility.random.seed(seed)
+        res = reg.registration_ransac_based_on_correspondence(
+            src,
+            self.cloud,
+            self.o3d.utility.Vector2iVector(corres),
+            1.5 * v,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+        return np.asarray(res.transformation)
+
+    def ransac_open3d(self, scan: np.ndarray, seed: int) -> np.ndarray:
+        """The same registration by open3d's one call (the map's feature index built inside it, every
+        call): what :meth:`ransac` must equal."""
         reg, v = self.o3d.pipelines.registration, self.voxel
         self.o3d.utility.random.seed(seed)
         src, src_f = self.features(scan)

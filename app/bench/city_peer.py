@@ -6,8 +6,8 @@ Reads the cached map (memory-mapped) and the prepared scans with their truth, bu
 FPFH feature map (or reads it from the map's cache directory, where the first run keeps it),
 registers each scan to it with RANSAC and prints one JSON line per step as it goes (so that a stop
 at the budget still tells how far it got): ``{"features_s", "features_cached", "features_load_s",
-"index_s", "feature_points", "rss_peak_mb"}`` once the map's features and their index are there, then ``{"scan", "ms", "ok",
-"err_m", "rss_peak_mb"}`` per scan. Each scan's RANSAC is seeded with the run's seed plus the
+"index_s", "feature_points", "rss_peak_mb"}`` once the map's features and their index are there,
+then ``{"scan", "ms", "ok", "err_m", "rss_peak_mb"}`` per scan. Each scan's RANSAC is seeded with the run's seed plus the
 scan's number, so a resumed run registers a scan as a whole one would.
 """
 

@@ -23,6 +23,7 @@ FEATURE_VOXEL = 1.0  # m, the peers' map and scan voxel
 NORMAL_RADIUS_VOXELS, FPFH_RADIUS_VOXELS = 2, 5  # the normals' and the features' search radii, in voxels
 FEATURES_RECORD = "features.json"  # a cached feature map's record: what it was computed with
 FEATURES_VERSION = 1  # of the cached feature map's layout
+RANSAC_N = 3  # correspondences a RANSAC hypothesis is drawn from
 
 
 # ------------------------------------------------------------------------------ global localization
@@ -63,7 +64,7 @@ class FeatureMap:
                         "lidarloc: warning: %s: cannot keep the FPFH features (%s)", self.directory, exc.strerror
                     )
         self.load_s = time.perf_counter() - t0
-        self._index = None  # the map's features in a k-d tree, built on the first registration
+        self._index = None  # the map's features in a k-d tree, built when first asked for (index())
         self.index_s = 0.0
 
     def _record(self) -> dict:
@@ -122,7 +123,7 @@ class FeatureMap:
             self.index_s = time.perf_counter() - t
         return self._index
 
-    def correspondences(self, src_features, ransac_n: int = 3) -> np.ndarray:
+    def correspondences(self, src_features, ransac_n: int = RANSAC_N) -> np.ndarray:
         """The (scan point, map point) pairs open3d's ``registration_ransac_based_on_feature_matching``
         hands to its RANSAC with ``mutual_filter=True``, the same pairs in the same order: each scan
         point's nearest map feature, kept where that map point's nearest scan feature is the scan
@@ -144,41 +145,35 @@ class FeatureMap:
         parameters as before; the feature correspondences from :meth:`correspondences` (the map's
         feature index built once), RANSAC by open3d's ``registration_ransac_based_on_correspondence``,
         which is what its feature-matching call runs on them."""
-        reg, v = self.o3d.pipelines.registration, self.voxel
+        reg = self.o3d.pipelines.registration
         src, src_f = self.features(scan)
-        corres = self.correspondences(src_f)
+        corres = self.o3d.utility.Vector2iVector(self.correspondences(src_f))
         self.o3d.utility.random.seed(seed)
-        res = reg.registration_ransac_based_on_correspondence(
-            src,
-            self.cloud,
-            self.o3d.utility.Vector2iVector(corres),
-            1.5 * v,
-            reg.TransformationEstimationPointToPoint(False),
-            3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
-            reg.RANSACConvergenceCriteria(100000, 0.999),
-        )
+        res = reg.registration_ransac_based_on_correspondence(src, self.cloud, corres, *self._ransac_parameters())
         return np.asarray(res.transformation)
 
     def ransac_open3d(self, scan: np.ndarray, seed: int) -> np.ndarray:
         """The same registration by open3d's one call (the map's feature index built inside it, every
         call): what :meth:`ransac` must equal."""
-        reg, v = self.o3d.pipelines.registration, self.voxel
+        reg = self.o3d.pipelines.registration
         self.o3d.utility.random.seed(seed)
         src, src_f = self.features(scan)
         res = reg.registration_ransac_based_on_feature_matching(
-            src,
-            self.cloud,
-            src_f,
-            self.fpfh,
-            True,
+            src, self.cloud, src_f, self.fpfh, True, *self._ransac_parameters()
+        )
+        return np.asarray(res.transformation)
+
+    def _ransac_parameters(self) -> tuple:
+        """open3d's RANSAC parameters after the correspondences, the same for both ways of calling it:
+        inlier distance, estimation, points a hypothesis, checkers, iterations and confidence."""
+        reg, v = self.o3d.pipelines.registration, self.voxel
+        return (
             1.5 * v,
             reg.TransformationEstimationPointToPoint(False),
-            3,
+            RANSAC_N,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
             reg.RANSACConvergenceCriteria(100000, 0.999),
         )
-        return np.asarray(res.transformation)
 
     def fgr(self, scan: np.ndarray) -> np.ndarray:
         reg, v = self.o3d.pipelines.registration, self.voxel
@@ -211,6 +206,8 @@ def global_localization(
     matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m)
     lidarloc_build_s = time.perf_counter() - t0
     features = FeatureMap(prior.points) if peers else None
+    if features is not None:
+        features.index()  # built once, off the clock, as on a city
     names = ("m3rsm", "fpfh_ransac", "fgr") if peers else ("m3rsm",)
     rng = np.random.default_rng(cfg.seed)
     idx = [int(k) for k in rng.choice(len(seq), min(scans, len(seq)), replace=False)]

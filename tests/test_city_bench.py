@@ -186,6 +186,22 @@ def test_bench_city_reports_every_figure(cache_root, monkeypatch):
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
+def test_fpfh_ransac_takes_its_scans_in_the_seeded_order_so_a_stopped_run_kept_a_sample(cache_root, monkeypatch):
+    """FPFH + RANSAC registers the first scans of the global matches' seeded order, in that order:
+    the registrations a run stopped part-way kept are spread over the drive, not its start."""
+    from lidarloc.app.bench import city
+    from lidarloc.app.bench.city_rows import scan_order
+
+    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+    handed = []
+    monkeypatch.setattr(city, "peers", lambda seq, map_file, cfg, idx, *rest: handed.append((len(seq), idx)) or {})
+    run(SourceSpec(), cfg, cache_root=cache_root, global_scans=6, peer_scans=4, tile_m=50.0, bev_tile_m=32.0)
+    [(n, idx)] = handed
+    assert idx == scan_order(n, 6, cfg.seed)[:4] and idx != sorted(idx)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_localize_runs_give_localize_success(cache_root, tmp_path):
     """``--localize-runs``: seeded runs of full localization on the city's drive, summed up as
     bench localize sums them (the share of runs localized and within 5 m to the end)."""

@@ -204,7 +204,9 @@ def run(
         out["whole_map_ms_median"] = out["whole_map_success"] = None
     if peer_scans > 0:
         budget_mb = default_peer_budget_mb() if peer_budget_mb is None else peer_budget_mb
-        chosen = sorted(idx[:peer_scans])
+        # in the seeded order, not the drive's: the registrations a stopped run kept are a fair
+        # sample of the scans, as the global matches' are
+        chosen = idx[:peer_scans]
         out.update(peers(seq, map_dir / MAP_FILE, cfg, chosen, report, peer_budget_s, budget_mb, kept_peer))
     out.update(_probe(seq, lookup, bev, cfg, idx))
     out["localize_success"] = None  # filled by localize_figures (``--localize-runs``)

@@ -7,7 +7,45 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# The recordings of the real drive (bags, a .pcd folder, TUM truth) are session fixtures of
+# tests/bagfixtures.py, registered here once: a fixture imported into several test modules is
+# a fixture of each of them, built again for every module that imports it.
+from bagfixtures import kitti_drive, kitti_recordings  # noqa: F401
+
 REPO = Path(__file__).resolve().parents[1]
+
+
+# ---------------------------------------------------------------------------------- pyright
+# pyright over the repository takes about a minute of one core, in a process of its own: when its
+# test is selected, it starts as soon as the tests are collected and runs beside them, and its
+# test waits for its answer (tests/test_code_quality.py).
+_pyright: dict = {}
+
+
+def pytest_collection_finish(session):
+    from helpers import PYRIGHT_TEST, start_pyright
+
+    opt = session.config.option
+    if opt.collectonly or getattr(opt, "setuponly", False) or getattr(opt, "setupplan", False):
+        return
+    if any(item.nodeid.endswith(PYRIGHT_TEST) for item in session.items):
+        _pyright["run"] = start_pyright()
+
+
+def pytest_sessionfinish(session):
+    run = _pyright.pop("run", None)
+    if not isinstance(run, str) and run is not None:  # ended, if its test did not wait for it
+        run.stop()
+
+
+@pytest.fixture(scope="session")
+def pyright_run():
+    """pyright's process over the repository (started at collection, or now), or why it cannot run."""
+    from helpers import start_pyright
+
+    if "run" not in _pyright:
+        _pyright["run"] = start_pyright()
+    return _pyright["run"]
 
 
 def shared_data_dir() -> Path | None:
@@ -61,10 +99,72 @@ def kitti_raw_map(kitti_raw_seq):
 
 
 @pytest.fixture(scope="session")
+def drive_maps(kitti_raw_seq, tmp_path_factory) -> dict:
+    """The drive's whole map (every scan fused with its pose, no road removal) as a .pcd in the
+    drive's frame ("local"), and the same map shifted by UTM_SHIFT ("utm"): a user's map file."""
+    from helpers import UTM_SHIFT
+    from lidarloc.core.config import Config
+    from lidarloc.core.maps.mapfile_write import write_map
+    from lidarloc.core.maps.mapping import build_prior_map
+
+    root = tmp_path_factory.mktemp("maps")
+    points = build_prior_map(kitti_raw_seq, Config().map, road_removal=False).points
+    write_map(root / "map.pcd", points)
+    write_map(root / "map_utm.pcd", points, origin=UTM_SHIFT)
+    return {"local": root / "map.pcd", "utm": root / "map_utm.pcd"}
+
+
+@pytest.fixture(scope="session")
 def cache_root(tmp_path_factory) -> Path:
     """One map cache for the session: sources share it (entries are keyed by source and
     parameters), so a map built by one test file is not built again by the next."""
     return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def town_cache(cache_root, tmp_path_factory) -> Path:
+    """The session's cache holding the short town's world (the map of helpers.MAPPING_SCANS
+    mapping scans, its lookup table, pyramid and place index), put there by a 2-scan run: the
+    tests that start ``lidarloc`` on the short town in a child process find it built."""
+    from helpers import record_run
+
+    record_run(tmp_path_factory.mktemp("warm") / "run", cache_root, scans=2)
+    return cache_root
+
+
+@pytest.fixture(scope="session")
+def town_map_entry(town_cache) -> Path:
+    """The short town's map entry in the session's cache (a directory): copied into a cache of a
+    test's own (helpers.cache_with), it spares that test the map's build, not its own entries."""
+    from helpers import MAPPING_SCANS, short_town
+    from lidarloc.core.config import Config
+    from lidarloc.core.maps.mapping import map_cache_dir
+
+    entry = map_cache_dir(short_town(MAPPING_SCANS).map_source, Config().map, town_cache)
+    assert (entry / "meta.json").is_file(), entry
+    return entry
+
+
+@pytest.fixture(scope="session")
+def default_town():
+    """The default town and its drive (``--town-seed 0``, the default configuration), made once:
+    a few seconds of generation that every test file of the town's own shares."""
+    from lidarloc.core.config import TownConfig
+    from lidarloc.core.sequences.town import TownSequence
+
+    return TownSequence.from_config(TownConfig(), seed=0)
+
+
+@pytest.fixture(scope="session")
+def default_town_cache(default_town, cache_root) -> Path:
+    """The session's cache holding the default town's prior map (its 1200-scan mapping drive,
+    the slowest map of the suite to build): built once, for the test that checks it is unchanged
+    and the benchmarks that run on the default town."""
+    from lidarloc.core.config import Config
+    from lidarloc.core.maps.mapping import load_or_build_map
+
+    load_or_build_map(default_town.map_source, Config().map, cache_root)
+    return cache_root
 
 
 @pytest.fixture(scope="session")

@@ -22,6 +22,68 @@ def paper_pf(**kw) -> PFConfig:
     return replace(load_config(None, preset="paper").pf, **kw)
 
 
+# ---------------------------------------------------------------------------------- pyright
+#: the test that runs pyright over the repository (tests/test_code_quality.py)
+PYRIGHT_TEST = "test_code_quality.py::test_pyright_resolves_every_import_and_is_clean"
+
+
+class PyrightRun:
+    """pyright over the repository, started and left running; ``result()`` waits for its answer.
+    Its output goes to files, so a long report never stalls it while nobody reads."""
+
+    def __init__(self, exe: str, root: Path):
+        import subprocess
+        import tempfile
+
+        self._out, self._err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+        self.process = subprocess.Popen(
+            [exe],
+            cwd=root,
+            stdout=self._out,
+            stderr=self._err,
+            text=True,
+            start_new_session=True,  # one process group: its node process is ended with it
+        )
+
+    def result(self, timeout: float) -> tuple[int, str, str]:
+        """(exit status, stdout, stderr), once pyright has finished."""
+        code = self.process.wait(timeout=timeout)
+        self._out.seek(0)
+        self._err.seek(0)
+        return code, self._out.read(), self._err.read()
+
+    def stop(self) -> None:
+        import os
+        import signal
+
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait()
+        self._out.close()
+        self._err.close()
+
+
+def start_pyright() -> PyrightRun | str:
+    """pyright over the repository as ``./run`` sets it up, started: its run, or why it cannot
+    run here (a string). pyright reads the project's .venv, where ``./run`` links the repository
+    as ``lidarloc`` (made here if missing)."""
+    import shutil
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    if Path(sys.prefix).resolve() != (root / ".venv").resolve():
+        return "pyright reads the project's .venv (run the tests with ./run test)"
+    exe = Path(sys.executable).parent / "pyright"
+    found = str(exe) if exe.is_file() else shutil.which("pyright")
+    if found is None:
+        return "pyright is not installed (it is in the test extras: pip install -e '.[test]')"
+    link = Path(sys.prefix) / "src" / "lidarloc"  # what ./run makes: `lidarloc` for tests and examples
+    if not link.exists():
+        link.parent.mkdir(parents=True, exist_ok=True)
+        link.symlink_to("../..", target_is_directory=True)
+    return PyrightRun(found, root)
+
+
 # ---------------------------------------------------------------------------------- waiting
 def wait_for(cond, timeout=60.0, what="condition"):
     """Poll until cond() holds. The timeout only bounds a failure: generous, because the CI
@@ -42,6 +104,10 @@ def process_gone(pid: int) -> bool:
         return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
     except psutil.NoSuchProcess:
         return True
+
+
+#: a georeferenced map file's offset (UTM-sized easting and northing), metres
+UTM_SHIFT = np.array([500_000.0, 4_000_000.0, 0.0])
 
 
 # ---------------------------------------------------------------------------------- KITTI odometry tree
@@ -261,6 +327,16 @@ def assert_floor_keeps_the_weights(exact, floored, min_floored: int, margin: flo
     np.testing.assert_allclose(floored[kept], exact[kept], rtol=1e-9)
     assert np.all(floored[~kept] == pytest.approx(exact.max() - margin, rel=1e-9))
     assert (~kept).sum() > min_floored  # the floor did apply
+
+
+def cache_with(entry: Path, cache: Path) -> Path:
+    """``cache``, a cache of its own holding a copy of one map ``entry`` of another cache (the
+    session's) and nothing else: a test of what a command puts in its cache starts there without
+    building the map again."""
+    import shutil
+
+    shutil.copytree(entry, cache / entry.name)
+    return cache
 
 
 def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> dict:

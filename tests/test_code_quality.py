@@ -37,14 +37,11 @@ def test_ruff_format_is_clean():
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-def test_pyright_resolves_every_import_and_is_clean():
-    link = Path(sys.prefix) / "src" / "lidarloc"  # what ./run makes: `lidarloc` for tests and examples
-    if Path(sys.prefix).resolve() != (ROOT / ".venv").resolve():
-        pytest.skip("pyright reads the project's .venv (run the tests with ./run test)")
-    if not link.exists():
-        link.parent.mkdir(parents=True, exist_ok=True)
-        link.symlink_to("../..", target_is_directory=True)
-    r = subprocess.run([_tool("pyright")], cwd=ROOT, capture_output=True, text=True, timeout=840)
-    if r.returncode not in (0, 1):  # pyright could not start (its Node.js runtime could not be fetched)
-        pytest.skip(f"pyright did not run: {(r.stderr or r.stdout).strip().splitlines()[-1:]}")
-    assert r.returncode == 0 and "0 errors" in r.stdout, r.stdout[-6000:]
+def test_pyright_resolves_every_import_and_is_clean(pyright_run):
+    """pyright over the repository (started when the tests were collected: tests/conftest.py)."""
+    if isinstance(pyright_run, str):
+        pytest.skip(pyright_run)
+    code, stdout, stderr = pyright_run.result(timeout=840)
+    if code not in (0, 1):  # pyright could not start (its Node.js runtime could not be fetched)
+        pytest.skip(f"pyright did not run: {(stderr or stdout).strip().splitlines()[-1:]}")
+    assert code == 0 and "0 errors" in stdout, stdout[-6000:]

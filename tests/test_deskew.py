@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from lidarloc.core.config import TownConfig
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose
 from lidarloc.core.o3d import open3d
@@ -21,8 +20,8 @@ from scipy.spatial.transform import Rotation
 
 
 @pytest.fixture(scope="module")
-def town() -> TownSequence:
-    return TownSequence.from_config(TownConfig(), seed=0)
+def town(default_town) -> TownSequence:
+    return default_town  # TownSequence.from_config(TownConfig(), seed=0), made once per session
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from bagfixtures import kitti_drive, write_tum  # noqa: F401  (fixture)
+from bagfixtures import write_tum
 from lidarloc.core.errors import DataError
 from lidarloc.core.geometry import euler_zyx, pose_matrix
 from lidarloc.core.sequences.extrinsic import from_tf_static, read_extrinsic

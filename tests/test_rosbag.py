@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from bagfixtures import FRAME, N_SCANS, TOPIC, kitti_drive, kitti_recordings, write_bag, write_tum  # noqa: F401 (fixtures)
+from bagfixtures import FRAME, N_SCANS, TOPIC, write_bag, write_tum
 from lidarloc.core.errors import DataError, LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix
 from lidarloc.core.sequences.base import Limited

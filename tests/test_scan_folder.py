@@ -3,7 +3,7 @@ scans, times from times.txt, ground truth from TUM; bad folders are one-line err
 
 import numpy as np
 import pytest
-from bagfixtures import N_SCANS, kitti_drive, kitti_recordings  # noqa: F401 (fixtures)
+from bagfixtures import N_SCANS
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.scan_folder import ScanFolderSequence
 

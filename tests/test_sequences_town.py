@@ -19,8 +19,8 @@ from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
-def town() -> TownSequence:
-    return TownSequence.from_config(TownConfig(), seed=0)  # the default town and drive
+def town(default_town) -> TownSequence:
+    return default_town  # the default town and drive (made once per session)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import pickle
 
 import numpy as np
 import pytest
-from lidarloc.core.config import Config, TownConfig
+from lidarloc.core.config import Config
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import DiskCachedScans, Limited
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
@@ -20,8 +20,8 @@ from scipy.spatial import cKDTree
 
 
 @pytest.fixture(scope="module")
-def town() -> TownSequence:
-    return TownSequence.from_config(TownConfig(), seed=0)  # the default town: the mapping drive
+def town(default_town) -> TownSequence:
+    return default_town  # the default town: the mapping drive (made once per session)
 
 
 @pytest.fixture(scope="module")

@@ -249,12 +249,15 @@ def bench_peers(
     cache: CacheOpt = None,
 ):
     """lidarloc beside what a user would run instead, same scans, map and machine: global
-    localization against open3d's FPFH + RANSAC and FGR, tracking against scan-to-map GICP
-    (small_gicp) from the true start, recovery after a kidnap, and the paper's own figures.
+    localization against open3d's FPFH + RANSAC and FGR, and against KISS-Matcher and MapClosures
+    where `pip install 'lidarloc[peers]'` installed them (each skipped with its reason where not),
+    tracking against scan-to-map GICP (small_gicp) from the true start, recovery after a kidnap,
+    and the paper's own figures.
 
     The source (default: the built-in town) holds the global and tracking parts; on the town the
     drive is lived-in unless --world kind says otherwise."""
     from ..bench.peers import run as run_bench
+    from ..bench.peers_optional import notes
 
     cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
     with progress_bar() as bar:
@@ -277,6 +280,8 @@ def bench_peers(
             cache_root=cache,
             progress=progress,
         )
+    for line in notes(result):  # on stderr: --json's output stays one JSON document
+        err.print(line, markup=False, highlight=False, soft_wrap=True)
     show_bench_result("peers", result, as_json)
 
 

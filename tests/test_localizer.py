@@ -33,23 +33,34 @@ def make(seq, cache_root, **overrides) -> Localizer:
     return Localizer(seq, cfg, cache_root)
 
 
+def replay_12(seq, cache_root, check=None, **overrides):
+    """12 scans of ``seq`` on the replay clock (then ``check(localizer)``, if given): the
+    particles, the records and the events."""
+    with make(seq, cache_root, **overrides) as loc:
+        loc.run(12)
+        if check is not None:
+            check(loc)
+        return (
+            loc.pf.states.copy(),
+            [(r.x, r.y, r.z, r.yaw, r.n_eff) for r in loc.records],
+            [(e.scan, e.kind) for e in loc.events],
+        )
+
+
+@pytest.fixture(scope="module")
+def live_replay(town, cache_root):
+    """The default run (live KISS-ICP odometry) of 12 scans, which the determinism and the
+    recorded-odometry tests each compare a run of their own with."""
+    return replay_12(town, cache_root)
+
+
 @pytest.mark.slow
-def test_replay_is_deterministic(town, cache_root):
-    runs = []
-    for _ in range(2):
-        with make(town, cache_root) as loc:
-            loc.run(12)
-            runs.append(
-                (
-                    loc.pf.states.copy(),
-                    [(r.x, r.y, r.yaw, r.n_eff) for r in loc.records],
-                    [(e.scan, e.kind) for e in loc.events],
-                )
-            )
-    assert np.array_equal(runs[0][0], runs[1][0])
-    assert runs[0][1] == runs[1][1]
-    assert runs[0][2] == runs[1][2]
-    assert any(kind == "s2m_started" for _, kind in runs[0][2])
+def test_replay_is_deterministic(town, cache_root, live_replay):
+    again = replay_12(town, cache_root)
+    assert np.array_equal(live_replay[0], again[0])
+    assert live_replay[1] == again[1]
+    assert live_replay[2] == again[2]
+    assert any(kind == "s2m_started" for _, kind in live_replay[2])
 
 
 def test_s2m_particle_survives_and_is_updated(town, cache_root):
@@ -295,19 +306,17 @@ def test_kidnap_mid_run_is_recovered(kitti_raw_seq, cache_root):
 
 
 @pytest.mark.slow
-def test_recorded_odometry_changes_nothing(town, cache_root):
+def test_recorded_odometry_changes_nothing(town, cache_root, live_replay):
     """Replaying the cached KISS-ICP poses gives the live run's trajectory bit for bit (what lets
     ``bench localize`` compute the odometry once per sequence instead of once per run)."""
-    runs = []
-    for recorded in (False, True):
-        with make(town, cache_root, localize__recorded_odometry=recorded) as loc:
-            loc.run(12)
-            runs.append(np.array([[r.x, r.y, r.z, r.yaw, r.n_eff] for r in loc.records]))
-            if recorded:
-                assert loc.odometry.process is None, "no KISS-ICP process when the odometry is recorded"
-                with pytest.raises(LidarlocError, match="live odometry"):
-                    loc.set_params(clock="realtime")
-    np.testing.assert_array_equal(runs[0], runs[1])
+
+    def check(loc):
+        assert loc.odometry.process is None, "no KISS-ICP process when the odometry is recorded"
+        with pytest.raises(LidarlocError, match="live odometry"):
+            loc.set_params(clock="realtime")
+
+    recorded = replay_12(town, cache_root, check=check, localize__recorded_odometry=True)
+    np.testing.assert_array_equal(np.array(live_replay[1]), np.array(recorded[1]))
 
 
 def test_tracking_mode_and_search_regions(town, cache_root):

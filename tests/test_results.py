@@ -7,28 +7,22 @@ import json
 
 import numpy as np
 import pytest
-from lidarloc.core.config import Config
 from lidarloc.core.runs.results import lag_summary
-from lidarloc.core.sequences.factory import SourceSpec
 
 
-@pytest.mark.slow
-def test_run_writes_parseable_files(tmp_path, cache_root):
-    from lidarloc.app.headless import run_headless
-
-    cfg = Config()
-    cfg.pf.n_particles = 300
-    cfg.town.n_scans = 150  # a short mapping drive: its map builds in seconds
-    out = tmp_path / "run"
-    summary, interrupted = run_headless(SourceSpec(scans=15), cfg, out, cache_root=cache_root)
-    assert not interrupted and summary["scans"] == 15
+def test_run_writes_parseable_files(recorded_town_run):
+    """The session's recorded 14-scan run of the short town (conftest.recorded_town_run: made as
+    ``lidarloc run`` makes it, 300 particles), read back."""
+    out, summary = recorded_town_run
+    n = 14
+    assert summary["scans"] == n
     kitti = np.loadtxt(out / "trajectory_kitti.txt")
-    assert kitti.shape == (15, 12)
+    assert kitti.shape == (n, 12)
     tum = np.loadtxt(out / "trajectory_tum.txt")
-    assert tum.shape == (15, 8) and np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1, atol=1e-6)
-    assert np.loadtxt(out / "groundtruth_kitti.txt").shape == (15, 12)
+    assert tum.shape == (n, 8) and np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1, atol=1e-6)
+    assert np.loadtxt(out / "groundtruth_kitti.txt").shape == (n, 12)
     rows = list(csv.DictReader(open(out / "scans.csv")))
-    assert len(rows) == 15 and {"scan", "std_x", "n_eff", "localized", "error_m", "pf_ms"} <= set(rows[0])
+    assert len(rows) == n and {"scan", "std_x", "n_eff", "localized", "error_m", "pf_ms"} <= set(rows[0])
     assert {
         "n_particles",
         "n_eff_share",
@@ -60,7 +54,7 @@ def test_run_writes_parseable_files(tmp_path, cache_root):
     cpu = s["cpu_ms_per_scan"]
     assert set(cpu) == {"main", "rpe", "s2m"}
     assert cpu["main"] > 0 and cpu["rpe"] > 0 and cpu["s2m"] > 0
-    cpu_seconds, wall_seconds = sum(cpu.values()) * 15 / 1000, 15 / s["scans_per_second"]
+    cpu_seconds, wall_seconds = sum(cpu.values()) * n / 1000, n / s["scans_per_second"]
     assert s["cpu_percent"] == pytest.approx(100 * cpu_seconds / wall_seconds)
 
 

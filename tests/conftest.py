@@ -79,38 +79,38 @@ def kitti_raw_seq(kitti_raw_dir):
 
 
 @pytest.fixture(scope="session")
-def kitti_raw_map(kitti_raw_seq):
-    """Drive 0013's prior map (all 100 scans fused with their poses, the paper's protocol) and its
-    lookup table, built once: (sequence, prior map, lookup table). Only the 3D points are needed,
-    so the map is fused with the same voxel accumulator as mapping.build_prior_map but without its
-    road-removed BEV copy (normal estimation: half of the build time)."""
+def kitti_raw_points(kitti_raw_seq):
+    """Drive 0013's prior map points: all 100 scans fused with their poses (the paper's protocol),
+    without the road-removed BEV copy (normal estimation: most of the build time)."""
+    from lidarloc.core.config import MapConfig
+    from lidarloc.core.maps.mapping import build_prior_map
+
+    return build_prior_map(kitti_raw_seq, MapConfig(), road_removal=False).points
+
+
+@pytest.fixture(scope="session")
+def kitti_raw_map(kitti_raw_seq, kitti_raw_points):
+    """Drive 0013's prior map (kitti_raw_points) and its lookup table, built once: (sequence,
+    prior map, lookup table)."""
     from lidarloc.core.config import MapConfig
     from lidarloc.core.maps.lookup import LookupTable
-    from lidarloc.core.maps.mapping import PriorMap, VoxelAccumulator, range_filter
+    from lidarloc.core.maps.mapping import PriorMap
 
-    cfg = MapConfig()
-    acc = VoxelAccumulator(cfg.voxel_size)
-    for i in range(len(kitti_raw_seq)):
-        T = kitti_raw_seq.pose(i)
-        pts = range_filter(kitti_raw_seq.scan(i), cfg)[:, :3].astype(np.float64)
-        acc.add(pts @ T[:3, :3].T + T[:3, 3])
-    prior = PriorMap(points=acc.points(), points_bev=np.zeros((0, 3), np.float32), voxel_size=cfg.voxel_size)
+    voxel = MapConfig().voxel_size
+    prior = PriorMap(points=kitti_raw_points, points_bev=np.zeros((0, 3), np.float32), voxel_size=voxel)
     return kitti_raw_seq, prior, LookupTable.build(prior.points, 0.25, 5.0)
 
 
 @pytest.fixture(scope="session")
-def drive_maps(kitti_raw_seq, tmp_path_factory) -> dict:
-    """The drive's whole map (every scan fused with its pose, no road removal) as a .pcd in the
-    drive's frame ("local"), and the same map shifted by UTM_SHIFT ("utm"): a user's map file."""
+def drive_maps(kitti_raw_points, tmp_path_factory) -> dict:
+    """The drive's whole map (kitti_raw_points) as a .pcd in the drive's frame ("local"), and the
+    same map shifted by UTM_SHIFT ("utm"): a user's map file."""
     from helpers import UTM_SHIFT
-    from lidarloc.core.config import Config
     from lidarloc.core.maps.mapfile_write import write_map
-    from lidarloc.core.maps.mapping import build_prior_map
 
     root = tmp_path_factory.mktemp("maps")
-    points = build_prior_map(kitti_raw_seq, Config().map, road_removal=False).points
-    write_map(root / "map.pcd", points)
-    write_map(root / "map_utm.pcd", points, origin=UTM_SHIFT)
+    write_map(root / "map.pcd", kitti_raw_points)
+    write_map(root / "map_utm.pcd", kitti_raw_points, origin=UTM_SHIFT)
     return {"local": root / "map.pcd", "utm": root / "map_utm.pcd"}
 
 

@@ -22,11 +22,13 @@ def small_cfg():
 
 
 @pytest.mark.slow
-def test_smoke_bench_three_runs_two_workers(tmp_path):
+def test_smoke_bench_three_runs_two_workers(tmp_path, town_map_entry):
+    from helpers import cache_with
     from lidarloc.app.bench.localize import run_bench
 
     out = tmp_path / "bench"
-    agg = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+    cache = cache_with(town_map_entry, tmp_path / "cache")  # the town's map, and nothing of a run
+    agg = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=cache)
     for name in ("summary.json", "runs.csv", "metrics_boxplot.png", "latency_hist.png", "report.md"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     summary = json.loads((out / "summary.json").read_text())
@@ -57,13 +59,11 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert summary["world"] == runs[0]["world"] and summary["world"]["changes"] == 0.0
     assert "World of the drive: changes 0" in (out / "report.md").read_text()
     # the odometry was computed once into the cache, and the town's scans stored once
-    assert list((tmp_path / "cache").glob("map-*/odometry-kiss-*/poses.npy"))
-    assert len(list((tmp_path / "cache").glob("map-*-scans/*.npy"))) == SCANS
+    assert list(cache.glob("map-*/odometry-kiss-*/poses.npy"))
+    assert len(list(cache.glob("map-*-scans/*.npy"))) == SCANS
     # resumable: a second call keeps the finished runs (same numbers, nothing recomputed)
     stamp = (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns
-    agg2 = run_bench(
-        SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache"
-    )
+    agg2 = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=cache)
     assert (out / "runs" / "seed_000" / "summary.json").stat().st_mtime_ns == stamp
     assert agg2["B"] == agg["B"]
     # … but not into runs of other code: they would mix two versions' numbers in one report
@@ -74,18 +74,16 @@ def test_smoke_bench_three_runs_two_workers(tmp_path):
     assert json.loads(marker.read_text())["code"] == bench_localize.code_fingerprint()
     marker.write_text(marker.read_text().replace(bench_localize.code_fingerprint(), "0" * 64))
     with pytest.raises(LidarlocError, match="version of lidarloc's code"):
-        run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=tmp_path / "cache")
+        run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=3, workers=2, out_dir=out, cache_root=cache)
 
 
 @pytest.mark.slow
-def test_ray_matches_process_pool(tmp_path, ray_local):
+def test_ray_matches_process_pool(tmp_path, ray_local, town_cache):
     from lidarloc.app.bench.localize import run_bench
 
     spec = SourceSpec(scans=12)
-    a = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "pool", cache_root=tmp_path / "cache")
-    b = run_bench(
-        spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray", cache_root=tmp_path / "cache"
-    )
+    a = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "pool", cache_root=town_cache)
+    b = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray", cache_root=town_cache)
     for key in "ABCDE":
         assert a[key] == b[key]
     ta = np.loadtxt(tmp_path / "pool" / "runs" / "seed_001" / "trajectory_kitti.txt")

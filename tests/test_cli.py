@@ -118,12 +118,11 @@ def test_map_build_json_and_cache(tmp_path):
 
 # ------------------------------------------------------------------------------ Ctrl-C
 @pytest.mark.slow
-def test_demo_serves_and_stops_on_ctrl_c(tmp_path):
+def test_demo_serves_and_stops_on_ctrl_c(town_cache):
     """``lidarloc demo`` prints its URL, serves HTTP 200 on loopback, and ends on Ctrl-C."""
-    env = dict(os.environ, LIDARLOC_CACHE=str(tmp_path / "cache"))
-    # a short drive (and mapping drive: the map comes from all of it) keeps the first (uncached)
-    # start of this test quick; the default town's
-    # first-start time is measured in BENCHMARKS.md
+    env = dict(os.environ, LIDARLOC_CACHE=str(town_cache))
+    # a short drive whose world is in the session's cache (the map of a short mapping drive); the
+    # default town's first-start time is measured by `lidarloc bench startup` (BENCHMARKS.md)
     proc = subprocess.Popen(
         [sys.executable, "-m", "lidarloc.app.cli", "demo", "--port", "0", "--scans", "30", "--set", "town.n_scans=150"],
         stdout=subprocess.PIPE,

@@ -44,9 +44,9 @@ def test_a_pause_of_a_whole_period_is_refused(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_short_run_behind_a_paused_odometry_reports_its_figures(tmp_path):
-    # the default map cache, as `lidarloc run` in tests/test_signals.py: the town's map is built once
-    result = run(tmp_path, pause_ms=30.0, runs=1, scans=40)
+def test_a_short_run_behind_a_paused_odometry_reports_its_figures(tmp_path, default_town_cache):
+    # the bench runs the default town: its map comes from the session's cache
+    result = run(tmp_path, pause_ms=30.0, runs=1, scans=40, cache_root=default_town_cache)
     (row,) = result["runs"]
     assert row["seed"] == 0 and row["lag_scans_max"] is not None and row["lag_scans_max"] >= 0
     assert row["pauses"] > 0  # the KISS-ICP child was found and paused

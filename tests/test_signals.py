@@ -15,15 +15,6 @@ from helpers import MAPPING_SCANS, process_gone, wait_for
 STOP_BOUND_S = 60
 
 
-@pytest.fixture(scope="module")
-def town_map(cache_root, tmp_path_factory):
-    """The short town's map in the session cache (built once, by a short run)."""
-    from helpers import record_run
-
-    record_run(tmp_path_factory.mktemp("warm") / "run", cache_root, scans=2)
-    return cache_root
-
-
 def _ignore_sigint() -> None:  # what a shell without job control does to a command started with &
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -32,10 +23,10 @@ def _ignore_sigint() -> None:  # what a shell without job control does to a comm
 @pytest.mark.parametrize(
     "sig, background", [(signal.SIGTERM, False), (signal.SIGHUP, False), (signal.SIGINT, True)], ids=str
 )
-def test_a_stop_signal_stops_a_run_like_ctrl_c(town_map, tmp_path, sig, background):
+def test_a_stop_signal_stops_a_run_like_ctrl_c(town_cache, tmp_path, sig, background):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", "60"]
-    cmd += ["--set", f"town.n_scans={MAPPING_SCANS}", "--set", "pf.n_particles=300", "--cache", str(town_map)]
+    cmd += ["--set", f"town.n_scans={MAPPING_SCANS}", "--set", "pf.n_particles=300", "--cache", str(town_cache)]
     proc = subprocess.Popen(
         cmd,
         stdout=subprocess.DEVNULL,

@@ -124,8 +124,8 @@ ROUTE_2_POSES = "b8afe06c47dee76c"
 
 
 @pytest.fixture(scope="module")
-def town() -> TownSequence:
-    return TownSequence.from_config(TownConfig(), seed=0)
+def town(default_town) -> TownSequence:
+    return default_town  # TownSequence.from_config(TownConfig(), seed=0), made once per session
 
 
 def test_default_town_drive_and_triangles_are_unchanged(town):
@@ -165,10 +165,11 @@ def test_default_town_world_options_are_unchanged(town, reference):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-def test_default_town_map_is_unchanged(town, reference, tmp_path):
+def test_default_town_map_is_unchanged(town, reference, default_town_cache):
     from lidarloc.core.maps.mapping import load_or_build_map
 
-    prior = load_or_build_map(town.map_source, Config().map, tmp_path).value
+    # built by this session's code into its cache (once, shared with the benchmarks' tests)
+    prior = load_or_build_map(town.map_source, Config().map, default_town_cache).value
     assert differences(reference["map"], prior.points) == []
     assert differences(reference["map_road_removed"], prior.points_bev) == []
 

@@ -11,7 +11,7 @@ import threading
 
 import numpy as np
 import pytest
-from helpers import browser_localizer, make_localizer, short_town, toy_scan, wait_for
+from helpers import make_localizer, short_town, toy_scan, wait_for
 from lidarloc.core.errors import LidarlocError
 from lidarloc.core.filter.likelihood import PER_POINT, log_likelihood
 from lidarloc.core.filter.residuals import move_scan, scan_residuals
@@ -274,10 +274,12 @@ def test_worker_keeps_only_the_newest_job_of_a_kind():
 
 # ---------------------------------------------------------------------------------- the viewer
 @pytest.mark.slow
-def test_why_views_draw_and_a_restart_clears_them(tmp_path_factory):
+def test_why_views_draw_and_a_restart_clears_them(street, cache_root):
     from lidarloc.app.viewer.serve import serve
 
-    loc = browser_localizer(tmp_path_factory.mktemp("why-cache"))
+    # the viewer tests' street and its map in the session's cache; S2M at the PF's priority, as
+    # in the browser tests (two scans are drawn: a niced S2M starves beside busy processes)
+    loc = make_localizer(street, cache_root, s2m_nice=0)
     handle = serve(loc, port=0, autoplay=False)
     try:
         v, w = handle.viewer, handle.viewer.why

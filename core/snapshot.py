@@ -60,6 +60,11 @@ class S2MView:
     # start itself); "" if GICP never ran
     carried_through: int | None = None  # real time: the scan whose odometry carried the match,
     # when landed_at's own was not registered yet (then on at the odometry's last motion)
+    search: str = ""  # a whole-map match: "candidates" (the place index's places, verified) or
+    # "exact" (the whole-map branch and bound); "" for a local match
+    ambiguous: bool = False  # distinct places verified with close scores: refused, the filter not moved
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    # (K, 4) x, y, yaw (rad), score of the other distinct places a whole-map match verified, best first
 
 
 @dataclass(frozen=True)

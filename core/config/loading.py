@@ -36,8 +36,14 @@ def _coerce(current: Any, raw: Any, key: str) -> Any:
         raise LidarlocError(f"invalid configuration: {key}={raw!r} is not a valid {type(current).__name__}") from None
 
 
+#: Other names a key may be written with (``--set s2m.global=exact``): ``global`` is a Python
+#: keyword, so the field is ``global_search``.
+ALIASES = {"s2m.global": "global_search"}
+
+
 def update_from_dict(cfg: Config, data: dict, prefix: str = "") -> Config:
     for key, raw in data.items():
+        key = ALIASES.get(f"{prefix}{key}", key)
         name = f"{prefix}{key}"
         if not hasattr(cfg, key):
             raise LidarlocError(f"invalid configuration: unknown key '{name}'")
@@ -83,6 +89,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "pf.dynamic_rejection": False,
         "pf.kld": False,
         "s2m.global_until_localized": False,
+        "s2m.global_search": "exact",
         "s2m.reject_if_weight_drops": True,
         "s2m.refine_unbeaten_start": False,
         "localize.deskew": False,

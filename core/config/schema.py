@@ -183,6 +183,19 @@ class S2MConfig:
     # A whole-map match far from the estimate moves the filter only if its BEV score is at least
     # this many times the estimate's own (a look-alike street scores about as well as the truth).
     relocalize_score_ratio: float = 1.25
+    # How a whole-map match (until localized, the second opinion, a relocalization) is found.
+    # "candidates": the place index built from the map names global_candidates places, the exact
+    # M3RSM search verifies each in ± candidate_window and GICP the best (about a second on a
+    # 16 km² city); the exact whole-map search only when none verifies. "exact": the whole-map
+    # branch and bound every time (its cost grows with the map: ~3.7 CPU-s per km²). Also
+    # written s2m.global. See docs/global-localization.md.
+    global_search: str = "candidates"
+    global_candidates: int = 8  # places the look-up hands to the exact search
+    candidate_window: float = 4.0  # m, half-width of the exact search around each place
+    # Two distinct places (farther apart than localize.confirm_distance) that both pass GICP, the
+    # second scoring at least this share of the best: the answer is "ambiguous", and the filter
+    # is not moved. 1 = never ambiguous.
+    ambiguity_ratio: float = 0.85
 
 
 @dataclass
@@ -308,6 +321,10 @@ class Config:
             (self.s2m.join_at_scan >= 0, "s2m.join_at_scan must be ≥ 0"),
             (self.s2m.global_check_interval >= 0, "s2m.global_check_interval must be ≥ 0 (0 = never)"),
             (self.s2m.relocalize_score_ratio >= 1, "s2m.relocalize_score_ratio must be ≥ 1"),
+            (self.s2m.global_search in ("candidates", "exact"), "s2m.global_search must be candidates or exact"),
+            (1 <= self.s2m.global_candidates <= 64, "s2m.global_candidates must be in 1..64"),
+            (self.s2m.candidate_window > 0, "s2m.candidate_window must be > 0"),
+            (0 < self.s2m.ambiguity_ratio <= 1, "s2m.ambiguity_ratio must be in (0, 1]"),
             (self.localize.confirm_distance > 0, "localize.confirm_distance must be > 0"),
             (0 < self.localize.confirm_yaw <= math.pi, "localize.confirm_yaw must be in (0, π]"),
             (self.localize.lost_after_scans >= 0, "localize.lost_after_scans must be ≥ 0 (0 = off)"),

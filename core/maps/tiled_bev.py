@@ -61,6 +61,13 @@ class TiledBEV:
         self._lock = threading.Lock()  # the global search reads tiles from several threads
 
     @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of L0 in world metres, as :attr:`BEVPyramid.extent`."""
+        x0, y0 = self.origin
+        d = self.resolution
+        return float(x0), float(y0), float(x0 + self.shape[0] * d), float(y0 + self.shape[1] * d)
+
+    @property
     def cache_bytes(self) -> int:
         return cache_bytes(self.directory)
 

@@ -20,6 +20,7 @@ from .bev import BEVPyramid, load_or_build_pyramid
 from .follow import TileFollower
 from .lookup import LookupTable, load_or_build_lookup
 from .mapping import PriorMap, load_or_build_map
+from .places import PlaceIndex, places_for_pyramid
 from .point_tiles import PointTiles
 from .tiled_lookup import TiledLookup
 
@@ -35,6 +36,7 @@ class World:
     lookup: LookupTable | None = None
     pyramid: BEVPyramid | None = None
     tiles: TileFollower | None = None
+    places: PlaceIndex | None = None  # the place index of whole-map matches by candidates
 
     @property
     def origin(self) -> np.ndarray:
@@ -64,7 +66,8 @@ def open_world(
     ``road_removal=False``: the map may come without its road-removed copy (then no pyramid): a
     viewer's first start plays on the particle filter while it is built in the background.
     ``progress(stage, fraction)`` reports "map", "point tiles" (a large map cut into tiles),
-    "lookup" and "pyramid"; ``on_map(prior_map)`` is called as soon as the map is there, before its
+    "lookup", "pyramid" and "places" (the place index, with the pyramid where
+    ``s2m.global_search`` is "candidates"); ``on_map(prior_map)`` is called as soon as the map is there, before its
     tables (a viewer shows it meanwhile)."""
     report = progress or (lambda stage, fraction: None)
     tiled = cfg.pf.lookup_tile_m > 0  # a large map in a tiled run (a city) stays on disk, never read whole
@@ -103,4 +106,7 @@ def open_world(
     if pyramid and prior_map.points_bev is not None:
         report("pyramid", 0.0)
         world.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg.s2m).value
+        if cfg.s2m.global_search == "candidates":
+            report("places", 0.0)
+            world.places = places_for_pyramid(world.pyramid, prior_map.points, map_dir, cfg.s2m)
     return world

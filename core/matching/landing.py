@@ -43,6 +43,9 @@ def landed_view(
         gicp_correction=() if gicp is None else (float(gicp.correction_m), float(gicp.correction_rad)),
         stage=str(getattr(outcome, "stage", "") or ""),
         carried_through=None if through is None or through == k else int(through),
+        search=str(getattr(outcome, "search", "") or ""),
+        ambiguous=bool(getattr(outcome, "ambiguous", False)),
+        alternatives=np.asarray(getattr(outcome, "alternatives", ()) or (), np.float64).reshape(-1, 4),
     )
 
 

@@ -24,9 +24,7 @@ class MatcherMixin:
         if self.cfg.localize.s2m_process:
             self.matcher = self._process(self._nice())
         else:
-            from .s2m import ScanToMapMatcher
-
-            self.matcher = ScanToMapMatcher(self._prior_map, self._pyramid, self.cfg.s2m, self.cfg.map)
+            self.matcher = self._in_process(self._pyramid)
 
     def _process(self, nice: int) -> S2MProcess:
         """A new S2M child process at ``nice``; on a map held as point tiles, told where they are."""
@@ -59,9 +57,18 @@ class MatcherMixin:
         self._pyramid = pyramid
         if self.matcher is not None and not isinstance(self.matcher, S2MProcess):
             # (the S2M process reloads it from the cache itself)
-            from .s2m import ScanToMapMatcher
+            self.matcher = self._in_process(pyramid)
 
-            self.matcher = ScanToMapMatcher(self._prior_map, pyramid, self.cfg.s2m, self.cfg.map)
+    def _in_process(self, pyramid):
+        """A matcher in this process, with the place index from the map's cache (or built there)."""
+        from ..maps.places import places_for_pyramid
+        from .s2m import ScanToMapMatcher
+
+        s2m = self.cfg.s2m
+        places = None
+        if s2m.global_search == "candidates":
+            places = places_for_pyramid(pyramid, self._prior_map.points, self._map_dir, s2m)
+        return ScanToMapMatcher(self._prior_map, pyramid, s2m, self.cfg.map, places=places)
 
     def check_matcher(self, k: int) -> None:
         """The start of step k: if the S2M child died, cancel the match in flight, start a new

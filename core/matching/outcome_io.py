@@ -28,6 +28,9 @@ def outcome_arrays(job, outcome) -> dict[str, np.ndarray]:
         "accepted": bool(outcome.accepted),
         "reason": str(outcome.reason or ""),
         "stage": str(getattr(outcome, "stage", "") or ""),
+        "search": str(getattr(outcome, "search", "") or ""),
+        "ambiguous": bool(getattr(outcome, "ambiguous", False)),
+        "alternatives": [[float(v) for v in a] for a in (getattr(outcome, "alternatives", ()) or ())],
         "timings": {k: float(v) for k, v in (getattr(outcome, "timings", None) or {}).items()},
         "match": None
         if match is None
@@ -113,4 +116,7 @@ def recorded_outcome(d: dict[str, np.ndarray], scan_world: np.ndarray | None, st
         scan_world=scan_world,
         timings=text["timings"],
         stage=text["stage"],
+        search=text.get("search", ""),
+        ambiguous=bool(text.get("ambiguous", False)),
+        alternatives=tuple(tuple(a) for a in text.get("alternatives", ())),
     )

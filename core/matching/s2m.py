@@ -44,7 +44,10 @@ from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
 from ..o3d import open3d
 from . import m3rsm
+from .candidates import combined, look_up, verify, window_of
+from .candidates import distinct as distinct_answers
 from .gicp import GICPRefiner, GICPResult, LocalGICPRefiner
+from .tiled_search import match_global_tiled
 
 #: Voxel (m) the scan is down-sampled to before its normals are estimated for road removal.
 #: 0.3 m keeps the scan's near-range density close to the 0.2 m map's (so the |n_z| test behaves
@@ -65,6 +68,12 @@ MIN_BEV_CELLS = 20
 #: ``level``. Trusting it cost GICP 2.5 s at 34° and 9 s at 120° (the town, VLP-16), and the
 #: match was refused all the same; levelled, GICP takes ~30 ms and may succeed.
 MAX_TRUSTED_TILT = math.radians(20.0)
+#: Whole-map answers farther apart than this are distinct places (the metrics' own "within 5 m",
+#: ``localize.confirm_distance``): two of them verified with close scores make an ambiguous answer.
+DISTINCT_M = 5.0
+#: Yaw half-window of the exact search around a place from the look-up: its yaw comes from a
+#: 5° sector shift (measured off by at most 5° on the town), plus the lattice's step.
+CANDIDATE_YAW_WINDOW = math.radians(12.5)
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,10 @@ class S2MOutcome:
     stage: str = "m3rsm"  # what GICP refined, and if accepted what was accepted: "m3rsm"
     # (the 2D match) or "refined_start" (the start itself); "" when
     # rejected before GICP ran
+    search: str = ""  # a whole-map match: "candidates" (the place index's places, verified) or
+    # "exact" (the whole-map branch and bound); "" for a local match
+    ambiguous: bool = False  # distinct places verified with close scores: rejected, not moved
+    alternatives: tuple = ()  # ((x, y, yaw, score), …) the other distinct places verified, best first
 
 
 def carry_forward_poses(T_w_k: np.ndarray, odom_k: np.ndarray, odom_k_prime: np.ndarray) -> np.ndarray:
@@ -122,6 +135,7 @@ class ScanToMapMatcher:
         map_cfg: MapConfig | None = None,
         gicp_backend: str = "small_gicp",
         refine_unbeaten: bool | None = None,
+        places=None,
     ):
         """``refine_unbeaten``: when no lattice pose beats the start (the start is already within the
         BEV's d_m / d_θ of the best it can tell), refine the start itself by GICP and accept that
@@ -138,6 +152,9 @@ class ScanToMapMatcher:
             )
         self.prior_map = prior_map
         self.pyramid = pyramid
+        # the place index (core/maps/places.py) for whole-map matches by candidates: given by the
+        # caller from the map's cache, or built here on first use (uncached)
+        self.places = places
         # the map side is finer than the scan (but no finer than the map itself): see gicp.py
         gicp_args = dict(
             voxel=self.cfg.gicp_voxel,
@@ -224,7 +241,7 @@ class ScanToMapMatcher:
             z, pitch, roll = math.nan, 0.0, 0.0
         prep = prepared or self._prepare_with(scan_sensor, bev_scan, road_removed)
         B = self._bev(prep.road_removed, pitch, roll)
-        start_score = m3rsm.score_pose(self.pyramid, B, x, y, yaw)
+        start_score = m3rsm.score_pose(self._near(x, y, 0.0), B, x, y, yaw)
         d = self.cfg.match_resolution
         region = (x - cfg.region_x, y - cfg.region_y, x + cfg.region_x, y + cfg.region_y)
         if len(m3rsm.scan_cells(B, d)) < MIN_BEV_CELLS:
@@ -239,38 +256,56 @@ class ScanToMapMatcher:
                 "too few road-removed scan points to match",
                 region=region,
             )
-        result = m3rsm.match(
-            self.pyramid,
-            B,
-            (x, y),
-            (cfg.region_x, cfg.region_y),
-            yaw,
-            cfg.yaw_window,
-            cfg.angle_step,
-            min_score=start_score,
-        )
-        timings = {"prepare": prep.ms, "m3rsm": result.ms}
+        timings = {"prepare": prep.ms}
+        whole_map = self.covers_map(x, y, cfg.region_x, cfg.region_y)
+        search = "exact" if whole_map else ""
+        result = None
+        if whole_map and self.by_candidates:
+            decided, result = self._by_candidates(prep, B, z, pitch, roll, start_pose, start_score, t0, timings)
+            if decided is not None:
+                return decided
+            if result is not None:  # no place beat the start: the start is refined below
+                search = "candidates"
+        if result is None and whole_map and not isinstance(self.pyramid, BEVPyramid):
+            result = match_global_tiled(self.pyramid, B, cfg.angle_step)  # a city held in tiles
+            if not result.score > start_score:  # as the search below reports an unbeaten start
+                result = dataclasses.replace(result, x=math.nan, y=math.nan, yaw=math.nan, score=start_score)
+            timings["m3rsm"] = timings.get("m3rsm", 0.0) + result.ms
+        if result is None:  # a local match, the exact whole-map search, or its fallback
+            result = m3rsm.match(
+                self._near(x, y, max(cfg.region_x, cfg.region_y)),
+                B,
+                (x, y),
+                (cfg.region_x, cfg.region_y),
+                yaw,
+                cfg.yaw_window,
+                cfg.angle_step,
+                min_score=start_score,
+            )
+            timings["m3rsm"] = timings.get("m3rsm", 0.0) + result.ms
         if math.isfinite(result.x):
             if not math.isfinite(z):
                 z = self._height_under(result.x, result.y, prep)
             init = pose_matrix(result.x, result.y, z, result.yaw, pitch, roll)
-            return self._refine(init, prep, result, start_score, start_pose, t0, timings)
+            return dataclasses.replace(
+                self._refine(init, prep, result, start_score, start_pose, t0, timings, whole_map), search=search
+            )
         reason = "no pose in the search region scores higher than the start pose"
         refine = cfg.refine_unbeaten_start if self.refine_unbeaten is None else self.refine_unbeaten
         if refine:
-            refined = self._refine(start_pose, prep, result, start_score, start_pose, t0, timings)
+            refined = self._refine(start_pose, prep, result, start_score, start_pose, t0, timings, whole_map)
             if refined.accepted:
                 rx, ry, _, ryaw, _, _ = pose_to_xyz_ypr(refined.pose)
-                score = m3rsm.score_pose(self.pyramid, B, rx, ry, ryaw)
+                score = m3rsm.score_pose(self._near(rx, ry, 0.0), B, rx, ry, ryaw)
                 if score > start_score:
                     return dataclasses.replace(
-                        refined, score=score, stage="refined_start", ms=(time.perf_counter() - t0) * 1e3
+                        refined, score=score, stage="refined_start", ms=(time.perf_counter() - t0) * 1e3, search=search
                     )
                 reason += f", nor does the start refined by GICP (score {score:.0f})"
             else:
                 reason += f"; refining the start failed: {refined.reason}"
             # what GICP did to the start stays in the outcome: the inspection shows it
-            return self._reject(
+            out = self._reject(
                 start_pose,
                 start_score,
                 start_score,
@@ -283,7 +318,9 @@ class ScanToMapMatcher:
                 gicp=refined.gicp,
                 stage="refined_start",
             )
-        return self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason)
+            return dataclasses.replace(out, search=search)
+        out = self._reject(start_pose, start_score, start_score, result, prep, t0, timings, reason)
+        return dataclasses.replace(out, search=search)
 
     def match_global(
         self,
@@ -318,12 +355,126 @@ class ScanToMapMatcher:
                 "too few road-removed scan points to match",
                 region=self.pyramid.extent,
             )
-        result = m3rsm.match_global(self.pyramid, B, self.cfg.angle_step)
-        timings = {"prepare": prep.ms, "m3rsm": result.ms}
+        timings = {"prepare": prep.ms}
+        if self.by_candidates:
+            decided, _ = self._by_candidates(prep, B, z, pitch, roll, None, math.nan, t0, timings)
+            if decided is not None:
+                return decided
+        if isinstance(self.pyramid, BEVPyramid):
+            result = m3rsm.match_global(self.pyramid, B, self.cfg.angle_step)
+        else:  # a city held in tiles
+            result = match_global_tiled(self.pyramid, B, self.cfg.angle_step)
+        timings["m3rsm"] = timings.get("m3rsm", 0.0) + result.ms
         if not math.isfinite(z):
             z = self._height_under(result.x, result.y, prep)
         init = pose_matrix(result.x, result.y, z, result.yaw, pitch, roll)
-        return self._refine(init, prep, result, math.nan, init, t0, timings)
+        return dataclasses.replace(self._refine(init, prep, result, math.nan, init, t0, timings, True), search="exact")
+
+    def _near(self, x: float, y: float, half: float):
+        """The pyramid a search within ``half`` m of (x, y) reads: the map's own, or on a city held
+        in tiles (:class:`~lidarloc.core.maps.tiled_bev.TiledBEV`) a window of them wide enough for
+        every scan point (the same cells, so the same scores)."""
+        return window_of(self.pyramid, x, y, half + float(self.map_cfg.scan_max_range))
+
+    # ---------------------------------------------------------------- whole-map match by candidates
+    @property
+    def by_candidates(self) -> bool:
+        """Whether whole-map matches go through the place index (``s2m.global_search``)."""
+        return self.cfg.global_search == "candidates"
+
+    def covers_map(self, x: float, y: float, half_x: float, half_y: float) -> bool:
+        """Whether ± (half_x, half_y) around (x, y) covers the whole pyramid: a whole-map match."""
+        x0, y0, x1, y1 = self.pyramid.extent
+        d = self.pyramid.resolution
+        return x - half_x <= x0 + d and x + half_x >= x1 - d and y - half_y <= y0 + d and y + half_y >= y1 - d
+
+    def place_index(self):
+        """The place index, built from the map on first use where the caller gave none."""
+        if self.places is None:
+            from ..maps.places import index_of_pyramid, index_of_tiles
+
+            if isinstance(self.pyramid, BEVPyramid):
+                self.places = index_of_pyramid(self.pyramid, self.prior_map.points)
+            else:
+                self.places = index_of_tiles(self.pyramid, self.prior_map.points)
+        return self.places
+
+    def _by_candidates(self, prep, B, z, pitch, roll, start_pose, start_score, t0, timings):
+        """A whole-map match by the place index's candidates (module :mod:`.candidates`).
+
+        Returns ``(outcome, None)`` when decided: a place verified by M3RSM and GICP, or
+        "ambiguous" (two distinct places verified with close scores: rejected, both named);
+        ``(None, result)`` when no place beat the start's score (``result`` says so, for the
+        refinement of the start as after any unbeaten search); ``(None, None)`` when the exact
+        whole-map search must decide (the look-up found nothing to compare, or no verified place
+        passed GICP)."""
+        cfg = self.cfg
+        index = self.place_index()
+        lu = look_up(index, B, cfg.global_candidates, separation=2.0 * cfg.candidate_window)
+        timings["look_up"] = lu.ms
+        if not lu.places:
+            return None, None
+        t1 = time.perf_counter()
+        beat = start_score if math.isfinite(start_score) else None
+        reach = float(self.map_cfg.scan_max_range)
+        windows = verify(
+            self.pyramid, B, lu.places, cfg.candidate_window, CANDIDATE_YAW_WINDOW, cfg.angle_step, reach, beat
+        )
+        timings["m3rsm"] = (time.perf_counter() - t1) * 1e3
+        found = [r for r in windows if math.isfinite(r.x)]
+        if not found:
+            if beat is None:
+                return None, None
+            # nothing beat the start: the inspection shows the places' own scores beside it
+            scored = [
+                (p.x, p.y, p.yaw, m3rsm.score_pose(self._near(p.x, p.y, 0.0), B, p.x, p.y, p.yaw)) for p in lu.places
+            ]
+            return None, combined(windows, None, timings["m3rsm"], beat, scored)
+        answers = distinct_answers(found, DISTINCT_M)
+        home = start_pose if start_pose is not None else None
+
+        def refined(r):
+            zz = z if math.isfinite(z) else self._height_under(r.x, r.y, prep)
+            init = pose_matrix(r.x, r.y, zz, r.yaw, pitch, roll)
+            return self._refine(init, prep, r, start_score, init if home is None else home, t0, timings, True)
+
+        tried: dict[int, S2MOutcome] = {}
+        best = None
+        for i, r in enumerate(answers):
+            tried[i] = refined(r)
+            if tried[i].accepted:
+                best = i
+                break
+        if best is None:
+            return None, None
+        winner = tried[best]
+        # the inspection sees the windows' searches as one: nodes, leaves scored, the rectangle
+        whole = combined(windows, answers[best], timings["m3rsm"], -1.0 if beat is None else beat)
+        winner = dataclasses.replace(winner, match=whole, region=whole.region)
+        rivals = []
+        for i, r in enumerate(answers):
+            if i == best or r.score < cfg.ambiguity_ratio * winner.score:
+                continue
+            out = tried[i] if i in tried else refined(r)
+            if out.accepted:
+                rivals.append(r)
+        others = tuple((r.x, r.y, r.yaw, r.score) for i, r in enumerate(answers) if i != best)
+        ms = (time.perf_counter() - t0) * 1e3
+        if rivals:
+            w = answers[best]
+            n = len(rivals) + 1
+            low = min(r.score for r in rivals) / w.score
+            reason = (
+                f"ambiguous: {n} places verify with scores within {100 * (1 - low):.0f}% of each other "
+                f"(best {w.score:.0f} at {w.x:.1f}, {w.y:.1f}; next {rivals[0].score:.0f} at "
+                f"{rivals[0].x:.1f}, {rivals[0].y:.1f})"
+            )
+            rejected = self._reject(
+                winner.pose if home is None else home, w.score, start_score, whole, prep, t0, timings, reason,
+                init=winner.match_pose, gicp=winner.gicp, stage="m3rsm",
+            )  # fmt: skip
+            return dataclasses.replace(rejected, search="candidates", ambiguous=True, alternatives=others, ms=ms), None
+        return dataclasses.replace(winner, search="candidates", alternatives=others, ms=ms), None
 
     def _height_under(self, x: float, y: float, prep: PreparedScan) -> float:
         """Sensor z at (x, y): the map's ground height there minus the scan's own ground height
@@ -341,8 +492,10 @@ class ScanToMapMatcher:
         bev = pts if bev_scan is None else np.asarray(bev_scan, np.float64)[:, :3]
         return PreparedScan(pts, bev, math.nan, (time.perf_counter() - t0) * 1e3)
 
-    def _refine(self, init, prep, result, start_score, start_pose, t0, timings) -> S2MOutcome:
-        g = self.gicp.refine(prep.points, init)
+    def _refine(self, init, prep, result, start_score, start_pose, t0, timings, whole_map=False) -> S2MOutcome:
+        # a whole-map answer on a city held in tiles: GICP against a target built for that place
+        verify = getattr(self.gicp, "verify", None) if whole_map else None
+        g = verify(prep.points, init) if verify is not None else self.gicp.refine(prep.points, init)
         timings["gicp"] = g.ms
         cfg = self.cfg
         reason = ""

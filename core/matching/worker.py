@@ -30,6 +30,7 @@ from ..worker_process import WorkerProxy, lower_priority, serve
 def _make_handler(init: tuple):
     from ..maps.bev import load_or_build_pyramid
     from ..maps.mapping import PriorMap
+    from ..maps.places import places_for_pyramid
     from ..maps.point_tiles import PointTiles
     from .s2m import ScanToMapMatcher
 
@@ -42,11 +43,15 @@ def _make_handler(init: tuple):
     prior_map = PriorMap.load(map_dir, meta, memory_map=bool(point_tiles), large=0)  # the parent chose
     if point_tiles:
         prior_map.use_tiles(PointTiles.open(Path(point_tiles), prior_map.points))
-    state = {
-        "matcher": ScanToMapMatcher(
-            prior_map, load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value, s2m_cfg, map_cfg
+
+    def places(pyramid, cfg):
+        # the parent's open_world built it into the map's cache with the pyramid: read here
+        return (
+            places_for_pyramid(pyramid, prior_map.points, map_dir, cfg) if cfg.global_search == "candidates" else None
         )
-    }
+
+    pyramid = load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value
+    state = {"matcher": ScanToMapMatcher(prior_map, pyramid, s2m_cfg, map_cfg, places=places(pyramid, s2m_cfg))}
     _warm_up(state["matcher"])
 
     def handle(request):
@@ -55,6 +60,9 @@ def _make_handler(init: tuple):
         if abs(cfg.match_resolution - matcher.pyramid.resolution) > 1e-9:
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
             matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg).value
+            matcher.places = places(matcher.pyramid, cfg)
+        elif cfg.global_search == "candidates" and matcher.places is None:
+            matcher.places = places(matcher.pyramid, cfg)
         matcher.cfg = cfg  # live region / angle-step changes
         return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)
 

@@ -116,7 +116,7 @@ S2M_STATUSES = ("ready", "building", "held", "off")
 PARTICLES = ("particles", "<f4", (N_STATE,))
 LOG_WEIGHTS = ("log_weights", "<f4", ())
 
-S2M_ARRAYS = ("pose", "start_pose", "candidates", "match_pose", "gicp_pose")
+S2M_ARRAYS = ("pose", "start_pose", "candidates", "match_pose", "gicp_pose", "alternatives")
 
 
 def nan_or_value(value) -> float:
@@ -199,8 +199,9 @@ def load_s2m(folder: Path, step: int) -> S2MView:
             kw[f.name] = tuple(float(x) for x in v)
         else:
             kw[f.name] = v
-    if kw.get("candidates") is not None:
-        kw["candidates"] = kw["candidates"].reshape(-1, 4)
+    for name in ("candidates", "alternatives"):
+        if kw.get(name) is not None:
+            kw[name] = kw[name].reshape(-1, 4)
     return S2MView(**kw)
 
 

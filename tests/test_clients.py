@@ -119,7 +119,10 @@ def test_bench_clients_with_websocket_tabs_measures_every_phase(street, cache_ro
 
     loc = make_localizer(street, cache_root)
     try:
-        r = clients.run(loc, tabs=2, phase_s=6.0, tab_kind="socket", churn_s=9.0)
+        # phases as short as still let each phase see scans and S2M's work (the figures
+        # themselves are `lidarloc bench clients`'s, at its default 45 s a phase); the churn long
+        # enough for the 20 connections the per-connection slope needs
+        r = clients.run(loc, tabs=2, phase_s=3.0, tab_kind="socket", churn_s=9.0)
     finally:
         loc.close()
     names = [p["phase"] for p in r["phases"]]

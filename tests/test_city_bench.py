@@ -12,6 +12,7 @@ from lidarloc.core.sequences.factory import SourceSpec
 KEYS = (
     "build_s", "start_s", "cache_mb", "rss_tracking_mb", "global_match_ms_median", "global_success",
     "whole_map_ms_median", "whole_map_success", "fpfh_ransac_ms_median", "fpfh_ransac_success", "localize_success",
+    "global_confident_wrong", "global_ambiguous", "second_opinion_ms_median", "exact_success", "places",
 )  # fmt: skip
 
 
@@ -161,7 +162,11 @@ def test_bench_city_reports_every_figure(cache_root, monkeypatch):
     for key in KEYS:
         assert key in out
     assert out["tiled_score_equals_whole_map"] == 1.0
-    assert out["global_success"] == out["whole_map_success"]
+    assert out["exact_success"] == out["whole_map_success"]
+    # lidarloc's answer (the candidates) beside the exact search's, and the second opinion
+    assert out["exact_agrees_with_candidates"] == 1.0 and out["global_confident_wrong"] == 0
+    assert out["second_opinion_agrees"] == 1.0 and out["places"] > 0
+    assert all(r["global_search"] == "candidates" for r in out["rows"])
     assert out["start_s"] is not None and out["start_s"] < 30 and out["rss_tracking_mb"] > 0
     assert out["build_s"] > 0 and out["cache_mb"] > 0
     # again from the cache, the map mapped as a city's is (every map counts as large here): the

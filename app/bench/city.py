@@ -17,6 +17,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +25,25 @@ import numpy as np
 from ...core.config import Config
 from ...core.maps.bev import load_or_build_pyramid
 from ...core.maps.mapping import MAP_FILE, load_or_build_map, range_filter
+from ...core.maps.places import PlaceSettings, index_of_tiles, load_or_build_place_index, place_index_name
+from ...core.maps.point_tiles import PointTiles
 from ...core.maps.tiled_bev import TiledBEV
 from ...core.maps.tiled_lookup import TiledLookup
+from ...core.matching.s2m import ScanToMapMatcher
 from ...core.sequences.factory import SourceSpec
 from ...core.worker_process import exit_words
 from ..console import SIGNAL_POLL_S
-from .city_rows import ROW_CODE, ROW_CODE_EXCLUDED, GlobalRows, match_row, missed, prepare, scan_order, warm_up
+from .city_rows import (
+    ROW_CODE,
+    ROW_CODE_EXCLUDED,
+    GlobalRows,
+    candidate_row,
+    match_row,
+    missed,
+    prepare,
+    scan_order,
+    warm_up,
+)
 from .common import load_avg, machine, median, open_source, rss_mb
 from .localize import code_fingerprint
 
@@ -116,13 +130,17 @@ def run(
     tile_m: float = 400.0,
     bev_tile_m: float = 256.0,
     whole_map: bool = True,
+    exact_scans: int | None = None,
     progress=None,
     rows_dir: Path | None = None,
     peer_budget_s: float = 3600.0,
     peer_budget_mb: float | None = None,
     peer_rows_dir: Path | None = None,
 ) -> dict:
-    """The figures above; ``rows_dir``: keep the global matches there and resume those an earlier
+    """The figures above. Every scan is localized as lidarloc does it (the place index's
+    candidates verified by M3RSM and GICP; the whole-map second opinion beside it); the exact tiled
+    search over the whole city, the reference, runs on the first ``exact_scans`` of them (None:
+    all), the whole-map search beside it where ``whole_map``. ``rows_dir``: keep the global matches there and resume those an earlier
     run of the same source, configuration and code left (:class:`GlobalRows`); ``peer_rows_dir``:
     the same for FPFH + RANSAC's registrations. FPFH + RANSAC is stopped at ``peer_budget_s`` of
     wall time or ``peer_budget_mb`` of resident memory (default: three quarters of the machine's)
@@ -136,11 +154,17 @@ def run(
     map_meta = json.loads((map_dir / "meta.json").read_text()) if (map_dir / "meta.json").is_file() else {}
     map_load_s = time.perf_counter() - t0
     lookup, bev = _tables(prior, map_dir, cfg, tile_m, bev_tile_m, report)
+    places, places_path = _places(prior, bev, map_dir, report)
     build = {
         "map": map_meta.get("build_seconds"),
         "lookup": lookup.index.get("build_seconds"),
         "pyramid": bev.index.get("build_seconds"),
     }
+    # GICP reads the map near each match from its point tiles, as a run on the city does
+    prior.use_tiles(PointTiles.load_or_build(prior.points, map_dir / "tiles-points", map_dir.name))
+    matcher = ScanToMapMatcher(prior, bev, cfg.s2m, cfg.map, places=places)
+    x0, y0, x1, y1 = bev.extent
+    whole_cfg = replace(cfg.s2m, region_x=2.0 * (x1 - x0), region_y=2.0 * (y1 - y0))
     out: dict = {
         "source": seq.name,
         "machine": machine(),
@@ -154,7 +178,13 @@ def run(
         "map_load_s": map_load_s,
         "cache_mb": (_dir_bytes(map_dir)) / 1e6,
         "tiles_mb": (lookup.cache_bytes + bev.cache_bytes) / 1e6,
+        "places": len(places),
+        "places_build_s": places.meta.get("build_seconds"),
+        "places_mb": places_path.stat().st_size / 1e6,
     }
+    # what the place index adds to the tables' build and to the cache
+    out["places_build_share"] = (out["places_build_s"] or 0.0) / out["build_s"] if out["build_s"] else None
+    out["places_cache_share"] = out["places_mb"] / max(out["cache_mb"] - out["places_mb"], 1e-9)
     idx = scan_order(len(seq), global_scans, cfg.seed)
     kept = kept_peer = None
     if rows_dir is not None:
@@ -164,14 +194,16 @@ def run(
             "config": cfg.to_dict(),
             "bev_tile_m": bev_tile_m,
             "whole_map": whole_map,
+            "exact_scans": exact_scans,
             "code": code_fingerprint(ROW_CODE, exclude=ROW_CODE_EXCLUDED),
         }
         kept = GlobalRows(rows_dir, identity)
     if peer_rows_dir is not None and peer_scans > 0:
         kept_peer = GlobalRows(peer_rows_dir, peer_identity(seq, cfg))
     out["global_scans_resumed"] = sum(k in kept.rows for k in idx) if kept is not None else 0
+    n_exact = len(idx) if exact_scans is None else min(int(exact_scans), len(idx))
     pyramid = None
-    if whole_map and (kept is None or any(k not in kept.rows for k in idx)):
+    if whole_map and n_exact and (kept is None or any(k not in kept.rows for k in idx[:n_exact])):
         pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
     rows, warm = [], False
     for j, k in enumerate(idx):
@@ -179,29 +211,20 @@ def run(
             rows.append(kept.rows[k])
             report("global matches", (j + 1) / len(idx))
             continue
-        truth, scan = seq.pose(k), prepare(seq.scan(k), cfg)
-        if not warm:  # numba's kernels compiled off the clock
-            stoppable(warm_up, bev, pyramid, scan, cfg.s2m.angle_step)
+        truth, prep = seq.pose(k), matcher.prepare(seq.scan(k))
+        scan = prep.road_removed
+        if not warm:  # numba's kernels compiled, the tiles' first pages read, off the clock
+            stoppable(warm_up, bev, pyramid if n_exact else None, scan, cfg.s2m.angle_step, n_exact > 0)
+            stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
             warm = True
-        row = stoppable(match_row, k, scan, truth, bev, pyramid, cfg.s2m.angle_step)
+        row = stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
+        if j < n_exact:
+            row.update(stoppable(match_row, k, scan, truth, bev, pyramid, cfg.s2m.angle_step))
         rows.append(row)
         if kept is not None:
             kept.add(row)
         report("global matches", (j + 1) / len(idx))
-    out["global_scans"] = len(rows)
-    out["global_match_ms_median"] = median(r["tiled_ms"] for r in rows)
-    out["global_success"] = float(np.mean([r["tiled_success"] for r in rows]))
-    district_at = _district_namer(seq)
-    out["global_failed_scans"] = [missed(r, seq.pose(r["scan"]), district_at) for r in rows if not r["tiled_success"]]
-    out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in rows)
-    out["tiled_nodes_median"] = median(r["tiled_nodes"] for r in rows)
-    if whole_map:
-        out["whole_map_ms_median"] = median(r["whole_ms"] for r in rows)
-        out["whole_map_success"] = float(np.mean([r["whole_success"] for r in rows]))
-        out["tiled_score_equals_whole_map"] = float(np.mean([r["same_as_whole"] for r in rows]))
-        out["whole_map_nodes_median"] = median(r["whole_nodes"] for r in rows)
-    else:
-        out["whole_map_ms_median"] = out["whole_map_success"] = None
+    out.update(_global_figures(rows, seq, whole_map))
     if peer_scans > 0:
         budget_mb = default_peer_budget_mb() if peer_budget_mb is None else peer_budget_mb
         # in the seeded order, not the drive's: the registrations a stopped run kept are a fair
@@ -213,6 +236,56 @@ def run(
     out["load_avg_end"] = load_avg()
     out["rss_bench_mb"] = rss_mb()
     out["rows"] = rows
+    return out
+
+
+def _places(prior, bev: TiledBEV, map_dir: Path, report):
+    """The city's place index, built from its pyramid tiles and the map, cached beside them."""
+    settings = PlaceSettings()
+    path = map_dir / place_index_name(f"tiles-bev-{bev.index['key'].split('|bev|')[1].replace('|', '-')}", settings)
+    index, _ = load_or_build_place_index(
+        lambda: index_of_tiles(bev, prior.points, settings, progress=lambda f: report("place index", f)), path
+    )
+    return index, path
+
+
+def _global_figures(rows: list[dict], seq, whole_map: bool) -> dict:
+    """The global matches' figures: lidarloc's (the candidates and the second opinion) on every
+    row, the exact tiled search's (and the whole-map search's) on the rows that ran them."""
+    out: dict = {"global_scans": len(rows)}
+    out["global_match_ms_median"] = median(r["global_ms"] for r in rows)
+    out["global_prepare_ms_median"] = median(r["prepare_ms"] for r in rows)
+    out["global_success"] = float(np.mean([r["global_success"] for r in rows]))
+    out["global_confident_wrong"] = sum(r["global_confident_wrong"] for r in rows)
+    out["global_ambiguous"] = sum(r["global_ambiguous"] for r in rows)
+    out["global_exact_fallbacks"] = sum(r["global_search"] == "exact" for r in rows)
+    out["second_opinion_ms_median"] = median(r["second_ms"] for r in rows)
+    out["second_opinion_agrees"] = float(np.mean([r["second_agrees"] for r in rows]))
+    district_at = _district_namer(seq)
+    out["global_failed_scans"] = [
+        missed({**r, "tiled_pose": r["global_pose"], "tiled_err_m": r["global_err_m"], "tiled_score": r["global_score"]},
+               seq.pose(r["scan"]), district_at) | {"ambiguous": r["global_ambiguous"], "reason": r["global_reason"]}
+        for r in rows if not r["global_success"]
+    ]  # fmt: skip
+    exact = [r for r in rows if "tiled_ms" in r]
+    out["exact_scans"] = len(exact)
+    out["exact_ms_median"] = median(r["tiled_ms"] for r in exact) if exact else None
+    out["exact_success"] = float(np.mean([r["tiled_success"] for r in exact])) if exact else None
+    # the same answer: both right, or both at the same place
+    out["exact_agrees_with_candidates"] = (
+        float(np.mean([r["tiled_success"] == r["global_success"] for r in exact])) if exact else None
+    )
+    out["exact_failed_scans"] = [missed(r, seq.pose(r["scan"]), district_at) for r in exact if not r["tiled_success"]]
+    out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in exact) if exact else None
+    out["tiled_nodes_median"] = median(r["tiled_nodes"] for r in exact) if exact else None
+    whole = [r for r in exact if "whole_ms" in r]
+    if whole_map and whole:
+        out["whole_map_ms_median"] = median(r["whole_ms"] for r in whole)
+        out["whole_map_success"] = float(np.mean([r["whole_success"] for r in whole]))
+        out["tiled_score_equals_whole_map"] = float(np.mean([r["same_as_whole"] for r in whole]))
+        out["whole_map_nodes_median"] = median(r["whole_nodes"] for r in whole)
+    else:
+        out["whole_map_ms_median"] = out["whole_map_success"] = None
     return out
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from ...core.cache import atomic_write_file
 from ...core.config import Config
 from ...core.errors import LidarlocError
+from ...core.geometry import pose_matrix, pose_to_xyz_ypr
 from ...core.maps.mapping import flat_surface_mask, range_filter
 from ...core.matching import m3rsm
 from ...core.matching.tiled_search import match_global_tiled
@@ -27,16 +28,19 @@ from ...core.o3d import open3d
 SUCCESS_M, SUCCESS_DEG = 2.0, 5.0
 ROAD_REMOVAL_VOXEL = 0.3  # as the scan-to-map matcher prepares a scan
 ROW_CODE = ("core/matching", "core/maps", "core/sequences", "core/config", "core/geometry.py", "app/bench/city_rows.py")
-# The lookup table and what only a run on tiles reads (the particle filter's window follower, the
-# map's point tiles for GICP): no row reads them.
+# The lookup table and what only a run on tiles reads (the particle filter's window follower): no
+# row reads them.
 ROW_CODE_EXCLUDED = (
     "core/maps/lookup.py",
     "core/maps/distance_transform.py",
     "core/maps/bricks.py",
     "core/maps/tiled_lookup.py",
     "core/maps/follow.py",
-    "core/maps/point_tiles.py",
 )
+#: A confident answer farther than this from the truth is a wrong place (the metrics' "within 5 m").
+WRONG_PLACE_M = 5.0
+#: The second opinion's estimate: the truth moved this much, as a filter localized near it has it.
+ESTIMATE_OFFSET = (0.4, -0.3, math.radians(1.5))
 
 
 def prepare(scan: np.ndarray, cfg: Config) -> np.ndarray:
@@ -75,9 +79,10 @@ def missed(row: dict, truth: np.ndarray, district_at=None) -> dict:
     return out
 
 
-def warm_up(bev, pyramid, scan: np.ndarray, angle_step: float) -> None:
+def warm_up(bev, pyramid, scan: np.ndarray, angle_step: float, tiled: bool = True) -> None:
     """Both searches once, so that numba's kernels are compiled off the clock."""
-    match_global_tiled(bev, scan[:, :2], angle_step)
+    if tiled:
+        match_global_tiled(bev, scan[:, :2], angle_step)
     if pyramid is not None:
         m3rsm.match_global(pyramid, scan[:, :2], angle_step)
 
@@ -99,6 +104,38 @@ def match_row(k: int, scan: np.ndarray, truth: np.ndarray, bev, pyramid, angle_s
         # best first over the whole map expands only the nodes whose bound beats the optimum:
         # what any exact search with these bounds must expand, whatever its order
         row["whole_nodes"] = whole.nodes_expanded
+    return row
+
+
+def candidate_row(k: int, prep, truth: np.ndarray, matcher, whole_cfg) -> dict:
+    """Scan ``k``'s global localization as lidarloc runs it (``matcher``: the scan-to-map matcher
+    on the city's tiles and place index; ``prep`` its prepared scan): the whole-map match from no
+    start, judged (within 2 m and 5°, and a confident answer farther than 5 m is a wrong place),
+    and the whole-map second opinion from an estimate near the truth (``whole_cfg``: the S2M
+    settings with a region over the whole city), as a localized filter asks for it."""
+    row: dict = {"scan": int(k), "prepare_ms": float(prep.ms)}
+    out = matcher.match_global(None, prepared=prep)
+    x, y, _, yaw, _, _ = pose_to_xyz_ypr(out.pose)
+    ok, err = judge(x, y, yaw, truth) if out.accepted else (False, math.inf)
+    row["global_ms"], row["global_search"] = float(out.ms), out.search
+    row["global_accepted"], row["global_ambiguous"] = bool(out.accepted), bool(out.ambiguous)
+    row["global_success"], row["global_err_m"] = bool(ok), float(err)
+    row["global_confident_wrong"] = bool(out.accepted and err > WRONG_PLACE_M)
+    row["global_pose"], row["global_score"] = [x, y, yaw], float(out.score)
+    row["global_alternatives"] = [[float(v) for v in a] for a in out.alternatives]
+    row["global_reason"] = out.reason
+    row["global_timings"] = {key: float(v) for key, v in out.timings.items()}
+    dx, dy, dyaw = ESTIMATE_OFFSET
+    tx, ty, tz, tyaw, tpitch, troll = pose_to_xyz_ypr(truth)
+    estimate = pose_matrix(tx + dx, ty + dy, tz, tyaw + dyaw, tpitch, troll)
+    saved, matcher.cfg = matcher.cfg, whole_cfg
+    try:
+        check = matcher.match_local(None, estimate, prepared=prep, level=True)
+    finally:
+        matcher.cfg = saved
+    cx, cy, _, cyaw, _, _ = pose_to_xyz_ypr(check.pose)
+    row["second_ms"], row["second_search"] = float(check.ms), check.search
+    row["second_agrees"] = bool(check.accepted and judge(cx, cy, cyaw, truth)[0])
     return row
 
 

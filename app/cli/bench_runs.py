@@ -322,6 +322,15 @@ def bench_city(
     whole_map: Annotated[
         bool, typer.Option("--whole-map/--no-whole-map", help="Also today's whole-map search on the same scans.")
     ] = True,
+    exact_scans: Annotated[
+        int,
+        typer.Option(
+            "--exact-scans",
+            min=0,
+            help="Of the global scans, how many the exact tiled search over the whole city also matches, the "
+            "reference the candidates are compared with (tens of seconds a scan on a 16 km² city).",
+        ),
+    ] = 10,
     localize_runs: Annotated[
         int,
         typer.Option(
@@ -351,8 +360,9 @@ def bench_city(
 ):
     """lidarloc holding a city (by default the 4 × 4 km city, a 10-minute drive through it):
     the tiled tables' build and cache size, a later start and the memory a drive keeps resident
-    (in a fresh process), and the exact tiled global search beside the whole-map search and
-    FPFH + RANSAC; with --localize-runs N, N seeded runs of full localization from a start
+    (in a fresh process), global localization over the whole city (the place index's candidates
+    verified by the exact search and GICP, and the whole-map second opinion) beside the exact
+    tiled search, the whole-map search and FPFH + RANSAC; with --localize-runs N, N seeded runs of full localization from a start
     spread over the whole city. --set town.extent_m=E (or any source option) measures another city.
     The city's tables are the lookup at 0.5 m read by tiles (pf.lookup_resolution=0.5,
     pf.lookup_tile_m=400) unless --set says otherwise."""
@@ -384,6 +394,7 @@ def bench_city(
                 peer_budget_mb=None if peer_budget_gb is None else peer_budget_gb * 1024.0,
                 tile_m=tile_m,
                 whole_map=whole_map,
+                exact_scans=exact_scans,
                 progress=progress,
                 rows_dir=out / "global",
                 peer_rows_dir=out / "fpfh-ransac",

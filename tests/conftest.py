@@ -178,6 +178,27 @@ def recorded_town_run(cache_root, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def recorded_town_run_40(cache_root, tmp_path_factory) -> Path:
+    """A recorded replay-clock run of the short town's first 40 scans with the default
+    configuration (S2M on, the default particle count), made as ``lidarloc run`` makes it: its
+    folder. The branching tests branch it, the examples plot and branch it; none changes it."""
+    from helpers import MAPPING_SCANS
+    from lidarloc.app.headless import run_headless
+    from lidarloc.core.config import Config
+    from lidarloc.core.sequences.factory import SourceSpec
+    from rich.console import Console
+
+    cfg = Config()
+    cfg.town.n_scans = MAPPING_SCANS
+    out = tmp_path_factory.mktemp("original") / "run"
+    summary, interrupted = run_headless(
+        SourceSpec(scans=40), cfg, out, cache_root=cache_root, console=Console(stderr=True, quiet=True)
+    )
+    assert not interrupted and summary["s2m_landed"] > 5
+    return out
+
+
+@pytest.fixture(scope="session")
 def toy_world():
     """The particle filter's toy world (helpers.toy_map) and its 0.25 m / 5 m lookup table."""
     from helpers import toy_map

@@ -44,16 +44,11 @@ def folder_digest(folder: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def original(tmp_path_factory, cache_root) -> Path:
-    """A replay-clock `lidarloc run` of 40 town scans with S2M on, recorded (the default)."""
-    from lidarloc.app.headless import run_headless
-
-    out = tmp_path_factory.mktemp("original") / "run"
-    summary, interrupted = run_headless(
-        SourceSpec(scans=N_SCANS), town_cfg(), out, cache_root=cache_root, console=quiet()
-    )
-    assert not interrupted and summary["s2m_landed"] > 5
-    return out
+def original(recorded_town_run_40) -> Path:
+    """A replay-clock `lidarloc run` of 40 town scans with S2M on, recorded (the default): the
+    session's, which the examples use too (conftest.recorded_town_run_40)."""
+    assert recording.open(recorded_town_run_40).n == N_SCANS
+    return recorded_town_run_40
 
 
 def test_a_run_records_by_default_and_not_with_no_record(original, tmp_path, cache_root):

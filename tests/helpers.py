@@ -29,7 +29,9 @@ PYRIGHT_TEST = "test_code_quality.py::test_pyright_resolves_every_import_and_is_
 
 class PyrightRun:
     """pyright over the repository, started and left running; ``result()`` waits for its answer.
-    Its output goes to files, so a long report never stalls it while nobody reads."""
+    It keeps the tests' priority: niced, a busy shared machine starves it for longer than its
+    test's timeout. Its output goes to files, so a long report never stalls it while nobody
+    reads."""
 
     def __init__(self, exe: str, root: Path):
         import subprocess

@@ -13,12 +13,11 @@ import sys
 
 import numpy as np
 import pytest
-from bagfixtures import N_SCANS, kitti_drive, kitti_recordings, write_pcd_folder, write_tum  # noqa: F401
+from bagfixtures import N_SCANS, write_pcd_folder, write_tum
+from helpers import UTM_SHIFT
 from lidarloc.core.config import Config
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
 
-#: a georeferenced map's offset (UTM-sized easting and northing), metres
-UTM_SHIFT = np.array([500_000.0, 4_000_000.0, 0.0])
 PARTICLES = 300
 
 
@@ -27,19 +26,6 @@ def small_cfg(seed: int = 0) -> Config:
     cfg.pf.n_particles = PARTICLES
     cfg.seed = seed
     return cfg
-
-
-@pytest.fixture(scope="session")
-def drive_maps(kitti_raw_seq, tmp_path_factory):
-    """The drive's whole map as a .pcd in the drive's frame, and the same map shifted by UTM_SHIFT."""
-    from lidarloc.core.maps.mapfile_write import write_map
-    from lidarloc.core.maps.mapping import build_prior_map
-
-    root = tmp_path_factory.mktemp("maps")
-    points = build_prior_map(kitti_raw_seq, Config().map, road_removal=False).points
-    write_map(root / "map.pcd", points)
-    write_map(root / "map_utm.pcd", points, origin=UTM_SHIFT)
-    return {"local": root / "map.pcd", "utm": root / "map_utm.pcd"}
 
 
 @pytest.fixture(scope="session")

@@ -9,14 +9,13 @@ calling it would pay it.
 
 Settings: 1 m voxels (normals from 3 m, FasterPFH from 5 m: its own gains, 3× and 5× the voxel),
 the scan range-filtered as every peer's, the map as it is (KISS-Matcher voxelizes it itself).
-Tried on the real KITTI drive (the bench's first 10 random scans, 2 shared cores, load ~10,
-2026-12-07): 1 m voxels with its 6-DoF solver, 0 / 5 within 2 m / 5°, ~3 s a scan (the solutions
-40–90 m off, most flagged invalid); with Quatro (``use_quatro``, the 4-DoF solver for ground
-vehicles) 0 / 5, the yaw nearer (2–18°) but the position 19–84 m off; the map down-sampled to 1 m
-centroids before the call, 0 / 5 at the same time. The bench keeps its 6-DoF default, measured
-on the whole run (BENCHMARKS.md, "Beside its peers"). Finer voxels were not tried: the scan and
-the map at 0.5 m would quadruple the features of a map whose features are already extracted on
-every call.
+Tried on five random scans of the real KITTI drive (2 shared cores, load ~10, 2026-12-07): 1 m
+voxels with its 6-DoF solver, 0 / 5 within 2 m / 5°, ~3 s a scan (the poses 10–88 m off, four of
+five flagged invalid); with Quatro (``use_quatro``, its 4-DoF solver for ground vehicles) 0 / 5,
+the yaw nearer (2–18° off) but the position 19–84 m off; the map down-sampled to 1 m centroids
+before the call, 0 / 5 at the same time. The bench keeps the 6-DoF default; on the bench's 30
+scans it put 5 within 2 m / 5° (BENCHMARKS.md, "Beside its peers"). Finer voxels were not tried:
+at 0.5 m the map has about four times the features, extracted again on every call.
 
 Determinism: KISS-Matcher's pruning and solver run on several threads, and the same scan
 registered twice need not give the same pose; its API has no seed. The bench registers its first

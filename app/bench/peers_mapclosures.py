@@ -15,8 +15,8 @@ the frame of that scan, in MapClosures' own voxel map (0.5 m, up to 100 m), as i
 builds its local maps; the single scan alone is measured beside it. Its stitching time is reported
 apart (``mapclosures_stitch_ms_median``; reading the scans from disk is not in it).
 
-Settings, tried on the real KITTI drive (30 random scans, 10-scan queries, 2 shared cores, load
-~10, 2026-12-07; within 2 m / 5°):
+Settings, tried on the real KITTI drive (the bench's 30 random scans, 10-scan queries, 2 shared
+cores, load 10–15, 2026-12-07; within 2 m / 5°; the bench's own run of the chosen setting: 27 / 30):
 
 - tiles of 100 m side by side, MapClosures' defaults (density threshold 0.05, Hamming distance
   50): 8 / 30; the query cropped to the tile's ±50 m: worse (4 / 30 with 50 m tiles overlapping);
@@ -31,11 +31,15 @@ Settings, tried on the real KITTI drive (30 random scans, 10-scan queries, 2 sha
   against 8 (side by side, defaults); the voxels' means and normals for the ground alignment:
   no change (8 / 30).
 
+MapClosures is not deterministic: the same query of two databases built alike gave 7 and 8 inliers
+and poses 0.10 m apart (one scan of three, three times each); its API takes no seed. The bench
+asks the first query of a twin database and reports whether the answers agreed.
+
 MapClosures only compares a query with maps added at least four ids before it (a loop closure with
 the local map just before is no loop), so the queries' ids start ``ID_GAP`` after the last tile's.
-It adds every query to its database too (its API has no query-only call): each query has a
-database of its own tiles' closures read only (closures with earlier queries are ignored), the
-10-scan and the single-scan queries on two databases so that neither sees the other's.
+It adds every query to its database too (its API has no query-only call): only the closures with
+tiles are read (closures with earlier queries are ignored), and the 10-scan and the single-scan
+queries go to two databases so that neither meets the other's.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap
-from lidarloc.core.maps.places import PlaceIndex, PlaceSettings, index_of_pyramid, places_for_pyramid
+from lidarloc.core.maps.places import PlaceIndex, PlaceSettings, index_of_pyramid, places_for_pyramid, uses_places
 from lidarloc.core.matching.candidates import look_up
 from lidarloc.core.matching.s2m import ScanToMapMatcher
 
@@ -74,7 +74,8 @@ def _scan(prior: PriorMap, T: np.ndarray, radius: float = 40.0) -> np.ndarray:
 
 
 def _matcher(prior: PriorMap, **s2m) -> ScanToMapMatcher:
-    cfg = dataclasses.replace(S2MConfig(), **s2m)
+    # these worlds are small enough for "auto" to search them whole: the candidates, asked for
+    cfg = dataclasses.replace(S2MConfig(), **{"global_search": "candidates", **s2m})
     return ScanToMapMatcher(prior, BEVPyramid.build(prior.points_bev, cfg.match_resolution), cfg)
 
 
@@ -118,7 +119,7 @@ def test_the_candidates_find_the_true_place_from_any_yaw(twins, single_matcher):
         truth = _free_pose(single, rng, 30.0, 110.0)
         prep = m.prepare(_scan(single, truth, radius=65.0))  # beyond the rays' 60 m, as a sensor's range
         x, y, _, yaw, _, _ = pose_to_xyz_ypr(truth)
-        lu = look_up(m.place_index(), m._bev(prep.road_removed, 0.0, 0.0), 8)
+        lu = look_up(m.place_index(), prep.points, 8)  # level already: the whole scan, as the matcher does
         assert math.hypot(lu.places[0].x - x, lu.places[0].y - y) < 3.0
         out = m.match_global(None, prepared=prep)
         assert out.accepted and out.search == "candidates", out.reason
@@ -134,7 +135,7 @@ def test_the_exact_search_stays_as_setting_and_fallback(twins, single_matcher):
     truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
     scan = _scan(single, truth)
     cfg = apply_overrides(Config(), ["s2m.global=exact"])
-    assert cfg.s2m.global_search == "exact"
+    assert cfg.s2m.global_search == "exact" and Config().s2m.global_search == "auto"
     m = single_matcher
     saved = m.cfg, m.places
     try:
@@ -169,6 +170,13 @@ def test_a_whole_map_check_from_the_truth_agrees_through_the_candidates(twins, s
     x, y, *_ = pose_to_xyz_ypr(out.pose)
     assert math.hypot(x - 70.3, y - 64.6) < 0.3
     assert len(out.match.candidates) >= 1  # the inspection shows what was scored
+
+
+def test_auto_looks_places_up_only_on_a_large_map():
+    """``auto``: the exact search on a small map (cheap and certain), the candidates from 0.25 km²."""
+    auto, never = S2MConfig(), S2MConfig(global_search="exact")
+    assert not uses_places(auto, (400, 260)) and uses_places(auto, (1000, 1000))
+    assert uses_places(S2MConfig(global_search="candidates"), (10, 10)) and not uses_places(never, (4000, 4000))
 
 
 def test_the_place_index_is_cached_and_a_damaged_file_rebuilt(twins, tmp_path, caplog):

@@ -10,7 +10,7 @@ import pickle
 
 import numpy as np
 import pytest
-from helpers import make_localizer, short_town
+from helpers import short_town
 from lidarloc.core.config import MapConfig, S2MConfig
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.maps.bev import BEVPyramid
@@ -191,9 +191,15 @@ def test_localizer_views_say_what_each_match_did(cache_root):
     """A real run on the town, matches in the S2M process: every landed match's view says whether it
     searched the whole map, where it started, what the search scored and expanded, what GICP did,
     and why it was refused if it was."""
+    from lidarloc.core.config import Config
+    from lidarloc.core.localizer import Localizer
+
     town = short_town(16)
     views, localized = {}, {}
-    with make_localizer(town, cache_root, n_particles=300) as loc:
+    cfg = Config()
+    cfg.pf.n_particles = 300
+    cfg.s2m.global_search = "candidates"  # the town is small enough for "auto" to search it whole
+    with Localizer(town, cfg, cache_root) as loc:
         assert loc.cfg.localize.s2m_process
         loc.reset(pose=town.poses[0])  # near the truth: the first matches land and are accepted
         for _ in range(len(town)):

@@ -187,9 +187,10 @@ class S2MConfig:
     # "candidates": the place index built from the map names global_candidates places, the exact
     # M3RSM search verifies each in ± candidate_window and GICP the best (about a second on a
     # 16 km² city); the exact whole-map search only when none verifies. "exact": the whole-map
-    # branch and bound every time (its cost grows with the map: ~3.7 CPU-s per km²). Also
-    # written s2m.global. See docs/global-localization.md.
-    global_search: str = "candidates"
+    # branch and bound every time (its cost grows with the map: ~3.7 CPU-s per km²). "auto":
+    # candidates on maps of 0.25 km² and more (at d_m = 1 m), exact below, where it is fast and
+    # certain. Also written s2m.global. See docs/global-localization.md.
+    global_search: str = "auto"
     global_candidates: int = 8  # places the look-up hands to the exact search
     candidate_window: float = 4.0  # m, half-width of the exact search around each place
     # Two distinct places (farther apart than localize.confirm_distance) that both pass GICP, the
@@ -321,7 +322,10 @@ class Config:
             (self.s2m.join_at_scan >= 0, "s2m.join_at_scan must be ≥ 0"),
             (self.s2m.global_check_interval >= 0, "s2m.global_check_interval must be ≥ 0 (0 = never)"),
             (self.s2m.relocalize_score_ratio >= 1, "s2m.relocalize_score_ratio must be ≥ 1"),
-            (self.s2m.global_search in ("candidates", "exact"), "s2m.global_search must be candidates or exact"),
+            (
+                self.s2m.global_search in ("auto", "candidates", "exact"),
+                "s2m.global_search must be auto, candidates or exact",
+            ),
             (1 <= self.s2m.global_candidates <= 64, "s2m.global_candidates must be in 1..64"),
             (self.s2m.candidate_window > 0, "s2m.candidate_window must be > 0"),
             (0 < self.s2m.ambiguity_ratio <= 1, "s2m.ambiguity_ratio must be in (0, 1]"),

@@ -1,5 +1,5 @@
 """The place index: every place on the map a vehicle could stand, described as a 2D LiDAR would
-see the road-removed map from there, so that a scan can be looked up instead of searched for.
+see the map from there, so that a scan can be looked up instead of searched for.
 
 A whole-map M3RSM search costs about 3.7 CPU-seconds per km² (its branch and bound must expand
 every block whose bound beats the optimum, and a city is full of look-alike blocks). The index
@@ -7,20 +7,21 @@ turns the first step of a global localization into a look-up whose cost does not
 map's area; the exact search then verifies a handful of places in small windows
 (:mod:`lidarloc.core.matching.candidates`).
 
-**Places.** The L0 cells of the BEV pyramid, every ``stride`` cells, that are drivable by the
-map's own word: the full map has points there (the ground) while the road-removed map has none
-within ``clearance`` (nothing stands there). Walls' backs, building interiors and back yards are
-empty in both maps and so never places.
+**Places.** The L0 cells of the BEV pyramid's lattice, every ``stride`` cells, that are open
+ground by the map's own word: the map has points there, none in the height band of
+:func:`obstacles_and_ground`, and no cell within ``clearance`` stands in the way (a point
+``band_low`` to ``band_high`` above the lowest point within ``ground_cells`` cells). Building interiors and back
+yards hold no points in a survey and are never places.
 
 **Descriptor: the first hit per sector.** From the place, ``sectors`` rays in world directions
-θ_s = (s + ½)·2π/S march over the road-removed L0 grid in half-cell steps; a ray's value is the
-distance to the first occupied cell, ``max_range`` where it meets none. A scan is described the
-same way from its own BEV (road-removed, levelled), in its sensor frame, so a scan at yaw ψ
-matches its place's descriptor circularly shifted by ψ·S/2π sectors. The first hit, not the
-occupancy of polar bins (Scan Context, ring keys), because a scan sees only the first wall
+θ_s = (s + ½)·2π/S march over the cells in the way in half-cell steps; a ray's value is the
+distance to the first such cell, ``max_range`` where it meets none. A scan is described the
+same way from its own cells (levelled, judged by the same rule), in its sensor frame, so a scan
+at yaw ψ matches its place's descriptor circularly shifted by ψ·S/2π sectors. The first hit, not
+the occupancy of polar bins (Scan Context, ring keys), because a scan sees only the first wall
 along a ray while the map holds every wall surveyed from every street: the façades of the next
-street behind a block are in the map's polar bins but never in the scan's. Measured alternatives
-and why this one won: docs/global-localization.md.
+street behind a block are in the map's polar bins but never in the scan's. Heights, not the
+road-removed map: a real map's road removal leaves scattered road points on the lanes.
 
 **Look-up: two passes over every place.** A scan's descriptor is compared with every place's
 under every shift (the yaw): first on coarse sectors (the nearest hit of each group of
@@ -52,7 +53,7 @@ from ..cache import atomic_write_file, cache_rebuilt
 from ..errors import LidarlocError
 from .bev import pyramid_cache_name
 
-_FORMAT = 1
+_FORMAT = 3
 
 
 @dataclass(frozen=True)
@@ -60,12 +61,20 @@ class PlaceSettings:
     """How places are laid and described (metres and counts)."""
 
     stride: int = 2  # L0 cells between places (2 m at d_m = 1 m)
-    clearance: float = 1.5  # m, no road-removed map cell this close to a place
+    clearance: float = 1.5  # m, no cell in the way this close to a place
     sectors: int = 72  # rays (5° each)
     max_range: float = 60.0  # m, a ray's reach (a first hit farther is "none")
     coarse_group: int = 3  # sectors per coarse sector (the first pass compares 24 of 15°)
     range_unit: float = 0.5  # m, ranges are held as whole multiples of this (one byte each)
     min_hits: int = 8  # a place whose rays meet fewer cells than this describes nothing
+    # A cell stands in the way where one of its points lies this high above the local ground
+    # (the lowest point within ground_cells cells): the band a scanner at head height sees at
+    # every range. Below it: kerbs and low verges; above it: tree crowns over the road (on the
+    # KITTI drive they hang over every lane, and with every point above 0.5 m in the way no place
+    # was left on the road), which a scan's beams (+2° at the most) cannot see nearby.
+    band_low: float = 0.7  # m
+    band_high: float = 2.2  # m
+    ground_cells: int = 3
 
     def __post_init__(self):
         if self.stride < 1 or self.sectors < 4 or self.sectors % self.coarse_group:
@@ -76,7 +85,7 @@ class PlaceSettings:
     def key(self) -> str:
         return (
             f"s{self.stride}-c{self.clearance:g}-n{self.sectors}-g{self.coarse_group}"
-            f"-r{self.max_range:g}-u{self.range_unit:g}-h{self.min_hits}"
+            f"-r{self.max_range:g}-u{self.range_unit:g}-h{self.min_hits}-b{self.band_low:g}-{self.band_high:g}-l{self.ground_cells}"
         )
 
 
@@ -135,21 +144,68 @@ def quantize(ranges_m: np.ndarray, settings: PlaceSettings) -> np.ndarray:
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
-def describe_scan(bev_xy: np.ndarray, resolution: float, settings: PlaceSettings) -> tuple[np.ndarray, int]:
+@nb.njit(cache=True, nogil=True)
+def _mark_lowest(xyz, ox, oy, resolution, zmin):
+    nx, ny = zmin.shape
+    for i in range(xyz.shape[0]):
+        ix = int(math.floor((xyz[i, 0] - ox) / resolution))
+        iy = int(math.floor((xyz[i, 1] - oy) / resolution))
+        if 0 <= ix < nx and 0 <= iy < ny:
+            z = np.float32(xyz[i, 2])
+            if z < zmin[ix, iy]:
+                zmin[ix, iy] = z
+
+
+@nb.njit(cache=True, nogil=True)
+def _mark_band(xyz, ox, oy, resolution, ground_z, low, high, out):
+    nx, ny = out.shape
+    for i in range(xyz.shape[0]):
+        ix = int(math.floor((xyz[i, 0] - ox) / resolution))
+        iy = int(math.floor((xyz[i, 1] - oy) / resolution))
+        if 0 <= ix < nx and 0 <= iy < ny:
+            h = xyz[i, 2] - ground_z[ix, iy]
+            if low <= h <= high:
+                out[ix, iy] = True
+
+
+def _chunks(points, chunk: int):
+    for start in range(0, len(points), chunk):
+        yield np.ascontiguousarray(points[start : start + chunk, :3], np.float64)
+
+
+def obstacles_and_ground(
+    points, origin, shape, resolution: float, settings: PlaceSettings, chunk: int = 1 << 24
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which cells of the lattice (``origin``, ``shape``) stand in the way (a point of ``points`` in
+    the height band above the local ground: a wall, a trunk, a pole, a truck) and which are open
+    ground (points, none in the band). Judged on heights, not on the road-removed map: a real
+    map's road removal leaves the road's own points scattered over the lanes (on the KITTI drive
+    16–25 of the 25 cells around the vehicle held some). Two passes over ``points`` (a
+    memory-mapped map is read ``chunk`` points at a time): the lowest point per cell, then the band."""
+    from scipy.ndimage import minimum_filter
+
+    ox, oy, d = float(origin[0]), float(origin[1]), float(resolution)
+    zmin = np.full(shape, np.inf, np.float32)
+    for part in _chunks(points, chunk):
+        _mark_lowest(part, ox, oy, d, zmin)
+    ground_z = minimum_filter(zmin, size=2 * settings.ground_cells + 1, mode="constant", cval=np.inf)
+    obstacle = np.zeros(shape, np.bool_)
+    for part in _chunks(points, chunk):
+        _mark_band(part, ox, oy, d, ground_z, float(settings.band_low), float(settings.band_high), obstacle)
+    return obstacle, np.isfinite(zmin) & ~obstacle
+
+
+def describe_scan(points: np.ndarray, resolution: float, settings: PlaceSettings) -> tuple[np.ndarray, int]:
     """The descriptor (ranges in ``range_unit`` steps, sector s at sensor-frame angle
-    (s + ½)·2π/S) of a levelled road-removed scan's x-y (sensor frame), and how many of its rays
-    hit."""
-    xy = np.asarray(bev_xy, np.float64)[:, :2]
+    (s + ½)·2π/S) of a levelled scan (x, y, z in the sensor frame, pitch and roll removed), and how
+    many of its rays hit: the scan's cells judged by :func:`obstacles_and_ground` as the map's are."""
+    pts = np.asarray(points)[:, :3]
     n = int(math.ceil(settings.max_range / resolution)) + 1
-    # the sensor at the centre of cell (n, n): the same half-cell offset as a place
-    cells = np.floor(xy / resolution).astype(np.int64) + n
-    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < 2 * n + 1) & (cells[:, 1] < 2 * n + 1)
-    occ = np.zeros((2 * n + 1, 2 * n + 1), np.bool_)
-    occ[cells[inside, 0], cells[inside, 1]] = True
+    # the sensor sits at grid coordinate (n, n): cell n's lower corner, as floor(xy / d) + n says
+    occ, _ = obstacles_and_ground(pts, (-n * resolution, -n * resolution), (2 * n + 1, 2 * n + 1), resolution, settings)
     cos_s, sin_s = _rays(settings.sectors)
     steps, step_cells = _steps(settings.max_range, resolution)
     out = np.empty(settings.sectors)
-    # the sensor sits at grid coordinate (n, n): cell n's lower corner, as floor(xy / d) + n says
     hits = _ray_profile(occ, float(n), float(n), cos_s, sin_s, steps, step_cells, out)
     return quantize(out * resolution, settings), int(hits)
 
@@ -223,8 +279,8 @@ def _dilate(occ: np.ndarray, radius_cells: float) -> np.ndarray:
 def describe_block(
     occ: np.ndarray, ground: np.ndarray, margin: int, resolution: float, settings: PlaceSettings, phase=(0, 0)
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Places and descriptors of one block of the grid: ``occ`` (road-removed occupancy) and
-    ``ground`` (the full map's occupancy) over the block plus ``margin`` cells on every side;
+    """Places and descriptors of one block of the grid: ``occ`` (the cells in the way) and
+    ``ground`` (open ground) over the block plus ``margin`` cells on every side;
     places only in the block's core, on the lattice ``phase + stride·i`` of the core's cells.
     Returns the places' core cells (n, 2) int64, their descriptors (n, S) in metres and how many
     places had too few hits."""
@@ -261,64 +317,38 @@ def describe_block(
 
 
 # ------------------------------------------------------------------------------------- building
-@nb.njit(cache=True, nogil=True)
-def _mark_cells(xyz, ox, oy, resolution, out):
-    nx, ny = out.shape
-    for i in range(xyz.shape[0]):
-        ix = int(math.floor((xyz[i, 0] - ox) / resolution))
-        iy = int(math.floor((xyz[i, 1] - oy) / resolution))
-        if 0 <= ix < nx and 0 <= iy < ny:
-            out[ix, iy] = True
-
-
-def ground_grid(
-    points: np.ndarray, origin, shape: tuple[int, int], resolution: float, chunk: int = 1 << 24
-) -> np.ndarray:
-    """Cells of the L0 lattice (``origin``, ``shape``) holding at least one of the full map's
-    ``points`` (a memory-mapped map is read ``chunk`` points at a time)."""
-    out = np.zeros(shape, np.bool_)
-    for start in range(0, len(points), chunk):
-        part = np.ascontiguousarray(points[start : start + chunk, :2], np.float64)
-        _mark_cells(part, float(origin[0]), float(origin[1]), float(resolution), out)
-    return out
-
-
-def _padded(read, cx0: int, cy0: int, cx1: int, cy1: int, shape) -> np.ndarray:
-    """``read(a0, b0, a1, b1)`` of the part of [cx0, cx1) × [cy0, cy1) inside the grid, placed in a
-    block of zeros the requested size."""
-    out = np.zeros((cx1 - cx0, cy1 - cy0), np.bool_)
+def _padded(grid: np.ndarray, cx0: int, cy0: int, cx1: int, cy1: int) -> np.ndarray:
+    """The part of ``grid`` over [cx0, cx1) × [cy0, cy1), zeros beyond its edges."""
+    out = np.zeros((cx1 - cx0, cy1 - cy0), grid.dtype)
     a0, b0 = max(cx0, 0), max(cy0, 0)
-    a1, b1 = min(cx1, shape[0]), min(cy1, shape[1])
+    a1, b1 = min(cx1, grid.shape[0]), min(cy1, grid.shape[1])
     if a1 > a0 and b1 > b0:
-        out[a0 - cx0 : a1 - cx0, b0 - cy0 : b1 - cy0] = read(a0, b0, a1, b1)
+        out[a0 - cx0 : a1 - cx0, b0 - cy0 : b1 - cy0] = grid[a0:a1, b0:b1]
     return out
 
 
 def build_place_index(
-    read_occupied,
-    ground: np.ndarray,
+    full_points: np.ndarray,
     origin,
+    shape: tuple[int, int],
     resolution: float,
     settings: PlaceSettings | None = None,
     block: int = 512,
     progress=None,
 ) -> PlaceIndex:
-    """The index of a map whose road-removed L0 occupancy ``read_occupied(cx0, cy0, cx1, cy1)``
-    gives block by block (cells inside the grid only), with the full map's occupancy ``ground``
-    on the same lattice. Blocks of ``block`` cells are described one after another with a margin
-    of the rays' reach, so a city's grid is never held whole beside its tiles."""
+    """The index of a map (its ``full_points``, every point, memory-mapped or not) on the lattice
+    (``origin``, ``shape``, ``resolution``) of its BEV pyramid: the cells in the way and the open
+    ground judged once (:func:`obstacles_and_ground`), then places described block by block."""
     settings = settings or PlaceSettings()
     t0 = time.perf_counter()
-    shape = ground.shape
+    obstacle, ground = obstacles_and_ground(full_points, origin, shape, resolution, settings)
     margin = int(math.ceil(settings.max_range / resolution)) + int(math.ceil(settings.clearance / resolution)) + 2
     xy_parts, prof_parts, empty = [], [], 0
     blocks = [(bx, by) for bx in range(0, shape[0], block) for by in range(0, shape[1], block)]
     for n_done, (bx, by) in enumerate(blocks):
         ex, ey = min(bx + block, shape[0]), min(by + block, shape[1])
-        occ = _padded(read_occupied, bx - margin, by - margin, ex + margin, ey + margin, shape)
-        gnd = _padded(
-            lambda a0, b0, a1, b1: ground[a0:a1, b0:b1], bx - margin, by - margin, ex + margin, ey + margin, shape
-        )
+        occ = _padded(obstacle, bx - margin, by - margin, ex + margin, ey + margin)
+        gnd = _padded(ground, bx - margin, by - margin, ex + margin, ey + margin)
         # the lattice of places is global (multiples of the stride), whatever the block
         phase = ((-bx) % settings.stride, (-by) % settings.stride)
         cells, prof, few = describe_block(occ, gnd, margin, resolution, settings, phase)
@@ -342,23 +372,26 @@ def build_place_index(
 
 
 def index_of_pyramid(pyramid, full_points: np.ndarray, settings: PlaceSettings | None = None) -> PlaceIndex:
-    """The index of a map held as one :class:`~lidarloc.core.maps.bev.BEVPyramid`."""
-    occ = np.asarray(pyramid.levels[0]) > 0
-    ground = ground_grid(full_points, pyramid.origin, pyramid.shape, pyramid.resolution)
-    return build_place_index(
-        lambda a0, b0, a1, b1: occ[a0:a1, b0:b1], ground, pyramid.origin, pyramid.resolution, settings
-    )
+    """The index of a map whose BEV is one :class:`~lidarloc.core.maps.bev.BEVPyramid` (its lattice)."""
+    return build_place_index(full_points, pyramid.origin, pyramid.shape, pyramid.resolution, settings)
 
 
 def index_of_tiles(bev, full_points: np.ndarray, settings: PlaceSettings | None = None, progress=None) -> PlaceIndex:
-    """The index of a city held as a :class:`~lidarloc.core.maps.tiled_bev.TiledBEV`: its L0 read
-    block by block from the tiles."""
-    ground = ground_grid(full_points, bev.origin, bev.shape, bev.resolution)
+    """The index of a city held as a :class:`~lidarloc.core.maps.tiled_bev.TiledBEV` (its lattice)."""
+    return build_place_index(full_points, bev.origin, bev.shape, bev.resolution, settings, progress=progress)
 
-    def read(a0, b0, a1, b1):
-        return np.asarray(bev.window(a0, b0, a1, b1).levels[0]) > 0
 
-    return build_place_index(read, ground, bev.origin, bev.resolution, settings, progress=progress)
+#: L0 cells from which ``s2m.global_search = "auto"`` looks places up rather than searching the whole
+#: map (0.25 km² at d_m = 1 m). Below it the exact search is cheap and certain: 0.39 s on the
+#: KITTI drive's 0.04 km², where the look-up found the true place among its first eight for 18 of
+#: 30 scans and wrong places along the same street passed GICP (docs/global-localization.md).
+AUTO_MIN_CELLS = 250_000
+
+
+def uses_places(s2m_cfg, shape) -> bool:
+    """Whether whole-map matches on a BEV lattice of ``shape`` cells go through the place index."""
+    mode = s2m_cfg.global_search
+    return mode == "candidates" or (mode == "auto" and int(shape[0]) * int(shape[1]) >= AUTO_MIN_CELLS)
 
 
 def place_index_name(pyramid_name: str, settings: PlaceSettings) -> str:

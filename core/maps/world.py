@@ -20,7 +20,7 @@ from .bev import BEVPyramid, load_or_build_pyramid
 from .follow import TileFollower
 from .lookup import LookupTable, load_or_build_lookup
 from .mapping import PriorMap, load_or_build_map
-from .places import PlaceIndex, places_for_pyramid
+from .places import PlaceIndex, places_for_pyramid, uses_places
 from .point_tiles import PointTiles
 from .tiled_lookup import TiledLookup
 
@@ -106,7 +106,7 @@ def open_world(
     if pyramid and prior_map.points_bev is not None:
         report("pyramid", 0.0)
         world.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg.s2m).value
-        if cfg.s2m.global_search == "candidates":
+        if uses_places(cfg.s2m, world.pyramid.shape):
             report("places", 0.0)
             world.places = places_for_pyramid(world.pyramid, prior_map.points, map_dir, cfg.s2m)
     return world

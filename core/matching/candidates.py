@@ -92,12 +92,12 @@ def _shifts(P: np.ndarray, q: np.ndarray, clip: int) -> tuple[np.ndarray, np.nda
     return d, s
 
 
-def look_up(index: PlaceIndex, bev_xy: np.ndarray, n_places: int = 8, separation: float = 10.0) -> LookUp:
-    """The ``n_places`` places whose descriptors are closest to the levelled road-removed scan's
-    (``bev_xy``, sensor frame), at most one within ``separation`` m of another, best first."""
+def look_up(index: PlaceIndex, scan_xyz: np.ndarray, n_places: int = 8, separation: float = 10.0) -> LookUp:
+    """The ``n_places`` places whose descriptors are closest to the scan's (``scan_xyz``: the whole
+    scan, sensor frame, levelled), at most one within ``separation`` m of another, best first."""
     t0 = time.perf_counter()
     st = index.settings
-    q, hits = describe_scan(bev_xy, index.resolution, st)
+    q, hits = describe_scan(scan_xyz, index.resolution, st)
     if hits < st.min_hits or len(index) == 0:
         return LookUp([], hits, (time.perf_counter() - t0) * 1e3)
     clip = max(1, round(SECTOR_CLIP_M / st.range_unit))

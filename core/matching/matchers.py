@@ -61,12 +61,12 @@ class MatcherMixin:
 
     def _in_process(self, pyramid):
         """A matcher in this process, with the place index from the map's cache (or built there)."""
-        from ..maps.places import places_for_pyramid
+        from ..maps.places import places_for_pyramid, uses_places
         from .s2m import ScanToMapMatcher
 
         s2m = self.cfg.s2m
         places = None
-        if s2m.global_search == "candidates":
+        if uses_places(s2m, pyramid.shape):
             places = places_for_pyramid(pyramid, self._prior_map.points, self._map_dir, s2m)
         return ScanToMapMatcher(self._prior_map, pyramid, s2m, self.cfg.map, places=places)
 

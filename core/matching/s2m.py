@@ -42,6 +42,7 @@ from ..errors import LidarlocError
 from ..geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, rotation_zyx, transform_points
 from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
+from ..maps.places import uses_places
 from ..o3d import open3d
 from . import m3rsm
 from .candidates import combined, look_up, verify, window_of
@@ -379,8 +380,9 @@ class ScanToMapMatcher:
     # ---------------------------------------------------------------- whole-map match by candidates
     @property
     def by_candidates(self) -> bool:
-        """Whether whole-map matches go through the place index (``s2m.global_search``)."""
-        return self.cfg.global_search == "candidates"
+        """Whether whole-map matches go through the place index (``s2m.global_search``: always,
+        never, or "auto": on a map of :data:`~lidarloc.core.maps.places.AUTO_MIN_CELLS` cells or more)."""
+        return uses_places(self.cfg, self.pyramid.shape)
 
     def covers_map(self, x: float, y: float, half_x: float, half_y: float) -> bool:
         """Whether ± (half_x, half_y) around (x, y) covers the whole pyramid: a whole-map match."""
@@ -410,7 +412,8 @@ class ScanToMapMatcher:
         passed GICP)."""
         cfg = self.cfg
         index = self.place_index()
-        lu = look_up(index, B, cfg.global_candidates, separation=2.0 * cfg.candidate_window)
+        level = rotation_zyx(0.0, pitch, roll)  # the whole scan levelled, as the BEV scan is
+        lu = look_up(index, prep.points[:, :3] @ level.T, cfg.global_candidates, separation=2.0 * cfg.candidate_window)
         timings["look_up"] = lu.ms
         if not lu.places:
             return None, None

@@ -30,7 +30,7 @@ from ..worker_process import WorkerProxy, lower_priority, serve
 def _make_handler(init: tuple):
     from ..maps.bev import load_or_build_pyramid
     from ..maps.mapping import PriorMap
-    from ..maps.places import places_for_pyramid
+    from ..maps.places import places_for_pyramid, uses_places
     from ..maps.point_tiles import PointTiles
     from .s2m import ScanToMapMatcher
 
@@ -46,9 +46,7 @@ def _make_handler(init: tuple):
 
     def places(pyramid, cfg):
         # the parent's open_world built it into the map's cache with the pyramid: read here
-        return (
-            places_for_pyramid(pyramid, prior_map.points, map_dir, cfg) if cfg.global_search == "candidates" else None
-        )
+        return places_for_pyramid(pyramid, prior_map.points, map_dir, cfg) if uses_places(cfg, pyramid.shape) else None
 
     pyramid = load_or_build_pyramid(prior_map, map_dir, s2m_cfg).value
     state = {"matcher": ScanToMapMatcher(prior_map, pyramid, s2m_cfg, map_cfg, places=places(pyramid, s2m_cfg))}
@@ -61,7 +59,7 @@ def _make_handler(init: tuple):
             # the parent rebuilt the pyramid for a new d_m before asking: it is in the cache
             matcher.pyramid = load_or_build_pyramid(prior_map, map_dir, cfg).value
             matcher.places = places(matcher.pyramid, cfg)
-        elif cfg.global_search == "candidates" and matcher.places is None:
+        elif matcher.places is None and uses_places(cfg, matcher.pyramid.shape):
             matcher.places = places(matcher.pyramid, cfg)
         matcher.cfg = cfg  # live region / angle-step changes
         return matcher.match_local(np.asarray(scan), np.asarray(start_pose), prepared=None, level=level)

@@ -180,8 +180,10 @@ def recorded_town_run(cache_root, tmp_path_factory):
 @pytest.fixture(scope="session")
 def recorded_town_run_40(cache_root, tmp_path_factory) -> Path:
     """A recorded replay-clock run of the short town's first 40 scans with the default
-    configuration (S2M on, the default particle count), made as ``lidarloc run`` makes it: its
-    folder. The branching tests branch it, the examples plot and branch it; none changes it."""
+    configuration (S2M on, the default particle count) but its S2M process at the PF's priority
+    (the replay waits for every match, and a niced S2M beside busy processes crawls; the priority
+    never changes the result), made as ``lidarloc run`` makes it: its folder. The branching tests
+    branch it, the examples plot and branch it; none changes it."""
     from helpers import MAPPING_SCANS
     from lidarloc.app.headless import run_headless
     from lidarloc.core.config import Config
@@ -190,6 +192,7 @@ def recorded_town_run_40(cache_root, tmp_path_factory) -> Path:
 
     cfg = Config()
     cfg.town.n_scans = MAPPING_SCANS
+    cfg.s2m.replay_process_nice = 0
     out = tmp_path_factory.mktemp("original") / "run"
     summary, interrupted = run_headless(
         SourceSpec(scans=40), cfg, out, cache_root=cache_root, console=Console(stderr=True, quiet=True)

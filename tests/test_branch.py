@@ -32,6 +32,9 @@ def town_cfg() -> Config:
 
     cfg = Config()
     cfg.town.n_scans = MAPPING_SCANS  # as helpers.short_town: the map builds in seconds
+    # S2M at the PF's priority: the replay clock waits for every match, and a niced S2M beside
+    # busy processes gets a sliver of a core (the priority never changes a replay's result)
+    cfg.s2m.replay_process_nice = 0
     return cfg
 
 

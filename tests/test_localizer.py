@@ -25,8 +25,12 @@ def town(cache_root):
 
 
 def make(seq, cache_root, **overrides) -> Localizer:
+    """500 particles, and the S2M process at the PF's priority unless told: the replay clock waits
+    for every match, and a niced S2M beside busy processes gets a sliver of a core (the priority
+    never changes a replay's result)."""
     cfg = Config()
     cfg.pf.n_particles = overrides.pop("n_particles", 500)
+    cfg.s2m.replay_process_nice = 0
     for key, value in overrides.items():
         section, name = key.split("__")
         setattr(getattr(cfg, section), name, value)
@@ -180,7 +184,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         return value, (int(group.read_text().split()[-1]) if grouped else None)
 
     own = os.getpriority(os.PRIO_PROCESS, 0)
-    with make(town, cache_root) as loc:
+    with make(town, cache_root, s2m__replay_process_nice=Config().s2m.replay_process_nice) as loc:
         want = loc.cfg.s2m.replay_process_nice
         assert want > 0
         loc.run(3)  # the first match landed at scan 2: the child is set up

@@ -15,8 +15,11 @@ from lidarloc.app.inspect import FILES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # the town's first scans, localized in the map of a short mapping drive (builds in seconds)
-TOWN = ["--set", "town.n_scans=150", "--scans", "20"]
-REAL = ["--date", "2011_09_26", "--drive", "0013"]
+# S2M at the PF's priority: the replay waits for every match, and a niced S2M beside busy
+# processes crawls (the priority never changes a replay's result)
+AT_PF_PRIORITY = ["--set", "s2m.replay_process_nice=0"]
+TOWN = ["--set", "town.n_scans=150", "--scans", "20", *AT_PF_PRIORITY]
+REAL = ["--date", "2011_09_26", "--drive", "0013", *AT_PF_PRIORITY]
 
 
 def lidarloc(*args, cache):

@@ -193,3 +193,35 @@ def test_the_place_index_is_cached_and_a_damaged_file_rebuilt(twins, tmp_path, c
     rebuilt = places_for_pyramid(pyr, single.points, tmp_path, S2MConfig())
     assert np.array_equal(rebuilt.profiles, first.profiles)
     assert "building it again" in caplog.text
+
+
+def test_the_viewer_shows_an_ambiguous_answers_places_with_their_scores():
+    """The overview rings every place an ambiguous whole-map answer found (none for a local
+    match), and the S2M details list them with their scores."""
+    from lidarloc.app.viewer.minimap import Footprint, render, verified_places
+    from lidarloc.app.viewer.s2m_detail import s2m_detail_markdown
+    from lidarloc.app.viewer.style import PLACE_ANSWER_COLOR, PLACE_OTHER_COLOR
+    from lidarloc.core.snapshot import S2MView
+
+    match = pose_matrix(40.0, 50.0, SENSOR_HEIGHT, 0.3, 0.0, 0.0)
+    view = S2MView(
+        started_at=10, landed_at=12, accepted=False, score=4434.0, start_score=math.nan, pose=match,
+        scan_world=np.zeros((0, 3), np.float32), region=(36.0, 46.0, 204.0, 54.0), ms=612.0,
+        reason="ambiguous: 2 places verify with scores within 3% of each other", mode="global",
+        start_pose=match, match_pose=match, search="candidates", ambiguous=True,
+        alternatives=np.array([[200.0, 50.0, 0.3, 4301.0]]),
+    )  # fmt: skip
+    places = verified_places(view)
+    assert [(x, y) for x, y, _ in places] == [(40.0, 50.0), (200.0, 50.0)]
+    assert all(c == PLACE_OTHER_COLOR for *_, c in places)  # ambiguous: no place is the answer
+    fp = Footprint.of_points(np.array([[0.0, 0.0], [240.0, 100.0]]), (0, 0), (240, 100))
+    img = render(fp, places=places)
+    for x, y, _ in places:
+        rows, cols, inside = fp.pixels(np.array([[x, y]]))
+        ring = img[max(rows[0] - 7, 0) : rows[0] + 8, max(cols[0] - 7, 0) : cols[0] + 8]
+        assert inside[0] and (ring == np.asarray(PLACE_OTHER_COLOR, np.uint8)).all(axis=2).any()
+    text = s2m_detail_markdown(view)
+    assert "places (ambiguous)" in text and "4434" in text and "4301 at 200.0, 50.0 m" in text
+    answered = dataclasses.replace(view, accepted=True, ambiguous=False, reason="")
+    assert verified_places(answered)[0][2] == PLACE_ANSWER_COLOR
+    assert verified_places(dataclasses.replace(view, search="")) == []

@@ -13,6 +13,8 @@ from .style import (
     HEIGHT_LUT,
     PARTICLE_HIGH,
     PARTICLE_LOW,
+    PLACE_ANSWER_COLOR,
+    PLACE_OTHER_COLOR,
     RESET_COLOR,
     S2M_ACCEPTED_COLOR,
     S2M_REJECTED_COLOR,
@@ -58,7 +60,9 @@ ENTRIES = (
     (
         "overview",
         f"Overview: the map from above in grey, {_swatch(PARTICLE_HIGH.tolist(), '●')} particles, "
-        f"{_swatch(EST_COLOR)} estimate, {_swatch(GT_COLOR, '□')} truth, {_swatch(TILE_COLOR, '□')} the map's "
+        f"{_swatch(EST_COLOR)} estimate, {_swatch(GT_COLOR, '□')} truth, {_swatch(PLACE_ANSWER_COLOR, '□')} the "
+        f"place a whole-map match answered and {_swatch(PLACE_OTHER_COLOR, '□')} the others it verified (all of "
+        f'them when it said "ambiguous"; scores in the S2M details), {_swatch(TILE_COLOR, "□")} the map\'s '
         "tiles drawn at full density (a map too big to draw whole)",
     ),
     # the Why folder's views

@@ -1,6 +1,7 @@
 """The panel's overview: a small top-down image of the whole map (where the map has points, in
-grey), the particles as red dots, the estimate and the truth as markers, and the tiles shown at
-full density outlined. Rendered here with numpy; the panel only shows the image."""
+grey), the particles as red dots, the estimate and the truth as markers, the places the last
+whole-map match verified (an "ambiguous" answer shows every place it found), and the tiles shown
+at full density outlined. Rendered here with numpy; the panel only shows the image."""
 
 from __future__ import annotations
 
@@ -10,7 +11,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...core.snapshot import Snapshot
-from .style import EST_COLOR, GT_COLOR, MINIMAP_INTERVAL_S, MINIMAP_PX, PARTICLE_HIGH, TILE_COLOR
+from .style import (
+    EST_COLOR,
+    GT_COLOR,
+    MINIMAP_INTERVAL_S,
+    MINIMAP_PX,
+    PARTICLE_HIGH,
+    PLACE_ANSWER_COLOR,
+    PLACE_OTHER_COLOR,
+    TILE_COLOR,
+)
 
 BACKGROUND = (22, 24, 30)
 GREY_LOW, GREY_HIGH = 70, 200  # grey of the emptiest and of the fullest pixel with map points
@@ -83,10 +93,12 @@ def render(
     estimate_xy=None,
     truth_xy=None,
     tiles=(),
+    places=(),
 ) -> np.ndarray:
     """The overview image (H, W, 3) uint8: the footprint, the ``tiles`` ((x0, y0, x1, y1) each)
-    outlined, the particles as 3-pixel dots, the truth as a hollow square and the estimate as a
-    filled one on top (each marker outlined in black)."""
+    outlined, the particles as 3-pixel dots, the ``places`` a whole-map match verified ((x, y,
+    colour) each) as hollow squares, the truth as a hollow square and the estimate as a filled
+    one on top (each marker outlined in black)."""
     img = fp.base.copy()
     h, w = fp.size
     for x0, y0, x1, y1 in tiles:
@@ -104,7 +116,9 @@ def render(
                 rr, cc = rows + dr, cols + dc
                 ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
                 img[rr[ok], cc[ok]] = color
-    for xy, half, color, hollow in ((truth_xy, 5, GT_COLOR, True), (estimate_xy, 3, EST_COLOR, False)):
+    marks = [((x, y), 7, color, True) for x, y, color in places]
+    marks += [(truth_xy, 5, GT_COLOR, True), (estimate_xy, 3, EST_COLOR, False)]
+    for xy, half, color, hollow in marks:
         if xy is None:
             continue
         rows, cols, inside = fp.pixels(np.asarray(xy, float)[:2])
@@ -119,6 +133,21 @@ def render(
             _square(img, r, c, half + 1, OUTLINE)
             _square(img, r, c, half, color)
     return img
+
+
+def verified_places(view) -> list[tuple[float, float, tuple]]:
+    """The places a whole-map match by candidates verified, for the overview: its answer (the
+    2D match) and the other distinct places, each (x, y, colour); none for any other match."""
+    if view is None or getattr(view, "search", "") != "candidates":
+        return []
+    others = np.asarray(getattr(view, "alternatives", np.zeros((0, 4))), float).reshape(-1, 4)
+    ambiguous = bool(getattr(view, "ambiguous", False))
+    out = []
+    best = _finite_xy(view.match_pose)
+    if best is not None:
+        out.append((float(best[0]), float(best[1]), PLACE_OTHER_COLOR if ambiguous else PLACE_ANSWER_COLOR))
+    out += [(float(x), float(y), PLACE_OTHER_COLOR) for x, y, _, _ in others if math.isfinite(x) and math.isfinite(y)]
+    return out
 
 
 def _finite_xy(T) -> np.ndarray | None:
@@ -158,7 +187,8 @@ class Overview:
         particles = P[:, :2] if P is not None and P.ndim == 2 and len(P) else None
         est = None if snap is None else _finite_xy(snap.mean_pose)
         truth = None if snap is None else _finite_xy(snap.gt_pose)
-        self.handle.image = render(fp, particles, est, truth, tiles)
+        places = verified_places(None if snap is None else snap.s2m)
+        self.handle.image = render(fp, particles, est, truth, tiles, places)
         if not self.handle.visible:
             self.handle.visible = True
         self._shown, self._last = (fp, snap, tiles), now

@@ -270,6 +270,18 @@ def verdict_text(view: S2MView) -> str:
     return f"**accepted**: {why}"
 
 
+def _places_rows(view: S2MView, match) -> list[tuple[str, str]]:
+    """A whole-map match by candidates: the places it verified with their scores, its answer
+    first (for an "ambiguous" answer, every place it could not tell apart)."""
+    if view.search != "candidates":
+        return []
+    others = np.asarray(view.alternatives, float).reshape(-1, 4)
+    places = [] if match is None else [f"**{_num(view.score)}** at {match[0]:.1f}, {match[1]:.1f} m"]
+    places += [f"{_num(s)} at {x:.1f}, {y:.1f} m" for x, y, _, s in others]
+    label = "places (ambiguous)" if view.ambiguous else "places verified"
+    return [(label, " · ".join(places) or "–")]
+
+
 def s2m_detail_markdown(view: S2MView | None) -> str:
     """The last match as a compact markdown table (degrees and metres, as the panel shows them)."""
     if view is None:
@@ -297,9 +309,14 @@ def s2m_detail_markdown(view: S2MView | None) -> str:
         fitness = "–" if view.gicp_fitness is None else f"{100 * view.gicp_fitness:.0f} %"
     else:
         gicp, fitness = "not run", "–"
+    search = f"{mode}, {_num(x1 - x0)} × {_num(y1 - y0)} m from {_pose_text(start)}"
+    if view.search == "candidates":
+        search = f"whole map by the place index's candidates, their windows within {_num(x1 - x0)} × {_num(y1 - y0)} m"
+    elif view.search == "exact":
+        search = f"whole map, exact (the whole-map branch and bound) from {_pose_text(start)}"
     rows = [
         ("scans", f"started {view.started_at} → landed {view.landed_at}, {view.ms:.0f} ms"),
-        ("search", f"{mode}, {_num(x1 - x0)} × {_num(y1 - y0)} m from {_pose_text(start)}"),
+        ("search", search),
         ("nodes expanded", nodes_text),
         (
             "best scores",
@@ -310,6 +327,7 @@ def s2m_detail_markdown(view: S2MView | None) -> str:
                 else ""
             ),
         ),
+        *_places_rows(view, match),
         ("GICP", gicp),
         ("GICP fitness", fitness),
         (f"carried to scan {view.landed_at}", _carried_text(view)),

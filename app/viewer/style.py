@@ -40,6 +40,10 @@ NEAR_TILE_UPDATE_S = 1.0  # s, the tiles at full density are revisited at most t
 MINIMAP_PX = 256  # side of the overview image of the whole map in the panel
 MINIMAP_INTERVAL_S = 1.0  # s, it is redrawn at most this often (and only when something changed)
 TILE_COLOR = (110, 200, 255)  # the overview's outline of the tiles shown at full density
+# the overview's rings at the places a whole-map match verified: the answer, and the others (all
+# of them in the second colour when the answer was "ambiguous")
+PLACE_ANSWER_COLOR = S2M_ACCEPTED_COLOR
+PLACE_OTHER_COLOR = (255, 225, 90)
 MIN_DRAW_INTERVAL = 1 / 30  # s, the display refreshes at most this often
 PLOT_INTERVAL = 0.5  # s, the plots at most this often (they resend whole series)
 PLOT_MAX_POINTS = 1500  # longer series are decimated for the plots

@@ -353,6 +353,7 @@ def record_run(out: Path, cache_root: Path, seed: int = 0, scans: int = 14) -> d
     cfg = Config()
     cfg.town.n_scans = MAPPING_SCANS
     cfg.pf.n_particles = 300
+    cfg.s2m.replay_process_nice = 0  # the replay waits for every match: a niced S2M crawls beside busy processes
     cfg.seed = seed
     summary, interrupted = run_headless(
         SourceSpec(scans=scans), cfg, out, cache_root, console=Console(file=io.StringIO())

@@ -187,7 +187,7 @@ class Overview:
         particles = P[:, :2] if P is not None and P.ndim == 2 and len(P) else None
         est = None if snap is None else _finite_xy(snap.mean_pose)
         truth = None if snap is None else _finite_xy(snap.gt_pose)
-        places = verified_places(None if snap is None else snap.s2m)
+        places = verified_places(getattr(snap, "s2m", None))
         self.handle.image = render(fp, particles, est, truth, tiles, places)
         if not self.handle.visible:
             self.handle.visible = True

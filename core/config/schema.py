@@ -191,7 +191,9 @@ class S2MConfig:
     # candidates on maps of 0.25 km² and more (at d_m = 1 m), exact below, where it is fast and
     # certain. Also written s2m.global. See docs/global-localization.md.
     global_search: str = "auto"
-    global_candidates: int = 8  # places the look-up hands to the exact search
+    # places the look-up hands to the exact search (~7 ms each): on the 16 km² city, where
+    # suburbs repeat, the true place ranked beyond the 8th for some scans
+    global_candidates: int = 16
     candidate_window: float = 4.0  # m, half-width of the exact search around each place
     # Two distinct places (farther apart than localize.confirm_distance) that both pass GICP, the
     # second scoring at least this share of the best: the answer is "ambiguous", and the filter

@@ -61,21 +61,22 @@ class LookUp:
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def _best_shifts(P, q, clip, out_d, out_s):
-    """For each row of ``P`` (n, m) the smallest Σ_l min(|P[i, l] − q[(l − s) mod m]|, clip) over
-    the shifts s, and that s (row i seen with the scan's sector j at its sector j + s)."""
+def _best_shifts(P, Q, clip, out_d, out_s):
+    """For each row of ``P`` (n, m) the smallest Σ_l min(|P[i, l] − Q[s, l]|, clip) over the
+    shifts s, and that s. ``Q[s]`` is the scan's descriptor shifted by s (:func:`_shifted`): every
+    inner loop then reads two rows in step, which the compiler turns into vector instructions
+    (3–4 times faster than indexing the scan's descriptor modulo m)."""
     n, m = P.shape
-    qq = np.empty(2 * m, np.int32)
-    for j in range(m):
-        qq[j] = q[j]
-        qq[j + m] = q[j]
     for i in nb.prange(n):
         best = 1 << 30
         best_s = 0
+        row = P[i]
         for s in range(m):
-            acc = 0
+            q = Q[s]
+            acc = np.int32(0)
             for el in range(m):
-                d = abs(np.int32(P[i, el]) - qq[el - s + m])
+                d = np.int16(row[el]) - q[el]
+                d = d if d >= 0 else -d
                 acc += d if d < clip else clip
             if acc < best:
                 best = acc
@@ -84,17 +85,106 @@ def _best_shifts(P, q, clip, out_d, out_s):
         out_s[i] = best_s
 
 
+def _shifted(q: np.ndarray) -> np.ndarray:
+    """(m, m) int16: row s is ``q`` seen with its sector j at sector j + s, Q[s, l] = q[(l − s) mod m]."""
+    m = len(q)
+    cols = (np.arange(m)[None, :] - np.arange(m)[:, None]) % m
+    return np.ascontiguousarray(np.asarray(q, np.int16)[cols])
+
+
 def _shifts(P: np.ndarray, q: np.ndarray, clip: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's best shift against the scan's descriptor ``q`` and its clipped distance."""
     d = np.empty(len(P), np.int64)
     s = np.empty(len(P), np.int64)
     if len(P):
-        _best_shifts(np.ascontiguousarray(P), np.ascontiguousarray(q), np.int32(clip), d, s)
+        _best_shifts(np.ascontiguousarray(P), _shifted(q), np.int16(clip), d, s)
     return d, s
 
 
-def look_up(index: PlaceIndex, scan_xyz: np.ndarray, n_places: int = 8, separation: float = 10.0) -> LookUp:
+@nb.njit(cache=True, nogil=True)
+def _apart(xy, separation, n):
+    """Indices of the first ``n`` rows of ``xy`` (best first) farther than ``separation`` from every
+    row taken before them."""
+    chosen = np.empty(n, np.int64)
+    k = 0
+    s2 = separation * separation
+    for i in range(xy.shape[0]):
+        ok = True
+        for j in range(k):
+            dx = xy[i, 0] - xy[chosen[j], 0]
+            dy = xy[i, 1] - xy[chosen[j], 1]
+            if dx * dx + dy * dy <= s2:
+                ok = False
+                break
+        if ok:
+            chosen[k] = i
+            k += 1
+            if k == n:
+                break
+    return chosen[:k]
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _bev_scores(L0, ox, oy, inv_d, bx, by, px, py, pyaw, out):
+    """The BEV score (Σ L0 under the scan's cells ``bx``, ``by``) of each pose (px, py, pyaw)."""
+    nx, ny = L0.shape
+    for i in nb.prange(px.shape[0]):
+        c, s = math.cos(pyaw[i]), math.sin(pyaw[i])
+        acc = 0.0
+        for j in range(bx.shape[0]):
+            ix = int(math.floor((px[i] + c * bx[j] - s * by[j] - ox) * inv_d))
+            iy = int(math.floor((py[i] + s * bx[j] + c * by[j] - oy) * inv_d))
+            if 0 <= ix < nx and 0 <= iy < ny:
+                acc += L0[ix, iy]
+        out[i] = acc
+
+
+#: Distinct places the descriptors hand to the BEV score's re-ranking: on the 16 km² city, where
+#: suburbs repeat, the true place ranked 18th–292nd by descriptor for 10 of 18 scans whose first
+#: 16 missed it.
+RERANK_PLACES = 300
+
+
+def rerank(places: list[Place], grid, bev_xy: np.ndarray, n_places: int, angle_step: float) -> list[Place]:
+    """The ``n_places`` of ``places`` whose BEV score is highest (``grid``: (L0, origin, d), the
+    map's finest BEV level): each scored at its cell and the 8 around it, its yaw and 2 lattice
+    steps either side (the place lies within 1.4 m and the descriptor's yaw within 5° of the
+    truth), the best of the 45 kept."""
+    if len(places) <= n_places:
+        return places
+    L0, origin, d = grid
+    B = m3rsm.scan_cells(bev_xy, d)
+    off = np.array([(dx, dy) for dx in (-d, 0.0, d) for dy in (-d, 0.0, d)])
+    turns = np.arange(-2, 3) * angle_step
+    P = np.array([(p.x, p.y, p.yaw) for p in places])
+    px = (P[:, None, None, 0] + off[None, :, None, 0] + 0 * turns[None, None, :]).ravel()
+    py = (P[:, None, None, 1] + off[None, :, None, 1] + 0 * turns[None, None, :]).ravel()
+    pyaw = (P[:, None, None, 2] + 0 * off[None, :, None, 0] + turns[None, None, :]).ravel()
+    out = np.empty(len(px))
+    _bev_scores(L0, float(origin[0]), float(origin[1]), 1.0 / d, np.ascontiguousarray(B[:, 0]),
+                np.ascontiguousarray(B[:, 1]), px, py, pyaw, out)  # fmt: skip
+    best = out.reshape(len(places), -1).max(axis=1)
+    order = np.argsort(-best, kind="stable")[:n_places]
+    return [places[i] for i in order]
+
+
+def look_up(
+    index: PlaceIndex,
+    scan_xyz: np.ndarray,
+    n_places: int = 8,
+    separation: float = 10.0,
+    grid=None,
+    bev_xy: np.ndarray | None = None,
+    angle_step: float = math.radians(2.5),
+) -> LookUp:
     """The ``n_places`` places whose descriptors are closest to the scan's (``scan_xyz``: the whole
-    scan, sensor frame, levelled), at most one within ``separation`` m of another, best first."""
+    scan, sensor frame, levelled), at most one within ``separation`` m of another, best first.
+    With ``grid`` (the map's L0, its origin and d_m) and the scan's BEV ``bev_xy``: the
+    :data:`RERANK_PLACES` closest by descriptor, the ``n_places`` of them the BEV scores highest
+    (:func:`rerank`)."""
+    n_wanted = n_places
+    if grid is not None and bev_xy is not None:
+        n_places = max(n_places, RERANK_PLACES)
     t0 = time.perf_counter()
     st = index.settings
     q, hits = describe_scan(scan_xyz, index.resolution, st)
@@ -107,12 +197,7 @@ def look_up(index: PlaceIndex, scan_xyz: np.ndarray, n_places: int = 8, separati
     df, sf = _shifts(index.profiles[rows], q, clip)
     order = np.argsort(df, kind="stable")
     xy = index.xy[rows[order]].astype(np.float64)
-    chosen: list[int] = []
-    for i in range(len(order)):
-        if all(math.hypot(xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]) > separation for j in chosen):
-            chosen.append(i)
-            if len(chosen) == n_places:
-                break
+    chosen = _apart(xy, separation, n_places)
     sector = 2.0 * math.pi / st.sectors
     places = [
         Place(
@@ -123,6 +208,8 @@ def look_up(index: PlaceIndex, scan_xyz: np.ndarray, n_places: int = 8, separati
         )
         for i in chosen
     ]
+    if grid is not None and bev_xy is not None:
+        places = rerank(places, grid, bev_xy, n_wanted, angle_step)
     return LookUp(places, hits, (time.perf_counter() - t0) * 1e3)
 
 

@@ -172,6 +172,9 @@ class GICPRefiner:
 VERIFY_TARGET_VOXEL = 0.5
 #: m, a verification target serves later answers within this distance of its guess.
 VERIFY_RECENTRE_M = 10.0
+#: m, the map around a guess a verification target holds: most of a scan's points lie within it,
+#: and a disc of 60 m holds half the points of the tracking target's 82 m.
+VERIFY_REACH_M = 60.0
 
 
 class LocalGICPRefiner:
@@ -222,7 +225,7 @@ class LocalGICPRefiner:
     def verify(self, scan_points: np.ndarray, init: np.ndarray) -> GICPResult:
         """GICP for a whole-map answer anywhere in the city: against the tracking target where the
         guess lies within it, else against a target built for this guess only — the map within
-        the scan's reach (not the tracking target's extra ``recentre_m``), down-sampled to
+        :data:`VERIFY_REACH_M` (not the tracking target's reach plus ``recentre_m``), down-sampled to
         :data:`VERIFY_TARGET_VOXEL` — so that checking a place costs a fraction of a second, not the
         seconds of a tracking target (measured on the 16 km² city: docs/global-localization.md).
         The last such target is kept for the next answer at the same place."""
@@ -233,7 +236,7 @@ class LocalGICPRefiner:
                 return self._target.refine(scan_points, init)
         quick = self._verify_target
         if quick is None or math.hypot(x - quick[0][0], y - quick[0][1]) > VERIFY_RECENTRE_M:
-            pts = self.tiles.points_near(x, y, self.reach_m)
+            pts = self.tiles.points_near(x, y, min(self.reach_m, VERIFY_REACH_M))
             if len(pts) == 0:  # off the map: nothing converges there
                 return _result(init, init.copy(), False, 0, 0.0, time.perf_counter())
             args = {

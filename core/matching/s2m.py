@@ -156,6 +156,7 @@ class ScanToMapMatcher:
         # the place index (core/maps/places.py) for whole-map matches by candidates: given by the
         # caller from the map's cache, or built here on first use (uncached)
         self.places = places
+        self._l0 = None  # the finest level whole, for the look-up's re-ranking (see _finest)
         # the map side is finer than the scan (but no finer than the map itself): see gicp.py
         gicp_args = dict(
             voxel=self.cfg.gicp_voxel,
@@ -390,6 +391,18 @@ class ScanToMapMatcher:
         d = self.pyramid.resolution
         return x - half_x <= x0 + d and x + half_x >= x1 - d and y - half_y <= y0 + d and y + half_y >= y1 - d
 
+    def _finest(self):
+        """The map's finest BEV level whole, with its origin and d_m, for the look-up's re-ranking:
+        a city held in tiles is read into one array once (one byte a cell: 16 MB for 16 km²)."""
+        pyr = self.pyramid
+        if self._l0 is None or self._l0[0] is not pyr:  # (a new pyramid: a new d_m)
+            if isinstance(pyr, BEVPyramid):
+                self._l0 = (pyr, (pyr.levels[0], pyr.origin, pyr.resolution))
+            else:
+                whole = pyr.window(0, 0, pyr.shape[0], pyr.shape[1])
+                self._l0 = (pyr, (np.ascontiguousarray(whole.levels[0]), whole.origin, whole.resolution))
+        return self._l0[1]
+
     def place_index(self):
         """The place index, built from the map on first use where the caller gave none."""
         if self.places is None:
@@ -413,7 +426,10 @@ class ScanToMapMatcher:
         cfg = self.cfg
         index = self.place_index()
         level = rotation_zyx(0.0, pitch, roll)  # the whole scan levelled, as the BEV scan is
-        lu = look_up(index, prep.points[:, :3] @ level.T, cfg.global_candidates, separation=2.0 * cfg.candidate_window)
+        lu = look_up(
+            index, prep.points[:, :3] @ level.T, cfg.global_candidates, 2.0 * cfg.candidate_window,
+            self._finest(), B, cfg.angle_step,
+        )  # fmt: skip
         timings["look_up"] = lu.ms
         if not lu.places:
             return None, None

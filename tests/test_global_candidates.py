@@ -109,6 +109,23 @@ def test_two_identical_blocks_are_ambiguous_not_a_confident_answer(twins, single
     assert never.ambiguous
 
 
+def test_between_identical_blocks_the_estimates_own_place_is_kept(twins):
+    """The second opinion from an estimate in one of two identical blocks: both places verify,
+    the estimate's own is the answer (its evidence decides, as the exact search's unbeaten start
+    would), the twin named beside it; from a start near neither, the answer stays "ambiguous"."""
+    twin, single = twins
+    truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
+    scan = _scan(single, truth)
+    m = _matcher(twin, region_x=400.0, region_y=400.0)
+    check = m.match_local(scan, pose_matrix(70.9, 64.1, SENSOR_HEIGHT, 0.93, 0.0, 0.0), level=True)
+    assert check.accepted and not check.ambiguous and check.search == "candidates", check.reason
+    x, y, *_ = pose_to_xyz_ypr(check.pose)
+    assert math.hypot(x - 70.3, y - 64.6) < 0.5
+    assert any(abs(a[0] - 70.3 - TWIN_SHIFT) < 2 for a in check.alternatives)
+    lost = m.match_local(scan, pose_matrix(150.0, 20.0, SENSOR_HEIGHT, 0.0, 0.0, 0.0), level=True)
+    assert lost.ambiguous and not lost.accepted
+
+
 def test_the_candidates_find_the_true_place_from_any_yaw(twins, single_matcher):
     """Recall on the single block: 6 free poses at random yaws, every one answered by the
     candidates within 0.5 m and 1°, and the true place the look-up's first."""

@@ -477,8 +477,20 @@ class ScanToMapMatcher:
             out = tried[i] if i in tried else refined(r)
             if out.accepted:
                 rivals.append(r)
-        others = tuple((r.x, r.y, r.yaw, r.score) for i, r in enumerate(answers) if i != best)
+                tried[i] = out
         ms = (time.perf_counter() - t0) * 1e3
+        if rivals and home is not None:
+            # The start's own place among places that cannot be told apart: the filter's evidence
+            # (a second opinion from its estimate, or a particle already there) decides for it,
+            # as the exact search's unbeaten start would. The others stay named.
+            sx, sy = float(home[0, 3]), float(home[1, 3])
+            for i in [best] + [answers.index(r) for r in rivals]:
+                r = answers[i]
+                if math.hypot(r.x - sx, r.y - sy) <= DISTINCT_M:
+                    whole = combined(windows, r, timings["m3rsm"], -1.0 if beat is None else beat)
+                    best, winner, rivals = i, dataclasses.replace(tried[i], match=whole, region=whole.region), []
+                    break
+        others = tuple((r.x, r.y, r.yaw, r.score) for i, r in enumerate(answers) if i != best)
         if rivals:
             w = answers[best]
             n = len(rivals) + 1

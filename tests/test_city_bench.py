@@ -156,7 +156,8 @@ def test_bench_city_reports_every_figure(cache_root, monkeypatch):
     from lidarloc.app.bench import city
     from lidarloc.core.maps import mapping
 
-    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+    # the candidates asked for: on a city this small "auto" searches it whole
+    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40", "s2m.global=candidates"])
     spec = SourceSpec()
     out = run(spec, cfg, cache_root=cache_root, global_scans=3, peer_scans=1, tile_m=50.0, bev_tile_m=32.0)
     for key in KEYS:

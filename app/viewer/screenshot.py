@@ -11,9 +11,7 @@ own code each time, so it shows its status, panel and colours as they are.
 from __future__ import annotations
 
 import contextlib
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -38,12 +36,9 @@ def take(out: Path, cache_root: Path | None = None) -> Path:
         raise LidarlocError(f"{CHROMIUM} not found (apt-get install -y chromium)")
     cfg = Config()
     cfg.town.n_scans = MAPPING_SCANS
-    spec = SourceSpec(scans=SCANS)
-    seq = open_sequence(spec, cfg)
+    seq = open_sequence(SourceSpec(scans=SCANS), cfg)
     loc = Localizer(seq, cfg, cache_root)
-    # recorded (into a folder removed afterwards), so that the timeline shows the steps played
-    records = Path(tempfile.mkdtemp(prefix="lidarloc-screenshot-"))
-    handle = serve(loc, port=0, autoplay=True, speed="10", spec=spec, record_to=records, cache_root=cache_root)
+    handle = serve(loc, port=0, autoplay=True, speed="10")
     try:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
@@ -72,7 +67,6 @@ def take(out: Path, cache_root: Path | None = None) -> Path:
     finally:
         handle.stop()
         loc.close()
-        shutil.rmtree(records, ignore_errors=True)
     return out
 
 

@@ -150,8 +150,7 @@ class Timeline:
         """The last step of the run itself when the slider goes past it (a longer second run),
         else None."""
         run = self.run
-        # a live run's slider follows its recording, which the run's own count may trail
-        if self.live_available or run is None or run.n == 0 or self._n <= run.n:
+        if run is None or run.n == 0 or self._n <= run.n:
             return None
         return run.n - 1
 

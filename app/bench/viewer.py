@@ -14,13 +14,6 @@ Inputs are synthetic but sized like the real thing: a ~1M-point map, 1000 partic
 scan of 25 000 points (a KITTI scan after the 0.5 m random voxel filter is 15–30k), an S2M match
 landing every third scan, a trajectory growing by one point per update.
 Target: median ≤ 20 ms. No sequence is read: the source options do not apply.
-
-In a real browser too (Debian's headless Chromium through Playwright, as the browser tests):
-the live viewer on the short town (its first 400 scans, mapped from 150) playing at 5 scans/s,
-one tab open: ``kidnap_display_resume_s``, from the Kidnap click to the status showing a scan
-past the jump (target ≤ 2 s), and ``top_down_ms``, from the "Top-down view" click to the tab's
-camera having moved (target ≤ 500 ms); medians of three. Without Chromium or Playwright those
-fields are None and ``browser`` says why.
 """
 
 from __future__ import annotations
@@ -175,114 +168,15 @@ def _measure(rng, n_updates: int, n_particles: int, n_scan: int, map_points: int
     return with_client, bare, plot_ms, received_mb, map_ms
 
 
-BROWSER_REPEATS = 3
-KIDNAP_SKIP = 20
-JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+/); return m ? +m[1] : -1; })()"
-JS_CAMERA = "window.__viserMutable.camera.position.toArray()"
-
-
-def _moved_by(before, metres: float) -> str:
-    x, y, z = before
-    return (
-        f"(() => {{ const p = window.__viserMutable.camera.position; "
-        f"return Math.hypot(p.x - {x}, p.y - {y}, p.z - {z}) > {metres}; }})()"
-    )
-
-
-def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float = 120_000) -> dict:
-    """Kidnap's display resume (s) and the Top-down view's answer (ms) in a real headless
-    Chromium (see the module's docstring)."""
-    from .clients import CHROMIUM, CHROMIUM_ARGS
-
-    none = {"kidnap_display_resume_s": None, "top_down_ms": None}
-    if not CHROMIUM.exists():
-        return none | {"browser": f"skipped: {CHROMIUM} not found (apt-get install -y chromium)"}
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        return none | {"browser": "skipped: Python Playwright not installed"}
-    from ...core.config import Config
-    from ...core.localizer import Localizer
-    from ...core.sequences.factory import SourceSpec, open_sequence
-    from ..viewer.serve import serve
-
-    cfg = Config()
-    cfg.town.n_scans = 150
-    cfg.pf.n_particles = n_particles
-    seq = open_sequence(SourceSpec(scans=400), cfg)
-    loc = Localizer(seq, cfg, cache_root)
-    handle = serve(loc, port=0, autoplay=True, speed="5")
-    resume_s, top_down_ms = [], []
-    try:
-        with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.goto(handle.url, timeout=timeout_ms)
-            page.wait_for_selector("canvas", timeout=timeout_ms)
-            page.wait_for_function(f"{JS_SCAN} >= 3", timeout=timeout_ms)
-            v = handle.viewer
-            v.controls.kidnap_skip.value = KIDNAP_SKIP
-            page.wait_for_function(
-                f"[...document.querySelectorAll('input')].some(i => i.value === '{KIDNAP_SKIP}')", timeout=timeout_ms
-            )
-            for _ in range(BROWSER_REPEATS):
-                kidnaps = sum(e.kind == "kidnap" for e in loc.events)
-                t0 = time.perf_counter()
-                page.get_by_role("button", name="Kidnap").click()
-                deadline = time.monotonic() + timeout_ms / 1000
-                while sum(e.kind == "kidnap" for e in loc.events) == kidnaps and time.monotonic() < deadline:
-                    time.sleep(0.005)
-                target = loc.k  # the scan the vehicle jumped to (or one past it)
-                page.wait_for_function(f"{JS_SCAN} >= {target}", polling=20, timeout=timeout_ms)
-                resume_s.append(time.perf_counter() - t0)
-                page.wait_for_function(f"{JS_SCAN} >= {target + 3}", timeout=timeout_ms)
-            tab = v.cameras._tabs[max(v.server.get_clients())]
-            before = page.evaluate(JS_CAMERA)
-            page.get_by_role("button", name="Top-down view").click()  # 120 m above the vehicle
-            page.wait_for_function(_moved_by(before, 30.0), timeout=timeout_ms)
-            for _ in range(BROWSER_REPEATS):
-                # back behind the vehicle (Follow off and on again), then straight down again
-                before = page.evaluate(JS_CAMERA)
-                tab.follow.value = False
-                tab.follow.value = True
-                page.wait_for_function(_moved_by(before, 30.0), timeout=timeout_ms)
-                before = page.evaluate(JS_CAMERA)
-                t0 = time.perf_counter()
-                page.get_by_role("button", name="Top-down view").click()
-                page.wait_for_function(_moved_by(before, 30.0), polling=10, timeout=timeout_ms)
-                top_down_ms.append((time.perf_counter() - t0) * 1000.0)
-            page.close()
-            browser.close()
-    finally:
-        handle.stop()
-        loc.close()
-    return {
-        "kidnap_display_resume_s": round(float(np.median(resume_s)), 2),
-        "kidnap_display_resume_s_target": 2.0,
-        "top_down_ms": round(float(np.median(top_down_ms)), 0),
-        "top_down_ms_target": 500.0,
-        "browser": "headless Chromium (software WebGL), short town at 5 scans/s",
-    }
-
-
 def run(
-    n_updates: int = 150,
-    n_particles: int = 1000,
-    n_scan: int = 25_000,
-    map_points: int = 1_000_000,
-    seed: int = 0,
-    browser: bool = True,
+    n_updates: int = 150, n_particles: int = 1000, n_scan: int = 25_000, map_points: int = 1_000_000, seed: int = 0
 ) -> dict:
     rng = np.random.default_rng(seed)
     # viser prints its banner and "Server stopped" on stdout, which carries only the result
     with contextlib.redirect_stdout(sys.stderr):
         with_client, bare, plot_ms, received_mb, map_ms = _measure(rng, n_updates, n_particles, n_scan, map_points)
     u, b = np.asarray(with_client), np.asarray(bare)
-    in_browser = {}
-    if browser:
-        with contextlib.redirect_stdout(sys.stderr):
-            in_browser = browser_figures(n_particles=n_particles)
-    return in_browser | {
+    return {
         "update_ms_median": round(float(np.median(u)), 2),
         "update_ms_p90": round(float(np.percentile(u, 90)), 2),
         "update_ms_max": round(float(u.max()), 2),

@@ -12,7 +12,6 @@ message in the panel, never a dead callback or server.
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import threading
 import time
@@ -27,7 +26,7 @@ from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
 from .camera import TabCameras, start_pose, tab_may_close
 from .controls import ParameterControls, ParticleControls
-from .faults import BlockFailed, FaultReporter, one_line
+from .faults import BlockFailed, FaultReporter
 from .heap import HeapTrimmer
 from .history import History
 from .layers import LayerFolder
@@ -39,11 +38,10 @@ from .player import Player
 from .readouts import Readouts
 from .retired import Retired
 from .scene import SceneView
-from .status import AlarmNotice, ReplayWaits, play_state, viewer_status
-from .style import ERROR_SHOWN_S, MESSAGE_SHOWN_S, MIN_DRAW_INTERVAL, error_markdown
+from .status import AlarmNotice, play_state, viewer_status
+from .style import MIN_DRAW_INTERVAL, error_markdown
 from .travel import TimeTravel
 from .why import WhyViews
-from .why_worker import LatestOnly
 
 if TYPE_CHECKING:
     from ...core.localizer import Localizer
@@ -76,7 +74,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             server,
             self.scene,
             lambda: self._latest,
-            self._camera_guarded,
+            self._guarded,
             folder_order=self.controls.particles_folder.order + 0.5,
         )
         self.cache_root = None  # where a branch finds the map's tables (serve sets it)
@@ -113,12 +111,10 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self._stopping = threading.Event()
         self._ready = threading.Event()
         self._message = ""
-        self._message_until: float | None = None  # when the message under the status goes (None: stays)
         self._last_draw = 0.0
         self._last_update = 0.0
         self.first_scan_shown = threading.Event()  # set once a processed scan has been drawn
         self.step_failed: str | None = None  # the newest failed step's message
-        self.replay_waits = ReplayWaits()  # the status's note on the replay clock's waits
         self.alarm = AlarmNotice(
             lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
         )
@@ -130,7 +126,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         )
         self.on_finished: Callable[[], None] | None = None  # called when playing reached the end (a loop)
         self.scene.on_map_tiles = self.wake  # tiles of a city's map were read: the display shows them
-        self.clock_worker = LatestOnly("lidarloc-clock")  # clock changes wait for the step here
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
@@ -153,11 +148,9 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             self._display.start()
 
     # ============================================================== callbacks and messages
-    def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True, gated: bool = True) -> None:
+    def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True) -> None:
         """Run a GUI action; a refused value or any failure becomes a visible message, never a
-        dead callback thread or a crashed server. ``gated``: the action holds the GUI gate (it
-        waits for a display update in progress); a tab's own camera moves do not, so that they
-        answer at once however long the display takes on a busy machine."""
+        dead callback thread or a crashed server."""
         if getattr(self._syncing, "on", False) or self.closed:
             return
         client = getattr(event, "client", None)
@@ -168,7 +161,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 raise LidarlocError(
                     self.replay_only or "the localizer is still starting (map and tables are being built)"
                 )
-            with self._gui_gate if gated else contextlib.nullcontext():
+            with self._gui_gate:
                 if self.closed:
                     return
                 action()
@@ -180,13 +173,9 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         finally:
             self._acting.client = None
 
-    def _guarded(self, action: Callable[[], object], needs_localizer: bool = True, gated: bool = True) -> Callable:
+    def _guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
         """``action`` as a GUI callback, run through :meth:`_guard`."""
-        return lambda event: self._guard(event, action, needs_localizer, gated)
-
-    def _camera_guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
-        """A tab's camera control as a GUI callback: not behind a display update (see _guard)."""
-        return self._guarded(action, needs_localizer, gated=False)
+        return lambda event: self._guard(event, action, needs_localizer)
 
     @contextmanager
     def _quietly(self):
@@ -199,31 +188,19 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             self._syncing.on = False
 
     def show_message(
-        self,
-        text: str,
-        error: bool = False,
-        client=None,
-        everyone: bool = False,
-        title: str | None = None,
-        keep: bool = False,
+        self, text: str, error: bool = False, client=None, everyone: bool = False, title: str | None = None
     ) -> None:
-        """A message under the status and as a notification where the user looks: to
-        ``client``, else to the tab whose action is being handled, or to every open tab with
-        ``everyone`` (what no tab asked for: a failed scan, a failed start). ``title``: the
-        notification's (default: from the kind of message). Under the status it goes when its
-        notification does (a refusal left there read as the run's state long after), unless
-        ``keep``: what stays true until the user acts (a failed step, a failed start)."""
+        """A message in the panel (the last one stays there) and as a notification where the
+        user looks: to ``client``, else to the tab whose action is being handled, or to every
+        open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start).
+        ``title``: the notification's (default: from the kind of message)."""
         with self._gui_gate:
             if self.closed:  # the server has stopped (or is stopping): nobody would see it
                 return
-            self._show_message(text, error, client, everyone, title, keep)
+            self._show_message(text, error, client, everyone, title)
 
-    def _show_message(
-        self, text: str, error: bool, client, everyone: bool, title: str | None, keep: bool = False
-    ) -> None:
+    def _show_message(self, text: str, error: bool, client, everyone: bool, title: str | None) -> None:
         self._message = text
-        shown_for = ERROR_SHOWN_S if error else MESSAGE_SHOWN_S
-        self._message_until = None if keep or not text else time.monotonic() + shown_for
         self.controls.message.content = error_markdown(text) if error else text
         self.controls.message.visible = bool(text)
         if not text:
@@ -240,21 +217,15 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         for tab in tabs:
             try:
                 with tab_may_close(tab):
-                    tab.add_notification(title, text, color="red" if error else "blue", auto_close_seconds=shown_for)
+                    tab.add_notification(
+                        title, text, color="red" if error else "blue", auto_close_seconds=6.0 if not error else 10.0
+                    )
             except Exception:  # the tab may have closed meanwhile; the panel message stays
                 pass
 
     @property
     def message(self) -> str:
-        """The newest message said (also once it is no longer shown)."""
         return self._message
-
-    def _expire_message(self) -> None:
-        """The message under the status goes when its time is up (display thread, gate held)."""
-        until = self._message_until
-        if until is not None and time.monotonic() >= until:
-            self._message_until = None
-            self.controls.message.visible = False
 
     @property
     def latest(self) -> Snapshot | None:
@@ -274,7 +245,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     def startup_failed(self, message: str) -> None:
         self.readouts.failed(message)
-        self.show_message(f"could not start: {message}", error=True, everyone=True, keep=True)
+        self.show_message(f"could not start: {message}", error=True, everyone=True)
 
     def show_map(self, prior_map) -> None:
         """Draw the prior map and move every tab's camera onto it, before the localizer is ready
@@ -431,7 +402,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     def _on_player_error(self, message: str) -> None:
         self.step_failed = message
-        self.show_message(message, error=True, everyone=True, keep=True)
+        self.show_message(message, error=True, everyone=True)
         self._wake.set()
 
     def _display_loop(self) -> None:
@@ -449,32 +420,9 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 self.update_display()
             except Exception as exc:  # one line (once per distinct failure); the thread and server live on
                 self.display_faults.report(exc, "the viewer keeps serving and the filter keeps playing")
-                self._display_failed(exc)
             else:
                 self.display_faults.clear()
             self._last_update = time.perf_counter()
-
-    def _display_failed(self, exc: Exception) -> None:
-        """A display update raised: the status must not go on showing what it showed before as if
-        it were current (a green "localized" of a scan long gone), and the next update starts
-        over: the whole snapshot is drawn again, not only what changed since a draw that failed
-        half-way."""
-        self._drawn = None
-        loc = self.localizer
-        shown = self._latest
-        try:
-            with self._gui_gate:
-                if self.closed:
-                    return
-                self.readouts.not_current(
-                    one_line(exc),
-                    shown=None if shown is None else shown.scan_index,
-                    n_scans=None if shown is None else shown.n_scans,
-                    at=None if loc is None else loc.k,
-                )
-        except Exception:  # the page itself fails: the console line stands, the next update retries
-            traceback.print_exc(file=sys.stderr)
-        self._wake.set()
 
     @contextmanager
     def drawing(self):
@@ -518,7 +466,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         elif snap is not None:
             self.readouts.update_status(self.status_markdown(snap))  # play/pause state may have changed
         self._update_map(snap)
-        self._expire_message()
         self.travel.after_draw(snap)
         self.readouts.update_plots(force_plots)
         self._sync_play_button()
@@ -547,7 +494,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self._wake.set()
         self.heap.stop()
         self.why.stop()
-        self.clock_worker.stop()
         if self.player is not None:
             self.player.stop(timeout=STOP_WAIT_S)
         try:

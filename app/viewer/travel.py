@@ -181,9 +181,6 @@ class TimeTravel:
         step, run = self.timeline.step, self.timeline.run
         if step is None or run is None:
             return None
-        end = self.timeline.own_end
-        if end is not None and step > end:
-            step = end  # a longer second run goes on; this one stays on its last step
         key = (id(run), step)
         full = self._full
         if full is not None and full[0] == key:
@@ -227,9 +224,6 @@ class TimeTravel:
         step, run = self.timeline.step, self.timeline.run
         if step is None or run is None or run.seq is None:
             return True
-        end = self.timeline.own_end
-        if end is not None and step > end:
-            step = end
         full = self._full
         return full is not None and full[0] == (id(run), step) and self.v.drawn is full[1]
 
@@ -324,8 +318,6 @@ class TimeTravel:
         self.ref_line.sync(self._ref_version, est, connected)
         self.compare_folder.visible = True
         self.update_compare_table()
-        # a finished run beside a longer one: the timeline reaches the longer one's last step
-        self.timeline.cover(run.n)
 
     def reference_node(self, name: str):
         """The second run's scene handle ``name`` ("particles", "vehicle", …), or None."""
@@ -428,12 +420,6 @@ class TimeTravel:
         if self.branching:
             raise LidarlocError("a branch is being started already")
         step = tl.current()
-        end = tl.own_end
-        if end is not None and step > end:
-            raise LidarlocError(
-                f"this run ended at step {end}: branch from a step up to it, or open the blue run "
-                "first (view --run) to branch from its later steps"
-            )
         v = self.v
         changed = v.params.changed()
         overrides = v.params.to_si(changed) if changed else {}

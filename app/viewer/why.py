@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 from ...core.errors import LidarlocError
 from ...core.filter.surface import LikelihoodModel
 from .s2m_detail import S2MDetailView, s2m_detail_markdown
-from .why_particle import NoParticleNear, ParticleInspector, particle_report, pick_particle
+from .why_particle import ParticleInspector, particle_report, pick_particle
 from .why_residuals import AT_CHOICES, AT_ESTIMATE, AT_PARTICLE, ResidualView
 from .why_surface import SurfaceView, compute_surface
 from .why_worker import LatestOnly
@@ -163,14 +163,7 @@ class WhyViews:
         is ready: a click then is someone looking around the map)."""
         if self._localizer() is None:
             return
-        self._guarded(lambda: self._inspect_click(event))(event)
-
-    def _inspect_click(self, event) -> None:
-        """A click on no particle is no refusal: a hint to this tab, which goes by itself."""
-        try:
-            self.inspect_at(event.ray_origin, event.ray_direction)
-        except NoParticleNear as exc:
-            self._show_message(f"{exc} to inspect it", client=getattr(event, "client", None))
+        self._guarded(lambda: self.inspect_at(event.ray_origin, event.ray_direction))(event)
 
     def _model(self) -> LikelihoodModel | None:
         loc = self._localizer()

@@ -450,7 +450,7 @@ class ScanToMapMatcher:
             ]
             return None, combined(windows, None, timings["m3rsm"], beat, scored)
         answers = distinct_answers(found, DISTINCT_M)
-        home = start_pose if start_pose is not None else None
+        home = start_pose
 
         def refined(r):
             zz = z if math.isfinite(z) else self._height_under(r.x, r.y, prep)

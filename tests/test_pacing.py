@@ -48,7 +48,7 @@ def test_an_impossible_pacing_is_refused(bad):
 
 def test_the_viewer_server_paces_websockets_and_never_its_pages():
     import viser
-    from lidarloc.app.viewer.pacing import BURST, RATE_PER_S
+    from lidarloc.app.viewer.pacing import BURST
     from lidarloc.app.viewer.token_gate import start_server
     from websockets.sync.client import connect
 
@@ -63,6 +63,10 @@ def test_the_viewer_server_paces_websockets_and_never_its_pages():
             assert conn.getresponse().status == 200
             conn.close()
         assert pacer.admitted == 0
+        # one connection a second past the burst: a loaded machine opening the burst's sockets
+        # slowly must not use up the wait the test looks for
+        interval = 1.0
+        pacer.interval, pacer.tolerance = interval, (BURST - 1) * interval
         t0 = time.perf_counter()
         extra = 3
         for _ in range(BURST + extra):
@@ -70,9 +74,9 @@ def test_the_viewer_server_paces_websockets_and_never_its_pages():
                 connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10)
             )
         took = time.perf_counter() - t0
-        assert pacer.admitted == BURST + extra and pacer.delayed >= extra - 1 and pacer.refused == 0
-        # the last one waited about `extra` intervals for its turn
-        assert took >= (extra - 0.5) / RATE_PER_S, took
+        assert pacer.admitted == BURST + extra and pacer.delayed >= 1 and pacer.refused == 0
+        # the last one waited for its turn: `extra` intervals after the first opened
+        assert took >= (extra - 0.5) * interval, took
     finally:
         for ws in sockets:
             ws.close()

@@ -40,7 +40,7 @@ class KissMatcherPeer:
     """KISS-Matcher registering scans against one map."""
 
     def __init__(self, map_points: np.ndarray):
-        import kiss_matcher
+        import kiss_matcher  # pyright: ignore[reportMissingImports]  (the optional [peers] extra)
 
         self._km = kiss_matcher
         # float32 rows: the layout its binding takes (a sequence of 3-vectors of float)

@@ -88,9 +88,10 @@ class MapClosuresDatabase:
     """The prior map's tiles in one MapClosures database, queried by local maps."""
 
     def __init__(self, map_points: np.ndarray):
-        from map_closures.config import MapClosuresConfig
-        from map_closures.map_closures import MapClosures
-        from map_closures.voxel_map import VoxelMap
+        # the optional [peers] extra: absent where it is not installed
+        from map_closures.config import MapClosuresConfig  # pyright: ignore[reportMissingImports]
+        from map_closures.map_closures import MapClosures  # pyright: ignore[reportMissingImports]
+        from map_closures.voxel_map import VoxelMap  # pyright: ignore[reportMissingImports]
 
         self._voxel_map = VoxelMap
         self._closures = MapClosures(MapClosuresConfig(**CONFIG))

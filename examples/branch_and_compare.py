@@ -11,9 +11,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from lidarloc.core.runs import recording
-from lidarloc.core.runs.branch import open_branch
-from lidarloc.core.runs.results import summarize_run, write_run
+from lidarloc import open_branch, open_recording, summarize_run, write_run
 
 
 def after(rec, step: int) -> np.ndarray:
@@ -29,7 +27,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
 
-    original = recording.open(args.run)
+    original = open_recording(args.run)
     with open_branch(original, args.step, [f"pf.sigma={args.sigma}"]) as loc:
         errors = []
         while not loc.done:

@@ -14,9 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from lidarloc.core.config import load_config
-from lidarloc.core.localizer import Localizer
-from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+from lidarloc import Localizer, SourceSpec, load_config, open_sequence
 
 
 def main() -> None:

@@ -13,7 +13,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-from lidarloc.core.runs import recording
+from lidarloc import open_recording
 
 
 def main() -> None:
@@ -22,7 +22,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("recording.png"))
     args = parser.parse_args()
 
-    rec = recording.open(args.run)
+    rec = open_recording(args.run)
     scans = rec.scan_index
     n_eff_share = rec.n_eff / rec.n_particles
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)

@@ -87,7 +87,7 @@ import numpy as np
 from ..config import Config
 from ..errors import LidarlocError
 from ..filter.scanprep import prepare_scan, voxel_downsample_random
-from ..maps.world import open_world
+from ..maps.world import World, open_world
 from ..matching.pending import S2MNotReady, in_daemon_thread
 from ..odometry.feed import OdometryFeed
 from ..odometry.rpe import load_or_build_odometry
@@ -115,6 +115,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         defer_s2m: bool = False,
         known_odometry: dict | None = None,
         lazy_s2m: bool = False,
+        world: World | None = None,
     ):
         from ..filter.pf import ParticleFilter
 
@@ -135,14 +136,21 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         # ``defer_s2m``: what only S2M needs (road removal, BEV pyramid, its process) is built in
         # the background after construction, and S2M joins at the first scan after it is ready —
         # a scan that depends on timing, so only for a viewer's first start on an empty cache.
-        self.world = open_world(
-            seq.map_source,
-            cfg,
-            cache_root,
-            road_removal=not defer_s2m,
-            progress=self._progress,
-            on_map=lambda prior: self._map_ready(prior, on_map),
-        )
+        # ``world``: the map opened beforehand with ``open_world(seq.map_source, cfg)`` and
+        # ``cfg``'s settings; the localizer owns it from then on (a tiled map's window follows
+        # its particles).
+        if world is None:
+            world = open_world(
+                seq.map_source,
+                cfg,
+                cache_root,
+                road_removal=not defer_s2m,
+                progress=self._progress,
+                on_map=lambda prior: self._map_ready(prior, on_map),
+            )
+        else:
+            self._map_ready(world.prior_map, on_map)
+        self.world = world
         self.prior_map, self.map_dir = self.world.prior_map, self.world.map_dir
         self.lookup, self.pyramid = self.world.lookup, self.world.pyramid
         recorded_odometry = None

@@ -231,10 +231,6 @@ def _flat_mask(pts: np.ndarray, cfg: MapConfig) -> np.ndarray:
     return np.abs(normals[:, 2]) > cfg.road_normal_z
 
 
-def remove_flat(points: np.ndarray, cfg: MapConfig) -> np.ndarray:
-    return points[~flat_surface_mask(points, cfg)]
-
-
 #: A map of more points than this is held on disk in a run on tiles (``pf.lookup_tile_m`` > 0): its
 #: files memory-mapped, read near one place through its point tiles (:mod:`.point_tiles`). 20 M
 #: points are 240 MB; the 1 km² city has ~26 M, the 4 × 4 km city 421 M. Smaller maps are read

@@ -279,11 +279,6 @@ class Recording:
         return value
 
     # ------------------------------------------------------------------ snapshots
-    def step_of_scan(self, scan: int) -> int | None:
-        """The step that processed source scan ``scan`` (None if none did)."""
-        hits = np.flatnonzero(self.scan_index == scan)
-        return int(hits[0]) if hits.size else None
-
     def events_until(self, i: int) -> list[Event]:
         return [ev for step, ev in self.events if step <= i]
 

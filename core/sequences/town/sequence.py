@@ -11,7 +11,6 @@ import numpy as np
 
 from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
-from ...geometry import inv_pose
 from ..base import Sequence, rebase_poses
 from ..lidar_models import SENSORS, LidarModel
 from ..lidar_sim import Sweep
@@ -250,15 +249,6 @@ class TownSequence(Sequence):
             used = vertices[np.unique(triangles)]
             lo, hi = np.minimum(lo, used.min(axis=0)), np.maximum(hi, used.max(axis=0))
         return np.stack([lo, hi]).astype(np.float64)
-
-    def ground_height_world(self, xy: np.ndarray) -> np.ndarray:
-        """Approximate world-frame z of the road surface under world-frame points (N, 2); exact
-        when the first pose is level, off by the first pose's tilt times the distance otherwise."""
-        xy = np.atleast_2d(np.asarray(xy, float))
-        world_to_town = inv_pose(self.town_to_world)
-        p = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1) @ world_to_town[:3, :3].T + world_to_town[:3, 3]
-        ground_town = np.stack([p[:, 0], p[:, 1], self.ground(p[:, 0], p[:, 1])], axis=1)
-        return (ground_town @ self.town_to_world[:3, :3].T + self.town_to_world[:3, 3])[:, 2]
 
 
 def _check_options(options: dict) -> dict:

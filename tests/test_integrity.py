@@ -396,7 +396,7 @@ def test_a_drive_that_ends_before_s2m_joins_is_not_counted_as_a_failed_recovery(
 def test_the_rules_floor_waits_for_a_vehicle_standing_still():
     from types import SimpleNamespace
 
-    from lidarloc.app.bench.integrity import floor_figures
+    from lidarloc.app.bench.integrity_figures import floor_figures
     from lidarloc.core.config import LocalizeConfig
 
     def drive(stand_until: int, n: int = 80):

@@ -33,13 +33,13 @@ from ...core.matching.s2m import ScanToMapMatcher
 from ...core.sequences.factory import SourceSpec
 from ...core.worker_process import exit_words
 from ..console import SIGNAL_POLL_S
+from .city_figures import global_figures
 from .city_rows import (
     ROW_CODE,
     ROW_CODE_EXCLUDED,
     GlobalRows,
     candidate_row,
     match_row,
-    missed,
     prepare,
     scan_order,
     warm_up,
@@ -136,6 +136,8 @@ def run(
     peer_budget_s: float = 3600.0,
     peer_budget_mb: float | None = None,
     peer_rows_dir: Path | None = None,
+    ray: str | None = None,
+    ray_workers: int = 2,
 ) -> dict:
     """The figures above. Every scan is localized as lidarloc does it (the place index's
     candidates verified by M3RSM and GICP; the whole-map second opinion beside it); the exact tiled
@@ -144,7 +146,8 @@ def run(
     run of the same source, configuration and code left (:class:`GlobalRows`); ``peer_rows_dir``:
     the same for FPFH + RANSAC's registrations. FPFH + RANSAC is stopped at ``peer_budget_s`` of
     wall time or ``peer_budget_mb`` of resident memory (default: three quarters of the machine's)
-    and says so (:func:`peers`)."""
+    and says so (:func:`peers`). ``ray``: the exact tiled search runs on Ray (local, auto or an
+    address) over ``ray_workers`` shards (:mod:`.shards`), with the same answers."""
     report = progress or (lambda what, f: None)
     seq = open_source(spec, cfg, "city", need_poses=True)
     t0 = time.perf_counter()
@@ -195,6 +198,7 @@ def run(
             "bev_tile_m": bev_tile_m,
             "whole_map": whole_map,
             "exact_scans": exact_scans,
+            "exact_on": f"ray:{ray_workers}" if ray else "threads",  # the same answers, other times
             "code": code_fingerprint(ROW_CODE, exclude=ROW_CODE_EXCLUDED),
         }
         kept = GlobalRows(rows_dir, identity)
@@ -205,26 +209,37 @@ def run(
     pyramid = None
     if whole_map and n_exact and (kept is None or any(k not in kept.rows for k in idx[:n_exact])):
         pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
-    rows, warm = [], False
-    for j, k in enumerate(idx):
-        if kept is not None and k in kept.rows:
-            rows.append(kept.rows[k])
+    rows, warm, shards = [], False, None
+    tiles = None  # the exact search's shards, where it runs on Ray
+    if ray is not None and n_exact and (kept is None or any(k not in kept.rows for k in idx[:n_exact])):
+        from .shards import RayShards
+
+        shards = RayShards(bev, ray_workers, ray)
+        tiles = shards.tiles
+    try:
+        for j, k in enumerate(idx):
+            if kept is not None and k in kept.rows:
+                rows.append(kept.rows[k])
+                report("global matches", (j + 1) / len(idx))
+                continue
+            truth, prep = seq.pose(k), matcher.prepare(seq.scan(k))
+            scan = prep.road_removed
+            if not warm:  # numba's kernels compiled, the tiles' first pages read, off the clock
+                stoppable(warm_up, bev, pyramid if n_exact else None, scan, cfg.s2m.angle_step, n_exact > 0, tiles)
+                stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
+                warm = True
+            row = stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
+            if j < n_exact:
+                row.update(stoppable(match_row, k, scan, truth, bev, pyramid, cfg.s2m.angle_step, tiles))
+            rows.append(row)
+            if kept is not None:
+                kept.add(row)
             report("global matches", (j + 1) / len(idx))
-            continue
-        truth, prep = seq.pose(k), matcher.prepare(seq.scan(k))
-        scan = prep.road_removed
-        if not warm:  # numba's kernels compiled, the tiles' first pages read, off the clock
-            stoppable(warm_up, bev, pyramid if n_exact else None, scan, cfg.s2m.angle_step, n_exact > 0)
-            stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
-            warm = True
-        row = stoppable(candidate_row, k, prep, truth, matcher, whole_cfg)
-        if j < n_exact:
-            row.update(stoppable(match_row, k, scan, truth, bev, pyramid, cfg.s2m.angle_step))
-        rows.append(row)
-        if kept is not None:
-            kept.add(row)
-        report("global matches", (j + 1) / len(idx))
-    out.update(_global_figures(rows, seq, whole_map))
+    finally:
+        if shards is not None:
+            shards.close()
+    out["exact_on"] = f"ray:{ray_workers}" if ray else "threads"
+    out.update(global_figures(rows, seq, whole_map))
     if peer_scans > 0:
         budget_mb = default_peer_budget_mb() if peer_budget_mb is None else peer_budget_mb
         # in the seeded order, not the drive's: the registrations a stopped run kept are a fair
@@ -249,46 +264,6 @@ def _places(prior, bev: TiledBEV, map_dir: Path, report):
     return index, path
 
 
-def _global_figures(rows: list[dict], seq, whole_map: bool) -> dict:
-    """The global matches' figures: lidarloc's (the candidates and the second opinion) on every
-    row, the exact tiled search's (and the whole-map search's) on the rows that ran them."""
-    out: dict = {"global_scans": len(rows)}
-    out["global_match_ms_median"] = median(r["global_ms"] for r in rows)
-    out["global_prepare_ms_median"] = median(r["prepare_ms"] for r in rows)
-    out["global_success"] = float(np.mean([r["global_success"] for r in rows]))
-    out["global_confident_wrong"] = sum(r["global_confident_wrong"] for r in rows)
-    out["global_ambiguous"] = sum(r["global_ambiguous"] for r in rows)
-    out["global_exact_fallbacks"] = sum(r["global_search"] == "exact" for r in rows)
-    out["second_opinion_ms_median"] = median(r["second_ms"] for r in rows)
-    out["second_opinion_agrees"] = float(np.mean([r["second_agrees"] for r in rows]))
-    district_at = _district_namer(seq)
-    out["global_failed_scans"] = [
-        missed({**r, "tiled_pose": r["global_pose"], "tiled_err_m": r["global_err_m"], "tiled_score": r["global_score"]},
-               seq.pose(r["scan"]), district_at) | {"ambiguous": r["global_ambiguous"], "reason": r["global_reason"]}
-        for r in rows if not r["global_success"]
-    ]  # fmt: skip
-    exact = [r for r in rows if "tiled_ms" in r]
-    out["exact_scans"] = len(exact)
-    out["exact_ms_median"] = median(r["tiled_ms"] for r in exact) if exact else None
-    out["exact_success"] = float(np.mean([r["tiled_success"] for r in exact])) if exact else None
-    # the same answer: both right, or both at the same place
-    out["exact_agrees_with_candidates"] = (
-        float(np.mean([r["tiled_success"] == r["global_success"] for r in exact])) if exact else None
-    )
-    out["exact_failed_scans"] = [missed(r, seq.pose(r["scan"]), district_at) for r in exact if not r["tiled_success"]]
-    out["tiles_searched_median"] = median(r["tiled_tiles_searched"] for r in exact) if exact else None
-    out["tiled_nodes_median"] = median(r["tiled_nodes"] for r in exact) if exact else None
-    whole = [r for r in exact if "whole_ms" in r]
-    if whole_map and whole:
-        out["whole_map_ms_median"] = median(r["whole_ms"] for r in whole)
-        out["whole_map_success"] = float(np.mean([r["whole_success"] for r in whole]))
-        out["tiled_score_equals_whole_map"] = float(np.mean([r["same_as_whole"] for r in whole]))
-        out["whole_map_nodes_median"] = median(r["whole_nodes"] for r in whole)
-    else:
-        out["whole_map_ms_median"] = out["whole_map_success"] = None
-    return out
-
-
 def localize_figures(spec: SourceSpec, cfg: Config, runs: int, workers: int, out_dir: Path, cache_root=None) -> dict:
     """Full localization from a start spread over the whole city: ``runs`` seeded runs of
     ``bench localize`` on the city's drive (into ``out_dir``, resumable as its own). A run
@@ -305,16 +280,6 @@ def localize_figures(spec: SourceSpec, cfg: Config, runs: int, workers: int, out
         "localize_rmse_after_localized_m_median": agg.get("rmse_after_localized_m_median"),
         "localize_out": str(out_dir),
     }
-
-
-def _district_namer(seq):
-    """``(x, y) → district name`` on a generated city (its district map), else None."""
-    districts = getattr(getattr(seq, "town", None), "districts", None)
-    if districts is None:
-        return None
-    from ...core.sequences.town.districts import STYLE_NAMES
-
-    return lambda x, y: STYLE_NAMES[int(districts.style_at(x, y))]
 
 
 def _dir_bytes(directory: Path) -> int:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -79,19 +80,25 @@ def missed(row: dict, truth: np.ndarray, district_at=None) -> dict:
     return out
 
 
-def warm_up(bev, pyramid, scan: np.ndarray, angle_step: float, tiled: bool = True) -> None:
-    """Both searches once, so that numba's kernels are compiled off the clock."""
+def warm_up(bev, pyramid, scan: np.ndarray, angle_step: float, tiled: bool = True, shards=None) -> None:
+    """Both searches once, so that numba's kernels are compiled off the clock (on the shards too)."""
     if tiled:
-        match_global_tiled(bev, scan[:, :2], angle_step)
+        _tiled(shards)(bev, scan[:, :2], angle_step)
     if pyramid is not None:
         m3rsm.match_global(pyramid, scan[:, :2], angle_step)
 
 
-def match_row(k: int, scan: np.ndarray, truth: np.ndarray, bev, pyramid, angle_step: float) -> dict:
-    """Scan ``k``'s row: the tiled search over the whole city (``bev``), and beside it the
-    whole-map search when its ``pyramid`` is given, each timed and judged against ``truth``."""
+def _tiled(shards):
+    """The tiled search, on this machine or over ``shards`` (the same answer either way)."""
+    return match_global_tiled if shards is None else partial(match_global_tiled, shards=shards)
+
+
+def match_row(k: int, scan: np.ndarray, truth: np.ndarray, bev, pyramid, angle_step: float, shards=None) -> dict:
+    """Scan ``k``'s row: the tiled search over the whole city (``bev``; over ``shards`` where
+    given, :mod:`lidarloc.core.matching.shards`), and beside it the whole-map search when its
+    ``pyramid`` is given, each timed and judged against ``truth``."""
     row: dict = {"scan": int(k)}
-    res = match_global_tiled(bev, scan[:, :2], angle_step)
+    res = _tiled(shards)(bev, scan[:, :2], angle_step)
     row["tiled_ms"], (row["tiled_success"], row["tiled_err_m"]) = res.ms, judge(res.x, res.y, res.yaw, truth)
     # where it matched, so that a scan the search placed elsewhere can be named and looked at
     row["tiled_pose"], row["tiled_score"] = [res.x, res.y, res.yaw], res.score

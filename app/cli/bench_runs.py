@@ -11,6 +11,7 @@ import typer
 
 from ..console import emit_json, err, progress_bar
 from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, config_from, with_source
+from ..sweep.cluster import RAY_HELP
 from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 from .groups import bench_app
 from .sweeps import RayOpt
@@ -340,7 +341,22 @@ def bench_city(
             "each a whole drive, minutes on a city) for localize_success.",
         ),
     ] = 0,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Worker processes for --localize-runs.")] = 2,
+    workers: Annotated[
+        int,
+        typer.Option(
+            "--workers", min=1, help="Worker processes for --localize-runs, and Ray workers for the exact search."
+        ),
+    ] = 2,
+    ray: Annotated[
+        str | None,
+        typer.Option(
+            "--ray",
+            metavar="local|auto|ray://HOST:PORT",
+            help=f"The exact search over the whole city split by tiles among --workers Ray workers: {RAY_HELP} "
+            "(its answers are the same as on this machine; every node reads the city's tiles from the cache at "
+            "the same path).",
+        ),
+    ] = None,
     out: Annotated[
         Path,
         typer.Option(
@@ -398,6 +414,8 @@ def bench_city(
                 progress=progress,
                 rows_dir=out / "global",
                 peer_rows_dir=out / "fpfh-ransac",
+                ray=ray,
+                ray_workers=workers,
             )
     except KeyboardInterrupt:
         sys.stdout.flush()
@@ -411,3 +429,45 @@ def bench_city(
     if localize_runs:  # its own progress bar: after the one above has closed
         result.update(localize_figures(spec, cfg, localize_runs, workers, out / "localize", cache_root=cache))
     show_bench_result("city", result, as_json)
+
+
+@bench_app.command("shards")
+@with_source()
+def bench_shards(
+    global_scans: Annotated[
+        int, typer.Option("--global-scans", min=1, help="Scans of the city's drive searched over the whole city.")
+    ] = 5,
+    workers: Annotated[
+        list[int],
+        typer.Option("--workers", min=1, help="Ray workers to search with, one count at a time (repeatable)."),
+    ] = [1, 2],  # noqa: B006  (typer's default for a repeatable option)
+    ray: Annotated[
+        str, typer.Option("--ray", metavar="local|auto|ray://HOST:PORT", help=f"Where the workers run: {RAY_HELP}.")
+    ] = "local",
+    seed: SeedOpt = None,
+    as_json: JsonOpt = False,
+    spec=None,
+    preset: PresetOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    cache: CacheOpt = None,
+):
+    """The exact search over the whole city split by tiles among Ray workers: its time with each
+    count of --workers beside this machine's search (threads, one per core) on the same scans,
+    the speed-up of the most workers over the fewest, and whether every answer (pose, score,
+    candidates) is this machine's. The city as bench city holds it (by default the 4 × 4 km city;
+    --set town.extent_m=1000 the 1 × 1 km one), its tiles built or read from the cache."""
+    from ..bench.shards import run as run_bench
+
+    overrides = ["town.extent_m=4000", "town.n_scans=6000"]
+    cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
+    with progress_bar() as bar:
+        tasks: dict = {}
+
+        def progress(what, fraction):
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=1.0)
+            bar.update(tasks[what], completed=fraction)
+
+        result = run_bench(spec, cfg, cache, global_scans, tuple(sorted(set(workers))), ray, progress)
+    show_bench_result("shards", result, as_json)

@@ -160,7 +160,7 @@ def test_a_damaged_map_cache_is_rebuilt_and_the_user_told(tmp_path, caplog, dama
     from lidarloc.core.maps.world import open_world
     from lidarloc.core.sequences.town import TownSequence
 
-    seq = TownSequence(seed=3, extent_m=150.0, n_scans=40)
+    seq = TownSequence(seed=3, extent_m=150.0, n_scans=8)  # a few scans: the map is built three times
     cfg = load_config()
     first = open_world(seq.map_source, cfg, tmp_path, lookup=False, pyramid=False).prior_map
     (directory,) = [d for d in tmp_path.iterdir() if (d / "map_points.npy").is_file()]
@@ -214,7 +214,7 @@ def test_a_run_that_fills_a_real_disk_is_one_line_and_keeps_what_it_wrote(small_
     env = dict(os.environ, LIDARLOC_CACHE=str(cache_root))
     r = subprocess.run(
         [sys.executable, "-m", "lidarloc.app.cli", "run", "--out", str(out), "--scans", "20"]
-        + ["--set", "pf.n_particles=300", "--set", "town.n_scans=150"],
+        + ["--set", "pf.n_particles=300", "--set", "town.n_scans=150", "--set", "s2m.replay_process_nice=0"],
         capture_output=True,
         text=True,
         env=env,

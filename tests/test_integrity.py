@@ -276,13 +276,19 @@ def test_the_integrity_state_survives_a_checkpoint():
 
 
 # ------------------------------------------------------------------------------ a real run
+#: recorded odometry, and the S2M process at the PF's priority: the replay clock waits for every
+#: match, and a niced S2M beside busy processes gets a sliver of a core (the priority never
+#: changes a replay's result)
+AT_PF_PRIORITY = ("localize.recorded_odometry=true", "s2m.replay_process_nice=0")
+
+
 @pytest.mark.slow
 def test_a_late_s2m_holds_the_rule_back_and_the_filter_recovers_once_it_joins(cache_root):
     """S2M held back until scan 40 (``s2m.join_at_scan``): the particle filter alone may converge,
     but nothing says localized before S2M's word; within 30 scans of joining the filter is localized
     within 5 m of the truth, and no scan was ever green and wrong."""
     seq = short_town(80)
-    cfg = load_config(overrides=["s2m.join_at_scan=40", "localize.recorded_odometry=true"])
+    cfg = load_config(overrides=["s2m.join_at_scan=40", *AT_PF_PRIORITY])
     with Localizer(seq, cfg, cache_root) as loc:
         snaps = [loc.step() for _ in range(80)]
         events = list(loc.events)
@@ -302,7 +308,7 @@ def test_a_late_s2m_holds_the_rule_back_and_the_filter_recovers_once_it_joins(ca
 @contextlib.contextmanager
 def _localized_at_40(cache_root, *overrides):
     """The short town's first 70 scans (recorded odometry), played to scan 40, localized there."""
-    cfg = load_config(overrides=["localize.recorded_odometry=true", *overrides])
+    cfg = load_config(overrides=[*AT_PF_PRIORITY, *overrides])
     with Localizer(short_town(70), cfg, cache_root) as loc:
         while loc.k < 40:
             loc.step()

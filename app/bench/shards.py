@@ -111,7 +111,8 @@ def run(
         for j, k in enumerate(idx):
             scan = prepare(seq.scan(k), cfg)[:, :2]
             here = match_global_tiled(bev, scan, step)
-            row = {"scan": k, "one_machine_ms": here.ms, "nodes": here.nodes_expanded, "same": True}
+            row = {"scan": k, "load_avg": load_avg(), "one_machine_ms": here.ms, "nodes": here.nodes_expanded}
+            row["same"] = True
             for n, tiles in by_count.items():
                 res = match_global_tiled(bev, scan, step, shards=tiles)
                 row[f"ray_{n}_ms"] = res.ms

@@ -21,8 +21,8 @@ sweep's threshold), up to tens of MB, so the tile is pinned to the shard that fi
 and later sweeps send it there. A tile met for the first time goes to the shard with the least
 work in this sweep so far, counting for a tile already pinned the nodes it expanded in its last
 visit; the busiest tiles are not known before they are searched, so the balance is good, not
-perfect (on the 1 km² city's scans the busiest shard of a sweep has a few per cent more than its
-share).
+perfect: on 8 scans of the 1 km² city (25 tiles, 7–50 sweeps a scan) the nodes of the busiest of
+2 shards, summed over the sweeps, allow a speed-up of 1.87–1.93× over one shard.
 """
 
 from __future__ import annotations

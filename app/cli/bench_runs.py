@@ -344,7 +344,9 @@ def bench_city(
     workers: Annotated[
         int,
         typer.Option(
-            "--workers", min=1, help="Worker processes for --localize-runs, and Ray workers for the exact search."
+            "--workers",
+            min=1,
+            help="Worker processes for --localize-runs; with --ray, the Ray workers of the exact search.",
         ),
     ] = 2,
     ray: Annotated[

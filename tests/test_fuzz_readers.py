@@ -6,7 +6,7 @@ never a hang (a per-case timer). Seeded (``derandomize``), bounded in examples.
 
 ``LIDARLOC_FUZZ_EXAMPLES`` sets the examples per reader (default 30);
 ``LIDARLOC_FUZZ_REPORT=file.json`` writes how many cases each reader was fed and how they ended
-(BENCHMARKS.md's hostile-input table)."""
+(the hostile-input table of docs/benchmarks/faults.md)."""
 
 from __future__ import annotations
 

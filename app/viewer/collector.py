@@ -6,7 +6,7 @@ server's objects), 106–110 ms a collection on the reference machine, long enou
 of the real-time clock late when it lands as the scan is due. Nearly all of them are made while
 the viewer starts and live as long as the process, so once the localizer is ready they are moved
 out of the collector's reach (:func:`freeze_startup`, ``gc.freeze()``); a full collection then
-walks what was made since, 0.5–0.9 ms for the same process (BENCHMARKS, "soak").
+walks what was made since, 0.5–0.9 ms for the same process (docs/benchmarks/long-running.md).
 
 The price: a frozen object is never collected. What becomes garbage by reference counts is freed
 as always; only garbage held in reference cycles among the frozen objects stays. The frozen ones

@@ -44,6 +44,7 @@ WITH_PRESET = {
             "soak",
             "clients",
             "city",
+            "shards",
         )
     ],
     ("sweep",),

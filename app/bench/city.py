@@ -126,7 +126,7 @@ def run(
     cfg: Config,
     cache_root: Path | None = None,
     global_scans: int = 200,
-    peer_scans: int = 20,
+    peer_scans: int = 10,
     tile_m: float = 400.0,
     bev_tile_m: float = 256.0,
     whole_map: bool = True,

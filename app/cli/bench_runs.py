@@ -295,9 +295,12 @@ def bench_city(
     peer_scans: Annotated[
         int,
         typer.Option(
-            "--peer-scans", min=0, help="Of those, how many FPFH + RANSAC registers (seconds each on the town)."
+            "--peer-scans",
+            min=0,
+            help="Of those, how many FPFH + RANSAC registers (seconds each on the town, minutes each on a "
+            "city: a few under --peer-budget-min say enough).",
         ),
-    ] = 20,
+    ] = 10,
     peer_budget_min: Annotated[
         float,
         typer.Option(

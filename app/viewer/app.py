@@ -38,7 +38,7 @@ from .player import Player
 from .readouts import Readouts
 from .retired import Retired
 from .scene import SceneView
-from .status import AlarmNotice, play_state, viewer_status
+from .status import AlarmNotice, viewer_status
 from .style import MIN_DRAW_INTERVAL, error_markdown
 from .travel import TimeTravel
 from .why import WhyViews
@@ -479,9 +479,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         with self.server.atomic():
             self.scene.follow_map(None if snap is None else snap.mean_pose)
         self.overview.update(snap, self.scene.near_tiles, time.monotonic())
-
-    def _play_state(self) -> str:
-        return play_state(self.player, self.localizer)
 
     def status_markdown(self, snap: Snapshot) -> str:
         return viewer_status(self, snap)

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 # safe when the PF and S2M threads launch parallel kernels at the same time. Users may override.
 _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
-__version__ = "0.1.0"
+from .core.version import VERSION as __version__  # (core keeps it: core never imports this file)
 
 #: Each public name and the module it lives in (relative to this package).
 _PUBLIC = {

@@ -54,7 +54,7 @@ class RecordingWriter:
     def __init__(
         self, run_dir, spec, cfg, seq, preset: str | None = None, branch_of: dict | None = None, first_step: int = 0
     ):
-        from .... import __version__ as version
+        from ...version import VERSION as version
 
         meta = {
             "source": source_dict(spec),

@@ -280,15 +280,18 @@ class StreetSequence(Sequence):
         return self._poses
 
 
-def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int | None = None):
+def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int | None = None, **settings):
     """A Localizer with the default configuration but ``n_particles`` particles (and, if given,
-    the S2M process's replay-clock nice value)."""
+    the S2M process's replay-clock nice value); ``section__key=value`` sets any other setting."""
     from lidarloc.core.localizer import Localizer
 
     cfg = Config()
     cfg.pf.n_particles = n_particles
     if s2m_nice is not None:
         cfg.s2m.replay_process_nice = s2m_nice
+    for key, value in settings.items():
+        section, name = key.split("__")
+        setattr(getattr(cfg, section), name, value)
     return Localizer(seq, cfg, cache_root)
 
 
@@ -378,19 +381,3 @@ def viewer_options(command: str, args: list[str], monkeypatch) -> dict:
     result = CliRunner().invoke(cli.app, [command, *args])
     assert result.exit_code == 0, result.output
     return seen
-
-
-def localizer_with(seq, cache_root, **overrides):
-    """A Localizer of ``seq`` with 500 particles (``n_particles=``), and the S2M process at the
-    PF's priority: the replay clock waits for every match, and a niced S2M beside busy processes
-    gets a sliver of a core (the priority never changes a replay's result). ``section__key=value``
-    sets any other setting."""
-    from lidarloc.core.localizer import Localizer
-
-    cfg = Config()
-    cfg.pf.n_particles = overrides.pop("n_particles", 500)
-    cfg.s2m.replay_process_nice = 0
-    for key, value in overrides.items():
-        section, name = key.split("__")
-        setattr(getattr(cfg, section), name, value)
-    return Localizer(seq, cfg, cache_root)

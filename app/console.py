@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import NoReturn
 
 import typer
@@ -29,6 +30,18 @@ def progress_bar(transient: bool = True) -> Progress:
         console=err,
         transient=transient,
     )
+
+
+def stage_progress(bar: Progress) -> Callable[[str, float], None]:
+    """``progress(stage, fraction)`` drawing on ``bar``: a line per stage, added when it first reports."""
+    tasks: dict = {}
+
+    def progress(what: str, fraction: float) -> None:
+        if what not in tasks:
+            tasks[what] = bar.add_task(what, total=1.0)
+        bar.update(tasks[what], completed=fraction)
+
+    return progress
 
 
 def fail(message: str) -> NoReturn:

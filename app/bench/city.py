@@ -189,6 +189,7 @@ def run(
     out["places_build_share"] = (out["places_build_s"] or 0.0) / out["build_s"] if out["build_s"] else None
     out["places_cache_share"] = out["places_mb"] / max(out["cache_mb"] - out["places_mb"], 1e-9)
     idx = scan_order(len(seq), global_scans, cfg.seed)
+    exact_on = f"ray:{ray_workers}" if ray else "threads"  # the same answers, other times
     kept = kept_peer = None
     if rows_dir is not None:
         identity = {
@@ -198,7 +199,7 @@ def run(
             "bev_tile_m": bev_tile_m,
             "whole_map": whole_map,
             "exact_scans": exact_scans,
-            "exact_on": f"ray:{ray_workers}" if ray else "threads",  # the same answers, other times
+            "exact_on": exact_on,
             "code": code_fingerprint(ROW_CODE, exclude=ROW_CODE_EXCLUDED),
         }
         kept = GlobalRows(rows_dir, identity)
@@ -206,12 +207,14 @@ def run(
         kept_peer = GlobalRows(peer_rows_dir, peer_identity(seq, cfg))
     out["global_scans_resumed"] = sum(k in kept.rows for k in idx) if kept is not None else 0
     n_exact = len(idx) if exact_scans is None else min(int(exact_scans), len(idx))
+    # exact searches still to run: none where every one was kept by an earlier run
+    exact_to_run = n_exact > 0 and (kept is None or any(k not in kept.rows for k in idx[:n_exact]))
     pyramid = None
-    if whole_map and n_exact and (kept is None or any(k not in kept.rows for k in idx[:n_exact])):
+    if whole_map and exact_to_run:
         pyramid = load_or_build_pyramid(prior, map_dir, cfg.s2m).value
     rows, warm, shards = [], False, None
     tiles = None  # the exact search's shards, where it runs on Ray
-    if ray is not None and n_exact and (kept is None or any(k not in kept.rows for k in idx[:n_exact])):
+    if ray is not None and exact_to_run:
         from .shards import RayShards
 
         shards = RayShards(bev, ray_workers, ray)
@@ -238,7 +241,7 @@ def run(
     finally:
         if shards is not None:
             shards.close()
-    out["exact_on"] = f"ray:{ray_workers}" if ray else "threads"
+    out["exact_on"] = exact_on
     out.update(global_figures(rows, seq, whole_map))
     if peer_scans > 0:
         budget_mb = default_peer_budget_mb() if peer_budget_mb is None else peer_budget_mb

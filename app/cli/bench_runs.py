@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from ..console import emit_json, err, progress_bar
+from ..console import emit_json, err, progress_bar, stage_progress
 from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, config_from, with_source
 from ..sweep.cluster import RAY_HELP
 from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
@@ -398,13 +398,6 @@ def bench_city(
     cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
     try:
         with progress_bar() as bar:
-            tasks: dict = {}
-
-            def progress(what, fraction):
-                if what not in tasks:
-                    tasks[what] = bar.add_task(what, total=1.0)
-                bar.update(tasks[what], completed=fraction)
-
             result = run_bench(
                 spec,
                 cfg,
@@ -416,7 +409,7 @@ def bench_city(
                 tile_m=tile_m,
                 whole_map=whole_map,
                 exact_scans=exact_scans,
-                progress=progress,
+                progress=stage_progress(bar),
                 rows_dir=out / "global",
                 peer_rows_dir=out / "fpfh-ransac",
                 ray=ray,
@@ -467,12 +460,5 @@ def bench_shards(
     overrides = ["town.extent_m=4000", "town.n_scans=6000"]
     cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
     with progress_bar() as bar:
-        tasks: dict = {}
-
-        def progress(what, fraction):
-            if what not in tasks:
-                tasks[what] = bar.add_task(what, total=1.0)
-            bar.update(tasks[what], completed=fraction)
-
-        result = run_bench(spec, cfg, cache, global_scans, tuple(sorted(set(workers))), ray, progress)
+        result = run_bench(spec, cfg, cache, global_scans, tuple(sorted(set(workers))), ray, stage_progress(bar))
     show_bench_result("shards", result, as_json)

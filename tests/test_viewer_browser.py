@@ -53,6 +53,14 @@ JS_PLOTS = """(() => Object.values((window.__viserTestpoints || {}).uplots || {}
 }))()"""
 
 
+# each plot as drawn: its chart's width and height (px) and the legend entries it shows
+JS_PLOT_BOXES = """[...document.querySelectorAll('.uplot')].map(u => {
+    const r = u.querySelector('.u-wrap').getBoundingClientRect();
+    const shown = [...u.querySelectorAll('.u-legend .u-series')].filter(e => getComputedStyle(e).display !== 'none');
+    return {width: r.width, height: r.height, legend: shown.map(e => e.innerText.trim())};
+})"""
+
+
 # every press, release and click the page receives: the element's tag, text and whether it was disabled, and the
 # element actually under the pointer (what a click lost to an overlay or a re-render would show)
 JS_RECORD_CLICKS = """window.__clicks = [];
@@ -164,6 +172,14 @@ def test_tab_opened_while_playing_gets_the_history_and_live_plots(browser, playi
     for p in page.evaluate(JS_PLOTS):
         assert p["min"] == 0 and p["max"] == loc.n_scans - 1, p
         assert p["min"] <= p["last"] <= p["max"], p
+    # the plots are nearly as tall as wide, each legend names its curves only (three at most),
+    # and the dots every plot shares are named once, above them
+    boxes = page.evaluate(JS_PLOT_BOXES)
+    assert len(boxes) == n_plots, boxes
+    for box in boxes:
+        assert box["height"] >= 0.8 * box["width"] > 200, box
+        assert 1 <= len(box["legend"]) <= 3 and not any("timeline" in e for e in box["legend"]), box
+    assert page.get_by_text("Dots on the curves:").count() == 1
 
     # a message answers the tab that acted where it looks: a notification
     page.get_by_role("button", name="Reset globally").click()
@@ -308,11 +324,19 @@ def test_viewer_in_chromium(browser, served):
 
 @pytest.fixture
 def waiting(tmp_path_factory):
-    """A short run that waits for its first tab (the demo's default)."""
-    from helpers import StreetSequence, make_localizer
+    """A short run that waits for its first tab (the demo's default). Its S2M process runs at the
+    PF's priority, as the other browser tests' (helpers.browser_localizer): the replay clock waits
+    for every match, and a niced S2M beside busy processes left the run at scan 30 of 40 after
+    the 90 s its end is waited for."""
+    from helpers import StreetSequence
     from lidarloc.app.viewer.serve import serve
+    from lidarloc.core.config import Config
+    from lidarloc.core.localizer import Localizer
 
-    loc = make_localizer(StreetSequence(n=40), tmp_path_factory.mktemp("waiting-cache"), n_particles=300)
+    cfg = Config()
+    cfg.pf.n_particles = 300
+    cfg.s2m.replay_process_nice = 0
+    loc = Localizer(StreetSequence(n=40), cfg, tmp_path_factory.mktemp("waiting-cache"))
     handle = serve(loc, port=0, speed="10")
     yield handle
     handle.stop()

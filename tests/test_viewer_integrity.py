@@ -260,7 +260,10 @@ def test_achieved_rate_counts_a_step_that_is_still_running():
         wait_for(lambda: loc.k >= 10, what="10 steps")
         assert player.achieved_rate(window=0.5) > 5.0
         loc.gate.clear()
-        wait_for(lambda: player.achieved_rate(window=0.5) == 0.0, what="no step for a whole window")
+        # it falls while the step waits (the last steps' rate does not stay up), and never
+        # reads 0 while the scans still advance, however slowly
+        wait_for(lambda: player.achieved_rate(window=0.5) < 1.0, what="the rate falling while a step waits")
+        assert player.achieved_rate(window=0.5) > 0.0
     finally:
         loc.gate.set()
         player.stop()

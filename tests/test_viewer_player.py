@@ -117,6 +117,36 @@ def test_player_reports_the_achieved_rate():
         player.stop()
 
 
+def test_a_rebase_while_a_snapshot_is_published_keeps_the_rate_readable():
+    """A kidnap waits for the step's lock, then rebases the player while the step's snapshot is
+    still being published: the rate must stay readable, and count again from the next steps."""
+    loc = InstantSteps()
+    publishing, rebased = threading.Event(), threading.Event()
+    hold = threading.Event()
+
+    def on_snapshot(_snap):
+        if hold.is_set():
+            hold.clear()
+            publishing.set()
+            assert rebased.wait(10), "the test did not rebase"
+
+    player = Player(loc, on_snapshot, lambda m: None, speed=20.0)
+    player.start()
+    try:
+        player.play()
+        wait_for(lambda: loc.k >= 3, what="3 scans")
+        hold.set()
+        assert publishing.wait(10), "no step published a snapshot"
+        player.rebase()
+        rebased.set()
+        k = loc.k
+        wait_for(lambda: loc.k >= k + 6, what="6 scans after the rebase")
+        rate = player.achieved_rate()  # raised TypeError (None among the step starts)
+        assert rate is not None and 0.0 < rate <= 20.0 * 1.01
+    finally:
+        player.stop()
+
+
 def test_player_reports_how_far_behind_the_sensor_clock_it_is():
     class SlowSteps(InstantSteps):
         """Scans every 0.1 s on the sensor clock, each taking 0.25 s to process."""

@@ -444,7 +444,7 @@ def test_branch_from_here_continues_in_its_own_folder_beside_the_original(record
     tl.go(2)
     v.update_display()
     np.testing.assert_allclose(v.scene.node("particle_dots").points, orig.particles(2)[:, :3], atol=1e-5)
-    assert "B: scans until the rule" in v.travel.compare_text.content
+    assert "B: scans until first localized" in v.travel.compare_text.content
     # the Compare table follows the branch as it plays: its figures are of the steps after the
     # branch point only (before it, both runs are the same run)
     tl.live()

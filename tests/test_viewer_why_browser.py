@@ -72,9 +72,13 @@ def canvas_png(page) -> bytes:
     return page.locator("canvas").first.screenshot(timeout=LOAD_TIMEOUT)
 
 
-def test_why_views_in_chromium(browser, served):
+def test_why_views_in_chromium(browser, served, monkeypatch):
+    import threading
+
+    from lidarloc.app.viewer import why as why_module
     from lidarloc.app.viewer.s2m_detail import CANDIDATE_COLOR, WINNER_COLOR
     from lidarloc.app.viewer.why_style import RESIDUAL_GOOD, SELECTED_COLOR
+    from lidarloc.core.filter.surface import CELL
 
     ARTIFACTS.mkdir(exist_ok=True)
     viewer, why = served.viewer, served.viewer.why
@@ -118,9 +122,25 @@ def test_why_views_in_chromium(browser, served):
         "the camera over the estimate",
     )
     before = surface_yellows(pixels(canvas_png(page)))
+    # a first look comes at once in coarse cells; the full surface follows (held here until the
+    # page has shown the coarse one: while the scans play, the full one takes seconds)
+    full_pass, compute = threading.Event(), why_module.compute_surface
+
+    def full_held(snap, model, over_yaw, cell=CELL):
+        if cell == CELL:
+            full_pass.wait(STEP_TIMEOUT / 1000)
+        return compute(snap, model, over_yaw, cell)
+
+    monkeypatch.setattr(why_module, "compute_surface", full_held)
     page.get_by_role("button", name="Likelihood surface here").click()
     page.wait_for_function(
         f"document.body.innerText.includes('scan {snap.scan_index}: maximum at (')", polling=250, timeout=STEP_TIMEOUT
+    )
+    text = page.evaluate("document.body.innerText")
+    assert re.search(r"41×41 cells of 1 m, one yaw: \d+ ms", text) and "0.5 m cells follows" in text, text
+    full_pass.set()
+    page.wait_for_function(
+        "document.body.innerText.includes('81×81 cells of 0.5 m')", polling=250, timeout=STEP_TIMEOUT
     )
     text = page.evaluate("document.body.innerText")
     assert re.search(r"81×81 cells of 0\.5 m, one yaw: \d+ ms", text), text

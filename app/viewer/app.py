@@ -12,9 +12,9 @@ message in the panel, never a dead callback or server.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
-import time
 import traceback
 from collections.abc import Callable
 from contextlib import contextmanager
@@ -24,12 +24,14 @@ import viser
 
 from ...core.errors import LidarlocError
 from ...core.snapshot import Snapshot
-from .camera import TabCameras, start_pose, tab_may_close
+from .camera import TabCameras, start_pose
 from .controls import ParameterControls, ParticleControls
+from .display import Display
 from .faults import BlockFailed, FaultReporter
 from .heap import HeapTrimmer
 from .history import History
 from .layers import LayerFolder
+from .messages import Messages
 from .minimap import Overview
 from .panel import build_panel
 from .params import ParamForm
@@ -38,10 +40,10 @@ from .player import Player
 from .readouts import Readouts
 from .retired import Retired
 from .scene import SceneView
-from .status import AlarmNotice, viewer_status
-from .style import MIN_DRAW_INTERVAL, error_markdown
+from .status import AlarmNotice, ReplayWaits
 from .travel import TimeTravel
 from .why import WhyViews
+from .why_worker import LatestOnly
 
 if TYPE_CHECKING:
     from ...core.localizer import Localizer
@@ -51,7 +53,7 @@ if TYPE_CHECKING:
 STOP_WAIT_S = 5.0
 
 
-class Viewer(Playback, ParticleControls, ParameterControls):
+class Viewer(Playback, Display, Messages, ParticleControls, ParameterControls):
     """GUI, scene and threads around one Localizer. Use
     :func:`~lidarloc.app.viewer.serve.serve` to start one."""
 
@@ -74,7 +76,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             server,
             self.scene,
             lambda: self._latest,
-            self._guarded,
+            self._camera_guarded,
             folder_order=self.controls.particles_folder.order + 0.5,
         )
         self.cache_root = None  # where a branch finds the map's tables (serve sets it)
@@ -111,10 +113,12 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self._stopping = threading.Event()
         self._ready = threading.Event()
         self._message = ""
+        self._message_until: float | None = None  # when the message under the status goes (None: stays)
         self._last_draw = 0.0
         self._last_update = 0.0
         self.first_scan_shown = threading.Event()  # set once a processed scan has been drawn
         self.step_failed: str | None = None  # the newest failed step's message
+        self.replay_waits = ReplayWaits()  # the status's note on the replay clock's waits
         self.alarm = AlarmNotice(
             lambda text: self.show_message(text, error=True, everyone=True, title="lidarloc: false fire")
         )
@@ -126,6 +130,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         )
         self.on_finished: Callable[[], None] | None = None  # called when playing reached the end (a loop)
         self.scene.on_map_tiles = self.wake  # tiles of a city's map were read: the display shows them
+        self.clock_worker = LatestOnly("lidarloc-clock")  # clock changes wait for the step here
         self._wire_playback()
         self._wire_particles()
         self._wire_parameters()
@@ -148,9 +153,11 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             self._display.start()
 
     # ============================================================== callbacks and messages
-    def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True) -> None:
+    def _guard(self, event, action: Callable[[], object], needs_localizer: bool = True, gated: bool = True) -> None:
         """Run a GUI action; a refused value or any failure becomes a visible message, never a
-        dead callback thread or a crashed server."""
+        dead callback thread or a crashed server. ``gated``: the action holds the GUI gate (it
+        waits for a display update in progress); a tab's own camera moves do not, so that they
+        answer at once however long the display takes on a busy machine."""
         if getattr(self._syncing, "on", False) or self.closed:
             return
         client = getattr(event, "client", None)
@@ -161,7 +168,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
                 raise LidarlocError(
                     self.replay_only or "the localizer is still starting (map and tables are being built)"
                 )
-            with self._gui_gate:
+            with self._gui_gate if gated else contextlib.nullcontext():
                 if self.closed:
                     return
                 action()
@@ -173,9 +180,13 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         finally:
             self._acting.client = None
 
-    def _guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
+    def _guarded(self, action: Callable[[], object], needs_localizer: bool = True, gated: bool = True) -> Callable:
         """``action`` as a GUI callback, run through :meth:`_guard`."""
-        return lambda event: self._guard(event, action, needs_localizer)
+        return lambda event: self._guard(event, action, needs_localizer, gated)
+
+    def _camera_guarded(self, action: Callable[[], object], needs_localizer: bool = True) -> Callable:
+        """A tab's camera control as a GUI callback: not behind a display update (see _guard)."""
+        return self._guarded(action, needs_localizer, gated=False)
 
     @contextmanager
     def _quietly(self):
@@ -186,46 +197,6 @@ class Viewer(Playback, ParticleControls, ParameterControls):
             yield
         finally:
             self._syncing.on = False
-
-    def show_message(
-        self, text: str, error: bool = False, client=None, everyone: bool = False, title: str | None = None
-    ) -> None:
-        """A message in the panel (the last one stays there) and as a notification where the
-        user looks: to ``client``, else to the tab whose action is being handled, or to every
-        open tab with ``everyone`` (what no tab asked for: a failed scan, a failed start).
-        ``title``: the notification's (default: from the kind of message)."""
-        with self._gui_gate:
-            if self.closed:  # the server has stopped (or is stopping): nobody would see it
-                return
-            self._show_message(text, error, client, everyone, title)
-
-    def _show_message(self, text: str, error: bool, client, everyone: bool, title: str | None) -> None:
-        self._message = text
-        self.controls.message.content = error_markdown(text) if error else text
-        self.controls.message.visible = bool(text)
-        if not text:
-            return
-        client = client if client is not None else getattr(self._acting, "client", None)
-        open_tabs = self.server.get_clients()
-        tabs = [client] if client is not None else (list(open_tabs.values()) if everyone else [])
-        # a tab already closed gets nothing; one closing meanwhile drops it (tab_may_close)
-        tabs = [t for t in tabs if t.client_id in open_tabs]
-        if title is None:
-            title = (
-                "lidarloc" if not error else "lidarloc: refused" if text.startswith("refused") else "lidarloc: error"
-            )
-        for tab in tabs:
-            try:
-                with tab_may_close(tab):
-                    tab.add_notification(
-                        title, text, color="red" if error else "blue", auto_close_seconds=6.0 if not error else 10.0
-                    )
-            except Exception:  # the tab may have closed meanwhile; the panel message stays
-                pass
-
-    @property
-    def message(self) -> str:
-        return self._message
 
     @property
     def latest(self) -> Snapshot | None:
@@ -245,7 +216,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     def startup_failed(self, message: str) -> None:
         self.readouts.failed(message)
-        self.show_message(f"could not start: {message}", error=True, everyone=True)
+        self.show_message(f"could not start: {message}", error=True, everyone=True, keep=True)
 
     def show_map(self, prior_map) -> None:
         """Draw the prior map and move every tab's camera onto it, before the localizer is ready
@@ -402,86 +373,8 @@ class Viewer(Playback, ParticleControls, ParameterControls):
 
     def _on_player_error(self, message: str) -> None:
         self.step_failed = message
-        self.show_message(message, error=True, everyone=True)
+        self.show_message(message, error=True, everyone=True, keep=True)
         self._wake.set()
-
-    def _display_loop(self) -> None:
-        while not self._stopping.is_set():
-            self._wake.wait(timeout=0.1)
-            self._wake.clear()
-            if self._stopping.is_set():
-                return
-            # at most MIN_DRAW_INTERVAL apart, whatever woke it: while the map is built, progress
-            # reports arrive once per fused scan (1200 for the town) and each update holds the GIL
-            wait = max(self._last_draw, self._last_update) + MIN_DRAW_INTERVAL - time.perf_counter()
-            if wait > 0:
-                self._stopping.wait(wait)
-            try:
-                self.update_display()
-            except Exception as exc:  # one line (once per distinct failure); the thread and server live on
-                self.display_faults.report(exc, "the viewer keeps serving and the filter keeps playing")
-            else:
-                self.display_faults.clear()
-            self._last_update = time.perf_counter()
-
-    @contextmanager
-    def drawing(self):
-        """Hold the display: a scene write from another thread (a branch setting the second run)
-        waits for a display update in progress and keeps the next one out until it is done. Two
-        threads writing one chunked line at once can leave it holding a node that viser replaced
-        (same name) and that later writes fail on."""
-        # the gate first, as GUI actions take it (one of them may update the display): one order
-        with self._gui_gate, self._display_lock:
-            yield
-
-    def update_display(self, force_plots: bool = False) -> float:
-        """One display update: progress, scene, status and (rate-limited) plots. Returns ms spent
-        on the scene and status (the per-scan cost). Updates are serialised: the display thread and
-        a caller (a test, the timeline) never interleave, so the newest state is what stays shown."""
-        with self.drawing():
-            if self.closed:
-                return 0.0
-            return self._update_display(force_plots)
-
-    def _update_display(self, force_plots: bool) -> float:
-        self.readouts.update_progress(None if self.localizer is None else self.localizer.rebuild_progress)
-        shown = self.travel.shown()  # a recorded step the timeline was moved to
-        snap = shown if shown is not None else self._latest
-        ms = 0.0
-        if snap is not None and snap is not self._drawn:
-            t0 = time.perf_counter()
-            step = self.travel.timeline.step
-            with self.server.atomic():
-                cut = None if shown is None or step is None else max(step + 1 - self.history.first_step, 0)
-                self.scene.draw(snap, self.history, cut=cut)
-            self._drawn = snap
-            if snap.scan_index >= 0:
-                self.first_scan_shown.set()
-            self.why.on_draw(snap, recorded=shown is not None)
-            self.alarm.check(snap, live=shown is None)
-            self.readouts.update_status(self.status_markdown(snap))
-            self.cameras.follow(snap)
-            ms = (time.perf_counter() - t0) * 1000.0
-            self._last_draw = time.perf_counter()
-        elif snap is not None:
-            self.readouts.update_status(self.status_markdown(snap))  # play/pause state may have changed
-        self._update_map(snap)
-        self.travel.after_draw(snap)
-        self.readouts.update_plots(force_plots)
-        self._sync_play_button()
-        self.layers.on_display(self._ready.is_set())
-        return ms
-
-    def _update_map(self, snap: Snapshot | None) -> None:
-        """A city's map: the tiles at full density follow the estimate (read on a thread of their
-        own, swapped in here); the overview shows where the particles are (at most once a second,
-        and only when something changed)."""
-        with self.server.atomic():
-            self.scene.follow_map(None if snap is None else snap.mean_pose)
-        self.overview.update(snap, self.scene.near_tiles, time.monotonic())
-
-    def status_markdown(self, snap: Snapshot) -> str:
-        return viewer_status(self, snap)
 
     # ============================================================== shutdown
     def stop(self) -> None:
@@ -491,6 +384,7 @@ class Viewer(Playback, ParticleControls, ParameterControls):
         self._wake.set()
         self.heap.stop()
         self.why.stop()
+        self.clock_worker.stop()
         if self.player is not None:
             self.player.stop(timeout=STOP_WAIT_S)
         try:

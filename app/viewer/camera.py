@@ -23,12 +23,18 @@ VIEW_DISTANCE_EXTENTS = 3.0
 LARGE_MAP_M = 500.0
 
 
-def _position(snap: Snapshot | None) -> np.ndarray | None:
-    """The estimate's position, if there is a finite one."""
+def _vehicle(snap: Snapshot | None) -> np.ndarray | None:
+    """The pose (4×4) a following camera keeps in view: the estimate once the filter converged;
+    before, the truth where known (the mean of a cloud spread over the map is no place on it,
+    and the camera would leave the vehicle behind), else the estimate."""
     if snap is None:
         return None
-    p = np.asarray(snap.mean_pose, float)[:3, 3]
-    return p if np.isfinite(p).all() else None
+    if not snap.converged and snap.gt_pose is not None:
+        gt = np.asarray(snap.gt_pose, float)
+        if np.isfinite(gt).all():
+            return gt
+    T = np.asarray(snap.mean_pose, float)
+    return T if np.isfinite(T[:3, 3]).all() else None
 
 
 def tab_may_close(client: viser.ClientHandle):
@@ -90,11 +96,11 @@ class TabCameras:
         """Following starts behind the vehicle, looking along its heading."""
         if not tab.follow.value:
             return
-        snap = self._latest()
-        p = _position(snap)
-        if p is None:
+        T = _vehicle(self._latest())
+        if T is None:
             return
-        yaw = float(np.arctan2(snap.mean_pose[1][0], snap.mean_pose[0][0]))
+        p = T[:3, 3]
+        yaw = float(np.arctan2(T[1, 0], T[0, 0]))
         back = np.array([-math.cos(yaw), -math.sin(yaw), 0.0])
         with tab_may_close(client), client.atomic():
             client.camera.position = p + 35.0 * back + np.array([0, 0, 25.0])
@@ -105,7 +111,8 @@ class TabCameras:
         with self._lock:
             tab = self._tabs.get(client.client_id)
         following = tab is not None and tab.follow.value
-        p = _position(self._latest())
+        T = _vehicle(self._latest())
+        p = None if T is None else T[:3, 3]
         if following and p is not None:
             self._look_down(client, p, 120.0)
         else:
@@ -166,10 +173,11 @@ class TabCameras:
                 client.camera.look_at = target
 
     def follow(self, snap: Snapshot) -> None:
-        """Move the cameras of the tabs that follow the vehicle onto the estimate of ``snap``."""
-        p = _position(snap)
-        if p is None:
+        """Move the cameras of the tabs that follow the vehicle onto it (see :func:`_vehicle`)."""
+        T = _vehicle(snap)
+        if T is None:
             return
+        p = T[:3, 3]
         with self._lock:
             following = [cid for cid, tab in self._tabs.items() if tab.follow is not None and tab.follow.value]
         if not following:

@@ -19,11 +19,11 @@ from ...core.runs.metrics import METRIC_KEYS, ScanLog, compute_metrics
 from .style import css
 
 ROWS = (
-    ("A", "A: scans until localized (sum)"),
-    ("B", "B: scans until the rule"),
-    ("C", "C: … within 5 m for 10"),
-    ("D", "D: … within 5 m for 50"),
-    ("E", "E: … within 2.5 m for 50"),
+    ("A", "A: scans spent not localized (every try)"),
+    ("B", "B: scans until first localized"),
+    ("C", "C: scans until within 5 m for 10 scans"),
+    ("D", "D: … within 5 m for 50 scans"),
+    ("E", "E: … within 2.5 m for 50 scans"),
     ("rmse_after_localized_m", "RMSE while localized (m)"),
     ("localized_share", "steps localized"),
     ("max_error_localized_m", "max error while localized (m)"),

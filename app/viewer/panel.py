@@ -16,6 +16,8 @@ from .style import GT_NAME, SPEEDS
 
 STATUS_WIDTH_PX = 400  # the status window's width (CSS pixels): its table's rows on one line each
 STATUS_MARGIN_PX = 15  # its gap from the top left corner of the 3D view
+NOTIFICATIONS_LEFT_PX = STATUS_WIDTH_PX + 2 * STATUS_MARGIN_PX  # notifications start right of it
+NOTIFICATIONS_CSS = f"<style>.mantine-Notifications-root {{ left: {NOTIFICATIONS_LEFT_PX}px !important; }}</style>"
 
 LAYER_LABELS = (
     ("map", "Map"),
@@ -39,6 +41,7 @@ class Controls:
     progress: object = None
     progress_text: object = None
     status: object = None
+    realtime: object = None  # one click to the real-time clock
     message: object = None
     # Playback
     playback_folder: object = None
@@ -92,8 +95,18 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
         c.progress = gui.add_progress_bar(0.0, animated=True, visible=True)
         c.progress_text = gui.add_markdown("Starting the localizer…")
         c.status = gui.add_markdown("")
+        # shown while the replay clock holds playback for S2M (the status says why)
+        c.realtime = gui.add_button(
+            "Switch to the real-time clock (do not wait for S2M)",
+            icon=viser.Icon.CLOCK_PLAY,
+            visible=False,
+            hint="Faster, but the run no longer repeats exactly: its results then depend on the machine's load",
+        )
         c.message = gui.add_markdown("", visible=False)
     c.status_panel.float(x=STATUS_MARGIN_PX, y=STATUS_MARGIN_PX, width=STATUS_WIDTH_PX)
+    # viser stacks its notifications at the top left of the 3D view, over the status window:
+    # they go beside it instead (a rule the page applies; nothing to see in the panel)
+    gui.add_html(NOTIFICATIONS_CSS)
 
     c.playback_folder = gui.add_folder("Playback")
     with c.playback_folder:
@@ -141,7 +154,11 @@ def add_camera_folder(gui, order: float) -> CameraControls:
     """One tab's camera folder (``gui`` is the tab's own), placed at ``order`` in the panel."""
     c = CameraControls()
     with gui.add_folder("Camera (this tab)", order=order):
-        c.follow = gui.add_checkbox("Follow the vehicle", False, hint="Keep the camera on the estimate")
+        c.follow = gui.add_checkbox(
+            "Follow the vehicle",
+            True,
+            hint="Keep the camera on the vehicle: the estimate once the filter converged, the truth before it (where known)",
+        )
         c.top_down = gui.add_button("Top-down view", icon=viser.Icon.ARROW_DOWN)
         c.fit = gui.add_button("Whole map")
     return c

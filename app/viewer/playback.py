@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import threading
+
 import viser
 
 from ...core.errors import LidarlocError
 from .controls import whole_number
 from .keys import add_shortcuts
 from .style import SPEEDS
+
+#: how long a clock change waits for the localizer before the page says it lands later
+CLOCK_SWITCH_WAIT_S = 1.0
 
 
 class Playback:
@@ -39,6 +44,7 @@ class Playback:
         c.step.on_click(self._guarded(self.step_once, needs_localizer=False))
         c.speed.on_update(self._guarded(self._apply_speed, needs_localizer=False))
         c.clock.on_update(self._guarded(self._apply_clock))
+        c.realtime.on_click(self._guarded(self.realtime_clock))
         c.restart.on_click(self._guarded(self.restart))
         self.shortcuts = add_shortcuts(self.server.gui)
 
@@ -94,13 +100,42 @@ class Playback:
         self._wake.set()
 
     def _apply_clock(self) -> None:
+        """The clock, for the localizer and the player. A step waiting for S2M holds the
+        localizer (for a minute, the first whole-map match on a busy machine): the change is
+        handed to a thread of its own and lands when the step lets go, the page says so, and the
+        click does not hang meanwhile."""
         clock = self.controls.clock.value
         if clock not in ("replay", "realtime"):
             raise LidarlocError(f"clock must be replay or realtime, got {clock!r}")
-        self.localizer.set_params(clock=clock)
-        self.player.set_clock(clock)
+        applied = threading.Event()
+        loc, player = self.localizer, self.player
+
+        def done(_result) -> None:
+            player.set_clock(clock)
+            applied.set()
+
+        def failed(message: str) -> None:
+            applied.set()
+            self.show_message(f"refused: clock: {message}", error=True)
+
+        self.clock_worker.submit("clock", lambda: loc.set_params(clock=clock), done, failed)
         self.controls.speed.disabled = clock == "realtime"
-        self.show_message(f"clock: {clock}")
+        self.controls.realtime.visible = False
+        cost = (
+            "scans are not waited for: the results now depend on the machine's load"
+            if clock == "realtime"
+            else "every S2M match is waited for: the run repeats exactly"
+        )
+        if applied.wait(CLOCK_SWITCH_WAIT_S):
+            self.show_message(f"clock: {clock} ({cost})")
+        else:
+            self.show_message(f"clock: {clock} once the scan in progress has its S2M match ({cost})")
+
+    def realtime_clock(self) -> None:
+        """The status window's button: the real-time clock, as if chosen under Playback."""
+        with self._quietly():
+            self.controls.clock.value = "realtime"
+        self._apply_clock()
 
     def restart(self) -> None:
         seed = whole_number(self.controls.seed, "seed", 0)

@@ -139,10 +139,11 @@ class Player:
         self._clock = clock
         self._anchor: tuple[float, float] | None = None  # (wall time, sequence time) realtime pacing starts from
         self._last_start: float | None = None  # wall time the previous step started (replay pacing)
+        # rebase() counts up: a step in flight across a rebase belongs to the pacing before it
+        self._rebases = 0
         self.steps_done = 0  # steps completed since start (any reason)
         self._finished_at: deque[float] = deque(maxlen=256)  # start times of steps finished while playing
         self._lag: float | None = None  # realtime: how late the newest step started after its scan arrived
-        self._playing_since: float | None = None  # wall time play() was last pressed
         self._tracer = LateTracer.from_env()
         self._publishing = RecentPeak()  # what on_snapshot takes on the player thread (s)
         self._thread = threading.Thread(target=self._run, name="lidarloc-player", daemon=True)
@@ -155,7 +156,6 @@ class Player:
         with self._cond:
             if not self._playing:
                 self._playing = True
-                self._playing_since = time.perf_counter()
                 self._anchor = None
                 self._last_start = None
                 self._finished_at.clear()
@@ -200,28 +200,31 @@ class Player:
             self._last_start = None
             self._finished_at.clear()
             self._lag = None
+            self._rebases += 1
             self._cond.notify_all()
 
     def achieved_rate(self, window: float = RATE_WINDOW_S) -> float | None:
-        """Scans per second actually processed while playing, over the last ``window`` seconds
-        (None while paused, and until two scans finished or a whole window went by).
+        """Scans per second actually processed while playing: over the steps started in the
+        last ``window`` seconds, or over the last two steps when fewer started in it (a replay
+        that waits seconds for each S2M match still advances, and says at what rate). None while
+        paused, and until two steps started since play.
 
-        A step that is still running counts as it runs: one that waits seconds for a block pulls
-        the rate down while it waits (down to 0 once a whole window passed without a step),
-        instead of the rate of the scans before it staying on screen."""
+        A step that is still running counts as it runs: one that waits for a block pulls the
+        rate down while it waits, instead of the rate of the scans before it staying on screen."""
         now = time.perf_counter()
         with self._cond:
             if not self._playing:
                 return None
-            t = [x for x in self._finished_at if x >= now - window]
-            busy, since = self._busy, self._playing_since
-        if len(t) >= 2 and t[-1] > t[0]:
-            rate = (len(t) - 1) / (t[-1] - t[0])
-            # the running step's interval ends no earlier than now
-            return min(rate, len(t) / (now - t[0])) if busy else rate
-        if since is not None and now - since >= window:
-            return len(t) / window
-        return None
+            starts = list(self._finished_at)
+            busy = self._busy
+        t = [x for x in starts if x >= now - window]
+        if len(t) < 2:
+            t = starts[-2:]
+        if len(t) < 2 or not t[-1] > t[0]:
+            return None
+        rate = (len(t) - 1) / (t[-1] - t[0])
+        # the running step's interval ends no earlier than now
+        return min(rate, len(t) / (now - t[0])) if busy else rate
 
     def take_counts(self) -> dict:
         """Steps made, late steps and the largest lag (s) since the last call (or the start); the
@@ -367,6 +370,7 @@ class Player:
     def _run(self) -> None:
         while True:
             finished = False
+            started, rebases = 0.0, -1  # set with the step's start below
             with self._cond:
                 while True:
                     if self._stopping:
@@ -393,7 +397,10 @@ class Player:
                     self._cond.wait()
                 if not finished:
                     self._busy = True
-                    self._last_start = time.perf_counter()
+                    # kept here: rebase() may clear _last_start while this step runs (a kidnap
+                    # waits for the step's lock, then rebases while its snapshot is published)
+                    started = self._last_start = time.perf_counter()
+                    rebases = self._rebases
                     self._lag = self._start_lag(self._last_start)
                     self._count()
                     deadline = self._step_deadline()
@@ -428,10 +435,11 @@ class Player:
             with self._cond:
                 self._busy = False
                 self.steps_done += 1
-                if self._playing and snapshot is not None:
+                if self._playing and snapshot is not None and rebases == self._rebases:
                     # the step's start: starts are what the pacing spaces (finish times bunch up
-                    # after a slow scan), so the rate never reads above the set speed
-                    self._finished_at.append(self._last_start)
+                    # after a slow scan), so the rate never reads above the set speed. A step
+                    # that ran across a rebase is not counted: the rate starts again after it.
+                    self._finished_at.append(started)
                 self._cond.notify_all()
 
     def _fail(self, message: str) -> None:

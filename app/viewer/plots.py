@@ -8,7 +8,11 @@ data. viser's browser side keeps a user's x zoom across data updates by storing 
 relative to the data's extent; a page that handles several updates in one go (a tab opened while
 playing replays the backlog, and software WebGL keeps the page busy) stored a shrunken range
 before the previous one was applied, and the curves then seemed frozen at the left edge. A fixed
-range takes that path out (and keeps every plot on the same axis)."""
+range takes that path out (and keeps every plot on the same axis).
+
+Each plot's legend names its curves only: the event dots and the timeline's cursor are the same on
+every plot, so one key above the plots names them (:func:`dots_key_html`), and the plots keep their
+height for the curves (:data:`PLOT_ASPECT`)."""
 
 from __future__ import annotations
 
@@ -31,6 +35,19 @@ RUN_MARKS = (
 S2M_MARKS = (("S2M accepted", "#ff3cff", ("s2m_accepted",)), ("S2M rejected", "#969696", ("s2m_rejected",)))
 assert {k for _, _, kinds in RUN_MARKS + S2M_MARKS for k in kinds} == set(MARKED_EVENTS)
 
+PLOT_ASPECT = 1.1  # width / height of a plot's chart: nearly square in the panel's width
+NOT_IN_LEGEND = "lidarloc-not-in-legend"  # the class of the series the shared key names instead
+# the page hides those series' legend entries (uPlot gives each entry its series' class)
+LEGEND_CSS = f"<style>.u-legend .{NOT_IN_LEGEND} {{ display: none !important; }}</style>"
+CURSOR_LABEL = "scan on the timeline"
+
+
+def dots_key_html() -> str:
+    """The key of the dots every plot shares: the events' colours and the timeline's cursor."""
+    dots = " ".join(f"<span style='color:{color}'>●</span>&nbsp;{label}" for label, color, _ in RUN_MARKS + S2M_MARKS)
+    cursor = f"<span style='color:{CURSOR_COLOR}'>◉</span>&nbsp;{CURSOR_LABEL}"
+    return f"<small>Dots on the curves: {dots}; {cursor}.</small>{LEGEND_CSS}"
+
 
 def _line(label: str, color: str, show: bool = True) -> uplot.Series:
     return uplot.Series(label=label, stroke=color, width=2, show=show)
@@ -45,6 +62,7 @@ def _marks(marks) -> tuple:
             width=0,
             auto=False,
             points={"show": True, "size": 8, "fill": color, "stroke": color},
+            **{"class": NOT_IN_LEGEND},
         )
         for label, color, _ in marks
     )
@@ -138,6 +156,7 @@ class Plots:
         self.n_scans = 1
         self.has_truth = True
         self._ref_label: str | None = None
+        self.key = gui.add_html(dots_key_html())
         x = np.zeros(1)
         for spec in SPECS:
             series = self._series(spec)
@@ -146,7 +165,7 @@ class Plots:
                 series,
                 title=spec.title,
                 scales=_scales(1, spec.log),
-                aspect=1.6,
+                aspect=PLOT_ASPECT,
                 legend=uplot.Legend(live=False),
             )
 
@@ -164,13 +183,15 @@ class Plots:
                 for _, lbl, c, _ in self._ref_lines(spec)
             )
         cursor = uplot.Series(
-            label="scan on the timeline",
+            label=CURSOR_LABEL,
             stroke=CURSOR_COLOR,
             width=0,
             auto=False,
             points={"show": True, "size": 11, "fill": CURSOR_COLOR, "stroke": "#000000"},
+            **{"class": NOT_IN_LEGEND},
         )
-        return (uplot.Series(label="scan"),) + tuple(lines) + _marks(spec.marks) + ref + (cursor,)
+        scan = uplot.Series(label="scan", **{"class": NOT_IN_LEGEND})
+        return (scan,) + tuple(lines) + _marks(spec.marks) + ref + (cursor,)
 
     def _ref_lines(self, spec: PlotSpec) -> tuple:
         if spec.needs_truth and not self.has_truth:

@@ -160,7 +160,7 @@ def status_markdown(
     clocked = "" if state.startswith("recorded") else f" ({clock}{speed})"
     lines = [f"**Scan {k} of {snap.n_scans}** · {state}{clocked}"]
     if rate is not None:
-        achieved = f"achieved {rate:.1f} scans/s"
+        achieved = f"achieved {rate:.2f} scans/s" if rate < 1 else f"achieved {rate:.1f} scans/s"
         if lag_s is not None:
             achieved += f" · {1000 * lag_s:.0f} ms behind the sensor clock"
         lines.append(achieved)
@@ -286,6 +286,19 @@ class Readouts:
         if text != self._status_text:
             self._status_text = text
             self.c.status.content = text
+
+    def not_current(self, error: str, *, shown: int | None, n_scans: int | None, at: int | None) -> None:
+        """The display failed: the status says it is not current, with no verdict (a stale green
+        would claim a localization the page cannot vouch for), until an update succeeds."""
+        scan = "–" if shown is None or shown < 0 else str(shown)
+        head = f"**Scan {scan} of {n_scans}** · not current" if n_scans is not None else "**not current**"
+        lines = [head, error_markdown("⚠ the display is not current: its last update failed; retrying")]
+        if at is not None:
+            lines.append(f"the filter is at scan {at}")
+        lines.append(f"<small>{shorten(error, 120)}</small>")
+        text = "\n\n".join(lines)
+        self._status_text = text
+        self.c.status.content = text
 
     def update_plots(self, force: bool = False) -> None:
         """Resend the plots' series, at most every PLOT_INTERVAL unless ``force``d."""

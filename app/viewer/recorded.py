@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.errors import LidarlocError
 from ...core.geometry import transform_points
 from ...core.runs import recording
 from ...core.snapshot import Snapshot
@@ -245,3 +246,24 @@ def _series(rec: recording.Recording, n: int, offset: int, s2m_before: float = n
     out["gt"] = np.where(known[:, None], gt[:, :3, 3], np.nan).astype(np.float32)
     out["marks"] = [(int(e.scan), e.kind) for s, e in rec.events if s < n and e.kind in MARKED_EVENTS]
     return out
+
+
+def reopened(run: RecordedRun) -> RecordedRun:
+    """The original run as it now stands (it stopped growing when the branch took over)."""
+    run.refresh()
+    run.live = False
+    return run
+
+
+def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
+    """A localizer in ``run``'s exact state after ``step``, ``overrides`` (live parameters, SI)
+    applied (:func:`lidarloc.core.runs.branch.open_branch`)."""
+    try:
+        from ...core.runs.branch import open_branch
+    except ImportError:
+        raise LidarlocError(
+            "branching is not available in this installation (lidarloc.core.runs.branch missing)"
+        ) from None
+    with run._lock:
+        rec, j = run._locate(step)
+    return open_branch(rec, j + rec.dropped, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

@@ -5,6 +5,7 @@ notification, once per onset. :func:`~lidarloc.app.viewer.readouts.status_markdo
 from __future__ import annotations
 
 import sys
+import time
 import traceback
 from collections.abc import Callable
 
@@ -42,6 +43,36 @@ def play_state(player, localizer) -> str:
     return "paused" if player.idle else "stepping"
 
 
+#: how long the note on the replay clock's waits stays after the last wait seen: each scan may
+#: wait a moment only, and a note and a button that came and went every scan could not be read
+#: or clicked
+REPLAY_WAIT_NOTE_S = 10.0
+
+REPLAY_WAIT_NOTE = (
+    "<small>The replay clock waits for every S2M match, so that the run, any replay of it and "
+    "its branches repeat exactly. The real-time clock does not wait: faster, but the results "
+    "then depend on the machine's load, and a branch no longer repeats its original step for "
+    "step.</small>"
+)
+
+
+class ReplayWaits:
+    """Whether the status explains the replay clock's waits for S2M (and offers the real-time
+    clock): while playing on the replay clock, from a wait for S2M on until
+    REPLAY_WAIT_NOTE_S after the last one."""
+
+    def __init__(self):
+        self._seen: float | None = None
+
+    def shown(self, state: str, clock: str, playing: bool, now: float) -> bool:
+        if clock != "replay" or not playing:
+            self._seen = None
+            return False
+        if state.startswith("waiting for") and "S2M" in state:
+            self._seen = now
+        return self._seen is not None and now - self._seen <= REPLAY_WAIT_NOTE_S
+
+
 def viewer_status(v, snap: Snapshot) -> str:
     """The status markdown of ``snap`` on a :class:`~.app.Viewer` ``v`` (live, or a recorded step
     being scrubbed)."""
@@ -53,6 +84,10 @@ def viewer_status(v, snap: Snapshot) -> str:
     if recorded:
         # the scan on the timeline, as it was recorded: its own events, no live rates
         state = "recorded" if loc is None else f"recorded (live run {play_state(p, loc)})"
+        tl = v.travel.timeline
+        end, step = tl.own_end, tl.step
+        if end is not None and step is not None and step > end:
+            state += f" · this run ended at step {end}; the blue run is at step {step}"
         events = list(snap.events)[-EVENTS_SHOWN:]
     else:
         state, events = play_state(p, loc), v.history.recent_events()
@@ -61,7 +96,13 @@ def viewer_status(v, snap: Snapshot) -> str:
     # the next scan is named only when the shown snapshot is the localizer's newest: a display
     # that is a scan behind the player is no skipped scan
     newest = loc is not None and not recorded and snap is loc.snapshot()
-    return status_markdown(
+    playing = p is not None and not recorded and p.playing
+    # the clock chosen counts: a switch to real time lands once the step waiting now lets go
+    chosen = clock if v.controls.clock.value == "replay" else "realtime"
+    waits = v.replay_waits.shown(state, chosen, playing, time.monotonic())
+    if v.controls.realtime.visible != waits:
+        v.controls.realtime.visible = waits
+    text = status_markdown(
         snap,
         state,
         clock,
@@ -75,6 +116,10 @@ def viewer_status(v, snap: Snapshot) -> str:
         playing=p is not None and not recorded and p.playing,
         s2m_status=tuple(live_s2m) if live_s2m else None,
     )
+    if waits:  # under the play state's line, beside the button it explains
+        head, _, rest = text.partition("\n")
+        text = f"{head}\n\n{REPLAY_WAIT_NOTE}\n\n{rest}"
+    return text
 
 
 class AlarmNotice:

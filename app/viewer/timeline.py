@@ -88,6 +88,9 @@ class Timeline:
         self.live_available = True  # False for a finished recording (view --run): no live run
         self._n = 0
         self._first = 0  # the first step the recording still holds (a rolling window's)
+        # a finished run shown beside a longer one (view --run A --run B): the slider covers the
+        # longer one's steps; past this run's end it stays on its last step
+        self._span = 0
         self._written = 0  # the slider value this object wrote last (any other one is a user's move)
         self._listed_at = 0.0
         with gui.add_folder("Timeline", order=order):
@@ -129,7 +132,28 @@ class Timeline:
             self.step = None if live_available else (run.first_kept if run is not None and run.n else None)
             self._n = 0
             self._first = 0
+            self._span = 0
         self.sync(moved=True)
+
+    def cover(self, steps: int) -> None:
+        """A finished run on the slider: cover ``steps`` steps at least (a second, longer run
+        beside it), so that every step of both can be reached. A live run's slider follows its
+        own recording only."""
+        if self.live_available:
+            return
+        with self._lock:
+            self._span = max(int(steps), 0)
+        self.sync(moved=True)
+
+    @property
+    def own_end(self) -> int | None:
+        """The last step of the run itself when the slider goes past it (a longer second run),
+        else None."""
+        run = self.run
+        # a live run's slider follows its recording, which the run's own count may trail
+        if self.live_available or run is None or run.n == 0 or self._n <= run.n:
+            return None
+        return run.n - 1
 
     @property
     def n(self) -> int:
@@ -152,6 +176,8 @@ class Timeline:
         run = self.run
         if n is None:
             n = 0 if run is None else run.n
+        if run is not None and not self.live_available and run.n:
+            n = max(n, self._span)
         if first is None:
             first = 0 if run is None else run.first_kept
         first = min(first, max(n - 1, 0))
@@ -196,11 +222,15 @@ class Timeline:
             text = "No recorded scan yet"
         else:
             shown = n - 1 if step is None else step
+            end = self.own_end
+            past = end is not None and shown > end
             try:
-                scan = run.scan_of(shown)
+                scan = run.scan_of(end if past and end is not None else shown)
             except LidarlocError:
                 scan = shown
             where = "live" if step is None else ("recorded" if self.live_available else "recorded run")
+            if past:
+                where = f"this run ended at step {end}; the blue run goes on"
             text = f"**Scan {scan}** · step {shown} of {first}…{n - 1} · {where}"
             if first > 0:
                 text += (
@@ -266,8 +296,11 @@ class Timeline:
         )
 
     def go(self, step: int) -> int:
-        """Show recorded ``step`` (clamped to the recording); returns it."""
+        """Show recorded ``step`` (a step a rolling window dropped: its first one); returns it. A
+        step past the end is refused, not moved to another one."""
         self._require()
+        if step > self._n - 1:
+            raise LidarlocError(f"step {step} is past the end: the timeline ends at step {self._n - 1}")
         if self._before_move is not None:
             self._before_move()
         step = int(np.clip(step, self._first, self._n - 1))

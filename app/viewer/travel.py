@@ -25,7 +25,7 @@ from ...core.errors import LidarlocError
 from ...core.runs.recording import RecordingError
 from ...core.snapshot import Snapshot
 from .compare import compare_markdown
-from .recorded import RecordedRun
+from .recorded import RecordedRun, open_branch_at, reopened
 from .recorder import Recorder
 from .shapes import ChunkedPolyline, vehicle_outline
 from .style import REF_COLOR, REF_PARTICLE_COLOR
@@ -181,6 +181,9 @@ class TimeTravel:
         step, run = self.timeline.step, self.timeline.run
         if step is None or run is None:
             return None
+        end = self.timeline.own_end
+        if end is not None and step > end:
+            step = end  # a longer second run goes on; this one stays on its last step
         key = (id(run), step)
         full = self._full
         if full is not None and full[0] == key:
@@ -224,6 +227,9 @@ class TimeTravel:
         step, run = self.timeline.step, self.timeline.run
         if step is None or run is None or run.seq is None:
             return True
+        end = self.timeline.own_end
+        if end is not None and step > end:
+            step = end
         full = self._full
         return full is not None and full[0] == (id(run), step) and self.v.drawn is full[1]
 
@@ -318,6 +324,8 @@ class TimeTravel:
         self.ref_line.sync(self._ref_version, est, connected)
         self.compare_folder.visible = True
         self.update_compare_table()
+        # a finished run beside a longer one: the timeline reaches the longer one's last step
+        self.timeline.cover(run.n)
 
     def reference_node(self, name: str):
         """The second run's scene handle ``name`` ("particles", "vehicle", …), or None."""
@@ -420,6 +428,12 @@ class TimeTravel:
         if self.branching:
             raise LidarlocError("a branch is being started already")
         step = tl.current()
+        end = tl.own_end
+        if end is not None and step > end:
+            raise LidarlocError(
+                f"this run ended at step {end}: branch from a step up to it, or open the blue run "
+                "first (view --run) to branch from its later steps"
+            )
         v = self.v
         changed = v.params.changed()
         overrides = v.params.to_si(changed) if changed else {}
@@ -468,7 +482,7 @@ class TimeTravel:
                 v.params.accept(changed)
                 v._mark_pending()
             label = f"original ({Path(original.path).name})"
-            self.set_reference(_reopened(original), label=label, primary_label=f"branch after scan {scan}")
+            self.set_reference(reopened(original), label=label, primary_label=f"branch after scan {scan}")
             where = self.recorder.run_dir if self.recorder is not None and self.recorder.run_dir else None
             v.show_message(
                 f"branched after scan {scan}: press Play to continue" + (f"; recording into {where}" if where else ""),
@@ -476,24 +490,3 @@ class TimeTravel:
             )
         finally:
             self.branching = False
-
-
-def _reopened(run: RecordedRun) -> RecordedRun:
-    """The original run as it now stands (it stopped growing when the branch took over)."""
-    run.refresh()
-    run.live = False
-    return run
-
-
-def open_branch_at(run: RecordedRun, step: int, overrides: dict, cache_root):
-    """A localizer in ``run``'s exact state after ``step``, ``overrides`` (live parameters, SI)
-    applied (:func:`lidarloc.core.runs.branch.open_branch`)."""
-    try:
-        from ...core.runs.branch import open_branch
-    except ImportError:
-        raise LidarlocError(
-            "branching is not available in this installation (lidarloc.core.runs.branch missing)"
-        ) from None
-    with run._lock:
-        rec, j = run._locate(step)
-    return open_branch(rec, j + rec.dropped, overrides=overrides or None, seq=run.seq, cache_root=cache_root)

@@ -11,7 +11,9 @@ nodes, its background computations) lives here and in the modules it uses:
 
 Threads: ``on_draw`` runs on the display thread and only draws the residuals (one table read per
 point) and asks for the rest; surfaces and particle ranks are computed on one worker thread
-(:class:`~.why_worker.LatestOnly`), where a newer request of a kind supersedes an older one.
+(:class:`~.why_worker.LatestOnly`), where a newer request of a kind supersedes an older one. A
+surface asked for by the user comes in two passes (coarse, then full; see :mod:`.why_surface`):
+while the scans play, the coarse one is on screen in a quarter of the time.
 """
 
 from __future__ import annotations
@@ -25,9 +27,9 @@ from typing import TYPE_CHECKING
 from ...core.errors import LidarlocError
 from ...core.filter.surface import LikelihoodModel
 from .s2m_detail import S2MDetailView, s2m_detail_markdown
-from .why_particle import ParticleInspector, particle_report, pick_particle
+from .why_particle import NoParticleNear, ParticleInspector, particle_report, pick_particle
 from .why_residuals import AT_CHOICES, AT_ESTIMATE, AT_PARTICLE, ResidualView
-from .why_surface import SurfaceView, compute_surface
+from .why_surface import COARSE_CELL, SurfaceView, compute_surface
 from .why_worker import LatestOnly
 
 if TYPE_CHECKING:
@@ -36,6 +38,8 @@ if TYPE_CHECKING:
     from ...core.localizer import Localizer
     from ...core.snapshot import Snapshot
     from .scene import SceneView
+
+COARSE = "surface, coarse"  # the worker's kind of a surface's first pass
 
 S2M_HELP = (
     "The last match: its search area, the best candidates the branch and bound scored, the "
@@ -96,6 +100,7 @@ class WhyViews:
         if recorded and self._surface_scan is not None and self._surface_scan != snap.scan_index:
             # another scan's surface (drawn or on its way) must not stay under this one: it goes,
             # and with "Surface on every scan" this scan's follows once its scan is recomputed
+            self.worker.cancel(COARSE)
             self.worker.cancel("surface")
             self.surface.clear()
             self._surface_scan = None
@@ -163,7 +168,14 @@ class WhyViews:
         is ready: a click then is someone looking around the map)."""
         if self._localizer() is None:
             return
-        self._guarded(lambda: self.inspect_at(event.ray_origin, event.ray_direction))(event)
+        self._guarded(lambda: self._inspect_click(event))(event)
+
+    def _inspect_click(self, event) -> None:
+        """A click on no particle is no refusal: a hint to this tab, which goes by itself."""
+        try:
+            self.inspect_at(event.ray_origin, event.ray_direction)
+        except NoParticleNear as exc:
+            self._show_message(f"{exc} to inspect it", client=getattr(event, "client", None))
 
     def _model(self) -> LikelihoodModel | None:
         loc = self._localizer()
@@ -194,7 +206,7 @@ class WhyViews:
         snap, model = self._snapshot(), self._model()
         if model is None:
             raise LidarlocError("the localizer is still starting")
-        self._submit_surface(snap, model)
+        self._submit_surface(snap, model, coarse_first=True)
 
     def _every_scan_toggled(self) -> None:
         """Switched on: the drawn scan's surface now, if there is one (else from the next scan)."""
@@ -204,11 +216,22 @@ class WhyViews:
             except LidarlocError:  # no scan yet: the next one will have its surface
                 pass
 
-    def _submit_surface(self, snap: Snapshot, model: LikelihoodModel) -> None:
+    def _submit_surface(self, snap: Snapshot, model: LikelihoodModel, coarse_first: bool = False) -> None:
+        """The surface of ``snap`` on the worker; ``coarse_first``: a coarse pass before it (a
+        user's request; the surface on every scan goes straight to the full one)."""
         over_yaw = bool(self.surface.over_yaw.value)
         ground = self.scene.ground
         self._surface_scan = snap.scan_index
         self.surface.busy(snap.scan_index)
+        if coarse_first:  # submitted first: the worker takes the kinds in the order they came
+            self.worker.submit(
+                COARSE,
+                lambda: compute_surface(snap, model, over_yaw, COARSE_CELL),
+                done=lambda surf: self.surface.draw(surf, snap, ground),
+                failed=self._surface_failed,
+            )
+        else:
+            self.worker.cancel(COARSE)  # a first pass of an older request must not land after it
         self.worker.submit(
             "surface",
             lambda: compute_surface(snap, model, over_yaw),

@@ -31,6 +31,10 @@ PICK_ANGLE = 0.03  # … or within this share of the distance to the camera (~1.
 HEADING_M_PER_RAD = 2.0  # following a pick: 1 rad of heading counts as 2 m of distance
 
 
+class NoParticleNear(LidarlocError):
+    """A click that is not on a particle (a plain click in the scene is often just a look around)."""
+
+
 def pick_particle(particles: np.ndarray, ray_origin, ray_direction) -> int:
     """Index of the particle nearest to a click's ray (within PICK_MIN_M or PICK_ANGLE of it);
     LidarlocError when none is that near."""
@@ -47,7 +51,7 @@ def pick_particle(particles: np.ndarray, ray_origin, ray_direction) -> int:
     reach = np.maximum(PICK_MIN_M, PICK_ANGLE * along)
     j = int(np.argmin(np.where(off <= reach, off, np.inf)))
     if not off[j] <= reach[j]:
-        raise LidarlocError("no particle near that click: click on a particle's dot or arrow")
+        raise NoParticleNear("no particle near that click: click on a particle's dot or arrow")
     return j
 
 

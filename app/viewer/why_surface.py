@@ -3,10 +3,12 @@ an x–y grid around the estimate (:meth:`~lidarloc.core.filter.surface.Likeliho
 filter's kernel and current options), drawn as an image on the ground with the estimate, the
 truth and the surface's maximum marked, and its colour scale in the panel.
 
-The computation runs on the views' worker thread, on that thread alone (~0.1–0.3 s: the
-filter, its child processes and the browser share the two cores; see
-:meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`); a new request supersedes one still
-running, and the display thread only asks.
+The computation runs on the views' worker thread, on that thread alone (~0.1–0.3 s on a quiet
+machine; several times that while the filter, its child processes and the browser share the two
+cores; see :meth:`~lidarloc.core.filter.surface.LikelihoodModel.surface`); a new request supersedes
+one still running, and the display thread only asks. A surface asked for with the button comes
+in two passes: first in :data:`COARSE_CELL` cells (a quarter of the work, on screen while the
+scans play), then in the full :data:`~lidarloc.core.filter.surface.CELL` cells, which replace it.
 
 Where it is drawn: the image floats :data:`LIFT` above the map's ground under it, above the
 map's ground points (their squares reach half a point size above their height), and the marks
@@ -34,6 +36,7 @@ SENSOR_ABOVE_GROUND = 1.73  # m, where the image goes when the map has no ground
 LIFT = 0.6  # m above the road, clear of its points' squares and kerbs
 MARK_ABOVE = 0.4  # m above the higher of the estimate and the truth (the vehicles' outlines)
 MARK_SIZE = 1.5  # m, the smallest half-size of a mark: visible around a 4.5 m vehicle
+COARSE_CELL = 2 * CELL  # m, the first pass's cells: a quarter of the cells, the same likelihood
 
 
 def scan_in_sensor_frame(snap: Snapshot) -> np.ndarray:
@@ -43,14 +46,14 @@ def scan_in_sensor_frame(snap: Snapshot) -> np.ndarray:
     )
 
 
-def compute_surface(snap: Snapshot, model: LikelihoodModel, best_over_yaw: bool) -> Surface:
-    """The surface around ``snap``'s estimate (the work the worker thread does, on that thread
-    alone)."""
+def compute_surface(snap: Snapshot, model: LikelihoodModel, best_over_yaw: bool, cell: float = CELL) -> Surface:
+    """The surface around ``snap``'s estimate in ``cell`` metre cells (the work the worker thread
+    does, on that thread alone)."""
     return model.surface(
         scan_in_sensor_frame(snap),
         pose_to_xyz_ypr(np.asarray(snap.mean_pose, float)),
         HALF_WIDTH,
-        CELL,
+        cell,
         YAW_WINDOW if best_over_yaw else 0.0,
         YAW_STEP,
         parallel=False,
@@ -102,6 +105,8 @@ def surface_markdown(surface: Surface, snap: Snapshot) -> str:
         turn = math.degrees(surface.yaw[surface.argmax] - surface.center[3])
         lines.append(f"best yaw there: {turn:+.0f}° from the estimate's")
     lines.append(f"{n}×{n} cells of {surface.cell:g} m, {yaws}: {surface.ms:.0f} ms")
+    if surface.cell > CELL:
+        lines.append(f"_a first look: the surface in {CELL:g} m cells follows_")
     return "  \n".join(lines)
 
 
@@ -125,7 +130,9 @@ class SurfaceView:
         self.last: Surface | None = None
         self.last_snapshot: Snapshot | None = None
         self.button = gui.add_button(
-            "Likelihood surface here", hint=f"The scan's log-likelihood on ±{HALF_WIDTH:g} m around the estimate"
+            "Likelihood surface here",
+            hint=f"The scan's log-likelihood on ±{HALF_WIDTH:g} m around the estimate: a first look in "
+            f"{COARSE_CELL:g} m cells at once, then {CELL:g} m cells",
         )
         self.every_scan = gui.add_checkbox("Surface on every scan", False)
         self.over_yaw = gui.add_checkbox(

@@ -305,16 +305,17 @@ def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float 
                 # playing again before the next one: on the replay clock a whole-map S2M match
                 # after the jump can hold the scans for minutes on a busy machine
                 page.wait_for_function(f"{JS_SCAN} >= {target + 3}", timeout=SETTLE_TIMEOUTS * timeout_ms)
-            tab = v.cameras._tabs[max(v.server.get_clients())]
+            clients = v.server.get_clients()
+            client = clients[max(clients)]
+            tab = v.cameras._tabs[client.client_id]
             before = page.evaluate(JS_CAMERA)
             page.get_by_role("button", name="Top-down view").click(timeout=timeout_ms)  # 120 m above the vehicle
-            page.wait_for_function(_moved_by(before, 30.0), timeout=timeout_ms)
+            page.wait_for_function(_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
             for _ in range(BROWSER_REPEATS):
-                # back behind the vehicle (Follow off and on again), then straight down again
+                # back behind the vehicle (where ticking Follow puts the camera), then straight down again
                 before = page.evaluate(JS_CAMERA)
-                tab.follow.value = False
-                tab.follow.value = True
-                page.wait_for_function(_moved_by(before, 30.0), timeout=timeout_ms)
+                v.cameras._follow_toggled(client, tab)
+                page.wait_for_function(_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
                 before = page.evaluate(JS_CAMERA)
                 page.evaluate(JS_WATCH_PRESS + JS_WATCH_CAMERA.replace("MOVED", _moved_by(before, 30.0)))
                 page.get_by_role("button", name="Top-down view").click(timeout=timeout_ms)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -21,6 +22,10 @@ DEFAULT_FAR, DEFAULT_NEAR = 1000.0, 0.01
 #: … the far one moved out to this many times the extent of a map wider than LARGE_MAP_M (m)
 VIEW_DISTANCE_EXTENTS = 3.0
 LARGE_MAP_M = 500.0
+#: a tab's camera placed by a button waits this long (s) at most for the tab to report it there …
+PLACED_WAIT_S = 5.0
+#: … within this distance of where it was placed relative to its look-at (m)
+PLACED_TOLERANCE_M = 1.0
 
 
 def _vehicle(snap: Snapshot | None) -> np.ndarray | None:
@@ -66,6 +71,7 @@ class TabCameras:
         self._guarded = guarded
         self._order = folder_order
         self._tabs: dict[int, CameraControls] = {}
+        self._placed: dict[int, tuple[np.ndarray, float]] = {}  # per tab: camera − look-at placed, until when
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ tabs
@@ -91,6 +97,7 @@ class TabCameras:
     def disconnect(self, client: viser.ClientHandle) -> None:
         with self._lock:
             self._tabs.pop(client.client_id, None)
+            self._placed.pop(client.client_id, None)
 
     def _follow_toggled(self, client, tab: CameraControls) -> None:
         """Following starts behind the vehicle, looking along its heading."""
@@ -102,9 +109,7 @@ class TabCameras:
         p = T[:3, 3]
         yaw = float(np.arctan2(T[1, 0], T[0, 0]))
         back = np.array([-math.cos(yaw), -math.sin(yaw), 0.0])
-        with tab_may_close(client), client.atomic():
-            client.camera.position = p + 35.0 * back + np.array([0, 0, 25.0])
-            client.camera.look_at = p
+        self._place(client, p + 35.0 * back + np.array([0, 0, 25.0]), p)
 
     def top_down(self, client) -> None:
         """Look straight down: on the vehicle if following it, else on the whole map."""
@@ -123,13 +128,34 @@ class TabCameras:
         h = 0.55 * self.scene.map_extent / math.tan(fov / 2.0)
         self._look_down(client, self.scene.map_center, h)
 
-    @staticmethod
-    def _look_down(client, target, height: float) -> None:
+    def _look_down(self, client, target, height: float) -> None:
         target = np.asarray(target, float)
+        # a hair off vertical keeps the orbit controls' up vector defined; +y stays up on screen
+        self._place(client, target + np.array([0.0, -1e-3 * height, height]), target)
+
+    def _place(self, client, position, look_at) -> None:
+        """Move one tab's camera. Until the tab reports the camera there, the vehicle's moves
+        leave it alone: a report the tab sent before this move arrives after it, and a follow
+        step from that stale camera would put the old view back."""
+        position, look_at = np.asarray(position, float), np.asarray(look_at, float)
+        with self._lock:
+            self._placed[client.client_id] = (position - look_at, time.monotonic() + PLACED_WAIT_S)
         with tab_may_close(client), client.atomic():
-            # a hair off vertical keeps the orbit controls' up vector defined; +y stays up on screen
-            client.camera.position = target + np.array([0.0, -1e-3 * height, height])
-            client.camera.look_at = target
+            client.camera.position = position
+            client.camera.look_at = look_at
+
+    def _settled(self, cid: int, position: np.ndarray, look_at: np.ndarray) -> bool:
+        """Whether tab ``cid`` reports the view the server last placed it at (the camera where it
+        was put relative to what it looks at: following moves both), or the wait is over."""
+        with self._lock:
+            placed = self._placed.get(cid)
+            if placed is None:
+                return True
+            offset, until = placed
+            if np.linalg.norm(position - look_at - offset) < PLACED_TOLERANCE_M or time.monotonic() > until:
+                del self._placed[cid]
+                return True
+            return False
 
     # ------------------------------------------------------------------ all tabs
     def overview(self) -> None:
@@ -189,6 +215,8 @@ class TabCameras:
                 continue
             try:
                 cam = client.camera
+                if not self._settled(cid, np.asarray(cam.position, float), np.asarray(cam.look_at, float)):
+                    continue
                 shift = p - np.asarray(cam.look_at)
                 if np.linalg.norm(shift) > 1e-3:
                     with tab_may_close(client):

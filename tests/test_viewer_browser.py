@@ -23,8 +23,10 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 def served(tmp_path_factory):
     from lidarloc.app.viewer.serve import serve
 
-    loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"))
-    # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps.
+    # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps;
+    # 200 scans (100 s at least): its Pause comes after a page load, two scans and a screenshot of
+    # the canvas, and on a quiet machine a shorter run had ended by then (the button said Play)
+    loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"), n_scans=200)
     handle = serve(loc, port=0, autoplay=True, speed="2")
     yield handle
     handle.stop()
@@ -324,10 +326,12 @@ def test_viewer_in_chromium(browser, served):
 
 @pytest.fixture
 def waiting(tmp_path_factory):
-    """A short run that waits for its first tab (the demo's default). Its S2M process runs at the
-    PF's priority, as the other browser tests' (helpers.browser_localizer): the replay clock waits
-    for every match, and a niced S2M beside busy processes left the run at scan 30 of 40 after
-    the 90 s its end is waited for."""
+    """A run that waits for its first tab (the demo's default): 100 scans at 5 scans/s, 20 s at
+    least, so that its Pause, pressed once the page shows a scan, lands before the end on a quiet
+    machine, and short enough to be played to the end later. Its S2M process runs at the PF's
+    priority, as the other browser tests' (helpers.browser_localizer): the replay clock waits for
+    every match, and a niced S2M beside busy processes let the run crawl past the time its end
+    is waited for."""
     from helpers import StreetSequence
     from lidarloc.app.viewer.serve import serve
     from lidarloc.core.config import Config
@@ -336,8 +340,8 @@ def waiting(tmp_path_factory):
     cfg = Config()
     cfg.pf.n_particles = 300
     cfg.s2m.replay_process_nice = 0
-    loc = Localizer(StreetSequence(n=40), cfg, tmp_path_factory.mktemp("waiting-cache"))
-    handle = serve(loc, port=0, speed="10")
+    loc = Localizer(StreetSequence(n=100), cfg, tmp_path_factory.mktemp("waiting-cache"))
+    handle = serve(loc, port=0, speed="5")
     yield handle
     handle.stop()
     loc.close()

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 
 from ...core.snapshot import Snapshot
 from .faults import one_line
-from .status import play_state, viewer_status
+from .status import viewer_status
 from .style import MIN_DRAW_INTERVAL
 
 #: after a display update failed, the next try waits this long (s): it draws the whole snapshot
@@ -123,9 +123,6 @@ class Display:
         with self.server.atomic():
             self.scene.follow_map(None if snap is None else snap.mean_pose)
         self.overview.update(snap, self.scene.near_tiles, time.monotonic())
-
-    def _play_state(self) -> str:
-        return play_state(self.player, self.localizer)
 
     def status_markdown(self, snap: Snapshot) -> str:
         return viewer_status(self, snap)

@@ -26,6 +26,8 @@ def pytest_collection_finish(session):
     from helpers import PYRIGHT_TEST, start_pyright
 
     opt = session.config.option
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # every worker collects every test: its own worker starts it
+        return
     if opt.collectonly or getattr(opt, "setuponly", False) or getattr(opt, "setupplan", False):
         return
     if any(item.nodeid.endswith(PYRIGHT_TEST) for item in session.items):
@@ -36,6 +38,23 @@ def pytest_sessionfinish(session):
     run = _pyright.pop("run", None)
     if not isinstance(run, str) and run is not None:  # ended, if its test did not wait for it
         run.stop()
+
+
+# ------------------------------------------------------------------------------- two workers
+# `./run test` runs the suite on two pytest-xdist workers (--dist loadgroup). A test file stays on
+# one worker (its module fixtures are built once), and the files that share one of the slowest
+# session fixtures go to the same worker, which builds it once: the default town's map
+# (default_town_cache, ~40 s) is the one worth keeping to one worker.
+SHARED_GROUPS = {"default_town_cache": "default-town-map"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        fixtures = set(getattr(item, "fixturenames", ()))
+        group = next((g for f, g in SHARED_GROUPS.items() if f in fixtures), None)
+        item.add_marker(pytest.mark.xdist_group(group or item.nodeid.split("::", 1)[0]))
 
 
 @pytest.fixture(scope="session")
@@ -223,6 +242,19 @@ def browser():
         b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         yield b
         b.close()
+
+
+@pytest.fixture(autouse=True)
+def _close_browser_pages(request):
+    """After a browser test, passed or failed, its pages close: a page a failed test left open
+    goes on drawing its scene in software WebGL and takes a core from the tests after it."""
+    yield
+    if "browser" in request.fixturenames:
+        for context in list(request.getfixturevalue("browser").contexts):
+            try:
+                context.close()
+            except Exception:  # the browser went away with its test: nothing left to close
+                pass
 
 
 @pytest.fixture(scope="module")

@@ -36,12 +36,13 @@ def served(tmp_path_factory):
 @pytest.fixture
 def playing(tmp_path_factory):
     """A run already playing before any tab is open (the usual case: start the demo, then open
-    the page). 150 scans, at least 30 s at 5 scans/s: its test pauses it after a page load and
-    twenty-odd scans of plots, well before the end (a Pause that lands after the last scan
-    shows "finished", not "paused")."""
+    the page). 300 scans, at least 60 s at 5 scans/s: its test pauses it after a page load,
+    twenty-odd scans of plots and a notification, well before the end (a Pause that lands after
+    the last scan shows "finished", not "paused"; 150 scans had ended by then on a busy page).
+    The run stops with the test, so a long one costs nothing."""
     from lidarloc.app.viewer.serve import serve
 
-    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"), n_scans=150)
+    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"), n_scans=300)
     handle = serve(loc, port=0, autoplay=True, speed="5")
     yield handle
     handle.stop()

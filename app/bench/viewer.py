@@ -249,9 +249,12 @@ def _surface_ms(page, timeout_ms: float) -> tuple[float, float]:
     return w["first"] - w["down"], w["full"] - w["down"]
 
 
-def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float = 120_000) -> dict:
+def browser_figures(
+    cache_root=None, n_particles: int = 1000, timeout_ms: float = 120_000, repeats: int = BROWSER_REPEATS
+) -> dict:
     """The first likelihood surface (ms), Kidnap's display resume (s) and the Top-down view's
-    answer (ms) in a real headless Chromium (see the module's docstring)."""
+    answer (ms) in a real headless Chromium, medians of ``repeats`` presses each (see the
+    module's docstring)."""
     from .clients import CHROMIUM, CHROMIUM_ARGS
 
     none = {"first_surface_ms": None, "kidnap_display_resume_s": None, "top_down_ms": None}
@@ -283,7 +286,7 @@ def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float 
             v = handle.viewer
             # the likelihood surface while the scans play, the run's first one first
             page.get_by_text("Why", exact=True).click(timeout=timeout_ms)
-            for _ in range(BROWSER_REPEATS):
+            for _ in range(repeats):
                 first, full = _surface_ms(page, timeout_ms)
                 first_ms.append(first)
                 full_ms.append(full)
@@ -291,7 +294,7 @@ def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float 
             page.wait_for_function(
                 f"[...document.querySelectorAll('input')].some(i => i.value === '{KIDNAP_SKIP}')", timeout=timeout_ms
             )
-            for _ in range(BROWSER_REPEATS):
+            for _ in range(repeats):
                 kidnaps = sum(e.kind == "kidnap" for e in loc.events)
                 page.evaluate(JS_WATCH_PRESS + JS_WATCH_SCANS)
                 page.get_by_role("button", name="Kidnap").click(timeout=timeout_ms)
@@ -311,7 +314,7 @@ def browser_figures(cache_root=None, n_particles: int = 1000, timeout_ms: float 
             before = page.evaluate(JS_CAMERA)
             page.get_by_role("button", name="Top-down view").click(timeout=timeout_ms)  # 120 m above the vehicle
             page.wait_for_function(_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
-            for _ in range(BROWSER_REPEATS):
+            for _ in range(repeats):
                 # back behind the vehicle (where ticking Follow puts the camera), then straight down again
                 before = page.evaluate(JS_CAMERA)
                 v.cameras._follow_toggled(client, tab)

@@ -280,15 +280,16 @@ class StreetSequence(Sequence):
         return self._poses
 
 
-def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int | None = None, **settings):
-    """A Localizer with the default configuration but ``n_particles`` particles (and, if given,
-    the S2M process's replay-clock nice value); ``section__key=value`` sets any other setting."""
+def make_localizer(seq, cache_root, n_particles: int = 300, s2m_nice: int = 0, **settings):
+    """A Localizer with the default configuration but ``n_particles`` particles and the S2M
+    process's replay-clock nice value ``s2m_nice`` (the PF's priority unless a test asks: the
+    replay waits for every match, a niced S2M beside the other worker's tests crawls, and the
+    priority never changes a replay's result); ``section__key=value`` sets any other setting."""
     from lidarloc.core.localizer import Localizer
 
     cfg = Config()
     cfg.pf.n_particles = n_particles
-    if s2m_nice is not None:
-        cfg.s2m.replay_process_nice = s2m_nice
+    cfg.s2m.replay_process_nice = s2m_nice
     for key, value in settings.items():
         section, name = key.split("__")
         setattr(getattr(cfg, section), name, value)

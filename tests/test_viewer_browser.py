@@ -12,7 +12,7 @@ import re
 
 import numpy as np
 import pytest
-from browser import ARTIFACTS, JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT
+from browser import ARTIFACTS, JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT, serving
 from helpers import browser_localizer, wait_for
 
 # ~40 s (software WebGL): the slow lane
@@ -21,16 +21,12 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    from lidarloc.app.viewer.serve import serve
-
     # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps;
     # 200 scans (100 s at least): its Pause comes after a page load, two scans and a screenshot of
     # the canvas, and on a quiet machine a shorter run had ended by then (the button said Play)
     loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"), n_scans=200)
-    handle = serve(loc, port=0, autoplay=True, speed="2")
-    yield handle
-    handle.stop()
-    loc.close()
+    with serving(loc, autoplay=True, speed="2") as handle:
+        yield handle
 
 
 @pytest.fixture
@@ -40,13 +36,9 @@ def playing(tmp_path_factory):
     twenty-odd scans of plots and a notification, well before the end (a Pause that lands after
     the last scan shows "finished", not "paused"; 150 scans had ended by then on a busy page).
     The run stops with the test, so a long one costs nothing."""
-    from lidarloc.app.viewer.serve import serve
-
     loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"), n_scans=300)
-    handle = serve(loc, port=0, autoplay=True, speed="5")
-    yield handle
-    handle.stop()
-    loc.close()
+    with serving(loc, autoplay=True, speed="5") as handle:
+        yield handle
 
 
 # each plot's chart in the page (viser registers them for tests): points, x range, newest x
@@ -334,7 +326,6 @@ def waiting(tmp_path_factory):
     every match, and a niced S2M beside busy processes let the run crawl past the time its end
     is waited for."""
     from helpers import StreetSequence
-    from lidarloc.app.viewer.serve import serve
     from lidarloc.core.config import Config
     from lidarloc.core.localizer import Localizer
 
@@ -342,10 +333,8 @@ def waiting(tmp_path_factory):
     cfg.pf.n_particles = 300
     cfg.s2m.replay_process_nice = 0
     loc = Localizer(StreetSequence(n=100), cfg, tmp_path_factory.mktemp("waiting-cache"))
-    handle = serve(loc, port=0, speed="5")
-    yield handle
-    handle.stop()
-    loc.close()
+    with serving(loc, speed="5") as handle:
+        yield handle
 
 
 # the status table's S2M row (a table row's cells are tab-separated in innerText; "S2M enabled",

@@ -11,8 +11,9 @@ from __future__ import annotations
 import threading
 
 import pytest
-from browser import JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT
+from browser import JS_SCAN, LOAD_TIMEOUT, STEP_TIMEOUT, serving
 from helpers import browser_localizer, wait_for
+from lidarloc.app.bench.viewer import JS_CAMERA, camera_moved_by
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -39,13 +40,9 @@ JS_STATUS_BOX = """(() => {
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     """A run playing at 2 scans/s, long enough (300 scans, 150 s at least) for every test here."""
-    from lidarloc.app.viewer.serve import serve
-
     loc = browser_localizer(tmp_path_factory.mktemp("newuser-cache"), n_scans=300)
-    handle = serve(loc, port=0, autoplay=True, speed="2")
-    yield handle
-    handle.stop()
-    loc.close()
+    with serving(loc, autoplay=True, speed="2") as handle:
+        yield handle
 
 
 def open_viewer(browser, url, ready: str = f"{JS_SCAN} >= 0"):
@@ -167,13 +164,9 @@ def test_notifications_hints_and_a_failed_display_update_in_one_tab(browser, ser
 @pytest.fixture
 def paused(tmp_path_factory):
     """A run that waits for Play in the page (60 scans)."""
-    from lidarloc.app.viewer.serve import serve
-
     loc = browser_localizer(tmp_path_factory.mktemp("paused-cache"), n_scans=60)
-    handle = serve(loc, port=0, autoplay=False, speed="10")
-    yield handle
-    handle.stop()
-    loc.close()
+    with serving(loc, autoplay=False, speed="10") as handle:
+        yield handle
 
 
 # every 100 ms, the status's line of the achieved rate (window.__rates)
@@ -245,18 +238,6 @@ def test_replay_waiting_for_s2m_says_why_and_offers_the_realtime_clock(browser, 
         gate.set()
 
 
-JS_CAMERA = "window.__viserMutable.camera.position.toArray()"
-
-
-def _moved_by(before, metres: float) -> str:
-    """A condition in the page: its camera is more than ``metres`` from ``before``."""
-    x, y, z = before
-    return (
-        f"(() => {{ const p = window.__viserMutable.camera.position; "
-        f"return Math.hypot(p.x - {x}, p.y - {y}, p.z - {z}) > {metres}; }})()"
-    )
-
-
 def test_the_camera_follows_by_default_and_answers_while_the_display_is_busy(browser, paused, monkeypatch):
     v = paused.viewer
     page = open_viewer(browser, paused.url, PAUSED_READY)
@@ -272,7 +253,7 @@ def test_the_camera_follows_by_default_and_answers_while_the_display_is_busy(bro
         v.step_once()
         wait_for(lambda: v.player.idle, what="a step")
     page.wait_for_function(f"{JS_SCAN} >= 5", timeout=STEP_TIMEOUT)
-    page.wait_for_function(_moved_by(before, 3.0), timeout=STEP_TIMEOUT)
+    page.wait_for_function(camera_moved_by(before, 3.0), timeout=STEP_TIMEOUT)
 
     # a display update that takes long (a loaded machine): the tab's camera buttons still answer
     hold, holding = threading.Event(), threading.Event()
@@ -289,7 +270,7 @@ def test_the_camera_follows_by_default_and_answers_while_the_display_is_busy(bro
         assert holding.wait(STEP_TIMEOUT / 1000), "the display did not draw the step"
         before = page.evaluate(JS_CAMERA)
         page.get_by_role("button", name="Top-down view").click()
-        page.wait_for_function(_moved_by(before, 30.0), timeout=STEP_TIMEOUT)
+        page.wait_for_function(camera_moved_by(before, 30.0), timeout=STEP_TIMEOUT)
         assert not hold.is_set()  # answered while the display update was still held
     finally:
         hold.set()

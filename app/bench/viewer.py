@@ -188,7 +188,8 @@ JS_SCAN = "(() => { const m = document.body.innerText.match(/Scan (\\d+) of \\d+
 JS_CAMERA = "window.__viserMutable.camera.position.toArray()"
 
 
-def _moved_by(before, metres: float) -> str:
+def camera_moved_by(before, metres: float) -> str:
+    """A condition in the page: its camera is more than ``metres`` from ``before`` (JS_CAMERA)."""
     x, y, z = before
     return (
         f"(() => {{ const p = window.__viserMutable.camera.position; "
@@ -313,14 +314,14 @@ def browser_figures(
             tab = v.cameras._tabs[client.client_id]
             before = page.evaluate(JS_CAMERA)
             page.get_by_role("button", name="Top-down view").click(timeout=timeout_ms)  # 120 m above the vehicle
-            page.wait_for_function(_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
+            page.wait_for_function(camera_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
             for _ in range(repeats):
                 # back behind the vehicle (where ticking Follow puts the camera), then straight down again
                 before = page.evaluate(JS_CAMERA)
                 v.cameras._follow_toggled(client, tab)
-                page.wait_for_function(_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
+                page.wait_for_function(camera_moved_by(before, 30.0), polling=100, timeout=timeout_ms)
                 before = page.evaluate(JS_CAMERA)
-                page.evaluate(JS_WATCH_PRESS + JS_WATCH_CAMERA.replace("MOVED", _moved_by(before, 30.0)))
+                page.evaluate(JS_WATCH_PRESS + JS_WATCH_CAMERA.replace("MOVED", camera_moved_by(before, 30.0)))
                 page.get_by_role("button", name="Top-down view").click(timeout=timeout_ms)
                 page.wait_for_function("window.__moved !== null", polling=20, timeout=timeout_ms)
                 top_down_ms.append(page.evaluate("window.__moved - window.__press"))

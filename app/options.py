@@ -2,13 +2,17 @@
 
 The source options are one unit: :func:`with_source` adds them to a command (under one help
 panel) and hands the command a :class:`~lidarloc.core.sequences.factory.SourceSpec` built from them
-by name, so a new source option is declared once, in :func:`source_parameters`.
+by name, so a new source option is declared once, in :func:`source_parameters`. The configuration
+options are another: :func:`with_settings` adds them and hands the command the configuration they
+make, or :class:`ConfigOptions`, the options as given.
 """
 
 from __future__ import annotations
 
 import functools
 import inspect
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, NamedTuple
 
@@ -187,13 +191,18 @@ def with_source(panel: str = _SRC, exclude: tuple[str, ...] = ()):
             values = {name: kwargs.pop(name) for name in SOURCE_PARAMS if name in kwargs}
             return func(spec=SourceSpec(**values), **kwargs)
 
-        # typer reads the signature (and the annotations) of the command it is given
-        del command.__wrapped__
-        command.__signature__ = signature.replace(parameters=params)
-        command.__annotations__ = {p.name: p.annotation for p in params}
-        return command
+        return _with_parameters(command, signature, params)
 
     return decorate
+
+
+def _with_parameters(command, signature: inspect.Signature, params: list[inspect.Parameter]):
+    """``command`` (a wrapper made by :func:`functools.wraps`) showing typer the parameters ``params``."""
+    # typer reads the signature (and the annotations) of the command it is given
+    del command.__wrapped__
+    command.__signature__ = signature.replace(parameters=params)
+    command.__annotations__ = {p.name: p.annotation for p in params}
+    return command
 
 
 ConfigOpt = Annotated[
@@ -296,3 +305,82 @@ def config_from(
     if seed is not None:
         cfg.seed = seed
     return cfg
+
+
+@dataclass(frozen=True)
+class ConfigOptions:
+    """``--preset``, ``--config``, ``--set`` and ``--world`` as given: None (no entries for --set)
+    where one was not given or the command does not take it."""
+
+    preset: str | None = None
+    config: Path | None = None
+    overrides: tuple[str, ...] = ()
+    world: str | None = None
+
+    def load(self, seed: int | None = None, first: Sequence[str] = (), last: Sequence[str] = ()) -> Config:
+        """The configuration they make, with the entries ``first`` set before ``--set`` (the
+        command's own defaults, which --set may change) and ``last`` after it (what the command's
+        own options say); ``seed`` (``--seed``) last."""
+        return config_from(
+            self.config, [*first, *self.overrides, *last], seed=seed, preset=self.preset, world=self.world
+        )
+
+    def args(self) -> list[str]:
+        """``--preset``, ``--config`` and ``--set`` as given, for a ``lidarloc`` command in a fresh
+        process (``demo``, ``view``, ``run``: none of them takes ``--world``)."""
+        args = ["--preset", self.preset] if self.preset is not None else []
+        args += ["--config", str(self.config)] if self.config is not None else []
+        for item in self.overrides:
+            args += ["--set", item]
+        return args
+
+
+#: the configuration options as keyword parameters of a command, in the order of the help
+_SETTINGS = {
+    name: inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation, default=default)
+    for name, annotation, default in (
+        ("world", WorldOpt, "lived-in"),
+        ("preset", PresetOpt, None),
+        ("config", ConfigOpt, None),
+        ("set_", SetOpt, None),
+    )
+}
+
+
+def with_settings(world: bool = False, preset: bool = True):
+    """Decorator: the command gets ``--preset`` (unless not ``preset``), ``--config`` and ``--set``,
+    and ``--world`` first with ``world``, in place of its ``cfg`` or ``settings`` parameter.
+
+    ``cfg`` receives the configuration they make, built before the command's body runs: a bad
+    value stops the command before it does anything. ``settings`` receives them as given
+    (:class:`ConfigOptions`), for a command that checks its other options first, adds entries or a
+    seed, or hands them to a child process. The options keep their names, so :func:`given` still
+    asks about them."""
+    options = [p for name, p in _SETTINGS.items() if (world or name != "world") and (preset or name != "preset")]
+
+    def decorate(func):
+        # eval_str: the command's module may use string annotations (``from __future__ import annotations``)
+        signature = inspect.signature(func, eval_str=True)
+        targets = [name for name in ("cfg", "settings") if name in signature.parameters]
+        if len(targets) != 1:
+            raise TypeError(f"{func.__name__}: with_settings needs a cfg or a settings parameter (one)")
+        (target,) = targets
+        params = []
+        for name, p in signature.parameters.items():
+            # in the parameter's place: the options' order in --help is where the command puts them
+            params += options if name == target else [p.replace(kind=inspect.Parameter.KEYWORD_ONLY)]
+
+        @functools.wraps(func)
+        def command(**kwargs):
+            settings = ConfigOptions(
+                preset=kwargs.pop("preset", None),
+                config=kwargs.pop("config"),
+                overrides=tuple(kwargs.pop("set_") or ()),
+                world=kwargs.pop("world", None),
+            )
+            kwargs[target] = settings.load() if target == "cfg" else settings
+            return func(**kwargs)
+
+        return _with_parameters(command, signature, params)
+
+    return decorate

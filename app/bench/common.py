@@ -95,15 +95,6 @@ def source_args(spec: SourceSpec) -> list[str]:
     return args + (["--scans", str(spec.scans)] if spec.scans is not None else [])
 
 
-def config_args(config: Path | None, overrides: list[str] | None, preset: str | None = None) -> list[str]:
-    """``--preset``/``--config``/``--set`` as given, for a ``lidarloc`` command in a fresh process."""
-    args = ["--preset", preset] if preset is not None else []
-    args += ["--config", str(config)] if config is not None else []
-    for item in overrides or []:
-        args += ["--set", item]
-    return args
-
-
 # ------------------------------------------------------------------------------------ machine
 def load_avg() -> float:
     """1-minute load average: the machine may be shared, and a slow number under load says so."""

@@ -16,14 +16,10 @@ from ..options import (
     SOURCE_CHOICE,
     SOURCE_OPTIONS,
     CacheOpt,
-    ConfigOpt,
     JsonOpt,
-    PresetOpt,
-    SetOpt,
-    WorldOpt,
-    config_from,
     given,
     open_source,
+    with_settings,
     with_source,
 )
 from .groups import bench_app
@@ -53,42 +49,38 @@ _VIEWER_PANEL = "Source (none: the inputs are synthetic)"
 
 @bench_app.command("town")
 @with_source(exclude=OWN_DATA)
+@with_settings()
 def bench_town(
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
 ):
     """Town generation time and simulated-scan time.
 
     The built-in town only: --kitti-odometry and --kitti-raw do not apply."""
     from ..bench.town import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     show_bench_result("town", run_bench(spec, cfg), as_json)
 
 
 @bench_app.command("map")
 @with_source(_MAP_PANEL)
+@with_settings()
 def bench_map(
     ctx: typer.Context,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
 ):
     """Prior-map build and cache-load times, default town and the real drive (fresh cache).
 
     With a source option, that source's map only."""
-    from ..bench.common import config_args
     from ..bench.map import default_sources, source_name
     from ..bench.map import run as run_bench
 
-    config_from(config, set_, preset=preset)  # a bad config fails here, not in the first child process
+    settings.load()  # a bad config fails here, not in the first child process
     sources = {source_name(spec): spec} if given(ctx, SOURCE_CHOICE + ("map",)) else default_sources(spec)
-    show_bench_result("map", run_bench(sources, config_args(config, set_, preset)), as_json)
+    show_bench_result("map", run_bench(sources, settings.args()), as_json)
 
 
 @bench_app.command("mapfile")
@@ -106,6 +98,7 @@ def bench_mapfile(
 
 @bench_app.command("bag")
 @with_source(_PF_PANEL)
+@with_settings()
 def bench_bag(
     ctx: typer.Context,
     total: Annotated[
@@ -115,9 +108,7 @@ def bench_bag(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times the whole bag is read (median).")] = 3,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
 ):
     """Reading scans from a bag: a PointCloud2 bag of the source's scans, written in a temporary
     directory, opened (index) and read scan by scan (decode); target ≥ 200 scans/s.
@@ -125,13 +116,13 @@ def bench_bag(
     Default source: the real KITTI raw drive (64-beam scans); --town-seed N for the town."""
     from ..bench.bag import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     spec = _real_drive_unless_given(ctx, spec, "bag")
     show_bench_result("bag", run_bench(spec, cfg, total=total, storage=storage, repeats=repeats), as_json)
 
 
 @bench_app.command("pf")
 @with_source(_PF_PANEL)
+@with_settings()
 def bench_pf(
     ctx: typer.Context,
     particles: Annotated[
@@ -146,16 +137,14 @@ def bench_pf(
     ] = True,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
 ):
     """Particle-filter step time and lookup-table cost, against their targets.
 
     Default source: the real KITTI raw drive; --town-seed N for the town."""
     from ..bench.pf import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     if particles is not None:
         cfg.pf.n_particles = particles
     spec = _real_drive_unless_given(ctx, spec, "pf")
@@ -164,6 +153,7 @@ def bench_pf(
 
 @bench_app.command("surface")
 @with_source(_PF_PANEL)
+@with_settings()
 def bench_surface(
     ctx: typer.Context,
     samples: Annotated[int, typer.Option("--samples", min=1, help="Scans to time, spread over the sequence.")] = 10,
@@ -173,22 +163,21 @@ def bench_surface(
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
 ):
     """The viewer's likelihood surface: time of an 81 × 81 grid (target ≤ 150 ms) and its maximum's error.
 
     Default source: the real KITTI raw drive; --town-seed N for the town."""
     from ..bench.surface import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     spec = _real_drive_unless_given(ctx, spec, "surface")
     show_bench_result("surface", run_bench(spec, cfg, scans=samples, repeats=repeats), as_json)
 
 
 @bench_app.command("filter")
 @with_source(_PF_PANEL)
+@with_settings()
 def bench_filter(
     ctx: typer.Context,
     seeds: Annotated[int, typer.Option("--seeds", min=1, help="Runs per likelihood option (seeds 0…N−1).")] = 3,
@@ -201,9 +190,7 @@ def bench_filter(
     ] = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
     cache: CacheOpt = None,
 ):
     """Does the filter's uncertainty mean something while it tracks? Each likelihood option started
@@ -212,7 +199,6 @@ def bench_filter(
     Default source: the real KITTI raw drive; --town-seed N for the town."""
     from ..bench.filter import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     spec = _real_drive_unless_given(ctx, spec, "filter")
     with progress_bar() as bar:
         task = bar.add_task("filter study", total=None)
@@ -230,6 +216,7 @@ def bench_filter(
 
 @bench_app.command("s2m")
 @with_source()
+@with_settings(world=True)
 def bench_s2m(
     matches: Annotated[
         int, typer.Option("--matches", min=1, help="Random scans to match (at most all of the source's).")
@@ -242,19 +229,16 @@ def bench_s2m(
         bool, typer.Option("--gicp-comparison/--no-gicp-comparison", help="Compare small_gicp with open3d GICP.")
     ] = True,
     cell_study: Annotated[bool, typer.Option("--cell-study", help="Also match with every BEV cell value.")] = False,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
 ):
     """Global/local M3RSM matching: success rate, latency, RMSE (the paper's experiment).
 
     On the built-in town the scans come from a lived-in drive unless --world kind says otherwise."""
     from ..bench.s2m import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
+    cfg = settings.load(seed=seed)
     show_bench_result(
         "s2m",
         run_bench(spec, cfg, matches=matches, out_dir=out, compare_gicp=gicp_comparison, cell_study=cell_study),
@@ -264,22 +248,20 @@ def bench_s2m(
 
 @bench_app.command("rpe")
 @with_source()
+@with_settings()
 def bench_rpe(
     convergence: Annotated[
         list[float] | None, typer.Option("--convergence", help="KISS-ICP convergence criteria to compare (repeatable).")
     ] = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
 ):
     """KISS-ICP odometry: registration time and error against the truth per convergence setting.
 
     Registers the first 300 scans unless --scans says otherwise (at least 11)."""
     from ..bench.rpe import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     show_bench_result(
         "rpe", run_bench(spec, cfg, **({"convergences": tuple(convergence)} if convergence else {})), as_json
     )
@@ -287,20 +269,18 @@ def bench_rpe(
 
 @bench_app.command("viewer")
 @with_source(_VIEWER_PANEL)
+@with_settings()
 def bench_viewer(
     ctx: typer.Context,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
 ):
     """Server-side cost of one display update.
 
     The inputs are synthetic, sized like a real drive: the source options do not apply."""
     from ..bench.viewer import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     chosen = given(ctx, SOURCE_OPTIONS)
     if chosen:
         raise LidarlocError(
@@ -312,31 +292,31 @@ def bench_viewer(
 
 @bench_app.command("startup")
 @with_source()
+@with_settings()
 def bench_startup(
     ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Cached starts after the first.")] = 3,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
 ):
     """Start-up time of `lidarloc demo`: first start (empty cache), then cached starts.
 
     With a source option, the start-up time of `lidarloc view` on that source."""
-    from ..bench.common import config_args, source_args
+    from ..bench.common import source_args
     from ..bench.startup import run as run_bench
 
-    config_from(config, set_, preset=preset)
+    settings.load()
     if given(ctx, SOURCE_CHOICE + ("map",)):
         command = ["view", *source_args(spec)]
     else:
         command = ["demo"] + (["--scans", str(spec.scans)] if spec.scans is not None else [])
-    show_bench_result("startup", run_bench(command + config_args(config, set_, preset), repeats=repeats), as_json)
+    show_bench_result("startup", run_bench(command + settings.args(), repeats=repeats), as_json)
 
 
 @bench_app.command("stop")
 @with_source()
+@with_settings()
 def bench_stop(
     ctx: typer.Context,
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Stops per clock and delay.")] = 3,
@@ -364,31 +344,28 @@ def bench_stop(
     ] = 0,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """How fast Ctrl-C stops `lidarloc run` on the town, both clocks (target ≤ 2 s); with
     --viewer, the live viewer (target ≤ 1 s).
 
     Runs the town's first 300 scans unless the source options say otherwise."""
-    from ..bench.common import config_args, source_args
+    from ..bench.common import source_args
     from ..bench.stop import run as run_bench
 
-    config_from(config, set_, preset=preset)
+    settings.load()
     spec = replace(spec, scans=300 if spec.scans is None else spec.scans)
-    settings = config_args(config, set_, preset)
     if not viewer:
         command = None
     elif given(ctx, SOURCE_CHOICE + ("map",)):
-        command = ["view", *source_args(spec), *settings]
+        command = ["view", *source_args(spec), *settings.args()]
     else:
-        command = ["demo", "--scans", str(spec.scans), *settings]
+        command = ["demo", "--scans", str(spec.scans), *settings.args()]
     show_bench_result(
         "stop",
         run_bench(
-            source_args(spec) + settings,
+            source_args(spec) + settings.args(),
             repeats=repeats,
             cache=None if cache is None else str(cache),
             busy=busy,

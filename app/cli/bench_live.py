@@ -9,13 +9,14 @@ from typing import Annotated
 
 import typer
 
-from ..options import SOURCE_CHOICE, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, given, with_source
+from ..options import SOURCE_CHOICE, CacheOpt, JsonOpt, given, with_settings, with_source
 from .bench_costs import show_bench_result
 from .groups import bench_app
 
 
 @bench_app.command("soak")
 @with_source()
+@with_settings()
 def bench_soak(
     ctx: typer.Context,
     minutes: Annotated[float, typer.Option("--minutes", min=0.1, help="How long to play after the start.")] = 120.0,
@@ -34,29 +35,27 @@ def bench_soak(
     ] = "chromium",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Play `lidarloc demo` (`view` with a source) in real time in a loop for --minutes, one tab attached
     (--client) and recording on; sample its memory, descriptors, threads, child processes
     and recordings every --sample-s seconds. Targets: RSS growth ≤ 50 MB after the first loop,
     constant descriptors / threads / children, no late scans beyond the first loop's."""
-    from ..bench.common import config_args, source_args
+    from ..bench.common import source_args
     from ..bench.soak import CLIENTS
     from ..bench.soak import run as run_bench
 
     if client not in CLIENTS:
         raise typer.BadParameter(f"{client!r} is not one of {', '.join(CLIENTS)}", param_hint="--client")
 
-    config_from(config, set_, preset=preset)
+    settings.load()
     if given(ctx, SOURCE_CHOICE + ("map",)):
         command = ["view", *source_args(spec)]
     else:
         command = ["demo"] + (["--scans", str(spec.scans)] if spec.scans is not None else [])
     result = run_bench(
-        command + config_args(config, set_, preset),
+        command + settings.args(),
         minutes,
         out,
         sample_s=sample_s,
@@ -68,6 +67,7 @@ def bench_soak(
 
 @bench_app.command("clients")
 @with_source()
+@with_settings()
 def bench_clients(
     tabs: Annotated[int, typer.Option("--tabs", min=1, help="Browser tabs open at once.")] = 5,
     phase_s: Annotated[float, typer.Option("--phase-s", min=5.0, help="Seconds per phase.")] = 45.0,
@@ -101,9 +101,7 @@ def bench_clients(
     ] = "chromium",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """The live viewer in real time with no client, --tabs headless Chromium tabs, one more tab
@@ -123,7 +121,7 @@ def bench_clients(
         )
     if tab_kind not in TAB_KINDS:
         raise typer.BadParameter(f"{tab_kind!r} is not one of {', '.join(TAB_KINDS)}", param_hint="--tab-kind")
-    cfg = config_from(config, set_, preset=preset)
+    cfg = settings.load()
     limit_arenas()  # the viewer runs in this process: as `view` and `demo` set it up
     loc = Localizer(open_source(spec, cfg), cfg, cache, defer_s2m=True)
     try:

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from ..console import emit_json, err, progress_bar, stage_progress
-from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, config_from, with_source
+from ..options import OWN_DATA, CacheOpt, JsonOpt, with_settings, with_source
 from ..sweep.cluster import RAY_HELP
 from .bench_costs import RecordBenchOpt, SeedOpt, show_bench_result
 from .groups import bench_app
@@ -19,6 +19,7 @@ from .sweeps import RayOpt
 
 @bench_app.command("localize")
 @with_source()
+@with_settings(world=True)
 def bench_localize(
     runs: Annotated[int, typer.Option("--runs")] = 20,
     workers: Annotated[int, typer.Option("--workers")] = 2,
@@ -35,12 +36,9 @@ def bench_localize(
     executor: Annotated[str, typer.Option("--executor", help="process or ray")] = "process",
     address: Annotated[str | None, typer.Option("--address", help="Ray cluster address.")] = None,
     record: RecordBenchOpt = False,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Metrics A–E over many seeded runs in parallel workers (the paper's Simulation section).
@@ -48,12 +46,10 @@ def bench_localize(
     On the built-in town the drive is lived-in unless --world kind says otherwise."""
     from ..bench.localize import run_bench
 
-    overrides = (
-        ([] if live_odometry else ["localize.recorded_odometry=true"])
-        + list(set_ or [])
-        + (["s2m.enabled=false"] if no_s2m else [])
+    cfg = settings.load(
+        first=[] if live_odometry else ["localize.recorded_odometry=true"],
+        last=["s2m.enabled=false"] if no_s2m else [],
     )
-    cfg = config_from(config, overrides, preset=preset, world=world)
     summary = run_bench(
         spec,
         cfg,
@@ -64,7 +60,7 @@ def bench_localize(
         address=address,
         cache_root=cache,
         console=err,
-        preset=preset,
+        preset=settings.preset,
         record=record,
     )
     show_bench_result("localize", summary, as_json)
@@ -75,6 +71,7 @@ _AXES = "Matrix (comma-separated values; each axis restricts the matrix)"
 
 @bench_app.command("robustness")
 @with_source(exclude=OWN_DATA)
+@with_settings(preset=False)
 def bench_robustness(
     runs: Annotated[int, typer.Option("--runs", help="Seeded runs per cell (seeds 0…N−1).")] = 5,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
@@ -120,8 +117,7 @@ def bench_robustness(
     ray: RayOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Localization when the world is not the map: changes × traffic × sensor × skew × configuration.
@@ -132,8 +128,8 @@ def bench_robustness(
     matrix = parse_matrix(changes, traffic, sensors, skew, configs)
     summary = run_robustness(
         spec,
-        config,
-        set_,
+        settings.config,
+        list(settings.overrides),
         matrix,
         runs=runs,
         workers=workers,
@@ -153,6 +149,7 @@ def bench_robustness(
 
 @bench_app.command("integrity")
 @with_source()
+@with_settings(world=True)
 def bench_integrity(
     runs: Annotated[int, typer.Option("--runs", help="Seeded runs per case and world (seeds 0…N−1).")] = 1,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
@@ -173,12 +170,9 @@ def bench_integrity(
         bool | None,
         typer.Option("--real/--no-real", help="Also the real KITTI drive (default: where its data is present)."),
     ] = None,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Never green while wrong: S2M late, a wrong-place start, a kidnap, an estimate moved unannounced.
@@ -188,18 +182,18 @@ def bench_integrity(
 
     summary = run_integrity(
         spec,
-        config,
-        set_,
+        settings.config,
+        list(settings.overrides),
         [c.strip() for c in cases.split(",") if c.strip()],
         [s.strip() for s in sensors.split(",") if s.strip()],
-        world,
+        settings.world,
         runs=runs,
         workers=workers,
         out_dir=out,
         real=real,
         cache_root=cache,
         console=err,
-        preset=preset,
+        preset=settings.preset,
     )
     if as_json:
         emit_json(summary)
@@ -210,6 +204,7 @@ def bench_integrity(
 
 @bench_app.command("peers")
 @with_source()
+@with_settings(world=True)
 def bench_peers(
     global_scans: Annotated[
         int,
@@ -241,12 +236,9 @@ def bench_peers(
         int, typer.Option("--paper-scans", min=10, help="Scans of the KITTI 05 town the paper's part plays.")
     ] = 300,
     seed: SeedOpt = None,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """lidarloc beside what a user would run instead, same scans, map and machine: global
@@ -260,7 +252,7 @@ def bench_peers(
     from ..bench.peers import run as run_bench
     from ..bench.peers_optional import notes
 
-    cfg = config_from(config, set_, seed=seed, preset=preset, world=world)
+    cfg = settings.load(seed=seed)
     with progress_bar() as bar:
         tasks: dict = {}
 
@@ -288,6 +280,7 @@ def bench_peers(
 
 @bench_app.command("city")
 @with_source()
+@with_settings()
 def bench_city(
     global_scans: Annotated[
         int, typer.Option("--global-scans", min=1, help="Scans along the city's drive matched against the whole city.")
@@ -374,9 +367,7 @@ def bench_city(
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """lidarloc holding a city (by default the 4 × 4 km city, a 10-minute drive through it):
@@ -395,7 +386,7 @@ def bench_city(
     # cores, over the 10 the build is given); at 0.5 m runs on the city localize to 0.10–0.19 m
     # RMSE (BENCHMARKS.md, "A city").
     overrides = ["town.extent_m=4000", "town.n_scans=6000", "pf.lookup_resolution=0.5", "pf.lookup_tile_m=400"]
-    cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
+    cfg = settings.load(seed=seed, first=overrides)
     try:
         with progress_bar() as bar:
             result = run_bench(
@@ -431,6 +422,7 @@ def bench_city(
 
 @bench_app.command("shards")
 @with_source()
+@with_settings()
 def bench_shards(
     global_scans: Annotated[
         int, typer.Option("--global-scans", min=1, help="Scans of the city's drive searched over the whole city.")
@@ -445,9 +437,7 @@ def bench_shards(
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """The exact search over the whole city split by tiles among Ray workers: its time with each
@@ -457,8 +447,7 @@ def bench_shards(
     --set town.extent_m=1000 the 1 × 1 km one), its tiles built or read from the cache."""
     from ..bench.shards import run as run_bench
 
-    overrides = ["town.extent_m=4000", "town.n_scans=6000"]
-    cfg = config_from(config, [*overrides, *(set_ or [])], seed=seed, preset=preset)
+    cfg = settings.load(seed=seed, first=["town.extent_m=4000", "town.n_scans=6000"])
     with progress_bar() as bar:
         result = run_bench(spec, cfg, cache, global_scans, tuple(sorted(set(workers))), ray, stage_progress(bar))
     show_bench_result("shards", result, as_json)

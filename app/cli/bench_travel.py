@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from ..console import err, progress_bar
-from ..options import CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, open_source, with_source
+from ..options import CacheOpt, JsonOpt, open_source, with_settings, with_source
 from .bench_costs import SeedOpt, show_bench_result
 from .groups import bench_app
 
@@ -26,6 +26,7 @@ def _recorded_unless(run_dir: Path | None, spec, cfg):
 
 @bench_app.command("record")
 @with_source()
+@with_settings()
 def bench_record(
     particles: Annotated[
         int | None, typer.Option("--particles", min=1, help="Particles (default: the config's).")
@@ -33,9 +34,7 @@ def bench_record(
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """What recording a run costs (≤ 5 % of the PF step, ≤ 60 MB per 1000 scans at 1000
@@ -44,7 +43,7 @@ def bench_record(
     Records the town's first 1000 scans unless the source options say otherwise."""
     from ..bench.record import run as run_bench
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     if particles is not None:
         cfg.pf.n_particles = particles
     spec, seq = _recorded_unless(None, spec, cfg)
@@ -56,6 +55,7 @@ def bench_record(
 
 @bench_app.command("scrub")
 @with_source()
+@with_settings()
 def bench_scrub(
     run_dir: Annotated[
         Path | None,
@@ -68,9 +68,7 @@ def bench_scrub(
     seed: SeedOpt = None,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """The viewer's timeline: the server-side redraw per slider move on a recorded run (target
@@ -79,7 +77,7 @@ def bench_scrub(
     Without --run, records the town's first 1000 scans first (unless the source options say otherwise)."""
     from ..bench.scrub import scrub
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=None if seq is None else len(seq))
@@ -98,6 +96,7 @@ def bench_scrub(
 
 @bench_app.command("branch")
 @with_source()
+@with_settings()
 def bench_branch(
     run_dir: Annotated[
         Path | None, typer.Option("--run", help="A recorded run to branch (default: record the source's scans first).")
@@ -105,9 +104,7 @@ def bench_branch(
     repeats: Annotated[int, typer.Option("--repeats", min=1, help="Times each of the last 10 steps is branched.")] = 3,
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
     cache: CacheOpt = None,
 ):
     """How fast a branch of a recorded run starts (target ≤ 1 s, the sequence open) and what the
@@ -117,7 +114,6 @@ def bench_branch(
     Records the town's first 1000 scans unless --run or the source options say otherwise."""
     from ..bench.branch import run as run_bench
 
-    cfg = config_from(config, set_, preset=preset)
     spec, seq = _recorded_unless(run_dir, spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task("recording", total=None if seq is None else len(seq))

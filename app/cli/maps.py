@@ -10,12 +10,13 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import emit_json, err, peak_rss_mb, progress_bar
-from ..options import OWN_DATA, CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, config_from, open_source, with_source
+from ..options import OWN_DATA, CacheOpt, JsonOpt, open_source, with_settings, with_source
 from .groups import app, map_app
 
 
 @map_app.command("build")
 @with_source()
+@with_settings()
 def map_build(
     out: Annotated[
         Path | None,
@@ -27,9 +28,7 @@ def map_build(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Build the prior map of a sequence from its scans and ground-truth poses (and cache it).
@@ -45,7 +44,7 @@ def map_build(
             f"{out}: cannot write a map of this type ({out.suffix}); supported: "
             f"{', '.join(WRITE_SUFFIXES)} (or a cache directory)"
         )
-    cfg = config_from(config, set_, preset=preset)
+    cfg = settings.load()
     # the map of a source is its whole mapping drive (--scans N plays N scans inside it)
     seq = open_source(spec, cfg).map_source
     surveyed = getattr(seq, "delivers_map", False)  # a generated city's survey map
@@ -111,15 +110,14 @@ def map_info(
 
 @map_app.command("export")
 @with_source()
+@with_settings()
 def map_export(
     out: Annotated[
         Path, typer.Option("--out", help="Map file to write: .pcd or .ply (binary, x y z).", show_default=False)
     ],
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Write a source's prior map (built or from the cache) as a .pcd or .ply file.
@@ -134,7 +132,7 @@ def map_export(
             f"{out}: cannot write a map of this type ({out.suffix or 'no extension'}); "
             f"supported: {', '.join(WRITE_SUFFIXES)}"
         )
-    cfg = config_from(config, set_, preset=preset)
+    cfg = settings.load()
     seq = open_source(spec, cfg).map_source
     with progress_bar() as bar:
         task = bar.add_task(f"map of {seq.name}", total=None)
@@ -153,20 +151,18 @@ def map_export(
 # ---------------------------------------------------------------------------------------- synth
 @app.command()
 @with_source(exclude=("kitti_odometry", "sequence", "kitti_raw", "date", "drive") + OWN_DATA)
+@with_settings()
 def synth(
     out: Annotated[Path, typer.Option("--out", help="Directory to write the KITTI odometry layout into.")],
     sequence_id: Annotated[str, typer.Option("--sequence-id", help="Sequence id to write as.")] = "00",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing exported sequence.")] = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    cfg=None,
 ):
     """Export the built-in town's drive in KITTI odometry layout (velodyne/*.bin, calib, times, poses)."""
     from ...core.sequences.export import export_kitti_odometry
     from ...core.sequences.factory import open_sequence
 
-    cfg = config_from(config, set_, preset=preset)
     seq = open_sequence(spec, cfg)
     with progress_bar() as bar:
         task = bar.add_task(f"scans of {seq.name}", total=len(seq))

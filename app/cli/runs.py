@@ -11,23 +11,13 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import emit_json, err
-from ..options import (
-    SOURCE_OPTIONS,
-    CacheOpt,
-    ConfigOpt,
-    InitOpt,
-    JsonOpt,
-    PresetOpt,
-    SetOpt,
-    config_from,
-    given,
-    with_source,
-)
+from ..options import SOURCE_OPTIONS, CacheOpt, InitOpt, JsonOpt, given, with_settings, with_source
 from .groups import app
 
 
 @app.command()
 @with_source()
+@with_settings()
 def run(
     ctx: typer.Context,
     out: Annotated[
@@ -72,9 +62,7 @@ def run(
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary JSON on stdout.")] = False,
     init: InitOpt = None,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Localize headless over a sequence and write results to --out (recorded: scrub it with view --run)."""
@@ -90,27 +78,31 @@ def run(
             from ..export_bag import check_input
 
             check_input(spec.bag)
-    overrides = (
-        list(set_ or []) + ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
-    )
+    flags = ([f"localize.clock={clock}"] if clock else []) + (["s2m.enabled=false"] if no_s2m else [])
     if branch is not None:
-        if given(ctx, SOURCE_OPTIONS) or config or preset or init:
+        if given(ctx, SOURCE_OPTIONS) or settings.config or settings.preset or init:
             raise LidarlocError(
                 "--branch takes its source and configuration from the recording; give changes with --set"
             )
         from ..branch import parse_branch, run_branch
 
         run_dir, step = parse_branch(branch)
-        overrides += [f"seed={seed}"] if seed is not None else []
+        overrides = [*settings.overrides, *flags] + ([f"seed={seed}"] if seed is not None else [])
         summary, interrupted = run_branch(
             run_dir, step, overrides, out, cache_root=cache, console=err, record=not no_record
         )
     else:
         from ..headless import run_headless
 
-        cfg = config_from(config, overrides, seed=seed, preset=preset)
+        cfg = settings.load(seed=seed, last=flags)
         summary, interrupted = run_headless(
-            replace(spec, init=init), cfg, out, cache_root=cache, console=err, preset=preset, record=not no_record
+            replace(spec, init=init),
+            cfg,
+            out,
+            cache_root=cache,
+            console=err,
+            preset=settings.preset,
+            record=not no_record,
         )
     if write_bag is not None:
         from ..export_bag import export_bag
@@ -124,6 +116,7 @@ def run(
 
 @app.command()
 @with_source()
+@with_settings()
 def inspect(
     scan: Annotated[
         int, typer.Option("--scan", min=0, help="The scan to inspect (0-based); the run replays up to it.")
@@ -145,16 +138,14 @@ def inspect(
     as_json: Annotated[bool, typer.Option("--json", help="Print inspect.json on stdout too.")] = False,
     init: InitOpt = None,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Replay a run to one scan and write why the filter is where it is: the likelihood surface
     around the estimate and around the truth, the scan's residuals to the map, and a JSON summary."""
     from ..inspect import run_inspect
 
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     result = run_inspect(
         replace(spec, init=init), cfg, scan, out, cache_root=cache, console=err, best_over_yaw=best_over_yaw
     )

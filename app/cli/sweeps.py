@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from ..console import emit_json, err
-from ..options import CacheOpt, ConfigOpt, JsonOpt, PresetOpt, SetOpt, WorldOpt, with_source
+from ..options import CacheOpt, JsonOpt, with_settings, with_source
 from ..sweep.cluster import RAY_HELP
 from .groups import app, bench_app
 
@@ -44,6 +44,7 @@ def _workers(workers: int | None, ray: str | None) -> int:
 
 @app.command("sweep")
 @with_source()
+@with_settings(world=True)
 def sweep(
     grid: Annotated[
         list[str] | None,
@@ -60,12 +61,9 @@ def sweep(
     ray: RayOpt = None,
     workers: WorkersOpt = None,
     no_record: NoRecordOpt = False,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Every combination of settings × seeds, each run in its own folder: runs.csv, per-combination
@@ -76,8 +74,8 @@ def sweep(
     from ..sweep.sweep import Settings, run_sweep
 
     g = parse_grid(grid)
-    settings = Settings(spec, config, tuple(set_ or ()), preset, world, cache)
-    summary, tally = run_sweep(settings, g, runs, _workers(workers, ray), out, ray=ray, record=not no_record)
+    shared = Settings(spec, settings.config, settings.overrides, settings.preset, settings.world, cache)
+    summary, tally = run_sweep(shared, g, runs, _workers(workers, ray), out, ray=ray, record=not no_record)
     if as_json:
         emit_json(summary)
     else:
@@ -110,6 +108,7 @@ def _print_summary(summary: dict, keys: list[str], out: Path, recorded: bool) ->
 
 @app.command("tune")
 @with_source()
+@with_settings(world=True)
 def tune(
     param: Annotated[
         list[str] | None,
@@ -124,12 +123,9 @@ def tune(
     out: Annotated[Path, typer.Option("--out", help="Folder of the trials and the results.")] = Path("out/tune"),
     ray: RayOpt = None,
     workers: WorkersOpt = None,
-    world: WorldOpt = "lived-in",
     as_json: JsonOpt = False,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
 ):
     """Search the settings that localize best: the lowest median RMSE after localization with every seed localized and no false fire.
@@ -139,8 +135,8 @@ def tune(
     from ..sweep.tune import parse_params, run_tune
 
     params = parse_params(param)
-    settings = Settings(spec, config, tuple(set_ or ()), preset, world, cache)
-    summary = run_tune(settings, params, trials, runs, _workers(workers, ray), out, ray=ray)
+    shared = Settings(spec, settings.config, settings.overrides, settings.preset, settings.world, cache)
+    summary = run_tune(shared, params, trials, runs, _workers(workers, ray), out, ray=ray)
     if as_json:
         emit_json(summary)
         return

@@ -11,17 +11,7 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import err
-from ..options import (
-    CacheOpt,
-    ConfigOpt,
-    InitOpt,
-    PresetOpt,
-    ScansOpt,
-    SetOpt,
-    config_from,
-    source_spec,
-    with_source,
-)
+from ..options import CacheOpt, InitOpt, ScansOpt, source_spec, with_settings, with_source
 from ..viewer.budget import DEFAULT_KEEP_RUNS, DEFAULT_MAX_RECORD_GB
 from ..viewer.token_gate import token_from
 from .groups import app
@@ -157,14 +147,13 @@ RunOpt = Annotated[
 
 
 @app.command()
+@with_settings()
 def demo(
     host: HostOpt = "127.0.0.1",
     port: PortOpt = 8080,
     seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     scans: ScansOpt = None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
     autoplay: AutoplayOpt = False,
@@ -178,7 +167,7 @@ def demo(
 ):
     """The live demo on the built-in town: browse to the printed URL."""
     token = token_from(token)  # a bad token fails before anything starts
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     _serve(
         source_spec(town_seed=cfg.town.seed, scans=scans),
         cfg,
@@ -188,7 +177,7 @@ def demo(
         open_browser,
         autoplay,
         record_dir=record_dir,
-        preset=preset,
+        preset=settings.preset,
         record=not no_record,
         foxglove_port=foxglove_port,
         loop=loop,
@@ -200,15 +189,14 @@ def demo(
 
 @app.command()
 @with_source()
+@with_settings()
 def view(
     host: HostOpt = "127.0.0.1",
     port: PortOpt = 8080,
     seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed (default: the config's).")] = None,
     init: InitOpt = None,
     spec=None,
-    preset: PresetOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
+    settings=None,
     cache: CacheOpt = None,
     open_browser: Annotated[bool, typer.Option("--open/--no-open", help="Open a browser tab.")] = False,
     autoplay: AutoplayOpt = False,
@@ -234,7 +222,7 @@ def view(
 
         serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err, token=token)
         return
-    cfg = config_from(config, set_, seed=seed, preset=preset)
+    cfg = settings.load(seed=seed)
     _serve(
         replace(spec, init=init),
         cfg,
@@ -244,7 +232,7 @@ def view(
         open_browser,
         autoplay,
         record_dir=record_dir,
-        preset=preset,
+        preset=settings.preset,
         record=not no_record,
         foxglove_port=foxglove_port,
         loop=loop,

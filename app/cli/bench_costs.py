@@ -276,9 +276,11 @@ def bench_viewer(
     spec=None,
     cfg=None,
 ):
-    """Server-side cost of one display update.
+    """Server-side cost of one display update, and what a user waits for in a real browser.
 
-    The inputs are synthetic, sized like a real drive: the source options do not apply."""
+    The display updates are timed on synthetic inputs sized like a real drive; the first
+    likelihood surface, Kidnap's display resume and the Top-down view's answer are timed in
+    headless Chromium (/usr/bin/chromium) on the short town. The source options do not apply."""
     from ..bench.viewer import run as run_bench
 
     chosen = given(ctx, SOURCE_OPTIONS)

@@ -278,9 +278,9 @@ def bench_viewer(
 ):
     """Server-side cost of one display update, and what a user waits for in a real browser.
 
-    The display updates are timed on synthetic inputs sized like a real drive; the first
-    likelihood surface, Kidnap's display resume and the Top-down view's answer are timed in
-    headless Chromium (/usr/bin/chromium) on the short town. The source options do not apply."""
+    Display updates: synthetic inputs sized like a real drive (the source options do not apply).
+
+    In headless Chromium, on the short town: the first likelihood surface, Kidnap's display resume, Top-down view."""
     from ..bench.viewer import run as run_bench
 
     chosen = given(ctx, SOURCE_OPTIONS)

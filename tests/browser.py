@@ -9,7 +9,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from pathlib import Path
 
-from lidarloc.app.bench.clients import CHROMIUM, CHROMIUM_ARGS  # the benchmarks' browser, as users run it
+from lidarloc.app.bench.chromium import CHROMIUM, CHROMIUM_ARGS  # the benchmarks' browser, as users run it
 from lidarloc.app.bench.viewer import JS_SCAN  # the scan counter, read from the page as the benchmark reads it
 
 __all__ = ["ARTIFACTS", "CHROMIUM", "CHROMIUM_ARGS", "JS_SCAN", "LOAD_TIMEOUT", "STEP_TIMEOUT", "serving"]

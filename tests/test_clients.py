@@ -13,15 +13,16 @@ import time
 
 import pytest
 from helpers import wait_for
-from lidarloc.app.bench import clients
-from lidarloc.app.bench.clients import SocketTab, _timed
+from lidarloc.app.bench import chromium, clients
+from lidarloc.app.bench.client_phases import socket_churn, time_updates
+from lidarloc.app.bench.socket_tabs import SocketTab, TabHost
 from lidarloc.app.viewer import heap as heap_module
 
 
 def test_a_slow_client_does_not_slow_the_filter_or_the_display(viewer):
     v, loc = viewer.viewer, viewer.localizer
     updates: list = []
-    _timed(v, updates)
+    time_updates(v, updates)
     slow = SocketTab(viewer.port, every_s=1.0)
     try:
         v.controls.s2m_enabled.value = False  # the filter alone: its pace is the one that matters here
@@ -47,15 +48,15 @@ def test_idle_tabs_run_at_the_idle_cpu_priority(tmp_path, monkeypatch):
     stand_in = tmp_path / "chromium"
     stand_in.write_text(f"#!{sys.executable}\nimport os\nprint(os.sched_getscheduler(0))\n")
     stand_in.chmod(0o755)
-    monkeypatch.setattr(clients, "CHROMIUM", stand_in)
+    monkeypatch.setattr(chromium, "CHROMIUM", stand_in)
     policies = {}
-    for priority in clients.TAB_PRIORITIES:
-        with clients.chromium_at(priority) as executable:
+    for priority in chromium.TAB_PRIORITIES:
+        with chromium.chromium_at(priority) as executable:
             out = subprocess.run([str(executable), "--headless"], capture_output=True, text=True, check=True)
             policies[priority] = int(out.stdout)
     assert policies == {"idle": os.SCHED_IDLE, "normal": os.SCHED_OTHER}
     with pytest.raises(ValueError, match="tab priority"):
-        with clients.chromium_at("high"):
+        with chromium.chromium_at("high"):
             pass
 
 
@@ -65,7 +66,7 @@ def test_hosted_tabs_are_clients_of_another_process_at_the_idle_priority(viewer)
     what it sends and is let go when closed; a host whose process died says so in one line."""
     from lidarloc.core.errors import LidarlocError
 
-    with clients.TabHost(viewer.port, "idle") as host:
+    with TabHost(viewer.port, "idle") as host:
         tab = host.open()  # answered: the process has set itself up
         assert host._proc.pid != os.getpid()
         assert os.sched_getscheduler(host._proc.pid) == os.SCHED_IDLE
@@ -80,7 +81,7 @@ def test_hosted_tabs_are_clients_of_another_process_at_the_idle_priority(viewer)
             host.open()
     assert host.stopped and not host._proc.is_alive()
     with pytest.raises(ValueError, match="tab priority"):
-        clients.TabHost(viewer.port, "high")
+        TabHost(viewer.port, "high")
 
 
 def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
@@ -95,7 +96,7 @@ def test_a_tab_that_comes_and_goes_leaves_nothing_behind(viewer):
     heap = viewer.viewer.heap
     trims_before = heap.trims
     t0 = time.perf_counter()
-    r = clients.socket_churn(viewer, seconds=6.0)
+    r = socket_churn(viewer, seconds=6.0)
     if heap.available:  # what the tabs freed went back to the system, at most once per interval
         wait_for(lambda: heap.trims > trims_before, what="a heap trim after the tabs left")
         elapsed = time.perf_counter() - t0

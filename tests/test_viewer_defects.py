@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from helpers import make_localizer, wait_for
-from lidarloc.app.bench.clients import SocketTab as Tab  # a tab as the server sees it
+from lidarloc.app.bench.socket_tabs import SocketTab as Tab  # a tab as the server sees it
 
 
 def step(v, loc, n: int) -> None:

@@ -140,7 +140,7 @@ def test_dragging_pauses_live_playback_and_live_plays_on(recorded):
 def test_a_tabs_drag_written_over_by_the_live_follow_still_goes_where_it_was_dragged(recorded):
     """The display thread follows the newest step while live; a drag applied just before that
     write lands, and moved after it, goes to the dragged step, not the newest."""
-    from lidarloc.app.bench.clients import SocketTab
+    from lidarloc.app.bench.socket_tabs import SocketTab
 
     handle, _ = recorded
     v = handle.viewer

@@ -38,8 +38,9 @@ from urllib.parse import urlsplit
 
 from ...core.errors import LidarlocError
 from ..viewer.token_gate import TOKEN_ENV
-from .clients import CHROMIUM, CHROMIUM_ARGS, SocketTab
+from .chromium import CHROMIUM, CHROMIUM_ARGS
 from .common import load_avg, machine, median
+from .socket_tabs import SocketTab
 
 _URL = re.compile(r"(http://[0-9a-z.\-]+:\d+)")
 _LOOP = re.compile(

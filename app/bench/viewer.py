@@ -256,7 +256,7 @@ def browser_figures(
     """The first likelihood surface (ms), Kidnap's display resume (s) and the Top-down view's
     answer (ms) in a real headless Chromium, medians of ``repeats`` presses each (see the
     module's docstring)."""
-    from .clients import CHROMIUM, CHROMIUM_ARGS
+    from .chromium import CHROMIUM, CHROMIUM_ARGS
 
     none = {"first_surface_ms": None, "kidnap_display_resume_s": None, "top_down_ms": None}
     if not CHROMIUM.exists():

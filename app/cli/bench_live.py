@@ -110,7 +110,8 @@ def bench_clients(
     phase. Targets: the real-time rate kept, update ≤ 20 ms, no growth per connection, a slow
     client slows nothing."""
     from ...core.localizer import Localizer
-    from ..bench.clients import TAB_KINDS, TAB_PRIORITIES
+    from ..bench.chromium import TAB_PRIORITIES
+    from ..bench.clients import TAB_KINDS
     from ..bench.clients import run as run_bench
     from ..options import open_source
     from ..viewer.heap import limit_arenas

@@ -31,7 +31,7 @@ def take(out: Path, cache_root: Path | None = None) -> Path:
     from ...core.errors import LidarlocError
     from ...core.localizer import Localizer
     from ...core.sequences.factory import SourceSpec, open_sequence
-    from ..bench.clients import CHROMIUM, CHROMIUM_ARGS
+    from ..bench.chromium import CHROMIUM, CHROMIUM_ARGS
     from .serve import serve
 
     if not CHROMIUM.exists():

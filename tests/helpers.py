@@ -208,7 +208,7 @@ def scripted_std(loc, stds):
 def instant_matcher(loc, accepted=False, before=None):
     """Replace the in-process matcher (localize.s2m_process=False) with one that answers at once,
     accepting or rejecting the start pose; ``before()`` runs first (e.g. to hold the match)."""
-    from lidarloc.core.matching.s2m import S2MOutcome
+    from lidarloc.core.matching.outcome import S2MOutcome
 
     def match(scan, pose, level=False):
         if before is not None:

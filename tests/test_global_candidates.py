@@ -1,8 +1,8 @@
 """Global localization by candidates (core/maps/places.py, core/matching/candidates.py and the
-scan-to-map matcher's whole-map matches): the place index's look-up finds the true place, the
-exact search and GICP verify it, two identical blocks make an "ambiguous" answer instead of a
-confident one, the exact whole-map search stays as the fallback and as a setting, and the index
-is cached and rebuilt when damaged."""
+scan-to-map matcher's whole-map matches, core/matching/candidate_match.py): the place index's
+look-up finds the true place, the exact search and GICP verify it, two identical blocks make an
+"ambiguous" answer instead of a confident one, the exact whole-map search stays as the fallback
+and as a setting, and the index is cached and rebuilt when damaged."""
 
 import dataclasses
 import math

@@ -15,7 +15,8 @@ from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, trans
 from lidarloc.core.localizer import Localizer
 from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap
-from lidarloc.core.matching.s2m import S2MOutcome, ScanToMapMatcher
+from lidarloc.core.matching.outcome import S2MOutcome
+from lidarloc.core.matching.s2m import ScanToMapMatcher
 
 SHIFT_M = 15.0  # how far the stub's "match" is from the pose it started at
 

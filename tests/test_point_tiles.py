@@ -16,7 +16,7 @@ from lidarloc.core.maps import mapping
 from lidarloc.core.maps.mapping import load_or_build_map, range_filter
 from lidarloc.core.maps.point_tiles import PointTiles
 from lidarloc.core.matching.gicp import GICPRefiner, LocalGICPRefiner
-from lidarloc.core.matching.s2m import _GroundGrid, _TiledGround
+from lidarloc.core.matching.ground import GroundGrid, TiledGround
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_non_finite_points_are_refused(cloud, tmp_path):
 
 def test_ground_heights_from_tiles_are_the_whole_maps(cloud, tmp_path):
     tiles = PointTiles.load_or_build(cloud, tmp_path, "cloud", tile_m=50.0)
-    whole, tiled = _GroundGrid(cloud, 1.0), _TiledGround(tiles, 1.0)
+    whole, tiled = GroundGrid(cloud, 1.0), TiledGround(tiles, 1.0)
     rng = np.random.default_rng(0)
     spots = np.r_[rng.uniform([-140, -50], [230, 220], (40, 2)), [[0.2, 0.1], [49.9, 50.1], [-130.0, -40.0]]]
     for x, y in spots:

@@ -1,4 +1,4 @@
-"""The scan-to-map matcher (core/matching/s2m.py). On a synthetic 3D street scene (walls on a flat
+"""The scan-to-map matcher (core/matching/s2m.py, carry-forward in carry.py). On a synthetic 3D street scene (walls on a flat
 ground): acceptance rule, GICP refinement of the 2D match, global mode's z guess, carry-forward
 composition, what an outcome keeps for the inspection. On the town, through the localizer: what
 each landed match's view says, also when the match is refused at its landing. On real KITTI
@@ -15,7 +15,8 @@ from lidarloc.core.config import MapConfig, S2MConfig
 from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, transform_points
 from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap, build_prior_map
-from lidarloc.core.matching.s2m import ScanToMapMatcher, carry_forward, carry_forward_poses
+from lidarloc.core.matching.carry import carry_forward, carry_forward_poses
+from lidarloc.core.matching.s2m import ScanToMapMatcher
 
 DEG = math.pi / 180
 SENSOR_HEIGHT = 1.7
@@ -242,7 +243,7 @@ def test_a_match_refused_at_its_landing_says_why_in_its_view(cache_root):
     from lidarloc.app.viewer.s2m_detail import carried_pose, s2m_detail_markdown
     from lidarloc.core.config import Config, apply_preset
     from lidarloc.core.localizer import Localizer
-    from lidarloc.core.matching.s2m import S2MOutcome
+    from lidarloc.core.matching.outcome import S2MOutcome
 
     town = short_town(6)
     cfg = apply_preset(Config(), "paper")

@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from .gicp import GICPResult
-from .s2m import S2MOutcome
+from .outcome import S2MOutcome
 
 
 def outcome_arrays(job, outcome) -> dict[str, np.ndarray]:

@@ -20,12 +20,9 @@ paper's rule rejects it and GICP never gets to refine it. Then the start itself 
 GICP, and accepted if the refined pose's BEV score beats the start's (the same acceptance test,
 applied to the refined start instead of a lattice pose); ``stage`` says which one was accepted.
 
-Carry-forward (paper, eq. of "Particle state correction"): a match computed for scan k lands at a
-later scan k' and is propagated as H(ξ_k') = H_(k',k) · H(ξ_k). The paper composes on the left,
-so its H are sensor ← world transforms (H_k = H_(k,k−1) ⋯ H_(1,0) H_0 maps world into sensor k).
-With this project's world ← LiDAR matrices T = H⁻¹ and odometry poses O_k = T_odom←k, the paper's
-H_(k',k) = T_k'←k = inv(O_k')·O_k, so T_w←k' = H(ξ_k')⁻¹ = H(ξ_k)⁻¹ · H_(k',k)⁻¹
-= T_w←k · inv(O_k) · O_k'. :func:`carry_forward` implements exactly that.
+Whole-map matches may go through the place index first (:mod:`.candidate_match`); a match that
+lands at a later scan is carried there by :mod:`.carry`. The outcome types are in :mod:`.outcome`,
+the ground height a match without a start z takes in :mod:`.ground`.
 """
 
 from __future__ import annotations
@@ -33,21 +30,21 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..config import MapConfig, PFConfig, S2MConfig
 from ..errors import LidarlocError
-from ..geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, rotation_zyx, transform_points
+from ..geometry import pose_matrix, pose_to_xyz_ypr, rotation_zyx, transform_points
 from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
-from ..maps.places import uses_places
 from ..o3d import open3d
 from . import m3rsm
-from .candidates import combined, look_up, verify, window_of
-from .candidates import distinct as distinct_answers
-from .gicp import GICPRefiner, GICPResult, LocalGICPRefiner
+from .candidate_match import CandidateMatchMixin
+from .candidates import window_of
+from .gicp import GICPRefiner, LocalGICPRefiner
+from .ground import GroundGrid, TiledGround
+from .outcome import PreparedScan, S2MOutcome
 from .tiled_search import match_global_tiled
 
 #: Voxel (m) the scan is down-sampled to before its normals are estimated for road removal.
@@ -69,63 +66,9 @@ MIN_BEV_CELLS = 20
 #: ``level``. Trusting it cost GICP 2.5 s at 34° and 9 s at 120° (the town, VLP-16), and the
 #: match was refused all the same; levelled, GICP takes ~30 ms and may succeed.
 MAX_TRUSTED_TILT = math.radians(20.0)
-#: Whole-map answers farther apart than this are distinct places (the metrics' own "within 5 m",
-#: ``localize.confirm_distance``): two of them verified with close scores make an ambiguous answer.
-DISTINCT_M = 5.0
-#: Yaw half-window of the exact search around a place from the look-up: its yaw comes from a
-#: 5° sector shift (measured off by at most 5° on the town), plus the lattice's step.
-CANDIDATE_YAW_WINDOW = math.radians(12.5)
 
 
-@dataclass(frozen=True)
-class PreparedScan:
-    """One scan in the forms S2M needs (all sensor frame)."""
-
-    points: np.ndarray  # (N, 3) float64, range-filtered full scan (GICP source)
-    road_removed: np.ndarray  # (M, 3) float64, flat surfaces removed (the BEV scan before projection)
-    ground_z: float  # median z of the scan's flat points near the sensor (nan if none)
-    ms: float
-
-
-@dataclass(frozen=True)
-class S2MOutcome:
-    accepted: bool
-    pose: np.ndarray  # 4×4 world ← LiDAR: refined match if accepted, else the start pose
-    score: float  # BEV score of the accepted pose: the 2D match's, or for
-    # stage "refined_start" the GICP-refined start's; = start_score
-    # when rejected because nothing beat the start
-    start_score: float  # BEV score of the start pose (nan in global mode)
-    region: tuple  # (x_min, y_min, x_max, y_max) sensor positions searched, world m
-    ms: float  # wall time of preparation + match + GICP
-    reason: str = ""  # why rejected ("" if accepted)
-    match: m3rsm.MatchResult | None = None
-    match_pose: np.ndarray | None = None  # 4×4 pose of the 2D match (GICP's initial guess)
-    gicp: GICPResult | None = None
-    scan_world: np.ndarray | None = None  # (M, 3) float32 road-removed scan at ``pose``
-    timings: dict = field(default_factory=dict)  # ms per stage: prepare, m3rsm, gicp
-    stage: str = "m3rsm"  # what GICP refined, and if accepted what was accepted: "m3rsm"
-    # (the 2D match) or "refined_start" (the start itself); "" when
-    # rejected before GICP ran
-    search: str = ""  # a whole-map match: "candidates" (the place index's places, verified) or
-    # "exact" (the whole-map branch and bound); "" for a local match
-    ambiguous: bool = False  # distinct places verified with close scores: rejected, not moved
-    alternatives: tuple = ()  # ((x, y, yaw, score), …) the other distinct places verified, best first
-
-
-def carry_forward_poses(T_w_k: np.ndarray, odom_k: np.ndarray, odom_k_prime: np.ndarray) -> np.ndarray:
-    """Propagate a world ← LiDAR pose of scan k to scan k' with the odometry poses of both scans
-    (T_odom←k, T_odom←k'): T_w←k' = T_w←k · inv(O_k) · O_k' (the paper's H(ξ_k') = H_(k',k)·H(ξ_k)
-    for sensor ← world H; see the module docstring)."""
-    return np.asarray(T_w_k, float) @ inv_pose(np.asarray(odom_k, float)) @ np.asarray(odom_k_prime, float)
-
-
-def carry_forward(T_match_k: np.ndarray, rpe, k: int, k_prime: int) -> np.ndarray:
-    """:func:`carry_forward_poses` with the odometry of a
-    :class:`~lidarloc.core.odometry.rpe.RelativePoseEstimator` (``rpe.relative(k, k')`` = inv(O_k)·O_k')."""
-    return np.asarray(T_match_k, float) @ rpe.relative(k, k_prime)
-
-
-class ScanToMapMatcher:
+class ScanToMapMatcher(CandidateMatchMixin):
     """The S2M block for one prior map: BEV pyramid + GICP target, both built once."""
 
     def __init__(
@@ -167,12 +110,12 @@ class ScanToMapMatcher:
         tiles = getattr(prior_map, "tiles", None)
         if tiles is None:
             self.gicp = GICPRefiner(prior_map.points, **gicp_args)
-            self._ground = _GroundGrid(prior_map.points, pyramid.resolution)
+            self._ground = GroundGrid(prior_map.points, pyramid.resolution)
         else:  # a map held as point tiles (a city): the map is read only near each match
             # what a scan point can pair with: the scan's range and the correspondence distance
             reach = float(self.map_cfg.scan_max_range) + self.cfg.gicp_max_corr
             self.gicp = LocalGICPRefiner(tiles, reach_m=reach, **gicp_args)
-            self._ground = _TiledGround(tiles, pyramid.resolution)
+            self._ground = TiledGround(tiles, pyramid.resolution)
 
     def map_points_near(self, x: float, y: float, radius: float) -> np.ndarray:
         """The map's points within ``radius`` of (x, y) in x-y, (n, 3) float64 (from the point
@@ -378,134 +321,11 @@ class ScanToMapMatcher:
         every scan point (the same cells, so the same scores)."""
         return window_of(self.pyramid, x, y, half + float(self.map_cfg.scan_max_range))
 
-    # ---------------------------------------------------------------- whole-map match by candidates
-    @property
-    def by_candidates(self) -> bool:
-        """Whether whole-map matches go through the place index (``s2m.global_search``: always,
-        never, or "auto": on a map of :data:`~lidarloc.core.maps.places.AUTO_MIN_CELLS` cells or more)."""
-        return uses_places(self.cfg, self.pyramid.shape)
-
     def covers_map(self, x: float, y: float, half_x: float, half_y: float) -> bool:
         """Whether ± (half_x, half_y) around (x, y) covers the whole pyramid: a whole-map match."""
         x0, y0, x1, y1 = self.pyramid.extent
         d = self.pyramid.resolution
         return x - half_x <= x0 + d and x + half_x >= x1 - d and y - half_y <= y0 + d and y + half_y >= y1 - d
-
-    def _finest(self):
-        """The map's finest BEV level whole, with its origin and d_m, for the look-up's re-ranking:
-        a city held in tiles is read into one array once (one byte a cell: 16 MB for 16 km²)."""
-        pyr = self.pyramid
-        if self._l0 is None or self._l0[0] is not pyr:  # (a new pyramid: a new d_m)
-            if isinstance(pyr, BEVPyramid):
-                self._l0 = (pyr, (pyr.levels[0], pyr.origin, pyr.resolution))
-            else:
-                whole = pyr.window(0, 0, pyr.shape[0], pyr.shape[1])
-                self._l0 = (pyr, (np.ascontiguousarray(whole.levels[0]), whole.origin, whole.resolution))
-        return self._l0[1]
-
-    def place_index(self):
-        """The place index, built from the map on first use where the caller gave none."""
-        if self.places is None:
-            from ..maps.places import index_of_pyramid, index_of_tiles
-
-            if isinstance(self.pyramid, BEVPyramid):
-                self.places = index_of_pyramid(self.pyramid, self.prior_map.points)
-            else:
-                self.places = index_of_tiles(self.pyramid, self.prior_map.points)
-        return self.places
-
-    def _by_candidates(self, prep, B, z, pitch, roll, start_pose, start_score, t0, timings):
-        """A whole-map match by the place index's candidates (module :mod:`.candidates`).
-
-        Returns ``(outcome, None)`` when decided: a place verified by M3RSM and GICP, or
-        "ambiguous" (two distinct places verified with close scores: rejected, both named);
-        ``(None, result)`` when no place beat the start's score (``result`` says so, for the
-        refinement of the start as after any unbeaten search); ``(None, None)`` when the exact
-        whole-map search must decide (the look-up found nothing to compare, or no verified place
-        passed GICP)."""
-        cfg = self.cfg
-        index = self.place_index()
-        level = rotation_zyx(0.0, pitch, roll)  # the whole scan levelled, as the BEV scan is
-        lu = look_up(
-            index, prep.points[:, :3] @ level.T, cfg.global_candidates, 2.0 * cfg.candidate_window,
-            self._finest(), B, cfg.angle_step,
-        )  # fmt: skip
-        timings["look_up"] = lu.ms
-        if not lu.places:
-            return None, None
-        t1 = time.perf_counter()
-        beat = start_score if math.isfinite(start_score) else None
-        reach = float(self.map_cfg.scan_max_range)
-        windows = verify(
-            self.pyramid, B, lu.places, cfg.candidate_window, CANDIDATE_YAW_WINDOW, cfg.angle_step, reach, beat
-        )
-        timings["m3rsm"] = (time.perf_counter() - t1) * 1e3
-        found = [r for r in windows if math.isfinite(r.x)]
-        if not found:
-            if beat is None:
-                return None, None
-            # nothing beat the start: the inspection shows the places' own scores beside it
-            scored = [
-                (p.x, p.y, p.yaw, m3rsm.score_pose(self._near(p.x, p.y, 0.0), B, p.x, p.y, p.yaw)) for p in lu.places
-            ]
-            return None, combined(windows, None, timings["m3rsm"], beat, scored)
-        answers = distinct_answers(found, DISTINCT_M)
-        home = start_pose
-
-        def refined(r):
-            zz = z if math.isfinite(z) else self._height_under(r.x, r.y, prep)
-            init = pose_matrix(r.x, r.y, zz, r.yaw, pitch, roll)
-            return self._refine(init, prep, r, start_score, init if home is None else home, t0, timings, True)
-
-        tried: dict[int, S2MOutcome] = {}
-        best = None
-        for i, r in enumerate(answers):
-            tried[i] = refined(r)
-            if tried[i].accepted:
-                best = i
-                break
-        if best is None:
-            return None, None
-        winner = tried[best]
-        # the inspection sees the windows' searches as one: nodes, leaves scored, the rectangle
-        whole = combined(windows, answers[best], timings["m3rsm"], -1.0 if beat is None else beat)
-        winner = dataclasses.replace(winner, match=whole, region=whole.region)
-        rivals = []
-        for i, r in enumerate(answers):
-            if i == best or r.score < cfg.ambiguity_ratio * winner.score:
-                continue
-            out = tried[i] if i in tried else refined(r)
-            if out.accepted:
-                rivals.append(r)
-                tried[i] = out
-        ms = (time.perf_counter() - t0) * 1e3
-        if rivals and home is not None:
-            # The start's own place among places that cannot be told apart: the filter's evidence
-            # (a second opinion from its estimate, or a particle already there) decides for it,
-            # as the exact search's unbeaten start would. The others stay named.
-            sx, sy = float(home[0, 3]), float(home[1, 3])
-            for i in [best] + [answers.index(r) for r in rivals]:
-                r = answers[i]
-                if math.hypot(r.x - sx, r.y - sy) <= DISTINCT_M:
-                    whole = combined(windows, r, timings["m3rsm"], -1.0 if beat is None else beat)
-                    best, winner, rivals = i, dataclasses.replace(tried[i], match=whole, region=whole.region), []
-                    break
-        others = tuple((r.x, r.y, r.yaw, r.score) for i, r in enumerate(answers) if i != best)
-        if rivals:
-            w = answers[best]
-            n = len(rivals) + 1
-            low = min(r.score for r in rivals) / w.score
-            reason = (
-                f"ambiguous: {n} places verify with scores within {100 * (1 - low):.0f}% of each other "
-                f"(best {w.score:.0f} at {w.x:.1f}, {w.y:.1f}; next {rivals[0].score:.0f} at "
-                f"{rivals[0].x:.1f}, {rivals[0].y:.1f})"
-            )
-            rejected = self._reject(
-                winner.pose if home is None else home, w.score, start_score, whole, prep, t0, timings, reason,
-                init=winner.match_pose, gicp=winner.gicp, stage="m3rsm",
-            )  # fmt: skip
-            return dataclasses.replace(rejected, search="candidates", ambiguous=True, alternatives=others, ms=ms), None
-        return dataclasses.replace(winner, search="candidates", alternatives=others, ms=ms), None
 
     def _height_under(self, x: float, y: float, prep: PreparedScan) -> float:
         """Sensor z at (x, y): the map's ground height there minus the scan's own ground height
@@ -597,54 +417,3 @@ class ScanToMapMatcher:
             timings=timings,
             stage=stage,
         )
-
-
-class _GroundGrid:
-    """Lowest map z per d_m cell, for a z guess in global mode (no start pose to take it from)."""
-
-    def __init__(self, points: np.ndarray, resolution: float):
-        xy = np.asarray(points[:, :2], np.float64)
-        self.res = float(resolution)
-        idx = np.floor(xy / self.res).astype(np.int64)
-        self.lo = idx.min(axis=0)
-        idx -= self.lo
-        shape = tuple((idx.max(axis=0) + 1).tolist())
-        self.zmin = np.full(shape, np.inf, np.float32)
-        np.minimum.at(self.zmin, (idx[:, 0], idx[:, 1]), np.asarray(points[:, 2], np.float32))
-
-    def height(self, x: float, y: float, radius_cells: int = 2) -> float:
-        """Median of the per-cell minima around (x, y); a median shrugs off the odd point below the
-        road (reflections) and cells whose lowest point is a car roof."""
-        i = int(math.floor(x / self.res)) - int(self.lo[0])
-        j = int(math.floor(y / self.res)) - int(self.lo[1])
-        # clipped at 0 on both ends: a negative stop would count from the grid's far end
-        win = self.zmin[
-            max(i - radius_cells, 0) : max(i + radius_cells + 1, 0),
-            max(j - radius_cells, 0) : max(j + radius_cells + 1, 0),
-        ]
-        vals = win[np.isfinite(win)]
-        return float(np.median(vals)) if len(vals) else math.nan
-
-
-class _TiledGround:
-    """:class:`_GroundGrid`'s heights from a map held as point tiles: the cells around (x, y)
-    from the points under them, read when asked (a global match asks once)."""
-
-    def __init__(self, tiles, resolution: float):
-        self.tiles = tiles
-        self.res = float(resolution)
-
-    def height(self, x: float, y: float, radius_cells: int = 2) -> float:
-        r = self.res
-        i, j = math.floor(x / r), math.floor(y / r)
-        x0, y0 = (i - radius_cells) * r, (j - radius_cells) * r
-        side = (2 * radius_cells + 1) * r
-        pts = self.tiles.points_in(x0, y0, x0 + side, y0 + side)
-        ci = np.floor(pts[:, 0].astype(np.float64) / r).astype(np.int64) - (i - radius_cells)
-        cj = np.floor(pts[:, 1].astype(np.float64) / r).astype(np.int64) - (j - radius_cells)
-        n = 2 * radius_cells + 1
-        inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)  # the rectangle's far edges are closed
-        zmin = np.full((n, n), np.inf, np.float32)
-        np.minimum.at(zmin, (ci[inside], cj[inside]), pts[inside, 2])
-        vals = zmin[np.isfinite(zmin)]
-        return float(np.median(vals)) if len(vals) else math.nan

@@ -57,6 +57,7 @@ from ..odometry.feed import OdometryFeed
 from ..rules.integrity import VERDICT_TEXT, Verdict, judge
 from ..snapshot import S2MView
 from ..worker_process import WorkerDied
+from .carry import carry_forward, carry_forward_poses
 from .landing import landed_view, write_unless_weight_drops
 from .matchers import MatcherMixin
 from .worker import S2MProcess
@@ -423,8 +424,6 @@ class S2MScheduler(MatcherMixin):
             if job.started_at < odometry.origin:
                 accepted, reason = False, "odometry restarted since the match started"
             else:
-                from .s2m import carry_forward, carry_forward_poses
-
                 try:
                     if through == k:
                         pose_k = carry_forward(outcome.pose, odometry.rpe, job.started_at, k)

@@ -5,7 +5,7 @@ small_gicp holds the GIL for the 60–150 ms of a refinement (``gil_hold_ms`` in
 on threads they stall the particle filter (measured: the PF step took ~150 ms inside the
 localizer against 35 ms alone). Here a child process loads the prior map and the BEV pyramid
 from the map cache, builds its own GICP target once, and answers "match this scan from this
-pose" requests with an :class:`~lidarloc.core.matching.s2m.S2MOutcome`. The outcome comes back pickled
+pose" requests with an :class:`~lidarloc.core.matching.outcome.S2MOutcome`. The outcome comes back pickled
 whole: beside the road-removed scan it carries only what the viewer's inspection shows (the
 search's best candidates and nodes per level, the 2D match, GICP's pose and figures), a few
 hundred bytes.

@@ -198,7 +198,7 @@ class RelativePoseEstimator:
     def relative(self, k_from: int, k_to: int) -> np.ndarray:
         """T_from←to = inv(O_from)·O_to: the pose of scan k_to in the frame of scan k_from, i.e. the
         transform that takes scan k_to's points into scan k_from's frame. Composes in the order
-        of the paper's H_(k', k) chain (see :func:`lidarloc.core.matching.s2m.carry_forward`)."""
+        of the paper's H_(k', k) chain (see :func:`lidarloc.core.matching.carry.carry_forward`)."""
         with self._lock:
             a = self._get(k_from)[0]
             b = self._get(k_to)[0]

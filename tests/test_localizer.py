@@ -198,7 +198,7 @@ def test_s2m_process_priority_follows_the_clock(town, cache_root):
         job.future.result(timeout=120)
         # An accepted match waits (at most REALTIME_LAND_FORCE_AFTER scans) for the odometry
         # of the scan it lands at; a rejected one lands at once.
-        from lidarloc.core.matching.schedule import REALTIME_LAND_FORCE_AFTER
+        from lidarloc.core.matching.realtime_landing import REALTIME_LAND_FORCE_AFTER
 
         for _ in range(REALTIME_LAND_FORCE_AFTER + 1):
             loc.run(1)

@@ -87,7 +87,7 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
     import threading
     import time
 
-    from lidarloc.core.matching import schedule as schedule_module
+    from lidarloc.core.matching import realtime_landing
 
     gate = threading.Event()  # KISS-ICP "stalls" on scans ≥ 3 until the gate opens
     loc = make(town, cache_root, localize__clock="realtime", localize__s2m_process=False)
@@ -102,16 +102,16 @@ def test_realtime_landing_does_not_wait_for_lagging_odometry(town, cache_root, m
 
         loc.odometry.rpe.add = add
         instant_matcher(loc, accepted=True)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 60.0)  # scans 0–2: always land
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_AHEAD_SCANS", 0)  # on their own scans; the waits alone
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_WAIT_S", 60.0)  # scans 0–2: always land
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_AHEAD_SCANS", 0)  # on their own scans; the waits alone
         loc.run(3)
         job = loc.s2m.job  # started at scan 1 or 2, whichever match was last
         assert job is not None and job.started_at <= 2
         job.future.result(timeout=60)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_WAIT_S", 0.03)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_MAX_DEFERRALS", 2)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_PATIENT_WAIT_S", 0.2)
-        monkeypatch.setattr(schedule_module, "REALTIME_LAND_FORCE_AFTER", 4)
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_WAIT_S", 0.03)
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_MAX_DEFERRALS", 2)
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_PATIENT_WAIT_S", 0.2)
+        monkeypatch.setattr(realtime_landing, "REALTIME_LAND_FORCE_AFTER", 4)
         # from here on: note when a step blocks on an unfinished registration (before, scan 0's
         # rules may legitimately wait for the very first one)
         landing_waits = threading.Event()
@@ -162,7 +162,7 @@ def test_realtime_landing_goes_through_the_newest_registered_scan_when_close():
     from concurrent.futures import Future
     from types import SimpleNamespace
 
-    from lidarloc.core.matching.schedule import REALTIME_LAND_AHEAD_SCANS, S2MScheduler
+    from lidarloc.core.matching.realtime_landing import REALTIME_LAND_AHEAD_SCANS, landing_scan
 
     class Odometry:
         def __init__(self, newest):
@@ -183,7 +183,7 @@ def test_realtime_landing_goes_through_the_newest_registered_scan_when_close():
         future.set_result(SimpleNamespace(accepted=accepted))
         job = SimpleNamespace(future=future, deferrals=0, started_at=started_at)
         odometry = Odometry(newest)
-        got = S2MScheduler._landing_scan(None, job, k, odometry, None)
+        got = landing_scan(job, k, odometry, None)
         return got, odometry.asked, job.deferrals
 
     assert REALTIME_LAND_AHEAD_SCANS >= 1
@@ -243,10 +243,10 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
     from concurrent.futures import Future
     from types import SimpleNamespace
 
-    from lidarloc.core.matching import schedule as schedule_module
-    from lidarloc.core.matching.schedule import S2MScheduler
+    from lidarloc.core.matching import realtime_landing
+    from lidarloc.core.matching.realtime_landing import landing_scan
 
-    newest = 6 - schedule_module.REALTIME_LAND_AHEAD_SCANS  # one scan too far behind scan 7 to land through it
+    newest = 6 - realtime_landing.REALTIME_LAND_AHEAD_SCANS  # one scan too far behind scan 7 to land through it
 
     class Odometry:  # never registered in time: records the wait it was asked for
         def __init__(self):
@@ -267,12 +267,12 @@ def test_realtime_landing_waits_no_longer_than_its_deadline_allows():
         future.set_result(SimpleNamespace(accepted=True))
         job = SimpleNamespace(future=future, deferrals=deferrals, started_at=0)
         odometry = Odometry()
-        through = S2MScheduler._landing_scan(None, job, 7, odometry, land_by)
+        through = landing_scan(job, 7, odometry, land_by)
         assert through is None and job.deferrals == deferrals + 1
         return odometry.asked[0]
 
-    short, patient = schedule_module.REALTIME_LAND_WAIT_S, schedule_module.REALTIME_LAND_PATIENT_WAIT_S
-    late_tries = schedule_module.REALTIME_LAND_MAX_DEFERRALS
+    short, patient = realtime_landing.REALTIME_LAND_WAIT_S, realtime_landing.REALTIME_LAND_PATIENT_WAIT_S
+    late_tries = realtime_landing.REALTIME_LAND_MAX_DEFERRALS
     now = time.perf_counter
     assert asked(0, None) == (short, False)
     assert asked(late_tries, None) == (patient, True)

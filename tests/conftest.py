@@ -41,20 +41,40 @@ def pytest_sessionfinish(session):
 
 
 # ------------------------------------------------------------------------------- two workers
-# `./run test` runs the suite on two pytest-xdist workers (--dist loadgroup). A test file stays on
+# `./run test` runs the suite on two pytest-xdist workers (--dist loadfile). A test file stays on
 # one worker (its module fixtures are built once), and the files that share one of the slowest
 # session fixtures go to the same worker, which builds it once: the default town's map
-# (default_town_cache, ~40 s) is the one worth keeping to one worker.
-SHARED_GROUPS = {"default_town_cache": "default-town-map"}
+# (default_town_cache, ~40 s) is the one worth keeping to one worker. The scheduler groups by file
+# path because a test's id is all the scheduler sees (xdist's own `xdist_group` marks rename test
+# ids, which pytest ≥ 9 no longer lets a plugin do: the marks were silently ignored).
+SHARED_FILES = {
+    "tests/test_town_unchanged.py": "default-town-map",
+    "tests/test_odometry_lag_bench.py": "default-town-map",
+}
+_SHARED_FIXTURES = {"default_town_cache": "default-town-map"}
+
+
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue("dist") not in ("loadfile", "loadgroup"):
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class FileScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return SHARED_FILES.get(path, path)
+
+    return FileScheduling(config, log)
 
 
 def pytest_collection_modifyitems(config, items):
+    # A test that uses a shared slow fixture from a file the scheduler does not know would build
+    # it again on the other worker: say so at collection, where it is cheap to fix.
     for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        fixtures = set(getattr(item, "fixturenames", ()))
-        group = next((g for f, g in SHARED_GROUPS.items() if f in fixtures), None)
-        item.add_marker(pytest.mark.xdist_group(group or item.nodeid.split("::", 1)[0]))
+        path = item.nodeid.split("::", 1)[0]
+        for fixture, group in _SHARED_FIXTURES.items():
+            if fixture in getattr(item, "fixturenames", ()) and SHARED_FILES.get(path) != group:
+                raise pytest.UsageError(f"{path} uses {fixture}: add it to SHARED_FILES in tests/conftest.py")
 
 
 @pytest.fixture(scope="session")

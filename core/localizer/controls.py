@@ -1,7 +1,7 @@
 """What a user does to a running localizer between scans: reset the particles, kidnap the vehicle,
 move the estimate unannounced, and change a live parameter — validated once by
 :func:`~lidarloc.core.config.check_live_changes`, applied through the reaction
-:data:`~lidarloc.core.config.LIVE_PARAMS` names for it."""
+:data:`~lidarloc.core.config.LIVE_PARAMS` names for it (:data:`REACTIONS`)."""
 
 from __future__ import annotations
 
@@ -90,9 +90,10 @@ class ControlsMixin:
                 before = getattr(section, p.attr)
                 setattr(section, p.attr, p.coerce(value))
                 if p.effect:
-                    getattr(self, f"_after_{p.effect}")(before)
+                    REACTIONS[p.effect](self, before)
 
-    # The reactions LIVE_PARAMS names (``effect``); each gets the value before the change.
+    # The reactions LIVE_PARAMS names (``effect``, the keys of REACTIONS below); each gets the
+    # value before the change.
     def _after_lookup(self, before: float) -> None:
         if not self.lookup.covers(self.cfg.pf.d_max):
             self._rebuild_lookup(self.cfg.pf.d_max)
@@ -122,3 +123,18 @@ class ControlsMixin:
         """The current value of every live parameter (keys of ``LIVE_PARAMS``, SI units)."""
         with self._lock:
             return {key: getattr(getattr(self.cfg, p.section), p.attr) for key, p in LIVE_PARAMS.items()}
+
+
+#: What the localizer does when a live parameter changes, by the ``effect`` its LIVE_PARAMS entry
+#: names (a table, so that a misspelt effect fails at import, not on the first change).
+REACTIONS = {
+    "lookup": ControlsMixin._after_lookup,
+    "filter": ControlsMixin._after_filter,
+    "particles": ControlsMixin._after_particles,
+    "s2m_switch": ControlsMixin._after_s2m_switch,
+    "pyramid": ControlsMixin._after_pyramid,
+    "clock": ControlsMixin._after_clock,
+}
+_unknown = {p.effect for p in LIVE_PARAMS.values() if p.effect} - REACTIONS.keys()
+if _unknown:  # a programming error in LIVE_PARAMS: every effect it names needs a reaction here
+    raise ImportError(f"LIVE_PARAMS names effects with no reaction: {sorted(_unknown)}")

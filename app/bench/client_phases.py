@@ -96,10 +96,16 @@ def measure_phase(viewer, updates: list, name: str, seconds: float, during=None)
     }
 
 
+#: The connections the churn makes at least, however long they take: the slope of the RSS is
+#: fitted over the second half of them, and ten points are the fewest it is fitted over.
+MIN_CONNECTS = 20
+
+
 def socket_churn(handle, seconds: float, open_tab=None) -> dict:
     """A websocket tab that connects, is counted by the server, disconnects and is let go by it,
-    in a loop for ``seconds``: the connections made and this process's RSS after each one was
-    let go. ``open_tab()`` opens the tab (default: a :class:`SocketTab` in this process;
+    in a loop for ``seconds`` and until it made :data:`MIN_CONNECTS` connections (on a busy
+    machine one may take a second): the connections made and this process's RSS after each one
+    was let go. ``open_tab()`` opens the tab (default: a :class:`SocketTab` in this process;
     ``bench clients`` passes its :class:`~.socket_tabs.TabHost`'s, so that the RSS is the server's alone).
 
     ``rss_mb_per_connection`` is the least-squares slope of that RSS against the connection's
@@ -116,7 +122,7 @@ def socket_churn(handle, seconds: float, open_tab=None) -> dict:
         open_tab = lambda: SocketTab(handle.port)  # noqa: E731
     rss: list[float] = []
     t0 = time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
+    while time.perf_counter() - t0 < seconds or len(rss) < MIN_CONNECTS:
         before = set(server.get_clients())
         tab = open_tab()
         try:

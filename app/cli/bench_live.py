@@ -76,8 +76,8 @@ def bench_clients(
         typer.Option(
             "--churn-s",
             min=5.0,
-            help="Seconds of the websocket tab connecting and disconnecting (default: --phase-s); "
-            "thousands of connections pin the memory per connection down under the allocator's noise.",
+            help="Seconds of the websocket tab connecting and disconnecting (default: --phase-s; longer "
+            "where 20 connections take more); thousands of connections pin the memory per connection down under the allocator's noise.",
         ),
     ] = None,
     tab_priority: Annotated[

@@ -1,6 +1,15 @@
 """The localizer's dealings with its blocks inside a step: waiting for one (giving up on
 ``interrupt()``), de-skewing a scan for the odometry and S2M, re-initialising the particles, entering
-tracking mode, and moving the filter where the whole-map check clearly found it."""
+tracking mode, and moving the filter where the whole-map check clearly found it.
+
+De-skew (``localize.deskew``): a spinning LiDAR measures its points over a whole sweep while the
+car moves. Each scan is moved into its mid-sweep frame (:mod:`lidarloc.core.odometry.deskew`) before the
+PF, the RPE and S2M see it, assuming the motion of the newest known odometry step (constant
+velocity over one sweep; the scan's own odometry is not known yet when it arrives). The first two
+scans after a (re)start of the odometry have no such step and are used as they come. Recorded
+odometry (``localize.recorded_odometry``) is KISS-ICP's over the scans as they come, so with
+de-skewing it differs slightly from the live odometry, which registers the de-skewed scans.
+"""
 
 from __future__ import annotations
 

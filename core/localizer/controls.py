@@ -1,7 +1,12 @@
 """What a user does to a running localizer between scans: reset the particles, kidnap the vehicle,
 move the estimate unannounced, and change a live parameter — validated once by
 :func:`~lidarloc.core.config.check_live_changes`, applied through the reaction
-:data:`~lidarloc.core.config.LIVE_PARAMS` names for it (:data:`REACTIONS`)."""
+:data:`~lidarloc.core.config.LIVE_PARAMS` names for it (:data:`REACTIONS`).
+
+Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
+KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
+detect the failed registration the same way); the filter itself learns nothing.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,14 @@
 """What the localizer reports after each scan: the snapshot the viewer and the writers read, the
-events, the scan's fit to the map at the estimate, the frame checks and the truth's grade."""
+events, the scan's fit to the map at the estimate, the frame checks and the truth's grade.
+
+Confidence: after each scan the localizer measures how well the scan fits the map at the
+estimate (the share of prepared scan points within d_max of the map and their mean distance,
+:func:`~lidarloc.core.filter.likelihood.residual_stats`, one pose: well under a millisecond) and, with
+the particles' spread and N_eff, reports it in the snapshot and the per-scan record (see
+:mod:`lidarloc.core.snapshot`). A ``confidence_low`` event marks the scan at which, while
+localized, the inlier share drops below ``localize.min_inlier_share``; it fires once and is
+re-armed when the share recovers or localization ends.
+"""
 
 from __future__ import annotations
 

@@ -17,39 +17,10 @@ Data flow for scan k (paper, Fig. "block diagram"):
   road-segmented: nothing else uses them. ``localize.s2m_process = False`` runs both on the S2M
   thread instead (same results, for debugging).
 
-Two clocks: ``replay`` lands every S2M result exactly ``n_s2m`` scans after it started (the
-step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime`` lands a
-result at the first scan after it finished whose odometry is ready (an accepted match is carried
-forward with it; see :mod:`lidarloc.core.matching.schedule`), and the rules read the newest finished
-odometry instead of waiting for scan k's, so KISS-ICP and the PF overlap across scans.
-
-The blocks around the scan loop: :class:`~lidarloc.core.odometry.feed.OdometryFeed` feeds the RPE,
-:class:`~lidarloc.core.matching.schedule.S2MScheduler` starts, lands and cancels the S2M matches.
-
-The prior map is built from the sequence's ``map_source`` (the whole mapping drive: ``--scans N``
-plays N scans inside it, and the generated town's drive with changes, traffic or another sensor
-is localized in the town as it was mapped), never from the scans being localized alone. A map
-file (``--map``) is the map source of a :class:`~lidarloc.core.sequences.framed.MapFramed`
-sequence, which learns the map's origin from the localizer to put its truth in the map's frame.
-
-Start, frames and confidence: :mod:`lidarloc.core.rules.checks` (``--init``'s start around a guess,
-``frame_mismatch`` when map, truth and scans look to be in different frames, ``confidence_low``).
-
-Confidence: after each scan the localizer measures how well the scan fits the map at the
-estimate (the share of prepared scan points within d_max of the map and their mean distance,
-:func:`~lidarloc.core.filter.likelihood.residual_stats`, one pose: well under a millisecond) and, with
-the particles' spread and N_eff, reports it in the snapshot and the per-scan record (see
-:mod:`lidarloc.core.snapshot`). A ``confidence_low`` event marks the scan at which, while
-localized, the inlier share drops below ``localize.min_inlier_share``; it fires once and is
-re-armed when the share recovers or localization ends.
-
-De-skew (``localize.deskew``): a spinning LiDAR measures its points over a whole sweep while the
-car moves. Each scan is moved into its mid-sweep frame (:mod:`lidarloc.core.odometry.deskew`) before the
-PF, the RPE and S2M see it, assuming the motion of the newest known odometry step (constant
-velocity over one sweep; the scan's own odometry is not known yet when it arrives). The first two
-scans after a (re)start of the odometry have no such step and are used as they come. Recorded
-odometry (``localize.recorded_odometry``) is KISS-ICP's over the scans as they come, so with
-de-skewing it differs slightly from the live odometry, which registers the de-skewed scans.
+Two clocks (``localize.clock``): ``replay`` lands every S2M result exactly ``n_s2m`` scans after
+it started (the step blocks until it is ready), so a seed fixes the whole trajectory; ``realtime``
+lands it once its odometry is ready (:mod:`lidarloc.core.matching.schedule`) and the rules read
+the newest finished odometry instead of waiting for scan k's, so KISS-ICP and the PF overlap.
 
 Choice where the paper is vague: the paper suspends resampling between k and k'. We resample as
 usual but protect the S2M particle (the PF's ``protect`` argument), which keeps the particle
@@ -57,21 +28,10 @@ intact without starving the filter of resampling while S2M runs back to back. Wi
 (``pf.kld``) a resampling may change the particle count and move the protected particle to
 another slot: the match in flight follows it (``pf.protected_index``) instead of being cancelled.
 
-Kidnap (viewer feature): the data index jumps ahead without telling the filter. The RPE's
-KISS-ICP cannot register across a jump, so it is restarted at the new scan (a real system would
-detect the failed registration the same way); the filter itself learns nothing.
-
-Resuming (:mod:`lidarloc.core.runs.resume`, :mod:`lidarloc.core.runs.branch`): after each step a recording
-asks :meth:`Localizer.resume_payload` for what resuming from that step needs (checkpoints of the
-exact state, the odometry, the raw S2M outcomes); ``known_odometry`` makes the odometry use a
-recorded run's poses instead of registering those scans again, and ``lazy_s2m`` starts the S2M
-matcher only when a match needs it (a resumed run replays recorded matches first).
-
-Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
-``s2m_cancelled`` (the match could no longer land: re-initialised or resized particles, a kidnap,
-S2M switched off, a clock change, a rebuilt pyramid, or ``close()``). Stopping: ``interrupt()``
-(Ctrl-C, closing the viewer) makes a step that waits for a block give up without recording its
-scan, and ``close()`` kills child processes that are busy or still setting up.
+This module is the scan loop: construction, restart, one step. Its parts: the blocks' feeds
+(:class:`~lidarloc.core.odometry.feed.OdometryFeed`, :class:`~lidarloc.core.matching.schedule.S2MScheduler`)
+and the modules beside this one, each saying what it holds (de-skewing: :mod:`.blocks`; kidnap:
+:mod:`.controls`; the scan's fit: :mod:`.outputs`; resuming: :mod:`.state`; stopping: :mod:`.processes`).
 """
 
 from __future__ import annotations
@@ -79,24 +39,25 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
 
 from ..config import Config
 from ..errors import LidarlocError
-from ..filter.scanprep import prepare_scan, voxel_downsample_random
+from ..filter.scanprep import prepare_scan
 from ..maps.world import World, open_world
 from ..matching.pending import S2MNotReady, in_daemon_thread
+from ..odometry.deskew import sweep_period
 from ..odometry.feed import OdometryFeed
 from ..odometry.rpe import load_or_build_odometry
 from ..rules.checks import ConfidenceWatch, ScanFrameCheck, initial_pose_on_map
 from ..rules.integrity import Integrity
 from ..rules.paper import LocalizationRules
 from ..snapshot import Event, ScanRecord, Snapshot
-from ..worker_process import WorkerProxy
-from .blocks import BlockError, BlocksMixin, Interrupted
+from . import processes
+from .blocks import BlocksMixin, Interrupted
 from .controls import ControlsMixin
 from .deadline import LANDING_MARGIN_S, RecentPeak
 from .outputs import OutputsMixin
@@ -122,17 +83,8 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         self.seq, self.cfg = seq, cfg
         self.n_scans = len(seq)
         self._progress = progress or (lambda stage, frac: None)
-        # A viewer's start: KISS-ICP's child process sets up (~3 s of imports) while the map and
-        # tables are built, instead of in front of the first scan. Closed by __del__ if the
-        # construction fails.
-        early_rpe = None
-        if defer_s2m and cfg.localize.rpe_process and not cfg.localize.recorded_odometry:
-            from ..odometry.worker import KissICPProcess
-
-            early_rpe = KissICPProcess()
-        # The prior map comes from the sequence's mapping drive, not from the scans being
-        # localized (``--scans N`` plays N scans inside the whole drive's map; the town's drive
-        # with changes, traffic or another sensor inside the town as it was mapped).
+        early_rpe = processes.start_rpe_early(cfg, defer_s2m)  # closed by __del__ if the construction fails
+        # The prior map comes from the sequence's mapping drive (core/maps/world.py).
         # ``defer_s2m``: what only S2M needs (road removal, BEV pyramid, its process) is built in
         # the background after construction, and S2M joins at the first scan after it is ready —
         # a scan that depends on timing, so only for a viewer's first start on an empty cache.
@@ -160,16 +112,11 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                 seq, self.odometry_cache_dir, progress=lambda f: self._progress("odometry", f)
             ).value
         self._PF = ParticleFilter
-        # one LiDAR sweep lasts one scan interval (a spinning sensor reports a scan per turn)
-        gaps = np.diff(np.asarray(seq.timestamps, dtype=np.float64))
-        gaps = gaps[gaps > 0]
-        self._sweep_period = float(np.median(gaps)) if gaps.size else float(cfg.pf.dt)
+        self._sweep_period = sweep_period(seq.timestamps, cfg.pf.dt)
         bmin, bmax = self.prior_map.bounds
         self._bounds = (np.asarray(bmin, float), np.asarray(bmax, float))
         self._lock = threading.RLock()
-        self._rpe_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-RPE")
-        self._s2m_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-S2M")
-        self._rebuild_pool = ThreadPoolExecutor(1, thread_name_prefix="lidarloc-rebuild")
+        self._rpe_pool, self._s2m_pool, self._rebuild_pool = processes.block_threads()
         self.rebuild_progress: float | None = None
         self._pending_lookup: Future | None = None
         self._pending_pyramid: Future | None = None
@@ -283,16 +230,9 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
             self._road_removal.kill()
         with self._lock:
             self.s2m.cancel(self.k - 1, "localizer closed")
-        pools = (self._rpe_pool, self._s2m_pool, self._rebuild_pool)
-        for pool in pools:  # queued work is dropped …
-            pool.shutdown(wait=False, cancel_futures=True)
-        # … and the children close before the threads are joined: a match or registration in
-        # flight is only thrown away, so a busy child is killed rather than waited for (a
-        # whole-map match kept Ctrl-C waiting 1.2 s).
-        self.odometry.close_process()
-        self.s2m.close_processes()
-        for pool in pools:
-            pool.shutdown(wait=True)
+        processes.close_threads_and_children(
+            (self._rpe_pool, self._s2m_pool, self._rebuild_pool), self.odometry, self.s2m
+        )
 
     def kill_processes(self) -> None:
         """Kill every child process at once, without waiting for them or for the threads: for a
@@ -314,22 +254,10 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         arriving once the system is up, and set-up still running would take the CPU from the first
         scans (measured on the real drive in real time: without this the first whole-map match,
         started at scan 0, landed at scan 11–12; with it, at scan 3)."""
-        from ..filter.likelihood import log_likelihood_floored
-
-        # this process's own one-off costs too: numba loads a kernel from its cache at the first
-        # call (~0.3 s for the scan down-sampling, measured), here instead of in scan 0's step
-        few = np.asarray(self.prior_map.points[:64], dtype=np.float32)
-        voxel_downsample_random(few, self.cfg.pf.scan_voxel, 0)
-        some = self.pf.states[:2]
-        log_likelihood_floored(some, few, self.lookup, self.effective_d_max, self.cfg.pf.sigma, np.zeros(len(some)))
-        for worker in (self.s2m.matcher, self.odometry.process):
-            if isinstance(worker, WorkerProxy):
-                try:
-                    words = worker.wait_ready_reviving()  # a child killed in its set-up: once more
-                except RuntimeError as exc:
-                    raise BlockError(f"{worker.block}: {exc}", worker.block) from None
-                if words is not None:
-                    self._event(self.k, "restarted", f"{worker.block}: {words}")
+        processes.load_kernels(self.prior_map.points, self.cfg.pf, self.pf.states, self.lookup, self.effective_d_max)
+        processes.wait_for_children(
+            (self.s2m.matcher, self.odometry.process), lambda why: self._event(self.k, "restarted", why)
+        )
 
     def cpu_seconds(self) -> dict:
         """CPU time used so far by the blocks' processes, in seconds: ``main`` (this process: the
@@ -337,18 +265,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         ``s2m`` (the RS + S2M child). None where a block runs inside this process (then its time
         is in ``main``) or the platform cannot tell. Differences of two readings give what a run
         cost per block (``lidarloc run`` puts them in summary.json)."""
-        try:
-            import resource
-
-            usage = resource.getrusage(resource.RUSAGE_SELF)
-            main = usage.ru_utime + usage.ru_stime
-        except ImportError:  # not a Unix
-            main = None
-
-        def child(worker):
-            return worker.cpu_seconds() if isinstance(worker, WorkerProxy) else None
-
-        return {"main": main, "rpe": child(self.odometry.process), "s2m": child(self.s2m.matcher)}
+        return processes.cpu_seconds(self.odometry.process, self.s2m.matcher)
 
     def __enter__(self):
         return self
@@ -365,8 +282,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         """Whether ``close()`` was called: the localizer steps no more."""
         return self._closed
 
-    # ------------------------------------------------------------------------ controls
-
+    # ------------------------------------------------------------------------ derived
     @property
     def odometry_cache_dir(self) -> Path:
         """Where the localized drive's recorded odometry is cached: a sibling of the map's
@@ -542,9 +458,3 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
                 break
             self.step()
         return self._snapshot
-
-    # ------------------------------------------------------------------------ blocks
-
-    # ------------------------------------------------------------------------ background rebuilds
-
-    # ------------------------------------------------------------------------ outputs

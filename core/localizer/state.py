@@ -5,6 +5,11 @@ fields, the S2M outcome that landed (:mod:`lidarloc.core.matching.outcome_io`) a
 :data:`CHECKPOINT_EVERY` steps and after any control, a :meth:`StateMixin.checkpoint` of the
 exact state; :meth:`StateMixin.restore` puts a fresh localizer (same source, same configuration)
 back into it. The files are described in :mod:`lidarloc.core.runs.resume`.
+
+A localizer built to resume (:mod:`lidarloc.core.runs.branch`) is given ``known_odometry``, which
+makes the odometry use a recorded run's poses instead of registering those scans again, and
+``lazy_s2m``, which starts the S2M matcher only when a match needs it (a resumed run replays
+recorded matches first).
 """
 
 from __future__ import annotations

@@ -3,8 +3,10 @@ the nearest-distance lookup table the particle filter reads, and the BEV pyramid
 matcher searches — each loaded from the map's cache directory, or built and cached there once.
 
 The prior map always comes from the sequence's ``map_source`` (the whole mapping drive, or a map
-file), never from the scans being localized alone. The localizer, the viewer's recorded runs and
-the benchmarks all open their world here.
+file), never from the scans being localized alone: ``--scans N`` plays N scans inside the whole
+drive's map, and the town's drive with changes, traffic or another sensor is localized inside the
+town as it was mapped. The localizer, the viewer's recorded runs and the benchmarks all open their
+world here.
 """
 
 from __future__ import annotations

@@ -12,9 +12,11 @@ particle's log-likelihood: see :func:`~.landing.write_unless_weight_drops`).
 (see :func:`lidarloc.core.matching.realtime_landing.landing_scan`).
 
 Every ``s2m_started`` event ends in exactly one of ``s2m_accepted``, ``s2m_rejected`` or
-``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land). In real time a
-finished match that agrees with the estimate but must wait for the odometry to land says so at
-once with an ``s2m_agrees`` event (:meth:`S2MScheduler._agree_early`), before its landing.
+``s2m_cancelled`` (:meth:`S2MScheduler.cancel`: the match can no longer land: re-initialised or
+resized particles, a kidnap, S2M switched off, a clock change, a rebuilt pyramid, or the
+localizer's ``close()``). In real time a finished match that agrees with the estimate but must
+wait for the odometry to land says so at once with an ``s2m_agrees`` event
+(:meth:`S2MScheduler._agree_early`), before its landing.
 
 A dead S2M child (killed, out of memory) is found at the start of the next step
 (:meth:`S2MScheduler.check_matcher`) or by the landing of the match it was running, whichever

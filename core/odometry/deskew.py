@@ -33,6 +33,14 @@ import numpy as np
 from ..errors import LidarlocError
 
 
+def sweep_period(timestamps, fallback: float) -> float:
+    """One sweep's duration, s: a spinning sensor reports a scan per turn, so one sweep lasts one
+    scan interval (the median of the positive gaps between ``timestamps``); ``fallback`` without any."""
+    gaps = np.diff(np.asarray(timestamps, dtype=np.float64))
+    gaps = gaps[gaps > 0]
+    return float(np.median(gaps)) if gaps.size else float(fallback)
+
+
 def sweep_fraction(azimuth: np.ndarray) -> np.ndarray:
     """Share of the sweep done when the head pointed at ``azimuth`` (rad, atan2(y, x)): 0 just
     after straight behind, 0.5 straight ahead, → 1 at straight behind again."""

@@ -29,7 +29,7 @@ NoRecordOpt = Annotated[
 ]
 
 
-def _workers(workers: int | None, ray: str | None) -> int:
+def workers_for(workers: int | None, ray: str | None) -> int:
     from ..sweep.executor import default_workers
 
     if workers is not None:
@@ -75,7 +75,7 @@ def sweep(
 
     g = parse_grid(grid)
     shared = Settings(spec, settings.config, settings.overrides, settings.preset, settings.world, cache)
-    summary, tally = run_sweep(shared, g, runs, _workers(workers, ray), out, ray=ray, record=not no_record)
+    summary, tally = run_sweep(shared, g, runs, workers_for(workers, ray), out, ray=ray, record=not no_record)
     if as_json:
         emit_json(summary)
     else:
@@ -136,7 +136,7 @@ def tune(
 
     params = parse_params(param)
     shared = Settings(spec, settings.config, settings.overrides, settings.preset, settings.world, cache)
-    summary = run_tune(shared, params, trials, runs, _workers(workers, ray), out, ray=ray)
+    summary = run_tune(shared, params, trials, runs, workers_for(workers, ray), out, ray=ray)
     if as_json:
         emit_json(summary)
         return

@@ -1,0 +1,87 @@
+"""``lidarloc corpus``: many drives, one run each, with where along each drive it went wrong."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ..console import emit_json, err
+from ..options import CacheOpt, JsonOpt, SetOpt
+from .groups import corpus_app
+from .sweeps import RayOpt, WorkersOpt, workers_for
+
+
+@corpus_app.command("example")
+def example(
+    drives: Annotated[int, typer.Option("--drives", min=1, help="Drives in the corpus.")] = 8,
+    scans: Annotated[
+        int | None, typer.Option("--scans", min=1, help="Scans of each drive (default: the whole drive).")
+    ] = None,
+):
+    """Print a corpus file of the built-in town's drives (town seeds × its sensors, lived-in world) on stdout.
+
+    `lidarloc corpus run` takes it as it is; edit it into a corpus of your own logs (docs/corpus.md)."""
+    from ..corpus.example import example_corpus
+
+    typer.echo(example_corpus(drives, scans), nl=False)
+
+
+@corpus_app.command("run")
+def run(
+    corpus: Annotated[
+        Path, typer.Argument(metavar="CORPUS.yaml", help="The corpus file (YAML, docs/corpus.md).", show_default=False)
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", help="Folder of the drives' runs and corpus.json (resumed if it exists).")
+    ] = Path("out/corpus"),
+    workers: WorkersOpt = None,
+    ray: RayOpt = None,
+    set_: SetOpt = None,
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """Run every drive of a corpus: one seeded replay-clock run each, and each drive's health.
+
+    Writes DIR/drives/NAME/ (open one with `lidarloc view --run DIR/drives/NAME`) and DIR/corpus.json: each drive's summary, its first fix, withdrawals, false fires, RMSE and the stretches of scans that fitted poorly, were late or were localized in the wrong place. --set applies to every drive, after its own. Run the same command again to resume: finished drives are kept, failed ones run again. Exits with status 1 when a drive failed."""
+    from ..corpus.run import run_corpus
+    from ..corpus.spec import load_corpus
+
+    overrides = list(set_ or [])
+    loaded = load_corpus(corpus, overrides)
+    report, tally = run_corpus(loaded, out, workers_for(workers, ray), overrides=overrides, ray=ray, cache_root=cache)
+    if as_json:
+        emit_json(report)
+    else:
+        _print_report(report)
+    if tally.interrupted:
+        err.print("interrupted: run the same command again to resume", highlight=False)
+        raise typer.Exit(130)
+    if report["drives_failed"]:
+        raise typer.Exit(1)
+
+
+def _print_report(report: dict) -> None:
+    for name, drive in report["drives"].items():
+        health = drive["health"]
+        fix = health["first_fix"]
+        rmse = health["rmse_localized_m"]
+        line = (
+            f"{name}: "
+            + ("never localized" if fix is None else f"localized at scan {fix['scan']} ({fix['seconds']:.1f} s)")
+            + ("" if rmse is None else f", RMSE {rmse:.2f} m")
+            + f", {len(health['withdrawals'])} withdrawals"
+            + ("" if health["false_fires"] is None else f", {health['false_fires']} false fires")
+        )
+        err.print(line, highlight=False, markup=False)
+        for stretch in health["stretches"]:
+            if stretch["kind"] != "late":  # wall-clock noise: corpus.json keeps them
+                err.print(f"  {stretch['text']}", highlight=False, markup=False)
+    for name, reason in report["drives_failed"].items():
+        err.print(f"{name}: failed: {reason}", highlight=False, markup=False)
+    err.print(
+        f"{report['done']} of {report['total']} drives done ({report['ran_now']} now); corpus.json in {report['out']}",
+        highlight=False,
+        markup=False,
+    )

@@ -34,7 +34,7 @@ from ..console import err
 from ..sweep.bookkeeping import ERROR_FILE, Run, Tally, is_done, one_line
 from ..sweep.cluster import check_address
 from ..sweep.executor import execute
-from ..sweep.world import ensure_world, mark_ready
+from ..sweep.world import ensure_world, mark_ready, world_key
 from .health import run_health
 from .spec import Corpus, Drive
 
@@ -94,19 +94,24 @@ def prepare_here(planned: list[Run], cache: str, console: Console) -> dict[str, 
     """Each drive still to run has its map and tables built here, one after the other; a drive
     whose source cannot be opened (a corrupt file) fails here with its one-line reason, said as it
     happens (the builds before the runs may take minutes)."""
-    failed = {}
+    failed, outcome = {}, {}  # outcome: world key → None (prepared) or the reason it failed
     for run in planned:
         if is_done(run.run_dir):
             continue
         spec_d, cfg_d = run.args[0], run.args[1]
         # without the odometry: each worker computes its own drive's, in parallel
         map_only = {**cfg_d, "localize": {**cfg_d["localize"], "recorded_odometry": False}}
-        try:
-            prepare_cache(_spec_from(spec_d), update_from_dict(Config(), map_only), Path(cache), label=run.label)
-        except KeyboardInterrupt:
-            raise
-        except Exception as exc:  # any failure of one drive's data is that drive's, not the corpus's
-            failed[run.label] = one_line(exc)
+        key = world_key(spec_d, map_only)  # one log under several seeds is prepared once
+        if key not in outcome:
+            try:
+                prepare_cache(_spec_from(spec_d), update_from_dict(Config(), map_only), Path(cache), label=run.label)
+                outcome[key] = None
+            except KeyboardInterrupt:
+                raise
+            except Exception as exc:  # any failure of one drive's data is that drive's, not the corpus's
+                outcome[key] = one_line(exc)
+        if outcome[key] is not None:
+            failed[run.label] = outcome[key]
             Path(run.run_dir, ERROR_FILE).write_text(failed[run.label] + "\n")
             console.print(f"failed: {run.label}: {failed[run.label]}", markup=False, highlight=False)
             continue

@@ -429,7 +429,7 @@ def test_fpfh_ransac_registrations_are_kept_and_a_longer_run_registers_only_the_
 
     cfg = load_config()
     map_file = tmp_path / "map.npy"
-    np.save(map_file, np.random.default_rng(0).uniform(-50, 50, (200_000, 3)).astype(np.float32))
+    np.save(map_file, np.random.default_rng(0).uniform(-50, 50, (40_000, 3)).astype(np.float32))
     quiet = lambda what, f: None  # noqa: E731
     rows = tmp_path / "fpfh-ransac"
     identity = {"method": "FPFH + RANSAC", "map": "random"}

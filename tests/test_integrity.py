@@ -284,25 +284,26 @@ AT_PF_PRIORITY = ("localize.recorded_odometry=true", "s2m.replay_process_nice=0"
 
 @pytest.mark.slow
 def test_a_late_s2m_holds_the_rule_back_and_the_filter_recovers_once_it_joins(cache_root):
-    """S2M held back until scan 40 (``s2m.join_at_scan``): the particle filter alone may converge,
+    """S2M held back until scan 20 (``s2m.join_at_scan``): the particle filter alone may converge,
     but nothing says localized before S2M's word; within 30 scans of joining the filter is localized
     within 5 m of the truth, and no scan was ever green and wrong."""
-    seq = short_town(80)
-    cfg = load_config(overrides=["s2m.join_at_scan=40", *AT_PF_PRIORITY])
+    join, n = 20, 50
+    seq = short_town(n)
+    cfg = load_config(overrides=[f"s2m.join_at_scan={join}", *AT_PF_PRIORITY])
     with Localizer(seq, cfg, cache_root) as loc:
-        snaps = [loc.step() for _ in range(80)]
+        snaps = [loc.step() for _ in range(n)]
         events = list(loc.events)
         records = list(loc.records)
-    held = [s for s in snaps if s.scan_index < 40]
-    assert all(s.s2m_status == "held" and "until scan 40" in s.s2m_status_detail for s in held)
+    held = [s for s in snaps if s.scan_index < join]
+    assert all(s.s2m_status == "held" and f"until scan {join}" in s.s2m_status_detail for s in held)
     assert not any(s.localized for s in held)
-    assert not any(e.kind.startswith("s2m_") and e.kind != "s2m_ready" for e in events if e.scan < 40)
-    assert [(e.scan, e.kind) for e in events if e.kind == "s2m_ready"] == [(40, "s2m_ready")]
+    assert not any(e.kind.startswith("s2m_") and e.kind != "s2m_ready" for e in events if e.scan < join)
+    assert [(e.scan, e.kind) for e in events if e.kind == "s2m_ready"] == [(join, "s2m_ready")]
     onset = next(r.scan for r in records if r.localized)
-    assert 40 <= onset <= 70 and records[onset].error_m < 5.0
+    assert join <= onset <= join + 30 and records[onset].error_m < 5.0
     assert not any(r.localized and r.error_m > 5.0 for r in records)
     assert not any(e.kind == "false_fire" for e in events)
-    assert snaps[onset].confirmed_at is not None and snaps[onset].confirmed_at >= 40
+    assert snaps[onset].confirmed_at is not None and snaps[onset].confirmed_at >= join
 
 
 @contextlib.contextmanager

@@ -43,15 +43,19 @@ def pytest_sessionfinish(session):
 # ------------------------------------------------------------------------------- two workers
 # `./run test` runs the suite on two pytest-xdist workers (--dist loadfile). A test file stays on
 # one worker (its module fixtures are built once), and the files that share one of the slowest
-# session fixtures go to the same worker, which builds it once: the default town's map
-# (default_town_cache, ~40 s) is the one worth keeping to one worker. The scheduler groups by file
-# path because a test's id is all the scheduler sees (xdist's own `xdist_group` marks rename test
-# ids, which pytest ≥ 9 no longer lets a plugin do: the marks were silently ignored).
-SHARED_FILES = {
-    "tests/test_town_unchanged.py": "default-town-map",
-    "tests/test_odometry_lag_bench.py": "default-town-map",
+# session fixtures (SHARED_FIXTURES) go to the same worker, which builds it once. The scheduler
+# groups by file path because a test's id is all the scheduler sees (xdist's own `xdist_group`
+# marks rename test ids, which pytest ≥ 9 no longer lets a plugin do: the marks were ignored).
+
+#: The files that share one of the slowest session fixtures, by that fixture: they run on one
+#: worker, which builds it once (the default town's 1200-scan map, ~40 s; the real drive written
+#: as every recording kind, ~30 s; a local Ray cluster, ~20 s to start).
+SHARED_FIXTURES = {
+    "default_town_cache": ("test_town_unchanged.py", "test_odometry_lag_bench.py"),
+    "kitti_recordings": ("test_own_data.py", "test_rosbag.py", "test_scan_folder.py", "test_examples.py"),
+    "ray_local": ("test_bench.py", "test_shards.py", "test_sweep.py", "test_tune.py"),
 }
-_SHARED_FIXTURES = {"default_town_cache": "default-town-map"}
+SHARED_FILES = {f"tests/{name}": group for group, names in SHARED_FIXTURES.items() for name in names}
 
 
 def pytest_xdist_make_scheduler(config, log):
@@ -72,9 +76,9 @@ def pytest_collection_modifyitems(config, items):
     # it again on the other worker: say so at collection, where it is cheap to fix.
     for item in items:
         path = item.nodeid.split("::", 1)[0]
-        for fixture, group in _SHARED_FIXTURES.items():
-            if fixture in getattr(item, "fixturenames", ()) and SHARED_FILES.get(path) != group:
-                raise pytest.UsageError(f"{path} uses {fixture}: add it to SHARED_FILES in tests/conftest.py")
+        for fixture in SHARED_FIXTURES:
+            if fixture in getattr(item, "fixturenames", ()) and SHARED_FILES.get(path) != fixture:
+                raise pytest.UsageError(f"{path} uses {fixture}: add the file to SHARED_FIXTURES in tests/conftest.py")
 
 
 @pytest.fixture(scope="session")

@@ -20,23 +20,24 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory):
+def served(cache_root):
     # 2 scans/s: slow enough that the test sees the counter move, pauses it mid-run and steps;
-    # 200 scans (100 s at least): its Pause comes after a page load, two scans and a screenshot of
-    # the canvas, and on a quiet machine a shorter run had ended by then (the button said Play)
-    loc = browser_localizer(tmp_path_factory.mktemp("browser-cache"), n_scans=200)
+    # 300 scans (150 s at least): its Pause comes after a page load, two scans and a screenshot of
+    # the canvas, and on a quiet machine a shorter run had ended by then (the button said Play).
+    # The street's map is the session cache's, built once for the browser tests' 300-scan runs.
+    loc = browser_localizer(cache_root, n_scans=300)
     with serving(loc, autoplay=True, speed="2") as handle:
         yield handle
 
 
 @pytest.fixture
-def playing(tmp_path_factory):
+def playing(cache_root):
     """A run already playing before any tab is open (the usual case: start the demo, then open
     the page). 300 scans, at least 60 s at 5 scans/s: its test pauses it after a page load,
     twenty-odd scans of plots and a notification, well before the end (a Pause that lands after
     the last scan shows "finished", not "paused"; 150 scans had ended by then on a busy page).
     The run stops with the test, so a long one costs nothing."""
-    loc = browser_localizer(tmp_path_factory.mktemp("late-tab-cache"), n_scans=300)
+    loc = browser_localizer(cache_root, n_scans=300)
     with serving(loc, autoplay=True, speed="5") as handle:
         yield handle
 

@@ -38,9 +38,10 @@ JS_STATUS_BOX = """(() => {
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """A run playing at 2 scans/s, long enough (300 scans, 150 s at least) for every test here."""
-    loc = browser_localizer(tmp_path_factory.mktemp("newuser-cache"), n_scans=300)
+def served(cache_root):
+    """A run playing at 2 scans/s, long enough (300 scans, 150 s at least) for every test here
+    (the street's map from the session's cache, shared with the other browser tests' runs)."""
+    loc = browser_localizer(cache_root, n_scans=300)
     with serving(loc, autoplay=True, speed="2") as handle:
         yield handle
 
@@ -162,9 +163,9 @@ def test_notifications_hints_and_a_failed_display_update_in_one_tab(browser, ser
 
 
 @pytest.fixture
-def paused(tmp_path_factory):
+def paused(cache_root):
     """A run that waits for Play in the page (60 scans)."""
-    loc = browser_localizer(tmp_path_factory.mktemp("paused-cache"), n_scans=60)
+    loc = browser_localizer(cache_root, n_scans=60)
     with serving(loc, autoplay=False, speed="10") as handle:
         yield handle
 

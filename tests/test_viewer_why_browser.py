@@ -24,10 +24,10 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory):
+def served(cache_root):
     from lidarloc.app.viewer.serve import serve
 
-    loc = browser_localizer(tmp_path_factory.mktemp("why-browser-cache"))
+    loc = browser_localizer(cache_root)
     handle = serve(loc, port=0, autoplay=False)
     viewer = handle.viewer
     for k in range(SCANS_BEFORE):

@@ -147,7 +147,7 @@ def test_bad_corpus_file_through_the_command_line(tmp_path):
 
 @pytest.mark.slow
 def test_each_drive_is_the_run_one_of_that_drive(corpus_run, town_cache, tmp_path):
-    from lidarloc.app.bench.localize import _spec_dict, run_one
+    from lidarloc.app.bench.localize import run_one
     from lidarloc.app.corpus.spec import load_corpus
     from lidarloc.core.runs import recording
 
@@ -167,9 +167,7 @@ def test_each_drive_is_the_run_one_of_that_drive(corpus_run, town_cache, tmp_pat
     drive = next(d for d in load_corpus(path).drives if d.name == "lived-vlp16")
     cfg_d = drive.config_for().to_dict()
     cfg_d.pop("seed")
-    direct = run_one(
-        _spec_dict(drive.spec), cfg_d, drive.seed, str(town_cache), str(tmp_path / "direct"), 1, record=True
-    )
+    direct = run_one(drive.spec.to_dict(), cfg_d, drive.seed, str(town_cache), str(tmp_path / "direct"), 1, record=True)
     untimed = {k: v for k, v in direct.items() if k not in TIMED}
     assert untimed == {k: v for k, v in lived.items() if k not in TIMED}
     columns = ("x", "y", "yaw", "n_eff", "inlier_share")

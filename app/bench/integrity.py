@@ -47,8 +47,6 @@ from .integrity_figures import case_figures, figures_from_run_dir
 from .localize import (
     _bench_sequence,
     _numba_threads,
-    _spec_dict,
-    _spec_from,
     numba_threads_for,
     prepare_cache,
     run_tasks,
@@ -97,7 +95,7 @@ def run_case(
 
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
-    seq = _bench_sequence(_spec_from(spec_d), cfg, Path(cache_root) if cache_root else None)
+    seq = _bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
     c = Case(case)
     n = len(seq)
     at = c.disturbance(n)
@@ -248,7 +246,7 @@ def run_integrity(
                         run_dir, json.loads(kept.read_text()), cfg.localize
                     )
                     continue
-                tasks[(src.name, case, seed)] = (_spec_dict(spec), cfg_d, case, seed, cache, str(run_dir), threads)
+                tasks[(src.name, case, seed)] = (spec.to_dict(), cfg_d, case, seed, cache, str(run_dir), threads)
     with progress_bar(transient=False) as bar:
         task = bar.add_task(
             f"integrity: {len(tasks) + len(done)} runs", total=len(tasks) + len(done), completed=len(done)

@@ -25,7 +25,6 @@ import shutil
 import signal
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -66,26 +65,6 @@ def code_fingerprint(parts: tuple[str, ...] = ("core", "app"), exclude: tuple[st
     return digest.hexdigest()
 
 
-def _spec_dict(spec: SourceSpec) -> dict:
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(spec).items()}
-
-
-def _spec_from(d: dict) -> SourceSpec:
-    paths = (
-        "kitti_odometry",
-        "kitti_raw",
-        "trajectory",
-        "calib",
-        "map",
-        "bag",
-        "scans_dir",
-        "gt",
-        "gt_times",
-        "extrinsic",
-    )
-    return SourceSpec(**{k: (Path(v) if k in paths and v is not None else v) for k, v in d.items()})
-
-
 def _bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
     """The source; a generated town's scans are simulated once and then loaded from the cache
     (the same arrays, ~1 ms to load instead of ~20 ms to simulate; ~2 MB per scan on disk)."""
@@ -118,7 +97,7 @@ def run_one(
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
     cfg.localize.clock = "replay"
-    seq = _bench_sequence(_spec_from(spec_d), cfg, Path(cache_root) if cache_root else None)
+    seq = _bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
     out = Path(run_dir)
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
         t0 = time.perf_counter()
@@ -127,7 +106,7 @@ def run_one(
 
             if (out / "recording").exists():  # a run cut short before: its recording is redone
                 shutil.rmtree(out / "recording")
-            writer = RecordingWriter(out, _spec_from(spec_d), cfg, seq, preset=preset)
+            writer = RecordingWriter(out, SourceSpec.from_dict(spec_d), cfg, seq, preset=preset)
             while not loc.done:
                 writer.on_scan(loc, loc.step())
         else:
@@ -153,7 +132,7 @@ def prepare_one(spec_d: dict, cfg_d: dict, cache_root: str | None, numba_threads
 
     cfg = update_from_dict(Config(), cfg_d)
     root = Path(cache_root) if cache_root else None
-    Localizer(_bench_sequence(_spec_from(spec_d), cfg, root), cfg, root).close()
+    Localizer(_bench_sequence(SourceSpec.from_dict(spec_d), cfg, root), cfg, root).close()
 
 
 def _numba_threads(n: int) -> None:
@@ -199,7 +178,7 @@ class Plan:
         make_out_dir(out_dir)
         self.out_dir, self.spec, self.cfg, self.runs, self.preset = Path(out_dir), spec, cfg, runs, preset
         self.record = record
-        self.spec_d, self.cfg_d = _spec_dict(spec), cfg.to_dict()
+        self.spec_d, self.cfg_d = spec.to_dict(), cfg.to_dict()
         self.cfg_d.pop("seed", None)
         # Resuming is only honest with the same source, configuration and code: refuse a mixed
         # directory (runs kept from before a code change would silently mix two versions' numbers).

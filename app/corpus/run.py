@@ -29,7 +29,8 @@ from ...core.cache import default_cache_root
 from ...core.config import Config, update_from_dict
 from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir, write_json
-from ..bench.localize import _spec_dict, _spec_from, code_fingerprint, numba_threads_for, prepare_cache, run_one
+from ...core.sequences.factory import SourceSpec
+from ..bench.localize import code_fingerprint, numba_threads_for, prepare_cache, run_one
 from ..console import err
 from ..sweep.bookkeeping import ERROR_FILE, Run, Tally, is_done, one_line
 from ..sweep.cluster import check_address
@@ -66,7 +67,7 @@ def plan_drives(
         thresholds[drive.name] = cfg.localize.min_inlier_share
         cfg_d = cfg.to_dict()
         cfg_d.pop("seed", None)
-        spec_d = _spec_dict(drive.spec)
+        spec_d = drive.spec.to_dict()
         run_dir = (out_dir / "drives" / drive.name).absolute()
         identity, marker = _identity(spec_d, cfg_d, drive, code), run_dir / IDENTITY_FILE
         if is_done(run_dir) and marker.is_file() and marker.read_text() != identity:
@@ -104,7 +105,9 @@ def prepare_here(planned: list[Run], cache: str, console: Console) -> dict[str, 
         key = world_key(spec_d, map_only)  # one log under several seeds is prepared once
         if key not in outcome:
             try:
-                prepare_cache(_spec_from(spec_d), update_from_dict(Config(), map_only), Path(cache), label=run.label)
+                prepare_cache(
+                    SourceSpec.from_dict(spec_d), update_from_dict(Config(), map_only), Path(cache), label=run.label
+                )
                 outcome[key] = None
             except KeyboardInterrupt:
                 raise

@@ -24,7 +24,7 @@ from ...core.config import Config, load_config
 from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir
 from ...core.sequences.factory import SourceSpec
-from ..bench.localize import _spec_dict, code_fingerprint, numba_threads_for, prepare_cache, run_one
+from ..bench.localize import code_fingerprint, numba_threads_for, prepare_cache, run_one
 from .bookkeeping import Run, Tally
 from .executor import execute
 from .grid import Grid, check_grid
@@ -60,7 +60,7 @@ class Settings:
 
 def plan_runs(settings: Settings, grid: Grid, runs: int, out_dir: Path, workers: int, record: bool) -> list[Run]:
     """One Run per combination × seed (seeds 0…runs−1), in the grid's order."""
-    spec_d = _spec_dict(settings.spec)
+    spec_d = settings.spec.to_dict()
     threads = numba_threads_for(workers)
     plan = []
     for combo in grid.combinations():
@@ -87,7 +87,7 @@ def check_identity(out_dir: Path, settings: Settings, runs_per: int) -> None:
     cfg.pop("seed", None)
     identity = json.dumps(
         {
-            "source": _spec_dict(settings.spec),
+            "source": settings.spec.to_dict(),
             "config": cfg,
             "preset": settings.preset,
             "code": code_fingerprint(),
@@ -128,7 +128,7 @@ def run_sweep(
         prepare_cache(settings.spec, base, Path(settings.cache))
         base_d = base.to_dict()
         base_d.pop("seed", None)
-        mark_ready(_spec_dict(settings.spec), base_d, settings.cache)
+        mark_ready(settings.spec.to_dict(), base_d, settings.cache)
     axes = {**{k: list(v) for k, v in grid.axes.items()}, "seed": list(range(runs))}
     tally = execute(
         run_one,

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ...core.errors import LidarlocError
-from ..bench.localize import _spec_dict, numba_threads_for, run_one
+from ..bench.localize import numba_threads_for, run_one
 from ..bench.localize_report import _within_5m_to_end
 from .bookkeeping import Run, call_run
 from .results import overrides_dict, settings_yaml, write_table
@@ -80,7 +80,7 @@ def evaluate(
     overrides = [f"{p.key}={p.fmt(values[p.key])}" for p in params]
     cfg_d = settings.config_for(overrides).to_dict()
     cfg_d.pop("seed", None)
-    spec_d = _spec_dict(settings.spec)
+    spec_d = settings.spec.to_dict()
     folder = Path(out_dir) / "trials" / trial_name(params, values)
     prepare(spec_d, cfg_d, settings.cache, threads)
     rmses: list[float] = []

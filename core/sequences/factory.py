@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +79,26 @@ class SourceSpec:
     extrinsic: Path | None = None  # base ← LiDAR 4×4 text file
     init: str | None = None  # x,y,yaw[,σ_xy,σ_yaw] (metres, degrees): start around it
 
+    def to_dict(self, absolute: bool = False) -> dict:
+        """Every option as JSON takes it: paths as strings, resolved when ``absolute`` (what a run
+        folder keeps, so that it finds its data when opened from elsewhere)."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Path):
+                value = str(value.expanduser().resolve()) if absolute else str(value)
+            out[f.name] = value
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, ignore_unknown: bool = False) -> SourceSpec:
+        """The options :meth:`to_dict` wrote (paths back to ``Path``). ``ignore_unknown``: skip
+        the keys this version does not know (a run recorded by another version of lidarloc)."""
+        known = {f.name for f in fields(cls)}
+        if not ignore_unknown and set(d) - known:
+            raise DataError(f"unknown source options: {', '.join(sorted(set(d) - known))}")
+        return cls(**{k: (Path(v) if k in PATH_OPTIONS and v is not None else v) for k, v in d.items() if k in known})
+
     @property
     def kind(self) -> str:
         """Which source: kitti_odometry, kitti_raw, bag, scans_dir or town."""
@@ -99,6 +119,10 @@ class SourceSpec:
             return f"scan folder {self.scans_dir}{on_map}"
         along = f" along {self.trajectory}" if self.trajectory else ""
         return f"built-in town (seed {self.town_seed}){along}{on_map}"
+
+
+#: The source options that name a file or folder.
+PATH_OPTIONS = frozenset(f.name for f in fields(SourceSpec) if "Path" in str(f.type))
 
 
 def _path(value) -> Path | None:

@@ -135,17 +135,6 @@ def jsonable(value: Any) -> Any:
     return value
 
 
-def source_dict(spec) -> dict:
-    """The source options with absolute paths: a run folder opened from elsewhere finds its data."""
-    out = {}
-    for f in dataclasses.fields(spec):
-        value = getattr(spec, f.name)
-        if isinstance(value, Path):
-            value = str(value.expanduser().resolve())
-        out[f.name] = value
-    return out
-
-
 def write_json_atomic(path: Path, data: dict) -> None:
     """A reader never sees half an index; a write that fails (a full disk) leaves the old one and
     no temporary file."""

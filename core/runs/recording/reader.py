@@ -5,7 +5,6 @@ too: ``recording.open("out/run0")``. A run recorded in segments under a size bud
 from __future__ import annotations
 
 import bisect
-import dataclasses
 import json
 from pathlib import Path
 
@@ -214,26 +213,7 @@ class Recording:
         """The source options the run was made with (a SourceSpec)."""
         from ...sequences.factory import SourceSpec
 
-        names = {f.name: f for f in dataclasses.fields(SourceSpec)}
-        kw = {}
-        for key, value in self.meta.get("source", {}).items():
-            if key not in names:
-                continue
-            if value is not None and key in (
-                "kitti_odometry",
-                "kitti_raw",
-                "trajectory",
-                "calib",
-                "map",
-                "bag",
-                "scans_dir",
-                "gt",
-                "gt_times",
-                "extrinsic",
-            ):
-                value = Path(value)
-            kw[key] = value
-        return SourceSpec(**kw)
+        return SourceSpec.from_dict(self.meta.get("source", {}), ignore_unknown=True)
 
     def check_source(self) -> None:
         """One line naming the path the run expected, if its source has moved."""

@@ -33,7 +33,6 @@ from .format import (
     ResumePayload,
     nan_or_value,
     save_s2m,
-    source_dict,
     write_json_atomic,
 )
 from .segments import CARRIED, folder_bytes, segment_folder
@@ -57,7 +56,7 @@ class RecordingWriter:
         from ...version import VERSION as version
 
         meta = {
-            "source": source_dict(spec),
+            "source": spec.to_dict(absolute=True),
             "source_description": spec.describe(),
             "config": cfg.to_dict(),
             "seed": int(cfg.seed),

@@ -387,3 +387,20 @@ def test_a_dropped_segment_leaves_the_window_and_a_cut_at_any_moment_opens(tmp_p
     rec = recording.open(seg.parents[1])
     assert (rec.n, rec.first_step) == (5, 4)
     np.testing.assert_array_equal(rec.scan_index, np.arange(4, 9))
+
+
+def test_a_source_spec_goes_to_a_dict_and_back(tmp_path):
+    """What a run folder, a sweep or a corpus keeps of its source reads back as the same source;
+    paths are strings in the dict (absolute ones when asked), and an option this version does not
+    know is refused unless a recording from another version is being read."""
+    from lidarloc.core.errors import DataError
+
+    spec = SourceSpec(bag=Path("drive.mcap"), topic="/points", gt=tmp_path / "gt.tum", scans=7, init="1,2,30")
+    d = spec.to_dict()
+    assert d["bag"] == "drive.mcap" and d["scans"] == 7 and d["map"] is None
+    assert json.loads(json.dumps(d)) == d
+    assert SourceSpec.from_dict(d) == spec
+    assert spec.to_dict(absolute=True)["bag"] == str(Path("drive.mcap").resolve())
+    with pytest.raises(DataError, match="unknown source options: colour"):
+        SourceSpec.from_dict({**d, "colour": "red"})
+    assert SourceSpec.from_dict({**d, "colour": "red"}, ignore_unknown=True) == spec

@@ -15,7 +15,7 @@ from pathlib import Path
 from rich.console import Console
 
 from ..core.errors import LidarlocError
-from .console import progress_bar
+from .console import preparing
 from .headless import check_recording_target, localize
 
 
@@ -56,15 +56,10 @@ def run_branch(
     make_out_dir(out)
     if record:
         check_recording_target(out)
-    with progress_bar() as bar:
-        task = bar.add_task("preparing the branch", total=100)
-        loc = open_branch(
-            rec,
-            step,
-            overrides,
-            cache_root=cache_root,
-            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
-        )
+    loc = preparing(
+        lambda progress: open_branch(rec, step, overrides, cache_root=cache_root, progress=progress),
+        "preparing the branch",
+    )
     writer = None
     try:
         if record:

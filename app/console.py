@@ -10,11 +10,13 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import NoReturn
+from typing import NoReturn, TypeVar
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+T = TypeVar("T")
 
 # stderr, so that stdout carries only results (--json) and can be piped
 err = Console(stderr=True)
@@ -30,6 +32,14 @@ def progress_bar(transient: bool = True) -> Progress:
         console=err,
         transient=transient,
     )
+
+
+def preparing(build: Callable[[Callable[[str, float], None]], T], label: str = "preparing map") -> T:
+    """``build(progress)`` (a Localizer, a branch: whatever builds the map and its tables) behind
+    one progress bar that names the table being prepared; returns what it built."""
+    with progress_bar() as bar:
+        task = bar.add_task(label, total=100)
+        return build(lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f))
 
 
 def stage_progress(bar: Progress) -> Callable[[str, float], None]:

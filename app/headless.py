@@ -25,7 +25,7 @@ from ..core.localizer.deadline import RecentPeak
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
-from .console import progress_bar, stop_signals_like_ctrl_c
+from .console import preparing, progress_bar, stop_signals_like_ctrl_c
 from .options import open_source
 
 
@@ -52,14 +52,7 @@ def run_headless(
     make_out_dir(out)  # fail on an unwritable --out before the long part
     if record:
         check_recording_target(out)
-    with progress_bar() as bar:
-        task = bar.add_task("preparing map", total=100)
-        loc = Localizer(
-            seq,
-            cfg,
-            cache_root,
-            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
-        )
+    loc = preparing(lambda progress: Localizer(seq, cfg, cache_root, progress=progress))
     try:
         writer = RecordingWriter(out, spec, cfg, seq, preset=preset) if record else None
     except BaseException:

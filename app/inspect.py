@@ -34,7 +34,7 @@ from ..core.geometry import pose_to_xyz_ypr
 from ..core.localizer import Localizer
 from ..core.runs.results import make_out_dir
 from ..core.sequences.factory import SourceSpec
-from .console import progress_bar
+from .console import preparing, progress_bar
 from .options import open_source
 from .viewer.why_style import RESIDUAL_LUT, residual_colors, surface_scale
 from .viewer.why_surface import scan_in_sensor_frame
@@ -91,14 +91,7 @@ def run_inspect(
         raise LidarlocError(f"--scan {scan} is beyond {seq.name}'s {len(seq)} scans (0…{len(seq) - 1})")
     make_out_dir(out)
     cfg = replace(cfg, localize=replace(cfg.localize, clock="replay"))
-    with progress_bar() as bar:
-        task = bar.add_task("preparing map", total=100)
-        loc = Localizer(
-            seq,
-            cfg,
-            cache_root,
-            progress=lambda stage, f: bar.update(task, description=f"preparing {stage}", completed=100 * f),
-        )
+    loc = preparing(lambda progress: Localizer(seq, cfg, cache_root, progress=progress))
     try:
         with progress_bar() as bar:
             task = bar.add_task(f"replaying {seq.name} to scan {scan}", total=scan + 1)

@@ -19,6 +19,7 @@ from .constants import CELL, CURB, JUNCTION_CLEAR
 from .districts import DOWNTOWN, HIGHWAY, INDUSTRIAL, PARK, STYLES, SUBURB, Style
 from .furniture import fence_line, parked_car, pole, tree
 from .layout import Plan, Street
+from .objects import building_top
 from .placement import mark_point, mark_rect, point_free, rect_free, rect_points
 from .raster import left_normal
 from .solids import Solids
@@ -125,35 +126,7 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, code:
     height = lo * (hi / lo) ** u
     refl = float(rng.uniform(0.2, 0.65))
     solids.boxes["building"].append((cx, cy, yaw, length, width, base, top_ground + height, refl))
-    if height < 10.0 and rng.random() < S.gable:
-        along = length >= width
-        solids.prisms["roof"].append(
-            (
-                cx,
-                cy,
-                yaw if along else yaw + np.pi / 2,
-                max(length, width),
-                min(length, width),
-                top_ground + height,
-                rng.uniform(1.2, 3.0),
-                float(rng.uniform(0.1, 0.4)),
-            )
-        )
-    elif height > 12.0 and rng.random() < 0.5:
-        c, s = math.cos(yaw), math.sin(yaw)
-        ux, uy = rng.uniform(-0.3, 0.3) * length, rng.uniform(-0.3, 0.3) * width
-        solids.boxes["building"].append(
-            (
-                cx + ux * c - uy * s,
-                cy + ux * s + uy * c,
-                yaw,
-                rng.uniform(2.5, 6.0),
-                rng.uniform(2.5, 6.0),
-                top_ground + height - 0.5,
-                top_ground + height + rng.uniform(2.0, 3.5),
-                refl,
-            )
-        )
+    building_top(solids, rng, cx, cy, yaw, length, width, top_ground, height, refl, gable=S.gable, tower_max=6.0)
     solids.counts["buildings"] += 1
     if code in (SUBURB, INDUSTRIAL) and rng.random() < 0.35:
         # A garage beside a house, an office or loading bay beside a hall.

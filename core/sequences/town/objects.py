@@ -39,35 +39,8 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, densi
     height = min(storeys * rng.uniform(2.9, 3.4) + rng.uniform(0.2, 1.0), 45.0)
     refl = float(rng.uniform(0.2, 0.65))
     solids.boxes["building"].append((cx, cy, yaw, length, width, base, top_ground + height, refl))
+    building_top(solids, rng, cx, cy, yaw, length, width, top_ground, height, refl, gable=0.6, tower_max=5.0)
     c, s = math.cos(yaw), math.sin(yaw)
-    if height < 10.0 and rng.random() < 0.6:
-        along = length >= width
-        solids.prisms["roof"].append(
-            (
-                cx,
-                cy,
-                yaw if along else yaw + np.pi / 2,
-                max(length, width),
-                min(length, width),
-                top_ground + height,
-                rng.uniform(1.2, 3.0),
-                float(rng.uniform(0.1, 0.4)),
-            )
-        )
-    elif height > 12.0 and rng.random() < 0.5:
-        ux, uy = rng.uniform(-0.3, 0.3) * length, rng.uniform(-0.3, 0.3) * width
-        solids.boxes["building"].append(
-            (
-                cx + ux * c - uy * s,
-                cy + ux * s + uy * c,
-                yaw,
-                rng.uniform(2.5, 5.0),
-                rng.uniform(2.5, 5.0),
-                top_ground + height - 0.5,
-                top_ground + height + rng.uniform(2.0, 3.5),
-                refl,
-            )
-        )
     solids.counts["buildings"] += 1
     if rng.random() < 0.35:
         # Annex behind or beside the main block: L- and T-shaped footprints.
@@ -82,6 +55,41 @@ def _building(plan: Plan, solids: Solids, rng, cx, cy, yaw, length, width, densi
             )
             mark_rect(plan, ax, ay, yaw, al, aw)
     mark_rect(plan, cx, cy, yaw, length, width)
+
+
+def building_top(solids: Solids, rng, cx, cy, yaw, length, width, ground, height, refl, gable: float, tower_max: float):
+    """What tops a building of ``height`` m standing on ``ground``: a gabled roof on a low one
+    (with chance ``gable``), now and then a rooftop block (stairs, machinery; up to ``tower_max``
+    m a side) on a tall one. The draws from ``rng`` are the town's own: the town stays the same."""
+    if height < 10.0 and rng.random() < gable:
+        along = length >= width
+        solids.prisms["roof"].append(
+            (
+                cx,
+                cy,
+                yaw if along else yaw + np.pi / 2,
+                max(length, width),
+                min(length, width),
+                ground + height,
+                rng.uniform(1.2, 3.0),
+                float(rng.uniform(0.1, 0.4)),
+            )
+        )
+    elif height > 12.0 and rng.random() < 0.5:
+        c, s = math.cos(yaw), math.sin(yaw)
+        ux, uy = rng.uniform(-0.3, 0.3) * length, rng.uniform(-0.3, 0.3) * width
+        solids.boxes["building"].append(
+            (
+                cx + ux * c - uy * s,
+                cy + ux * s + uy * c,
+                yaw,
+                rng.uniform(2.5, tower_max),
+                rng.uniform(2.5, tower_max),
+                ground + height - 0.5,
+                ground + height + rng.uniform(2.0, 3.5),
+                refl,
+            )
+        )
 
 
 def footprint(item: Item) -> tuple[np.ndarray, np.ndarray]:

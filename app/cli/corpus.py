@@ -1,4 +1,5 @@
-"""``lidarloc corpus``: many drives, one run each, with where along each drive it went wrong."""
+"""``lidarloc corpus``: many drives, one run each, with where along each drive it went wrong, and
+two corpus runs compared."""
 
 from __future__ import annotations
 
@@ -19,13 +20,22 @@ def example(
     scans: Annotated[
         int | None, typer.Option("--scans", min=1, help="Scans of each drive (default: the whole drive).")
     ] = None,
+    seeds: Annotated[
+        int,
+        typer.Option(
+            "--seeds",
+            min=1,
+            help="Run each drive under this many seeds (NAME-s0, NAME-s1, …): corpus compare measures the "
+            "seed-to-seed noise from them.",
+        ),
+    ] = 1,
 ):
     """Print a corpus file of the built-in town's drives (town seeds × its sensors, lived-in world) on stdout.
 
     `lidarloc corpus run` takes it as it is; edit it into a corpus of your own logs (docs/corpus.md)."""
     from ..corpus.example import example_corpus
 
-    typer.echo(example_corpus(drives, scans), nl=False)
+    typer.echo(example_corpus(drives, scans, seeds), nl=False)
 
 
 @corpus_app.command("run")
@@ -60,6 +70,48 @@ def run(
         raise typer.Exit(130)
     if report["drives_failed"]:
         raise typer.Exit(1)
+
+
+@corpus_app.command("compare")
+def compare(
+    base: Annotated[
+        Path, typer.Argument(metavar="BASE", help="The --out folder of the corpus run before.", show_default=False)
+    ],
+    new: Annotated[
+        Path, typer.Argument(metavar="NEW", help="The --out folder of the corpus run after.", show_default=False)
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", help="Folder for compare.md and compare.html (default: NEW/compare).", show_default=False
+        ),
+    ] = None,
+    as_json: JsonOpt = False,
+):
+    """What got worse from one corpus run (BASE) to another (NEW), beyond the seed-to-seed noise, and where.
+
+    Per drive of both: first fix, withdrawals, false fires, RMSE, poor-fit, wrong and unlocalized scans, median inlier share, and each stretch of poor fit, wrong or unlocalized scans NEW has and BASE lacks or that grew; each drive's first diverging scan. Regressions worst first (false fires and wrong localization before all), each with the `lidarloc view --run … --at SCAN` command that shows it. Noise is measured from the corpus: drives of one log under several seeds (docs/corpus.md). Writes compare.md and compare.html (one file, plots inline). A regression is a finding: the exit status is 0."""
+    from ..corpus.compare import JSON_KEYS, compare_outputs
+    from ..corpus.compare_report import write_reports
+    from ..corpus.figures import read_output
+
+    base_out, new_out = read_output(base, "BASE"), read_output(new, "NEW")
+    result = compare_outputs(base_out, new_out)
+    md, page = write_reports(result, base_out, new_out, out if out is not None else new / "compare")
+    if as_json:
+        emit_json({k: result[k] for k in JSON_KEYS})
+        return
+    for i, e in enumerate(result["regressions"], 1):
+        err.print(f"{i}. {e['drive']}: {e['text']}", highlight=False, markup=False, soft_wrap=True)
+        err.print(f"   {e['view']}", highlight=False, markup=False, soft_wrap=True)
+    err.print(
+        f"drives compared: {result['drives_compared']}; regressions: {len(result['regressions'])}, "
+        f"improvements: {len(result['improvements'])}; only in BASE: {len(result['only_in_base'])}, "
+        f"only in NEW: {len(result['only_in_new'])}; report: {md}, {page}",
+        highlight=False,
+        markup=False,
+        soft_wrap=True,
+    )
 
 
 def _print_report(report: dict) -> None:

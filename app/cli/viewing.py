@@ -144,6 +144,16 @@ RunOpt = Annotated[
         "source side by side); the map and scans come from the source the run names.",
     ),
 ]
+AtOpt = Annotated[
+    int | None,
+    typer.Option(
+        "--at",
+        metavar="SCAN",
+        help="With --run: open the run at this scan (the timeline shows it first), e.g. the scan "
+        "`lidarloc corpus compare` names.",
+        show_default=False,
+    ),
+]
 
 
 @app.command()
@@ -203,14 +213,17 @@ def view(
     record_dir: RecordDirOpt = None,
     no_record: NoRecordViewOpt = False,
     run: RunOpt = None,
+    at: AtOpt = None,
     foxglove_port: FoxglovePortOpt = None,
     loop: LoopOpt = False,
     keep_runs: KeepRunsOpt = DEFAULT_KEEP_RUNS,
     max_record_gb: MaxRecordGbOpt = DEFAULT_MAX_RECORD_GB,
     token: TokenOpt = None,
 ):
-    """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare)."""
+    """The live viewer on any sequence source, or on recorded runs (--run DIR, twice to compare; --at SCAN opens them there)."""
     token = token_from(token)  # a bad token fails before anything starts
+    if at is not None and not run:
+        raise LidarlocError("--at opens a recorded run at a scan: give the run with --run DIR")
     if run:
         from ..viewer.runs import serve_runs
 
@@ -220,7 +233,9 @@ def view(
                 "--foxglove OUT.mcap, and open that file in Foxglove"
             )
 
-        serve_runs(run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err, token=token)
+        serve_runs(
+            run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err, token=token, at=at
+        )
         return
     cfg = settings.load(seed=seed)
     _serve(

@@ -37,9 +37,7 @@ from ..sweep.cluster import check_address
 from ..sweep.executor import execute
 from ..sweep.world import ensure_world, mark_ready, world_key
 from .health import run_health
-from .spec import Corpus, Drive
-
-IDENTITY_FILE = "drive.json"
+from .spec import IDENTITY_FILE, Corpus, Drive
 
 
 def _identity(spec_d: dict, cfg_d: dict, drive: Drive, code: str) -> str:

@@ -44,6 +44,9 @@ RUN_FIELDS = ("name", "world", "preset", "config", "set", "seed")
 DRIVE_FIELDS = SOURCE_FIELDS + RUN_FIELDS
 # a drive's name is its folder's name under drives/
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+#: beside a drive's run: what it was run with (source, configuration, seed, code), so that a kept
+#: run is not mixed with another definition, and compare finds one log under several seeds
+IDENTITY_FILE = "drive.json"
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,9 @@ live localizer, recorded under a new ``runs/<date-time>`` folder of the cache ro
 
 A run the viewer kept as a rolling window under its recording budget opens at the window's first
 step; the timeline covers the window only.
+
+``--at SCAN`` opens the run at the step that processed that scan (the timeline is moved there
+before any tab connects), e.g. where ``lidarloc corpus compare`` found a regression.
 """
 
 from __future__ import annotations
@@ -58,6 +61,23 @@ def load_run(path, cache_root: Path | None = None, seq=None, progress=None) -> t
     return RecordedRun(rec.run_dir, seq), RunContext(cfg=cfg, seq=seq, prior_map=prior_map, lookup=lookup)
 
 
+def step_at_scan(run: RecordedRun, scan: int) -> int:
+    """The step of ``run`` that processed ``scan``; a one-line :class:`LidarlocError` naming the
+    scans it holds when none did (out of range, skipped by a kidnap, dropped by a rolling window)."""
+    first, last = run.first_kept, run.n - 1
+    if last >= first:
+        for step in range(first, last + 1):  # steps process scans in increasing order
+            found = run.scan_of(step)
+            if found == scan:
+                return step
+            if found > scan:
+                break
+        held = f"scans {run.scan_of(first)}…{run.scan_of(last)}"
+    else:
+        held = "no scan"
+    raise LidarlocError(f"--at {scan}: {run.path} recorded no step of scan {scan} (it holds {held})")
+
+
 def _same_sequence(a: RecordedRun, b: RecordedRun) -> bool:
     return a.meta.get("source") == b.meta.get("source") and a.meta.get("n_source_scans") == b.meta.get("n_source_scans")
 
@@ -100,9 +120,11 @@ def open_runs(
     open_browser: bool = False,
     record_to: Path | None = None,
     token: str | None = None,
+    at: int | None = None,
 ) -> ViewerHandle:
     """Start a viewer on one or two recorded runs and return at once (the runs are read first: a
-    bad folder or a moved source raises before any server starts). ``token``: as :func:`.serve.serve`'s."""
+    bad folder, a scan ``at`` the first run did not record or a moved source raises before any
+    server starts). ``token``: as :func:`.serve.serve`'s. ``at``: the scan the timeline shows first."""
     from .app import Viewer
 
     token = resolve_token(token)
@@ -111,6 +133,8 @@ def open_runs(
         raise LidarlocError("view --run needs a run folder")
     if len(dirs) > 2:
         raise LidarlocError(f"view --run shows one or two runs side by side, got {len(dirs)}")
+    # before the map is opened: a scan the run does not hold fails at once
+    step = None if at is None else step_at_scan(RecordedRun(dirs[0]), at)
     run, context = load_run(dirs[0], cache_root)
     other = None
     if len(dirs) == 2:
@@ -136,6 +160,8 @@ def open_runs(
             )
         )
         show_runs(viewer, run, context, other)
+        if step is not None:
+            viewer.travel.timeline.go(step)
     except BaseException:
         server.stop()
         raise
@@ -155,14 +181,15 @@ def serve_runs(
     open_browser: bool = False,
     console: Console | None = None,
     token: str | None = None,
+    at: int | None = None,
 ) -> None:
-    """``lidarloc view --run DIR [--run DIR2]``: serve recorded runs until Ctrl-C (``token``: as
-    :func:`.serve.serve`'s)."""
+    """``lidarloc view --run DIR [--run DIR2] [--at SCAN]``: serve recorded runs until Ctrl-C
+    (``token``: as :func:`.serve.serve`'s; ``at``: the scan shown first)."""
     console = console or Console(stderr=True)
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token)
+        handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token, at=at)
         announce(handle, host, console)
         run = handle.viewer.travel.timeline.run
         first = run.first_kept
@@ -171,6 +198,8 @@ def serve_runs(
             if first > 0
             else f"{run.n} recorded scans"
         )
+        if at is not None:
+            held += f", opened at scan {at}"
         console.print(
             f"showing {held} of {run.path}; branches are recorded under {handle.viewer.travel.recorder.root}",
             markup=False,

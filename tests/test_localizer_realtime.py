@@ -204,7 +204,8 @@ def test_a_finished_match_that_must_wait_to_land_reports_its_agreement_at_once()
     from types import SimpleNamespace
 
     from lidarloc.core.geometry import pose_matrix
-    from lidarloc.core.matching.schedule import S2MJob, S2MScheduler
+    from lidarloc.core.matching.job import S2MJob
+    from lidarloc.core.matching.schedule import S2MScheduler
 
     events = []
     sched = SimpleNamespace(cfg=Config(), verdict=None)

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from ..odometry.feed import OdometryFeed
-    from .schedule import S2MJob
+    from .job import S2MJob
 
 # Real time: how long a finished S2M match waits for its scan's odometry before it tries again at
 # the next scan. Typical waits are ~10 ms (KISS-ICP registers scan k while the PF weighs it).

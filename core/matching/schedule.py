@@ -46,7 +46,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,7 @@ from ..rules.integrity import VERDICT_TEXT, Verdict, judge
 from ..snapshot import S2MView
 from ..worker_process import WorkerDied
 from .carry import carry_forward, carry_forward_poses
+from .job import S2MJob
 from .landing import landed_view, write_unless_weight_drops
 from .matchers import MatcherMixin
 from .realtime_landing import landing_scan
@@ -75,25 +76,6 @@ def early_agreement_start(detail: str) -> int | None:
     """The start scan of the match an ``s2m_agrees`` event's detail names (None: not one)."""
     k0 = detail.split(":", 1)[0].removeprefix("started ")
     return int(k0) if k0.isdigit() else None
-
-
-@dataclass
-class S2MJob:
-    """The match in flight."""
-
-    started_at: int
-    particle: int
-    generation: int
-    start_pose: np.ndarray
-    future: Future
-    deferrals: int = 0  # real time: scans at which the finished match could not land yet
-    mode: str = "local"  # "global": the search region covers the whole map (not localized);
-    # "check": the whole-map second opinion once localized
-    cfg: Any = None  # the S2M settings it runs with (S2MConfig)
-    level: bool = False  # whether the start's z, pitch and roll are ignored (see s2m.match_local)
-    estimate_pose: np.ndarray | None = None  # the filter's estimate at k₀, 4×4: what the match is
-    # judged against (core/rules/integrity.py)
-    agreed_early: bool = False  # real time: its agreement was reported before it could land
 
 
 class S2MScheduler(MatcherMixin):

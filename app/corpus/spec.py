@@ -21,22 +21,12 @@ from typing import Any
 
 from ...core.config import Config, load_config
 from ...core.errors import LidarlocError
-from ...core.sequences.factory import SourceSpec, check_spec
+from ...core.sequences.factory import PATH_OPTIONS, SourceSpec, check_spec
 
 SOURCE_FIELDS = tuple(f.name for f in dataclasses.fields(SourceSpec))
 # the sources first: a drive whose log is gone says so before naming its map
-PATH_FIELDS = (
-    "kitti_odometry",
-    "kitti_raw",
-    "bag",
-    "scans_dir",
-    "trajectory",
-    "calib",
-    "map",
-    "gt",
-    "gt_times",
-    "extrinsic",
-)
+_SOURCES = ("kitti_odometry", "kitti_raw", "bag", "scans_dir")
+PATH_FIELDS = _SOURCES + tuple(f for f in SOURCE_FIELDS if f in PATH_OPTIONS and f not in _SOURCES)
 # YAML reads 05 as the number 5 and 0013 as 11 (octal): these must be written in quotes
 TEXT_FIELDS = ("sequence", "date", "drive", "topic", "init")
 INT_FIELDS = ("town_seed", "scans", "seed")

@@ -86,6 +86,23 @@ def start_pyright() -> PyrightRun | str:
     return PyrightRun(found, root)
 
 
+# ---------------------------------------------------------------------------------- the command line
+def run_cli(*args, cache, timeout: float = 300.0):
+    """``lidarloc ARGS`` in a child process, as a user runs it: its maps cached in ``cache`` (not
+    the user's), an environment with nothing of the caller's in it but PATH (no LIDARLOC_DATA or
+    LIDARLOC_CACHE of the machine). The timeout only bounds a failure."""
+    import subprocess
+    import sys
+
+    return subprocess.run(
+        [sys.executable, "-m", "lidarloc.app.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env={"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"},
+        timeout=timeout,
+    )
+
+
 # ---------------------------------------------------------------------------------- waiting
 def wait_for(cond, timeout=60.0, what="condition"):
     """Poll until cond() holds. The timeout only bounds a failure: generous, because the CI

@@ -4,24 +4,16 @@ the world reaching the run, resume)."""
 
 import csv
 import json
-import subprocess
-import sys
 
 import pytest
+from helpers import run_cli
 from lidarloc.core.config import PRESETS
 
 SMALL_TOWN = ("--set", "town.extent_m=100", "--set", "town.n_scans=40")
 
 
 def cli(*args, cache):
-    env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", "bench", "robustness", *args],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    return run_cli("bench", "robustness", *args, cache=cache)
 
 
 def test_the_time_estimate_counts_each_configuration_at_its_own_pace():

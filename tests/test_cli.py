@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import make_odometry
+from helpers import make_odometry, run_cli
 
 # Ctrl-C must stop a command within 2 s (the user's requirement; ``lidarloc bench stop`` measures
 # it, ~0.35 s in the first scans of ``run``). These tests only catch a hang or a lost signal: a
@@ -23,10 +23,7 @@ STOP_BOUND_S = 10.0
 
 
 def cli(*args, env_cache):
-    env = {"LIDARLOC_CACHE": str(env_cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
-    )
+    return run_cli(*args, cache=env_cache)
 
 
 def assert_one_line_error(result, *needles):

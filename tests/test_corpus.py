@@ -6,7 +6,6 @@ health's stretches found on a table made by hand."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import run_cli
 from lidarloc.core.errors import LidarlocError
 
 SCANS = 3
@@ -133,13 +133,7 @@ def test_bad_corpus_files_are_one_line_naming_drive_and_field(tmp_path, data, ne
 
 def test_bad_corpus_file_through_the_command_line(tmp_path):
     path = write_corpus(tmp_path, {"drives": [{"name": "a", "bagg": "x.mcap"}]})
-    r = subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", "corpus", "run", str(path), "--out", str(tmp_path / "out")],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "LIDARLOC_CACHE": str(tmp_path / "cache")},
-        timeout=120,
-    )
+    r = run_cli("corpus", "run", path, "--out", tmp_path / "out", cache=tmp_path / "cache")
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "drive 'a': unknown field 'bagg'" in lines[0], r.stderr
     assert not (tmp_path / "out").exists()  # refused before anything was made

@@ -10,16 +10,13 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import wait_for
+from helpers import run_cli, wait_for
 from lidarloc.core.errors import LidarlocError
 
 N = 80  # scans of each synthetic drive
@@ -247,13 +244,7 @@ def test_bad_input_is_one_line(base, tmp_path):
             read_output(folder, "NEW")
         assert needle in str(caught.value) and "\n" not in str(caught.value)
     # through the command line: one line on stderr, a non-zero status, no report written
-    r = subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", "corpus", "compare", str(base), str(tmp_path / "empty")],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "LIDARLOC_CACHE": str(tmp_path / "cache")},
-        timeout=120,
-    )
+    r = run_cli("corpus", "compare", base, tmp_path / "empty", cache=tmp_path / "cache")
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "no corpus.json" in lines[0], r.stderr
     assert not (tmp_path / "empty" / "compare").exists()

@@ -6,12 +6,11 @@ line and exit 2."""
 from __future__ import annotations
 
 import io
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_cli
 from lidarloc.app.export_bag import (
     DIAGNOSTICS,
     MAP,
@@ -166,13 +165,7 @@ def test_the_mcap_reader_sees_the_same_bag_and_the_map_is_latched(bag):
 
 
 def cli(*args, env_cache):
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", *args],
-        capture_output=True,
-        text=True,
-        env={"LIDARLOC_CACHE": str(env_cache), "PATH": "/usr/bin:/bin"},
-        timeout=300,
-    )
+    return run_cli(*args, cache=env_cache)
 
 
 def test_bad_names_and_missing_runs_are_one_line(recorded_town_run, tmp_path, cache_root):

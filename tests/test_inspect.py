@@ -6,11 +6,10 @@ stderr and exit status 2."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from helpers import run_cli
 from lidarloc.app.inspect import FILES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -23,14 +22,7 @@ REAL = ["--date", "2011_09_26", "--drive", "0013", *AT_PF_PRIORITY]
 
 
 def lidarloc(*args, cache):
-    env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=600,
-    )
+    return run_cli(*args, cache=cache, timeout=600)
 
 
 def assert_one_line_error(result, needle):

@@ -5,13 +5,11 @@ time, and ``map info`` / ``map export`` / ``bench mapfile`` work from the comman
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import make_odometry
+from helpers import make_odometry, run_cli
 from lidarloc.core.config import MapConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.maps.map_source import MapFileSource
@@ -314,10 +312,7 @@ def test_real_kitti_map_shifted_to_utm_keeps_its_local_points(tmp_path, kitti_ra
 
 # ----------------------------------------------------------------------------- command line
 def cli(*args, cache):
-    env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
-    )
+    return run_cli(*args, cache=cache)
 
 
 def assert_one_line_error(result, *needles):

@@ -3,11 +3,10 @@ comes before --config and --set, ``lidarloc run`` records it in its summary, and
 line with exit status 2."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 import typer
+from helpers import run_cli
 from lidarloc.core.config import PRESETS
 
 # A small town (100 m, a 40-scan mapping drive) keeps the map build to seconds.
@@ -53,10 +52,7 @@ WITH_PRESET = {
 
 
 def cli(*args, cache):
-    env = {"LIDARLOC_CACHE": str(cache), "PATH": "/usr/bin:/bin"}
-    return subprocess.run(
-        [sys.executable, "-m", "lidarloc.app.cli", *args], capture_output=True, text=True, env=env, timeout=300
-    )
+    return run_cli(*args, cache=cache)
 
 
 def _commands(group, prefix=()):

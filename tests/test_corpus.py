@@ -252,3 +252,40 @@ def test_health_finds_the_stretches_of_a_drive():
     # never localized: no first fix, no stretch that needs one
     never = drive_health(_table(5, localized=np.zeros(5), inlier_share=np.full(5, 0.1)), [], 0.6)
     assert never["first_fix"] is None and never["stretches"] == [] and never["withdrawals"] == []
+
+
+def test_bench_corpus_drives_repeat_each_log_under_its_seeds():
+    from lidarloc.app.bench.corpus import bench_drives
+
+    rows = bench_drives(3, 20, 2, 4, real=False)
+    assert [r["name"] for r in rows[:2]] == ["town0-hdl64e-r0", "town0-hdl64e-r1"]
+    assert [r["seed"] for r in rows] == [4, 5] * 3 and len({r["name"] for r in rows}) == 6
+    # the same names under other seeds: compare pairs them drive by drive
+    assert [r["name"] for r in bench_drives(3, 20, 2, 0, real=False)] == [r["name"] for r in rows]
+
+
+def test_bench_corpus_removes_one_building_from_the_drives_map(town_cache, tmp_path):
+    from lidarloc.app.bench.corpus import building_removed_map
+    from lidarloc.core.config import Config, load_config
+    from lidarloc.core.maps.map_source import MapFileSource
+    from lidarloc.core.maps.mapping import load_or_build_map
+    from lidarloc.core.sequences.factory import SourceSpec, open_sequence
+
+    row = {"town_seed": 0, "set": ["town.n_scans=150"]}
+    out = tmp_path / "removed.ply"
+    info = building_removed_map(row, 40, Config(), town_cache, out)
+    seq = open_sequence(SourceSpec(town_seed=0, scans=40), load_config(None, row["set"], world="lived-in"))
+    whole = load_or_build_map(seq.map_source, Config().map, town_cache, road_removal=False).value.points
+    left = MapFileSource(out).read().points
+    assert info["points_removed"] > 100 and len(left) == len(whole) - info["points_removed"]
+    assert info["from_middle_scan_m"] <= 30.0
+
+    # what the footprint (0.5 m wider) holds is gone, nothing else
+    def inside(p, margin):
+        (cx, cy), (length, width), yaw = info["building_xy_m"], info["size_m"], np.radians(info["yaw_deg"])
+        dx, dy = p[:, 0] - cx, p[:, 1] - cy
+        along, across = np.abs(np.cos(yaw) * dx + np.sin(yaw) * dy), np.abs(-np.sin(yaw) * dx + np.cos(yaw) * dy)
+        return (along <= length / 2 + margin) & (across <= width / 2 + margin)
+
+    # (the figures are rounded to 0.1 m and 0.01°: the margins allow for it)
+    assert inside(whole, 0.65).sum() >= info["points_removed"] and not inside(left, 0.35).any()

@@ -8,7 +8,7 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import fail, stop_signals_like_ctrl_c
-from . import admin, bench_costs, bench_live, bench_runs, bench_travel, corpus, maps, runs, sweeps, viewing  # noqa: F401  (they register their commands)
+from . import admin, bench_costs, bench_live, bench_runs, bench_travel, corpus, maps, runs, sources, sweeps, viewing  # noqa: F401  (they register their commands)
 from .groups import app
 
 

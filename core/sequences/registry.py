@@ -34,7 +34,7 @@ class Option:
     is ``--scans-dir``); ``type`` str, int or Path (a path: a file or folder, resolved when a run
     records it); ``what``: what the option names, for the error when it comes without its source
     ("names a PointCloud2 topic"); ``cli``: False for an option the commands that take it declare
-    themselves (``--init``)."""
+    themselves (``--init``); ``required``: its source needs it (``--sequence`` of KITTI odometry)."""
 
     name: str
     type: type
@@ -44,6 +44,7 @@ class Option:
     min: int | None = None
     what: str = "is an option"
     cli: bool = True
+    required: bool = False
 
     @property
     def flag(self) -> str:
@@ -179,12 +180,21 @@ def as_path(value) -> Path | None:
     return None if value is None else Path(value).expanduser()
 
 
+def truth_options(spec) -> dict[str, Path | None]:
+    """A recording's ``gt``, ``gt_times`` and ``extrinsic`` as paths, the keywords its reader takes."""
+    return {o.name: as_path(getattr(spec, o.name)) for o in RECORDING_OPTIONS}
+
+
 def check(spec) -> None:
     """The combinations of source options that make no sense, as one-line errors."""
     keys = chosen_keys(spec)
     if len(keys) > 1:
         raise DataError(f"choose one source: {' or '.join(s.key.flag for s in keys if s.key)}, not both")
     source = chosen(spec)
+    needed = [o for o in source.options if o.required and not getattr(spec, o.name)]
+    if needed and source.key is not None:
+        wanted = " and ".join(f"{o.flag} {o.metavar}" for o in needed)
+        raise DataError(f"{source.key.flag} needs {wanted}")
     for other in sources():
         if other is source or other.key is None:
             continue

@@ -5,20 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..registry import Option, Source, as_path
+from ..registry import Option, Source, as_path, truth_options
 
 
 def _open(spec, cfg, progress=None):
     from ..rosbag import BagSequence
 
-    return BagSequence(
-        as_path(spec.bag),
-        topic=spec.topic,
-        gt=as_path(spec.gt),
-        extrinsic=as_path(spec.extrinsic),
-        gt_times=as_path(spec.gt_times),
-        progress=progress,
-    )
+    return BagSequence(as_path(spec.bag), topic=spec.topic, progress=progress, **truth_options(spec))
 
 
 SOURCE = Source(

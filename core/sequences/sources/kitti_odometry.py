@@ -4,13 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ...errors import DataError
 from ..registry import Option, Source, as_path
 
 
 def _open(spec, cfg, progress=None):
-    if not spec.sequence:
-        raise DataError("--kitti-odometry needs --sequence SS")
     from ..kitti_odometry import KittiOdometry
 
     return KittiOdometry(as_path(spec.kitti_odometry), spec.sequence)
@@ -21,7 +18,7 @@ SOURCE = Source(
     title="KITTI odometry (sequences/SS/velodyne/*.bin, calib.txt, times.txt, poses/SS.txt)",
     options=(
         Option("kitti_odometry", Path, "KITTI odometry root (holds sequences/ and poses/).", metavar="DIR"),
-        Option("sequence", str, "KITTI odometry sequence id, e.g. 05."),
+        Option("sequence", str, "KITTI odometry sequence id, e.g. 05.", metavar="SS", required=True),
     ),
     open=_open,
     describe=lambda spec: f"KITTI odometry {spec.kitti_odometry} seq {spec.sequence}",

@@ -4,13 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ...errors import DataError
 from ..registry import Option, Source, as_path
 
 
 def _open(spec, cfg, progress=None):
-    if not spec.date or not spec.drive:
-        raise DataError("--kitti-raw needs --date YYYY_MM_DD and --drive NNNN")
     from ..kitti_raw import KittiRaw
 
     return KittiRaw(as_path(spec.kitti_raw), spec.date, spec.drive)
@@ -21,8 +18,8 @@ SOURCE = Source(
     title="KITTI raw (YYYY_MM_DD/..._drive_NNNN_sync: velodyne + OXTS)",
     options=(
         Option("kitti_raw", Path, "KITTI raw root (holds YYYY_MM_DD/).", metavar="DIR"),
-        Option("date", str, "KITTI raw date, YYYY_MM_DD."),
-        Option("drive", str, "KITTI raw drive number, NNNN."),
+        Option("date", str, "KITTI raw date, YYYY_MM_DD.", metavar="YYYY_MM_DD", required=True),
+        Option("drive", str, "KITTI raw drive number, NNNN.", metavar="NNNN", required=True),
     ),
     open=_open,
     describe=lambda spec: f"KITTI raw {spec.kitti_raw} {spec.date} drive {spec.drive}",

@@ -32,10 +32,10 @@ import numpy as np
 
 from ...cache import array_digest, file_identity
 from ...errors import DataError
-from ..base import Sequence
+from ..base import RecordedSequence
 from ..extrinsic import resolve_extrinsic
 from ..groundtruth import MATCH_TOL_S, truth_of_recording
-from ..registry import Option, Source, as_path
+from ..registry import Option, Source, as_path, truth_options
 
 PAYLOAD = 1206  # a Velodyne data packet: 12 blocks of 100 bytes, a 4-byte timestamp, 2 factory bytes
 FLAG = b"\xff\xee"  # every data block starts with it
@@ -143,7 +143,7 @@ def split_rotations(azimuths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([starts[full], ends[full]], axis=1), ~full
 
 
-class PcapSequence(Sequence):
+class PcapSequence(RecordedSequence):
     """The frames of a Velodyne pcap (the module docstring)."""
 
     def __init__(self, path, sensor: str = "VLP-16", gt=None, extrinsic=None, gt_times=None, progress=None):
@@ -197,14 +197,6 @@ class PcapSequence(Sequence):
     def __len__(self) -> int:
         return len(self._frames)
 
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses
-
     def describe_scan(self, i: int) -> str:
         a, b = self._frames[i]
         return f"{self.path} frame {i} (packets {a}–{b - 1}, {self.stamps[i]:.6f} s)"
@@ -232,14 +224,7 @@ class PcapSequence(Sequence):
 
 
 def _open(spec, cfg, progress=None):
-    return PcapSequence(
-        as_path(spec.pcap),
-        sensor=spec.pcap_sensor,
-        gt=as_path(spec.gt),
-        extrinsic=as_path(spec.extrinsic),
-        gt_times=as_path(spec.gt_times),
-        progress=progress,
-    )
+    return PcapSequence(as_path(spec.pcap), sensor=spec.pcap_sensor, progress=progress, **truth_options(spec))
 
 
 SOURCE = Source(

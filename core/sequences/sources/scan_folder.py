@@ -4,15 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..registry import Option, Source, as_path
+from ..registry import Option, Source, as_path, truth_options
 
 
 def _open(spec, cfg, progress=None):
     from ..scan_folder import ScanFolderSequence
 
-    return ScanFolderSequence(
-        as_path(spec.scans_dir), gt=as_path(spec.gt), extrinsic=as_path(spec.extrinsic), gt_times=as_path(spec.gt_times)
-    )
+    return ScanFolderSequence(as_path(spec.scans_dir), **truth_options(spec))
 
 
 SOURCE = Source(

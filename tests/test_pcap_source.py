@@ -100,3 +100,20 @@ def test_the_registry_checks_lists_and_records_it(tmp_path):
     absent = dataclasses.replace(source_named("pcap"), requires="no_such_module_here")
     assert not absent.available()
     assert str(absent.missing()) == "--pcap needs the no_such_module_here module: pip install 'lidarloc[pcap]'"
+
+
+def test_the_command_line_lists_it_from_the_registry():
+    import json
+
+    from lidarloc.app import cli
+    from typer.testing import CliRunner
+
+    listed = CliRunner().invoke(cli.app, ["sources", "--json"])
+    assert listed.exit_code == 0, listed.output
+    sources = {s["name"]: s for s in json.loads(listed.output)["sources"]}
+    assert set(sources) == {"town", "kitti_odometry", "kitti_raw", "bag", "scans_dir", "pcap"}
+    assert sources["town"]["default"] and sources["pcap"]["recording"]
+    assert [o["flag"] for o in sources["pcap"]["options"]] == ["--pcap", "--pcap-sensor"]
+    assert sources["pcap"]["options"][1]["default"] == "VLP-16"
+    helped = CliRunner().invoke(cli.app, ["map", "build", "--help"], env={"COLUMNS": "200"})
+    assert helped.exit_code == 0 and "--pcap-sensor" in helped.output and "--pcap," in helped.output

@@ -2,7 +2,8 @@
 
 The source options are one unit: :func:`with_source` adds them to a command (under one help
 panel) and hands the command a :class:`~lidarloc.core.sequences.factory.SourceSpec` built from them
-by name, so a new source option is declared once, in :func:`source_parameters`. The configuration
+by name. The options are the source registry's (:mod:`lidarloc.core.sequences.registry`): a new
+source's options are declared once, in its module of ``core/sequences/sources/``. The configuration
 options are another: :func:`with_settings` adds them and hands the command the configuration they
 make, or :class:`ConfigOptions`, the options as given.
 """
@@ -14,142 +15,35 @@ import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, NamedTuple
+from typing import Annotated, Any
 
 import typer
 
 from ..core.config import PRESETS, WORLDS, Config, load_config
 from ..core.sequences.factory import SourceSpec
+from ..core.sequences.registry import RECORDING_OPTIONS, Option, all_options, option_named, sources
 
-_SRC = "Source (default: the built-in town)"
+# the registered sources by their choosing options: ``lidarloc sources`` describes each
+_SRC = (
+    "Source (default: the built-in town; or "
+    + ", ".join(s.key.flag for s in sources() if s.key is not None)
+    + "; lidarloc sources lists them)"
+)
 _CFG = "Configuration"
 
 
-class SourceOptions(NamedTuple):
-    """The source options' types, shown under one help panel."""
-
-    kitti_odometry: Any
-    sequence: Any
-    kitti_raw: Any
-    date: Any
-    drive: Any
-    town_seed: Any
-    trajectory: Any
-    calib: Any
-    scans: Any
+def source_annotation(option: Option, panel: str = _SRC) -> Any:
+    """The typer annotation of a registered source option, under the help panel ``panel``."""
+    kind = option.type if option.default is not None else option.type | None
+    return Annotated[
+        kind,
+        typer.Option(option.flag, help=option.help, metavar=option.metavar, min=option.min, rich_help_panel=panel),
+    ]
 
 
-def source_options(panel: str) -> SourceOptions:
-    """The source options under the help panel ``panel`` (a command whose default source is not
-    the built-in town says which it is there)."""
-    return SourceOptions(
-        Annotated[
-            Path | None,
-            typer.Option(
-                "--kitti-odometry", help="KITTI odometry root (holds sequences/ and poses/).", rich_help_panel=panel
-            ),
-        ],
-        Annotated[
-            str | None, typer.Option("--sequence", help="KITTI odometry sequence id, e.g. 05.", rich_help_panel=panel)
-        ],
-        Annotated[
-            Path | None, typer.Option("--kitti-raw", help="KITTI raw root (holds YYYY_MM_DD/).", rich_help_panel=panel)
-        ],
-        Annotated[str | None, typer.Option("--date", help="KITTI raw date, YYYY_MM_DD.", rich_help_panel=panel)],
-        Annotated[str | None, typer.Option("--drive", help="KITTI raw drive number, NNNN.", rich_help_panel=panel)],
-        Annotated[
-            int, typer.Option("--town-seed", min=0, help="Seed of the built-in generated town.", rich_help_panel=panel)
-        ],
-        Annotated[
-            Path | None,
-            typer.Option(
-                "--trajectory", help="Lay the town along this KITTI poses file (cam0 poses).", rich_help_panel=panel
-            ),
-        ],
-        Annotated[
-            Path | None,
-            typer.Option("--calib", help="KITTI calib file with the Tr line for --trajectory.", rich_help_panel=panel),
-        ],
-        Annotated[
-            int | None, typer.Option("--scans", min=1, help="Use only the first N scans.", rich_help_panel=panel)
-        ],
-    )
-
-
-(KittiOdometryOpt, SequenceOpt, KittiRawOpt, DateOpt, DriveOpt, TownSeedOpt, TrajectoryOpt, CalibOpt, ScansOpt) = (
-    source_options(_SRC)
-)
-
-_MAP_HELP = (
-    "Prior map file (.pcd, .ply, .las, .laz, .npy, .npz) instead of the map built from the drive; "
-    "results are written in its frame."
-)
-_GT_HELP = "Ground truth of --bag/--scans-dir: TUM (t x y z qx qy qz qw) or KITTI (12 numbers a line) poses file."
-
-
-def own_data_options(panel: str) -> dict[str, Any]:
-    """The options for a user's own data (map file, recording, truth), under ``panel``."""
-    return {
-        "map": Annotated[Path | None, typer.Option("--map", help=_MAP_HELP, rich_help_panel=panel)],
-        "bag": Annotated[
-            Path | None,
-            typer.Option(
-                "--bag",
-                help="ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap with PointCloud2 scans.",
-                rich_help_panel=panel,
-            ),
-        ],
-        "topic": Annotated[
-            str | None,
-            typer.Option("--topic", help="PointCloud2 topic of --bag (default: its only one).", rich_help_panel=panel),
-        ],
-        "scans_dir": Annotated[
-            Path | None,
-            typer.Option(
-                "--scans-dir",
-                help="Folder of scans (.pcd, .ply, .bin or .npy, in name order; times from its times.txt).",
-                rich_help_panel=panel,
-            ),
-        ],
-        "gt": Annotated[Path | None, typer.Option("--gt", help=_GT_HELP, rich_help_panel=panel)],
-        "gt_times": Annotated[
-            Path | None,
-            typer.Option(
-                "--gt-times", help="Times (s, one a line) of a KITTI-format --gt file.", rich_help_panel=panel
-            ),
-        ],
-        "extrinsic": Annotated[
-            Path | None,
-            typer.Option(
-                "--extrinsic",
-                help="4×4 base ← LiDAR transform file for --gt (default: the bag's /tf_static, else identity).",
-                rich_help_panel=panel,
-            ),
-        ],
-    }
-
-
-#: the defaults of the source options (what SourceSpec has when an option is not given)
-_SOURCE_DEFAULTS = {"town_seed": 0}
-#: every source option's parameter name, in the order of the help
-SOURCE_PARAMS = (
-    "kitti_odometry",
-    "sequence",
-    "kitti_raw",
-    "date",
-    "drive",
-    "town_seed",
-    "trajectory",
-    "calib",
-    "scans",
-    "map",
-    "bag",
-    "topic",
-    "scans_dir",
-    "gt",
-    "gt_times",
-    "extrinsic",
-)
+#: every source option the commands take, in the order of the help (``--init``: see InitOpt)
+SOURCE_PARAMS = tuple(o.name for o in all_options() if o.cli)
+ScansOpt = source_annotation(option_named("scans"))
 #: ``--init``: run, view and inspect start around a pose with it
 InitOpt = Annotated[
     str | None,
@@ -163,14 +57,12 @@ InitOpt = Annotated[
 
 def source_parameters(panel: str = _SRC, exclude: tuple[str, ...] = ()) -> list[inspect.Parameter]:
     """The source options as keyword parameters of a command, under the help panel ``panel``."""
-    annotations = dict(zip(SOURCE_PARAMS[:9], source_options(panel)))
-    annotations.update(own_data_options(panel))
     return [
         inspect.Parameter(
-            name, inspect.Parameter.KEYWORD_ONLY, annotation=annotations[name], default=_SOURCE_DEFAULTS.get(name)
+            o.name, inspect.Parameter.KEYWORD_ONLY, annotation=source_annotation(o, panel), default=o.default
         )
-        for name in SOURCE_PARAMS
-        if name not in exclude
+        for o in all_options()
+        if o.cli and o.name not in exclude
     ]
 
 
@@ -255,10 +147,18 @@ CacheOpt = Annotated[
 
 # The options that choose which sequence (the others refine it): a command whose default source
 # is not the town asks whether one of them was given.
-SOURCE_CHOICE = ("kitti_odometry", "kitti_raw", "town_seed", "trajectory", "bag", "scans_dir")
+SOURCE_CHOICE = tuple(
+    o.name for s in sources() for o in (s.options if s.default else s.options[:1]) if o.name != "calib"
+)
 SOURCE_OPTIONS = SOURCE_PARAMS
 #: the options for a user's own data (commands whose work cannot take them exclude these)
-OWN_DATA = ("map", "bag", "topic", "scans_dir", "gt", "gt_times", "extrinsic")
+OWN_DATA = (
+    ("map",)
+    + tuple(o.name for s in sources() if s.recording for o in s.options)
+    + tuple(o.name for o in RECORDING_OPTIONS)
+)
+#: the options of every source but the built-in town (a command that works on the town alone excludes these)
+NOT_TOWN = tuple(o.name for s in sources() if not s.default for o in s.options)
 
 
 def given(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
@@ -275,17 +175,18 @@ def source_spec(**values) -> SourceSpec:
 
 
 def open_source(spec: SourceSpec, cfg: Config, console=None):
-    """``open_sequence`` with a progress bar while a bag's topic is indexed, and the source's
+    """``open_sequence`` with a progress bar while a recording is indexed, and the source's
     notes printed on ``console`` (stderr), one line each."""
     from ..core.sequences.factory import open_sequence, sequence_notes
     from .console import err, progress_bar
 
     console = console or err
-    if spec.bag is None:
+    key = spec.source.key
+    if not spec.source.indexes or key is None:
         seq = open_sequence(spec, cfg)
     else:
         with progress_bar() as bar:
-            task = bar.add_task(f"indexing {Path(spec.bag).name}", total=None)
+            task = bar.add_task(f"indexing {Path(getattr(spec, key.name)).name}", total=None)
             seq = open_sequence(spec, cfg, progress=lambda i, n: bar.update(task, completed=i, total=n))
     for line in sequence_notes(seq):
         console.print(f"note: {line}", markup=False, highlight=False, soft_wrap=True)

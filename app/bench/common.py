@@ -14,6 +14,7 @@ from ...core.config import Config
 from ...core.errors import LidarlocError
 from ...core.geometry import inv_pose
 from ...core.sequences.factory import SourceSpec, open_sequence
+from ...core.sequences.registry import COMMON_OPTIONS, RECORDING_OPTIONS
 
 # The real KITTI data is not shipped (licence): $LIDARLOC_DATA, else ../shared/data from where
 # the command runs (the repository root).
@@ -65,34 +66,15 @@ def open_source(spec: SourceSpec, cfg: Config, bench: str, need_poses: bool = Fa
 
 def source_args(spec: SourceSpec) -> list[str]:
     """The source options that select ``spec`` on a ``lidarloc`` command line (for the benchmarks
-    that time a command in a fresh process)."""
-    if spec.kitti_odometry is not None:
-        args = ["--kitti-odometry", str(spec.kitti_odometry)] + (["--sequence", spec.sequence] if spec.sequence else [])
-    elif spec.kitti_raw is not None:
-        args = (
-            ["--kitti-raw", str(spec.kitti_raw)]
-            + (["--date", spec.date] if spec.date else [])
-            + (["--drive", spec.drive] if spec.drive else [])
-        )
-    elif spec.bag is not None:
-        args = ["--bag", str(spec.bag)] + (["--topic", spec.topic] if spec.topic else [])
-    elif spec.scans_dir is not None:
-        args = ["--scans-dir", str(spec.scans_dir)]
-    else:
-        args = ["--town-seed", str(spec.town_seed)]
-        for flag, path in (("--trajectory", spec.trajectory), ("--calib", spec.calib)):
-            if path is not None:
-                args += [flag, str(path)]
-    for flag, value in (
-        ("--map", spec.map),
-        ("--gt", spec.gt),
-        ("--gt-times", spec.gt_times),
-        ("--extrinsic", spec.extrinsic),
-        ("--init", spec.init),
-    ):
+    that time a command in a fresh process): its source's options, a recording's, the common ones."""
+    source = spec.source
+    options = source.options + (RECORDING_OPTIONS if source.recording else ()) + COMMON_OPTIONS
+    args = []
+    for option in options:
+        value = getattr(spec, option.name)
         if value is not None:
-            args += [flag, str(value)]
-    return args + (["--scans", str(spec.scans)] if spec.scans is not None else [])
+            args += [option.flag, str(value)]
+    return args
 
 
 # ------------------------------------------------------------------------------------ machine

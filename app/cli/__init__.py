@@ -18,6 +18,7 @@ from . import (  # noqa: F401  (each registers its commands)
     corpus,
     maps,
     runs,
+    sources,
     sweeps,
     viewing,
 )

@@ -10,7 +10,7 @@ import typer
 
 from ...core.errors import LidarlocError
 from ..console import emit_json, err, peak_rss_mb, progress_bar
-from ..options import OWN_DATA, CacheOpt, JsonOpt, open_source, with_settings, with_source
+from ..options import NOT_TOWN, OWN_DATA, CacheOpt, JsonOpt, open_source, with_settings, with_source
 from .groups import app, map_app
 
 
@@ -150,7 +150,7 @@ def map_export(
 
 # ---------------------------------------------------------------------------------------- synth
 @app.command()
-@with_source(exclude=("kitti_odometry", "sequence", "kitti_raw", "date", "drive") + OWN_DATA)
+@with_source(exclude=NOT_TOWN + OWN_DATA)
 @with_settings()
 def synth(
     out: Annotated[Path, typer.Option("--out", help="Directory to write the KITTI odometry layout into.")],

@@ -82,6 +82,22 @@ class Sequence(ABC):
             yield self.scan(i)
 
 
+class RecordedSequence(Sequence):
+    """A sequence whose times and, where it has ground truth, poses were read when it was opened
+    (files, a bag, a capture): a subclass sets ``_times`` and ``_poses``."""
+
+    _times: np.ndarray
+    _poses: np.ndarray | None = None
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._times
+
+    @property
+    def poses(self) -> np.ndarray | None:
+        return self._poses
+
+
 def validate_scan(points: np.ndarray, where: str) -> np.ndarray:
     """Check a scan is usable: (N, 4) finite float32 with N > 0. Raises DataError naming ``where``."""
     points = np.asarray(points)

@@ -1,10 +1,11 @@
 """Build a Sequence from the source options every command shares.
 
-Sources: KITTI odometry, KITTI raw, the built-in town (the default), a bag (``--bag``) or a folder
-of scan files (``--scans-dir``). ``--gt`` (with ``--gt-times`` for KITTI-format truth) and
-``--extrinsic`` refine a bag or folder; ``--map FILE`` replaces the map built from the drive with
-a point-cloud map file, for any source (see :mod:`lidarloc.core.sequences.framed` for frames).
-Without ``--map``, a bag or folder builds its map from its scans and truth, so it needs ``--gt``.
+The sources are the registry's (:mod:`lidarloc.core.sequences.registry`, one module each in
+``sources/``): the built-in town (the default), KITTI odometry or raw, a bag, a folder of scan
+files, a Velodyne pcap … ``--map FILE`` replaces the map built from the drive with a point-cloud
+map file, for any source (see :mod:`lidarloc.core.sequences.framed` for frames). A recording (a
+bag, a folder, a pcap) takes ``--gt`` (with ``--gt-times`` for KITTI-format truth) and
+``--extrinsic``; without ``--map`` it builds its map from its scans and truth, so it needs ``--gt``.
 """
 
 from __future__ import annotations
@@ -13,12 +14,14 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..config import Config
 from ..errors import DataError
 from .base import Limited, Sequence
+from .registry import Source, all_options, as_path, check, chosen
 
 #: default spread of ``--init`` around its pose: 2 m in x and y, 10° in yaw
 INIT_SIGMA_XY = 2.0
@@ -56,28 +59,29 @@ def parse_init(text: str) -> InitialGuess:
     return InitialGuess(x, y, math.radians(yaw_deg), sigma_xy, math.radians(sigma_yaw_deg))
 
 
-@dataclass
-class SourceSpec:
-    """Where scans come from: KITTI odometry, KITTI raw, a bag, a scan folder, or the built-in town;
-    optionally with a map file, ground truth, an extrinsic and an initial guess."""
+def _with_source_options(cls):
+    """``cls`` with a field for every registered source option (:mod:`.registry`), so that a new
+    source's options are fields without being written here."""
+    annotations = cls.__dict__.get("__annotations__", {})
+    for option in all_options():
+        kind = option.type.__name__ if option.type is not Path else "Path"
+        annotations[option.name] = kind if option.default is not None else f"{kind} | None"
+        setattr(cls, option.name, option.default)
+    cls.__annotations__ = annotations
+    return cls
 
-    kitti_odometry: Path | None = None
-    sequence: str | None = None
-    kitti_raw: Path | None = None
-    date: str | None = None
-    drive: str | None = None
-    town_seed: int = 0
-    trajectory: Path | None = None  # lay the town along a KITTI poses file …
-    calib: Path | None = None  # … whose calib (Tr line) converts cam0 → LiDAR
-    scans: int | None = None  # keep only the first N scans
-    map: Path | None = None  # a point-cloud map file instead of the drive's map
-    bag: Path | None = None  # ROS 1 .bag, ROS 2 bag folder, .db3 or .mcap
-    topic: str | None = None  # its PointCloud2 topic (default: the only one)
-    scans_dir: Path | None = None  # a folder of scan files
-    gt: Path | None = None  # ground truth, TUM or KITTI
-    gt_times: Path | None = None  # times of KITTI-format ground truth
-    extrinsic: Path | None = None  # base ← LiDAR 4×4 text file
-    init: str | None = None  # x,y,yaw[,σ_xy,σ_yaw] (metres, degrees): start around it
+
+@dataclass
+@_with_source_options
+class SourceSpec:
+    """Where scans come from: one of the registered sources (``lidarloc sources``: the built-in
+    town by default, KITTI odometry or raw, a bag, a scan folder, a Velodyne pcap …) with its
+    options, and the options every source takes (a map file, ``--scans``, an initial guess) or a
+    recording takes (ground truth, an extrinsic). Its fields are the registry's options, by name."""
+
+    if TYPE_CHECKING:  # the fields come from the registry; a type checker sees keyword options
+
+        def __init__(self, **options: Any) -> None: ...
 
     def to_dict(self, absolute: bool = False) -> dict:
         """Every option as JSON takes it: paths as strings, resolved when ``absolute`` (what a run
@@ -100,54 +104,27 @@ class SourceSpec:
         return cls(**{k: (Path(v) if k in PATH_OPTIONS and v is not None else v) for k, v in d.items() if k in known})
 
     @property
+    def source(self) -> Source:
+        """The registered source this spec names."""
+        return chosen(self)
+
+    @property
     def kind(self) -> str:
-        """Which source: kitti_odometry, kitti_raw, bag, scans_dir or town."""
-        for name in ("kitti_odometry", "kitti_raw", "bag", "scans_dir"):
-            if getattr(self, name) is not None:
-                return name
-        return "town"
+        """Which source, by its registered name: town, kitti_odometry, kitti_raw, bag, scans_dir …"""
+        return chosen(self).name
 
     def describe(self) -> str:
         on_map = f" in map {self.map}" if self.map is not None else ""
-        if self.kitti_odometry is not None:
-            return f"KITTI odometry {self.kitti_odometry} seq {self.sequence}{on_map}"
-        if self.kitti_raw is not None:
-            return f"KITTI raw {self.kitti_raw} {self.date} drive {self.drive}{on_map}"
-        if self.bag is not None:
-            return f"bag {self.bag}{' ' + self.topic if self.topic else ''}{on_map}"
-        if self.scans_dir is not None:
-            return f"scan folder {self.scans_dir}{on_map}"
-        along = f" along {self.trajectory}" if self.trajectory else ""
-        return f"built-in town (seed {self.town_seed}){along}{on_map}"
+        return chosen(self).describe(self) + on_map
 
 
 #: The source options that name a file or folder.
-PATH_OPTIONS = frozenset(f.name for f in fields(SourceSpec) if "Path" in str(f.type))
-
-
-def _path(value) -> Path | None:
-    return None if value is None else Path(value).expanduser()
+PATH_OPTIONS = frozenset(o.name for o in all_options() if o.is_path)
 
 
 def check_spec(spec: SourceSpec) -> None:
     """The combinations of source options that make no sense, as one-line errors."""
-    chosen = [
-        f"--{n.replace('_', '-')}"
-        for n in ("kitti_odometry", "kitti_raw", "bag", "scans_dir")
-        if getattr(spec, n) is not None
-    ]
-    if len(chosen) > 1:
-        raise DataError(f"choose one source: {' or '.join(chosen)}, not both")
-    if spec.topic is not None and spec.bag is None:
-        raise DataError("--topic names a PointCloud2 topic of --bag; give --bag FILE_OR_DIR")
-    own_data = spec.bag is not None or spec.scans_dir is not None
-    for name in ("gt", "gt_times", "extrinsic"):
-        if getattr(spec, name) is not None and not own_data:
-            raise DataError(f"--{name.replace('_', '-')} applies to a recording: give --bag or --scans-dir")
-    if spec.gt_times is not None and spec.gt is None:
-        raise DataError("--gt-times gives the times of a KITTI-format --gt file; give --gt too")
-    if own_data and spec.gt is None and spec.map is None:
-        raise DataError("a prior map needs --map FILE or ground truth (--gt) to fuse the scans")
+    check(spec)
 
 
 def open_sequence(
@@ -162,44 +139,11 @@ def open_sequence(
     if spec.map is not None:  # a missing or unreadable map fails before a long bag is indexed
         from ..maps.map_source import MapFileSource
 
-        map_file = MapFileSource(_path(spec.map))
-    if spec.kitti_odometry is not None:
-        if not spec.sequence:
-            raise DataError("--kitti-odometry needs --sequence SS")
-        from .kitti_odometry import KittiOdometry
-
-        seq: Sequence = KittiOdometry(_path(spec.kitti_odometry), spec.sequence)
-    elif spec.kitti_raw is not None:
-        if not spec.date or not spec.drive:
-            raise DataError("--kitti-raw needs --date YYYY_MM_DD and --drive NNNN")
-        from .kitti_raw import KittiRaw
-
-        seq = KittiRaw(_path(spec.kitti_raw), spec.date, spec.drive)
-    elif spec.bag is not None:
-        from .rosbag import BagSequence
-
-        seq = BagSequence(
-            _path(spec.bag),
-            topic=spec.topic,
-            gt=_path(spec.gt),
-            extrinsic=_path(spec.extrinsic),
-            gt_times=_path(spec.gt_times),
-            progress=progress,
-        )
-    elif spec.scans_dir is not None:
-        from .scan_folder import ScanFolderSequence
-
-        seq = ScanFolderSequence(
-            _path(spec.scans_dir), gt=_path(spec.gt), extrinsic=_path(spec.extrinsic), gt_times=_path(spec.gt_times)
-        )
-    else:
-        if (spec.trajectory is None) != (spec.calib is None):
-            raise DataError("--trajectory and --calib go together (the calib's Tr converts cam0 poses to LiDAR)")
-        from .town import TownSequence
-
-        seq = TownSequence.from_config(
-            cfg.town, seed=spec.town_seed, trajectory=_path(spec.trajectory), calib=_path(spec.calib)
-        )
+        map_file = MapFileSource(as_path(spec.map))
+    source = chosen(spec)
+    if not source.available():
+        raise source.missing()
+    seq: Sequence = source.open(spec, cfg, progress)
     if map_file is not None:
         from .framed import MapFramed
 

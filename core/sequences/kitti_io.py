@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataError
-from .base import Sequence
+from .base import RecordedSequence
 
 
 def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
@@ -85,7 +85,7 @@ def lidar_to_cam0_poses(poses_lidar: np.ndarray, Tr: np.ndarray) -> np.ndarray:
     return Tr[None] @ poses_lidar @ np.linalg.inv(Tr)[None]
 
 
-class FileBackedSequence(Sequence):
+class FileBackedSequence(RecordedSequence):
     """A sequence of scan files, one file per scan, read when the scan is asked for; timestamps
     and poses read once when the sequence is opened.
 
@@ -95,8 +95,6 @@ class FileBackedSequence(Sequence):
     """
 
     _files: list
-    _times: np.ndarray
-    _poses: np.ndarray | None = None
 
     def _open_pykitti(
         self, opener: Callable[[], Any], errors: tuple[type[Exception], ...], failure: str, velodyne_dir: Path
@@ -121,11 +119,3 @@ class FileBackedSequence(Sequence):
 
     def describe_scan(self, i: int) -> str:
         return str(self._files[i])
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses

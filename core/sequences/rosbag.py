@@ -50,7 +50,7 @@ import numpy as np
 
 from ..cache import array_digest, file_identity
 from ..errors import DataError
-from .base import Sequence
+from .base import RecordedSequence
 from .extrinsic import from_tf_static, resolve_extrinsic, transform_from_ros
 from .groundtruth import MATCH_TOL_S, truth_of_recording
 from .pointcloud2 import check_xyz, to_xyzi
@@ -129,7 +129,7 @@ def _stamp_ns(msg) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-class BagSequence(Sequence):
+class BagSequence(RecordedSequence):
     """See the module docstring. ``gt``: a TUM or KITTI poses file (or a loaded
     :class:`~lidarloc.core.sequences.groundtruth.Truth`), ``gt_times`` the times file of a KITTI one;
     ``extrinsic``: base ← LiDAR as a 4×4 array, a text file or "identity"; ``progress(i, n)`` is
@@ -253,14 +253,6 @@ class BagSequence(Sequence):
     # ------------------------------------------------------------------ the Sequence interface
     def __len__(self) -> int:
         return len(self._positions)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times
-
-    @property
-    def poses(self) -> np.ndarray | None:
-        return self._poses
 
     def describe_scan(self, i: int) -> str:
         return f"{self.path} {self.topic} message {int(self._positions[i])} (stamp {self.stamps_ns[i] / 1e9:.6f} s)"

@@ -39,13 +39,13 @@ available.
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import LidarlocError
+from ..maps.tiling import usable_cores
 
 
 @dataclass(frozen=True)
@@ -180,8 +180,11 @@ class GICPRefiner:
         return _result(init, np.array(res.transformation), True, self.max_iterations, res.fitness, t0)
 
 
-#: Threads a thinned target's k-d tree and covariances are made on (see GICPRefiner).
-TARGET_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Threads a thinned target's k-d tree and covariances are made on (see GICPRefiner): the cores
+#: this process may use. On a quiet 2-core machine the second core takes about half of the
+#: covariances; beside other jobs it gives nothing (a target near a 1 km² city scan: 328 ms on 2
+#: threads, 296 ms on 1, at load 15).
+TARGET_THREADS = usable_cores()
 #: m, the map's down-sampling in a target built to verify one whole-map answer (the tracking
 #: target's is half the scan's 0.5 m voxel): a quarter of the points, built ~4× faster.
 VERIFY_TARGET_VOXEL = 0.5
@@ -246,7 +249,11 @@ class LocalGICPRefiner:
         :data:`VERIFY_REACH_M` (not the tracking target's reach plus ``recentre_m``), down-sampled to
         :data:`VERIFY_TARGET_VOXEL` — so that checking a place costs a fraction of a second, not the
         seconds of a tracking target (measured on the 16 km² city: docs/global-localization.md).
-        The last such target is kept for the next answer at the same place."""
+        The down-sampled map is read from the point tiles thinned once per map
+        (:meth:`~lidarloc.core.maps.point_tiles.PointTiles.thinned`): a sixth of the points, and no
+        down-sampling per answer, which with the raw points took 80–160 ms of a 460 ms match on
+        the 1 km² city (docs/benchmarks/city.md). The last such target is kept for the next answer
+        at the same place."""
         init = np.asarray(init, dtype=np.float64)
         x, y = float(init[0, 3]), float(init[1, 3])
         if self._target is not None and self.centre is not None:

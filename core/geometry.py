@@ -72,6 +72,17 @@ def inv_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def levelled(points: np.ndarray, pitch: float, roll: float) -> np.ndarray:
+    """(N, 3): ``points`` turned by ``pitch`` and ``roll`` (yaw 0), as a scan is levelled for the
+    bird's-eye view. With both 0 (every whole-map match without a start) the points themselves:
+    the product with the identity is exact, and numpy's threaded product of a scan by a 3 × 3
+    costs 5–100 ms on two busy cores (measured beside other jobs), for nothing."""
+    pts = np.asarray(points)[:, :3]
+    if pitch == 0.0 and roll == 0.0:
+        return pts
+    return pts @ rotation_zyx(0.0, pitch, roll).T
+
+
 def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Apply a 4×4 transform to (N, ≥3) points; returns (N, 3)."""
     pts = np.asarray(pts)

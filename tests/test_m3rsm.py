@@ -327,3 +327,22 @@ def test_scan_cells_downsamples_to_unique_cells():
     assert np.allclose(cells[0], [0.2, 0.3])
     with pytest.raises(LidarlocError):
         m3rsm.scan_cells(np.zeros((3, 1)), 1.0)
+
+
+def test_scan_cells_are_the_row_sorted_centroids_bit_for_bit():
+    """The cells in (ix, iy) order and their centroids summed in the scan's order, exactly as the
+    row sort (np.unique over rows, np.add.at) made them: a scan in its own frame (counted over its
+    box) and one far out in world coordinates (sorted)."""
+
+    def by_rows(xy, d):
+        idx = np.floor(xy / d).astype(np.int64)
+        _, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+        sums = np.zeros((len(counts), 2))
+        np.add.at(sums, inverse.ravel(), xy)
+        return sums / counts[:, None]
+
+    rng = np.random.default_rng(5)
+    for centre, spread in [(0.0, 30.0), (-12.0, 0.7), (4000.0, 3000.0)]:
+        xy = rng.normal(centre, spread, (5000, 2))
+        for d in (0.25, 1.0):
+            assert np.array_equal(m3rsm.scan_cells(xy, d), by_rows(xy, d))

@@ -152,3 +152,24 @@ def test_a_run_on_a_large_tiled_map_keeps_it_on_disk_and_matches_from_the_tiles(
         errors = [r.error_m for r in loc.records[-10:]]
     assert landed, "no S2M match landed"
     assert max(errors) < 1.0
+
+
+def test_thinned_tiles_hold_the_whole_maps_voxel_centroids_and_are_cached(cloud, tmp_path):
+    """Tiles of 50 m thinned to 0.5 m voxels: the voxels lie inside the tiles, so every tile's
+    centroids are the whole map's voxel centroids there; made once, then opened."""
+    tiles = PointTiles.load_or_build(cloud, tmp_path / "tiles", "cloud", tile_m=50.0)
+    thin = tiles.thinned(0.5)
+    assert thin.voxel == 0.5 and tiles.thinned(0.5) is thin
+    whole = mapping.voxel_centroids(cloud, 0.5)
+    assert whole is not None and thin.index["points"] == len(whole) < len(cloud)
+    rect = (-20.0, 30.0, 75.0, 120.0)
+    assert np.allclose(rows(thin.points_in(*rect)), rows(brute(whole, *rect)), atol=1e-5)
+    stamp = (thin.directory / "tiles.json").stat().st_mtime_ns
+    again = PointTiles.load_or_build(cloud, tmp_path / "tiles", "cloud", tile_m=50.0).thinned(0.5)
+    assert again.directory == thin.directory and (thin.directory / "tiles.json").stat().st_mtime_ns == stamp
+    # a damaged thinned tile is thinned again from its parent
+    path = thin.directory / "t2_2.points.npy"
+    want = np.array(thin.tile(2, 2))
+    path.write_bytes(path.read_bytes()[:-12])
+    fresh = PointTiles.load_or_build(cloud, tmp_path / "tiles", "cloud", tile_m=50.0).thinned(0.5)
+    assert np.allclose(rows(np.array(fresh.tile(2, 2))), rows(want)) and fresh.rebuilt == [(2, 2)]

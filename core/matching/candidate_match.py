@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from ..geometry import pose_matrix, rotation_zyx
+from ..geometry import levelled, pose_matrix
 from ..maps.bev import BEVPyramid
 from ..maps.places import uses_places
 from . import m3rsm
@@ -73,9 +73,8 @@ class CandidateMatchMixin:
         passed GICP)."""
         cfg = self.cfg
         index = self.place_index()
-        level = rotation_zyx(0.0, pitch, roll)  # the whole scan levelled, as the BEV scan is
         lu = look_up(
-            index, prep.points[:, :3] @ level.T, cfg.global_candidates, 2.0 * cfg.candidate_window,
+            index, levelled(prep.points, pitch, roll), cfg.global_candidates, 2.0 * cfg.candidate_window,
             self._finest(), B, cfg.angle_step,
         )  # fmt: skip
         timings["look_up"] = lu.ms

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import LidarlocError
+from ..maps.tiling import usable_cores
 
 
 @dataclass(frozen=True)
@@ -90,10 +91,13 @@ class GICPRefiner:
         backend: str = "small_gicp",
         crop_radius: float = 90.0,
         target_voxel: float | None = None,
+        thinned: bool = False,
     ):
         """``voxel``: scan (source) down-sampling; ``target_voxel``: map down-sampling, default
         voxel / 2 (a target as coarse as the scan biased small_gicp by 0.2–0.4 m on part of the
-        KITTI drive, see the module docstring)."""
+        KITTI drive, see the module docstring). ``thinned``: ``map_points`` are already one
+        centroid per ``target_voxel`` (:meth:`~lidarloc.core.maps.point_tiles.PointTiles.thinned`),
+        so only the target's k-d tree and covariances are made (small_gicp)."""
         if backend not in ("small_gicp", "open3d"):
             raise LidarlocError(f"unknown GICP backend '{backend}': expected small_gicp or open3d")
         pts = np.ascontiguousarray(np.asarray(map_points)[:, :3], dtype=np.float64)
@@ -111,9 +115,18 @@ class GICPRefiner:
             import small_gicp
 
             self._sg = small_gicp
-            self._target, self._tree = small_gicp.preprocess_points(
-                pts, downsampling_resolution=self.target_voxel, num_neighbors=self.num_neighbors, num_threads=1
-            )
+            if thinned:
+                # Each point's covariance is its own (no sum across threads), so the target is the
+                # same on any number of threads: all the cores for the ~70 % of a verification
+                # target's build that these two take. The down-sampling stays on one thread, where
+                # small_gicp's is deterministic.
+                self._target = small_gicp.PointCloud(pts)
+                self._tree = small_gicp.KdTree(self._target, num_threads=TARGET_THREADS)
+                small_gicp.estimate_covariances(self._target, self._tree, self.num_neighbors, TARGET_THREADS)
+            else:
+                self._target, self._tree = small_gicp.preprocess_points(
+                    pts, downsampling_resolution=self.target_voxel, num_neighbors=self.num_neighbors, num_threads=1
+                )
             self.n_target = int(self._target.size())
         else:
             from ..o3d import open3d
@@ -167,6 +180,11 @@ class GICPRefiner:
         return _result(init, np.array(res.transformation), True, self.max_iterations, res.fitness, t0)
 
 
+#: Threads a thinned target's k-d tree and covariances are made on (see GICPRefiner): the cores
+#: this process may use. On a quiet 2-core machine the second core takes about half of the
+#: covariances; beside other jobs it gives nothing (a target near a 1 km² city scan: 328 ms on 2
+#: threads, 296 ms on 1, at load 15).
+TARGET_THREADS = usable_cores()
 #: m, the map's down-sampling in a target built to verify one whole-map answer (the tracking
 #: target's is half the scan's 0.5 m voxel): a quarter of the points, built ~4× faster.
 VERIFY_TARGET_VOXEL = 0.5
@@ -197,6 +215,9 @@ class LocalGICPRefiner:
         self._target: GICPRefiner | None = None
         self._verify_target: tuple[tuple[float, float], GICPRefiner] | None = None
         self.builds = 0  # targets built so far
+        # the map thinned for verification targets: made once per map (cached with its tiles) now,
+        # not at the first whole-map answer, which would wait for it
+        self._verify_tiles = tiles.thinned(max(VERIFY_TARGET_VOXEL, gicp_args.get("target_voxel") or 0.0))
 
     def target_for(self, x: float, y: float) -> GICPRefiner:
         """The GICP target for a guess at (x, y): the current one while (x, y) is within
@@ -228,7 +249,11 @@ class LocalGICPRefiner:
         :data:`VERIFY_REACH_M` (not the tracking target's reach plus ``recentre_m``), down-sampled to
         :data:`VERIFY_TARGET_VOXEL` — so that checking a place costs a fraction of a second, not the
         seconds of a tracking target (measured on the 16 km² city: docs/global-localization.md).
-        The last such target is kept for the next answer at the same place."""
+        The down-sampled map is read from the point tiles thinned once per map
+        (:meth:`~lidarloc.core.maps.point_tiles.PointTiles.thinned`): a sixth of the points, and no
+        down-sampling per answer, which with the raw points took 80–160 ms of a 460 ms match on
+        the 1 km² city (docs/benchmarks/city.md). The last such target is kept for the next answer
+        at the same place."""
         init = np.asarray(init, dtype=np.float64)
         x, y = float(init[0, 3]), float(init[1, 3])
         if self._target is not None and self.centre is not None:
@@ -236,12 +261,11 @@ class LocalGICPRefiner:
                 return self._target.refine(scan_points, init)
         quick = self._verify_target
         if quick is None or math.hypot(x - quick[0][0], y - quick[0][1]) > VERIFY_RECENTRE_M:
-            pts = self.tiles.points_near(x, y, min(self.reach_m, VERIFY_REACH_M))
+            # the map near the guess, already down-sampled tile by tile (once per map)
+            pts = self._verify_tiles.points_near(x, y, min(self.reach_m, VERIFY_REACH_M))
             if len(pts) == 0:  # off the map: nothing converges there
                 return _result(init, init.copy(), False, 0, 0.0, time.perf_counter())
-            args = {
-                **self.gicp_args,
-                "target_voxel": max(VERIFY_TARGET_VOXEL, self.gicp_args.get("target_voxel") or 0.0),
-            }
+            args = {**self.gicp_args, "target_voxel": self._verify_tiles.voxel, "thinned": True}
+            self._verify_target = None  # the old one goes first: never two resident
             self._verify_target = quick = ((x, y), GICPRefiner(pts, **args))
         return quick[1].refine(scan_points, init)

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..config import MapConfig, PFConfig, S2MConfig
 from ..errors import LidarlocError
-from ..geometry import pose_matrix, pose_to_xyz_ypr, rotation_zyx, transform_points
+from ..geometry import levelled, pose_matrix, pose_to_xyz_ypr, transform_points
 from ..maps.bev import BEVPyramid
 from ..maps.mapping import flat_surface_mask, range_filter
 from ..o3d import open3d
@@ -149,8 +149,7 @@ class ScanToMapMatcher(CandidateMatchMixin):
     def _bev(road_removed: np.ndarray, pitch: float, roll: float) -> np.ndarray:
         """Project the road-removed scan to the ground plane: level it with the pose's pitch and
         roll (yaw is what the search finds), then drop z."""
-        R = rotation_zyx(0.0, pitch, roll)
-        return (np.asarray(road_removed)[:, :3] @ R.T)[:, :2]
+        return levelled(road_removed, pitch, roll)[:, :2]
 
     # ------------------------------------------------------------------------------- matching
     def match_local(

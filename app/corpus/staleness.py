@@ -16,8 +16,11 @@ and compared with the prior map in two ways:
 Both are counted on a 2D grid over the map's top view. A cell is *observed* by a scan when scan
 points fall in it or map points in it were checked; it *disagrees* in a scan when new or gone
 points fall in it. Per drive, a cell disagrees when it disagreed in at least ``DRIVE_MIN_SCANS``
-scans and in at least ``drive_share`` of the scans that observed it: a car passing, or the car
-ahead, is in a cell for a moment while the drive sees that cell for many scans. A cell is
+scans, in at least ``drive_share`` of the scans that observed it, and from scans at least
+``DRIVE_SPAN_M`` apart along the drive: a car passing is in a cell for a moment while the drive
+sees that cell for many scans, and the car ahead, which moves and stops with the drive, is seen
+in a cell from one short stretch of the drive only, while a change is seen from all along the
+approach. A cell is
 **stale** when it disagrees in at least ``min_drives`` drives and in at least ``drive_share`` of
 the drives that observed it: a change of the world is seen by every drive that passes, traffic by
 one drive at one moment. A corpus of one drive therefore flags nothing. Cells without map points
@@ -29,7 +32,6 @@ points of its cells) are the point layer.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -48,6 +50,10 @@ MIN_DISTANCE_M = 1.0  # m: beyond the localization error (~0.2 m), lookup quanti
 RANGE_M = 40.0  # m, farthest point judged: farther, beams are sparse and a pose error grows with range
 EVERY = 2  # every 2nd localized scan: neighbouring scans see the same
 DRIVE_MIN_SCANS = 2  # one scan's disagreement is noise
+# m of the drive's path between the first and the last scan that disagreed: a change is seen
+# from all along the approach, the car ahead (which moves and stops with the drive) or a
+# pedestrian passing a stopped drive from one stretch of it
+DRIVE_SPAN_M = 10.0
 DRIVE_SHARE = 0.3  # of a drive's scans that observed a cell / of the drives that observed a cell
 MIN_DRIVES = 2
 ABOVE_GROUND_M = 0.3  # map points lower than this over the ground are ground: beams graze it
@@ -95,27 +101,16 @@ class DriveData:
 def corpus_drives(folder: Path) -> list[DriveData]:
     """The finished drives of the corpus run in ``folder`` (one-line errors for a missing folder
     or one that is not a corpus run's --out)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise LidarlocError(f"{folder}: no such folder (RUN_DIR is the --out folder of a lidarloc corpus run)")
-    path = folder / "corpus.json"
-    if not path.is_file():
-        raise LidarlocError(f"{folder}: no corpus.json (RUN_DIR must be the --out folder of a lidarloc corpus run)")
-    try:
-        names = list(json.loads(path.read_text())["drives"])
-    except (OSError, ValueError, KeyError, TypeError):
-        raise LidarlocError(f"{path}: not a corpus.json of lidarloc corpus run (no 'drives')") from None
+    from .figures import read_output
+
     drives = []
-    for name in names:
-        drive_dir = folder / "drives" / name
-        marker = drive_dir / IDENTITY_FILE
-        if not marker.is_file() or not (drive_dir / "scans.csv").is_file():
-            raise LidarlocError(f"{drive_dir}: no {IDENTITY_FILE} or scans.csv: the drive's run is incomplete")
-        ident = json.loads(marker.read_text())
-        cfg = update_from_dict(Config(), ident["config"])
-        drives.append(DriveData(name, drive_dir, SourceSpec.from_dict(ident["source"]), cfg))
+    for drive in read_output(folder, "RUN_DIR").drives.values():
+        if drive.identity is None or not (drive.folder / "scans.csv").is_file():
+            raise LidarlocError(f"{drive.folder}: no {IDENTITY_FILE} or scans.csv: the drive's run is incomplete")
+        cfg = update_from_dict(Config(), drive.identity["config"])
+        drives.append(DriveData(drive.name, drive.folder, SourceSpec.from_dict(drive.identity["source"]), cfg))
     if not drives:
-        raise LidarlocError(f"{path}: no finished drive to judge the map by")
+        raise LidarlocError(f"{folder}: no finished drive to judge the map by")
     return drives
 
 
@@ -249,6 +244,10 @@ def judge_drive(
     observed = np.zeros(n_cells, np.int32)
     disagree = np.zeros(n_cells, np.int32)
     cap = lookup.capped(lookup.d_max_built)
+    first = np.full(n_cells, np.inf)
+    last = np.full(n_cells, -np.inf)
+    steps = np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1) if len(poses) else np.zeros(0)
+    travelled = np.concatenate([[0.0], np.cumsum(steps)])
     found = []
     for k, (i, T) in enumerate(zip(scans, poses, strict=True)):
         raw = np.asarray(seq.scan(int(i)))[:, :3].astype(np.float64)
@@ -266,11 +265,14 @@ def judge_drive(
         dis = np.unique(np.concatenate([ij[new], ij_m[gone]]))
         observed[obs] += 1
         disagree[dis] += 1
+        first[dis] = np.minimum(first[dis], travelled[k])
+        last[dis] = np.maximum(last[dis], travelled[k])
         found.append(np.concatenate([world[new], near[gone]]))
         tick(k + 1, len(scans))
     grid.scans_observed += observed.reshape(grid.shape)
     grid.scans_disagree += disagree.reshape(grid.shape)
     flagged = (disagree >= DRIVE_MIN_SCANS) & (disagree >= s.drive_share * np.maximum(observed, 1))
+    flagged &= last - first >= DRIVE_SPAN_M
     grid.drives_observed += (observed > 0).reshape(grid.shape).astype(np.int16)
     grid.drives_disagree += flagged.reshape(grid.shape).astype(np.int16)
     pts = np.concatenate(found) if found else np.zeros((0, 3))

@@ -14,6 +14,7 @@ from ...core.errors import LidarlocError
 from ...core.runs.results import make_out_dir, write_json
 from .staleness import MapGrid, Settings, stale_points
 
+COUNTS = ("scans_observed", "scans_disagree", "drives_observed", "drives_disagree")
 GRID_FILE, HEAT_FILE, POINTS_FILE, SUMMARY_FILE = "staleness.npz", "staleness.png", "stale.ply", "staleness.json"
 
 
@@ -28,16 +29,9 @@ def write_outputs(results: list[dict], s: Settings, out: Path, run_dir: Path) ->
         folder = out / r["name"]
         make_out_dir(folder)
         stale = grid.stale(s)
+        counts = {k: getattr(grid, k) for k in COUNTS}
         np.savez_compressed(
-            folder / GRID_FILE,
-            origin=grid.origin,
-            resolution=grid.cell_m,
-            scans_observed=grid.scans_observed,
-            scans_disagree=grid.scans_disagree,
-            drives_observed=grid.drives_observed,
-            drives_disagree=grid.drives_disagree,
-            stale=stale,
-            places=r["labels"],
+            folder / GRID_FILE, origin=grid.origin, resolution=grid.cell_m, stale=stale, places=r["labels"], **counts
         )
         points = stale_points(grid, s)
         write_map(folder / POINTS_FILE, points.astype(np.float32))
@@ -96,10 +90,8 @@ def heat_map(
     title = f"{len(grid.drives)} drives, {int(stale.sum())} stale cells, {len(places)} stale places (circled)"
     if truth is not None:
         title += f"\nknown changes: recall {truth['recall']}, precision {truth['precision']}"
-    ax.set_title(title, fontsize=10)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_aspect("equal")
+    ax.set(title=title, xlabel="x (m)", ylabel="y (m)", aspect="equal")
+    ax.title.set_fontsize(10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

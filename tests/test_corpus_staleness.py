@@ -77,13 +77,16 @@ def test_a_planted_change_is_flagged_and_one_drive_s_traffic_is_not(staleness):
     assert json.loads((out / "staleness.json").read_text())["recall"] == summary["recall"]
 
 
-def test_one_drive_flags_nothing(town_cache, tmp_path):
-    """The same change in a single drive is not yet a recurring disagreement."""
+def test_one_drive_flags_nothing(staleness, town_cache, tmp_path):
+    """The same changes in a single drive are not yet a recurring disagreement."""
     from lidarloc.app.corpus.staleness import Settings
     from lidarloc.app.corpus.staleness_run import corpus_staleness
 
-    run = truth_run(tmp_path, {"alone": DRIVES["vlp32c"]})
-    (result,) = corpus_staleness(run, Settings(every=15), town_cache)
+    run, _, _ = staleness
+    (tmp_path / "drives").mkdir()
+    (tmp_path / "drives" / "vlp32c").symlink_to(run / "drives" / "vlp32c")  # its scans are cached
+    (tmp_path / "corpus.json").write_text(json.dumps({"drives": {"vlp32c": {"health": {}}}}))
+    (result,) = corpus_staleness(tmp_path, Settings(every=int(EVERY)), town_cache)
     assert result["grid"].drives_disagree.max() == 1 and result["places"] == []
 
 

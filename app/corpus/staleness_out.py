@@ -67,6 +67,7 @@ def heat_map(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
 
     share = np.where(grid.drives_observed > 0, grid.drives_disagree / np.maximum(grid.drives_observed, 1), np.nan)
     share[grid.drives_disagree == 0] = np.nan
@@ -80,7 +81,7 @@ def heat_map(
     ax.imshow((grid.drives_observed > 0).T, origin="lower", extent=extent, cmap="Greys", vmin=0, vmax=4, alpha=0.8)
     im = ax.imshow(share.T, origin="lower", extent=extent, cmap="inferno_r", vmin=0, vmax=1)
     for p in places:
-        ax.add_patch(plt.Circle((p["x"], p["y"]), 3 + p["cells"] ** 0.5, fill=False, color="tab:cyan", lw=1.2))
+        ax.add_patch(Circle((p["x"], p["y"]), 3 + p["cells"] ** 0.5, fill=False, color="tab:cyan", lw=1.2))
     if known is not None and len(known):
         ax.plot(known[:, 0], known[:, 1], "x", color="tab:green", ms=5, label="known changes")
         ax.legend(loc="upper right", fontsize=8)

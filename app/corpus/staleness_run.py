@@ -85,7 +85,7 @@ def _known_world(entry: dict, seq, poses: np.ndarray, times: np.ndarray, s: Sett
             xy = _to_map(seq, np.array([[it.x, it.y] for it in items]))
             radius = [TREE_RADIUS_M if it.kind == "tree" else max(1.0, 0.5 * max(it.length, it.width)) for it in items]
             entry["known"].append(dict(kind=kind, object=items[0].kind, xy=xy, radius=np.array(radius)))
-    traffic = getattr(seq, "_traffic", None)
+    traffic = getattr(seq, "traffic", None)
     if traffic is None:
         return
     for T, t in zip(poses, times, strict=True):

@@ -133,9 +133,11 @@ def staleness(
     ] = 1.0,
     range_m: Annotated[float, typer.Option("--range", help="Judge points up to this far from the sensor (m).")] = 40.0,
     every: Annotated[int, typer.Option("--every", help="Judge every N-th localized scan.")] = 2,
-    share: Annotated[
-        float,
-        typer.Option("--share", help="Share of a drive's scans, and of the drives, that must disagree on a cell."),
+    scan_share: Annotated[
+        float, typer.Option("--scan-share", help="Share of a drive's scans seeing a cell that must disagree on it.")
+    ] = 0.3,
+    drive_share: Annotated[
+        float, typer.Option("--drive-share", help="Share of the drives seeing a cell that must disagree on it.")
     ] = 0.3,
     min_drives: Annotated[int, typer.Option("--min-drives", help="Drives that must disagree on a cell.")] = 2,
     as_json: JsonOpt = False,
@@ -143,12 +145,12 @@ def staleness(
 ):
     """Where the prior map is stale: the places where the drives of a corpus run disagree with the map, drive after drive.
 
-    Each localized scan, at its estimate, is compared with the map: points the map cannot explain (something new) and map points the beams passed through (something gone). A cell of the map's top view is stale when that recurs in at least --min-drives drives and --share of the drives that saw it: traffic passes in one drive, a moved object is seen by every drive. Writes OUT/MAP/staleness.png (heat map), staleness.npz (grid), stale.ply (the stale places' points; `lidarloc view --run … --staleness OUT`) and OUT/staleness.json. On the built-in town with changes, also how many of the known changes were found (recall, precision) and whether traffic was flagged (docs/corpus.md)."""
+    Each localized scan, at its estimate, is compared with the map: points the map cannot explain (something new) and map points the beams passed through (something gone). A cell of the map's top view is stale when that recurs in at least --min-drives drives and --drive-share of the drives that saw it: traffic passes in one drive, a moved object is seen by every drive. Writes OUT/MAP/staleness.png (heat map), staleness.npz (grid), stale.ply (the stale places' points; `lidarloc view --run … --staleness OUT`) and OUT/staleness.json. On the built-in town with changes, also how many of the known changes were found (recall, precision) and whether traffic was flagged (docs/corpus.md)."""
     from ..corpus.staleness import Settings
     from ..corpus.staleness_out import write_outputs
     from ..corpus.staleness_run import corpus_staleness
 
-    settings = Settings(cell, min_distance, range_m, every, share, min_drives).check()
+    settings = Settings(cell, min_distance, range_m, every, scan_share, drive_share, min_drives).check()
 
     def progress(label: str, i: int, n: int) -> None:
         if i == n:

@@ -16,13 +16,13 @@ and compared with the prior map in two ways:
 Both are counted on a 2D grid over the map's top view. A cell is *observed* by a scan when scan
 points fall in it or map points in it were checked; it *disagrees* in a scan when new or gone
 points fall in it. Per drive, a cell disagrees when it disagreed in at least ``DRIVE_MIN_SCANS``
-scans, in at least ``drive_share`` of the scans that observed it, and from scans at least
+scans, in at least ``scan_share`` of the scans that observed it, and from scans at least
 ``DRIVE_SPAN_M`` apart along the drive: a car passing is in a cell for a moment while the drive
 sees that cell for many scans, and the car ahead, which moves and stops with the drive, is seen
 in a cell from one short stretch of the drive only, while a change is seen from all along the
 approach. A cell is
-**stale** when it disagrees in at least ``min_drives`` drives and in at least ``drive_share`` of
-the drives that observed it: a change of the world is seen by every drive that passes, traffic by
+**stale** when it disagrees in at least ``min_drives`` drives and in at least ``drive_share``
+of the drives that observed it: a change of the world is seen by every drive that passes, traffic by
 one drive at one moment. A corpus of one drive therefore flags nothing. Cells without map points
 within two cells are not judged: there the map is not stale, it ends.
 
@@ -54,7 +54,10 @@ DRIVE_MIN_SCANS = 2  # one scan's disagreement is noise
 # from all along the approach, the car ahead (which moves and stops with the drive) or a
 # pedestrian passing a stopped drive from one stretch of it
 DRIVE_SPAN_M = 10.0
-DRIVE_SHARE = 0.3  # of a drive's scans that observed a cell / of the drives that observed a cell
+SCAN_SHARE = 0.3  # of a drive's scans that observed a cell
+# of the drives that observed a cell: a change is in most drives that pass it, though a drive
+# passing at a distance or with a sparse sensor misses some (half lost recall over 6 drives)
+DRIVE_SHARE = 0.3
 MIN_DRIVES = 2
 ABOVE_GROUND_M = 0.3  # map points lower than this over the ground are ground: beams graze it
 # Higher than this over the ground nothing is judged: the map's sensor may not have seen that high
@@ -71,6 +74,7 @@ class Settings:
     min_distance: float = MIN_DISTANCE_M
     range_m: float = RANGE_M
     every: int = EVERY
+    scan_share: float = SCAN_SHARE
     drive_share: float = DRIVE_SHARE
     min_drives: int = MIN_DRIVES
 
@@ -80,7 +84,8 @@ class Settings:
             (0.2 <= self.min_distance <= 5, "--min-distance must be in 0.2..5 m"),
             (5 <= self.range_m <= 200, "--range must be in 5..200 m"),
             (self.every >= 1, "--every must be ≥ 1"),
-            (0 < self.drive_share <= 1, "--share must be in (0, 1]"),
+            (0 < self.scan_share <= 1, "--scan-share must be in (0, 1]"),
+            (0 < self.drive_share <= 1, "--drive-share must be in (0, 1]"),
             (self.min_drives >= 1, "--min-drives must be ≥ 1"),
         ):
             if not ok:
@@ -271,7 +276,7 @@ def judge_drive(
         tick(k + 1, len(scans))
     grid.scans_observed += observed.reshape(grid.shape)
     grid.scans_disagree += disagree.reshape(grid.shape)
-    flagged = (disagree >= DRIVE_MIN_SCANS) & (disagree >= s.drive_share * np.maximum(observed, 1))
+    flagged = (disagree >= DRIVE_MIN_SCANS) & (disagree >= s.scan_share * np.maximum(observed, 1))
     flagged &= last - first >= DRIVE_SPAN_M
     grid.drives_observed += (observed > 0).reshape(grid.shape).astype(np.int16)
     grid.drives_disagree += flagged.reshape(grid.shape).astype(np.int16)

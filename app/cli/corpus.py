@@ -114,6 +114,66 @@ def compare(
     )
 
 
+@corpus_app.command("staleness")
+def staleness(
+    run_dir: Annotated[
+        Path, typer.Argument(metavar="RUN_DIR", help="The --out folder of a corpus run.", show_default=False)
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Folder of the outputs (default: RUN_DIR/staleness).", show_default=False),
+    ] = None,
+    cell: Annotated[float, typer.Option("--cell", help="Side of a grid cell (m).")] = 1.0,
+    min_distance: Annotated[
+        float,
+        typer.Option(
+            "--min-distance",
+            help="A point this far from the map (m), or a map point seen through by this much, disagrees.",
+        ),
+    ] = 1.0,
+    range_m: Annotated[float, typer.Option("--range", help="Judge points up to this far from the sensor (m).")] = 40.0,
+    every: Annotated[int, typer.Option("--every", help="Judge every N-th localized scan.")] = 2,
+    scan_share: Annotated[
+        float, typer.Option("--scan-share", help="Share of a drive's scans seeing a cell that must disagree on it.")
+    ] = 0.3,
+    drive_share: Annotated[
+        float, typer.Option("--drive-share", help="Share of the drives seeing a cell that must disagree on it.")
+    ] = 0.3,
+    min_drives: Annotated[int, typer.Option("--min-drives", help="Drives that must disagree on a cell.")] = 2,
+    as_json: JsonOpt = False,
+    cache: CacheOpt = None,
+):
+    """Where the prior map is stale: the places where the drives of a corpus run disagree with the map, drive after drive.
+
+    Each localized scan, at its estimate, is compared with the map: points the map cannot explain (something new) and map points the beams passed through (something gone). A cell of the map's top view is stale when that recurs in at least --min-drives drives and --drive-share of the drives that saw it: traffic passes in one drive, a moved object is seen by every drive. Writes OUT/MAP/staleness.png (heat map), staleness.npz (grid), stale.ply (the stale places' points; `lidarloc view --run … --staleness OUT`) and OUT/staleness.json. On the built-in town with changes, also how many of the known changes were found (recall, precision) and whether traffic was flagged (docs/corpus.md)."""
+    from ..corpus.staleness import Settings
+    from ..corpus.staleness_out import write_outputs
+    from ..corpus.staleness_run import corpus_staleness
+
+    settings = Settings(cell, min_distance, range_m, every, scan_share, drive_share, min_drives).check()
+
+    def progress(label: str, i: int, n: int) -> None:
+        if i == n:
+            err.print(f"{label}: {n} scans judged", highlight=False, markup=False)
+
+    results = corpus_staleness(run_dir, settings, cache, progress)
+    target = out if out is not None else run_dir / "staleness"
+    summary = write_outputs(results, settings, target, run_dir)
+    if as_json:
+        emit_json(summary)
+        return
+    for m in summary["maps"]:
+        line = f"{m['map']}: {len(m['drives'])} drives, {m['cells_stale']} stale cells in {len(m['places'])} places"
+        known = m.get("known_changes")
+        if known is not None:
+            line += (
+                f"; known changes: recall {known['recall']}, precision {known['precision']}, "
+                f"traffic flagged: {'yes' if known['traffic_flagged'] else 'no'}"
+            )
+        err.print(line, highlight=False, markup=False)
+    err.print(f"outputs in {target}", highlight=False, markup=False)
+
+
 def _print_report(report: dict) -> None:
     for name, drive in report["drives"].items():
         health = drive["health"]

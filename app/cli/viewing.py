@@ -156,6 +156,17 @@ AtOpt = Annotated[
 ]
 
 
+StalenessOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--staleness",
+        metavar="DIR",
+        help="With --run: show the stale places of `lidarloc corpus staleness` (its --out folder) as a layer.",
+        show_default=False,
+    ),
+]
+
+
 @app.command()
 @with_settings()
 def demo(
@@ -214,6 +225,7 @@ def view(
     no_record: NoRecordViewOpt = False,
     run: RunOpt = None,
     at: AtOpt = None,
+    staleness: StalenessOpt = None,
     foxglove_port: FoxglovePortOpt = None,
     loop: LoopOpt = False,
     keep_runs: KeepRunsOpt = DEFAULT_KEEP_RUNS,
@@ -224,6 +236,8 @@ def view(
     token = token_from(token)  # a bad token fails before anything starts
     if at is not None and not run:
         raise LidarlocError("--at opens a recorded run at a scan: give the run with --run DIR")
+    if staleness is not None and not run:
+        raise LidarlocError("--staleness is a layer over recorded runs: give the run with --run DIR")
     if run:
         from ..viewer.runs import serve_runs
 
@@ -234,7 +248,15 @@ def view(
             )
 
         serve_runs(
-            run, host=host, port=port, cache_root=cache, open_browser=open_browser, console=err, token=token, at=at
+            run,
+            host=host,
+            port=port,
+            cache_root=cache,
+            open_browser=open_browser,
+            console=err,
+            token=token,
+            at=at,
+            staleness=staleness,
         )
         return
     cfg = settings.load(seed=seed)

@@ -29,7 +29,10 @@ LAYER_LABELS = (
     ("vehicles", f"Vehicles ({GT_NAME}: truth, orange: estimate)"),
     ("ellipse", "2σ ellipse"),
     ("bev_level", "BEV pyramid level"),
+    ("staleness", "Stale places (corpus staleness)"),
 )
+#: layers whose checkbox shows once the layer has content
+LATE_LAYERS = ("bev_level", "staleness")
 
 
 @dataclass
@@ -141,7 +144,7 @@ def build_panel(gui, *, speed: str, layers: Layers) -> Controls:
         c.apply = gui.add_button("Apply", disabled=True, hint="Numbers take effect from the next scan")
     with gui.add_folder("Layers", expand_by_default=False):
         for name, label in LAYER_LABELS:
-            c.layers[name] = gui.add_checkbox(label, getattr(layers, name), visible=name != "bev_level")
+            c.layers[name] = gui.add_checkbox(label, getattr(layers, name), visible=name not in LATE_LAYERS)
         c.bev_level = gui.add_slider("BEV level", 0, 8, 1, 0, visible=False)
     with gui.add_folder("Legend"):
         c.legend = gui.add_markdown(legend_markdown())

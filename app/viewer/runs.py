@@ -121,10 +121,12 @@ def open_runs(
     record_to: Path | None = None,
     token: str | None = None,
     at: int | None = None,
+    staleness: Path | None = None,
 ) -> ViewerHandle:
     """Start a viewer on one or two recorded runs and return at once (the runs are read first: a
     bad folder, a scan ``at`` the first run did not record or a moved source raises before any
-    server starts). ``token``: as :func:`.serve.serve`'s. ``at``: the scan the timeline shows first."""
+    server starts). ``token``: as :func:`.serve.serve`'s. ``at``: the scan the timeline shows first.
+    ``staleness``: the output folder of ``lidarloc corpus staleness``, shown as a layer."""
     from .app import Viewer
 
     token = resolve_token(token)
@@ -135,6 +137,10 @@ def open_runs(
         raise LidarlocError(f"view --run shows one or two runs side by side, got {len(dirs)}")
     # before the map is opened: a scan the run does not hold fails at once
     step = None if at is None else step_at_scan(RecordedRun(dirs[0]), at)
+    if staleness is not None:
+        from ..corpus.staleness_out import read_grid
+
+        read_grid(staleness)  # a wrong folder fails before the map is loaded
     run, context = load_run(dirs[0], cache_root)
     other = None
     if len(dirs) == 2:
@@ -160,6 +166,10 @@ def open_runs(
             )
         )
         show_runs(viewer, run, context, other)
+        if staleness is not None:
+            from .staleness_layer import show_staleness
+
+            show_staleness(viewer, staleness)
         if step is not None:
             viewer.travel.timeline.go(step)
     except BaseException:
@@ -182,14 +192,16 @@ def serve_runs(
     console: Console | None = None,
     token: str | None = None,
     at: int | None = None,
+    staleness: Path | None = None,
 ) -> None:
     """``lidarloc view --run DIR [--run DIR2] [--at SCAN]``: serve recorded runs until Ctrl-C
-    (``token``: as :func:`.serve.serve`'s; ``at``: the scan shown first)."""
+    (``token``: as :func:`.serve.serve`'s; ``at``: the scan shown first; ``staleness``: a
+    ``lidarloc corpus staleness`` output shown as a layer)."""
     console = console or Console(stderr=True)
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token, at=at)
+        handle = open_runs(run_dirs, host, port, cache_root, open_browser, token=token, at=at, staleness=staleness)
         announce(handle, host, console)
         run = handle.viewer.travel.timeline.run
         first = run.first_kept

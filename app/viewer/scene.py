@@ -54,6 +54,7 @@ class Layers:
     trajectories: bool = True
     vehicles: bool = True
     ellipse: bool = True
+    staleness: bool = True
 
 
 class SceneView(MapLayers):

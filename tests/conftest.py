@@ -49,13 +49,59 @@ def pytest_sessionfinish(session):
 
 #: The files that share one of the slowest session fixtures, by that fixture: they run on one
 #: worker, which builds it once (the default town's 1200-scan map, ~40 s; the real drive written
-#: as every recording kind, ~30 s; a local Ray cluster, ~20 s to start).
+#: as every recording kind, ~30 s; a local Ray cluster, ~20 s to start; the town's 40-scan run,
+#: ~25 s). Two fixtures that share a file share their worker too.
 SHARED_FIXTURES = {
     "default_town_cache": ("test_town_unchanged.py", "test_odometry_lag_bench.py"),
     "kitti_recordings": ("test_own_data.py", "test_rosbag.py", "test_scan_folder.py", "test_examples.py"),
+    "recorded_town_run_40": ("test_examples.py", "test_branch.py"),
     "ray_local": ("test_bench.py", "test_shards.py", "test_sweep.py", "test_tune.py"),
 }
-SHARED_FILES = {f"tests/{name}": group for group, names in SHARED_FIXTURES.items() for name in names}
+
+
+def _shared_files() -> dict[str, str]:
+    """Each file of SHARED_FIXTURES → its group, named after a fixture of it: the files of two
+    fixtures that share a file are one group."""
+    group: dict[str, str] = {}
+    for fixture, names in SHARED_FIXTURES.items():
+        paths = [f"tests/{name}" for name in names]
+        joined = {group[p] for p in paths if p in group}  # the groups this fixture's files are in
+        name = next((group[p] for p in paths if p in group), fixture)
+        group = {p: name if g in joined else g for p, g in group.items()} | dict.fromkeys(paths, name)
+    return group
+
+
+SHARED_FILES = _shared_files()
+SHARED_PATHS = {fixture: {f"tests/{name}" for name in names} for fixture, names in SHARED_FIXTURES.items()}
+
+#: The files of the browser tests (``*_browser.py``, and these others that hold one) run one after
+#: another on one worker: two headless Chromiums drawing in software at once would each get half
+#: the cores their timeouts allow for.
+BROWSER_GROUP = "browser"
+BROWSER_FILES = ("tests/test_viewer_token.py",)
+
+#: The longest groups of files, longest first (seconds of tests on a 2-core machine, roughly):
+#: each starts before every shorter one, so that no long group starts last and keeps one worker
+#: busy while the other has nothing left. The groups not named here follow in collection order.
+LONGEST_FIRST = {
+    BROWSER_GROUP: 380,
+    "kitti_recordings": 320,
+    "ray_local": 130,
+    "tests/test_code_quality.py": 85,
+    "tests/test_city_bench.py": 70,
+    "tests/test_integrity.py": 70,
+    "default_town_cache": 65,
+    "tests/test_localizer.py": 60,
+    "tests/test_clients.py": 60,
+}
+
+
+def scheduling_group(nodeid: str) -> str:
+    """The group a test runs in: its file's, or the shared fixture's or the browser tests'."""
+    path = nodeid.split("::", 1)[0]
+    if path.endswith("_browser.py") or path in BROWSER_FILES:
+        return BROWSER_GROUP
+    return SHARED_FILES.get(path, path)
 
 
 def pytest_xdist_make_scheduler(config, log):
@@ -65,8 +111,13 @@ def pytest_xdist_make_scheduler(config, log):
 
     class FileScheduling(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            path = nodeid.split("::", 1)[0]
-            return SHARED_FILES.get(path, path)
+            return scheduling_group(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            # the longest group still waiting goes next (the base class takes the first)
+            longest = max(self.workqueue, key=lambda group: LONGEST_FIRST.get(group, 0))
+            self.workqueue.move_to_end(longest, last=False)
+            super()._assign_work_unit(node)
 
     return FileScheduling(config, log)
 
@@ -76,8 +127,10 @@ def pytest_collection_modifyitems(config, items):
     # it again on the other worker: say so at collection, where it is cheap to fix.
     for item in items:
         path = item.nodeid.split("::", 1)[0]
+        if item.get_closest_marker("browser") and scheduling_group(item.nodeid) != BROWSER_GROUP:
+            raise pytest.UsageError(f"{path} holds a browser test: add the file to BROWSER_FILES in tests/conftest.py")
         for fixture in SHARED_FIXTURES:
-            if fixture in getattr(item, "fixturenames", ()) and SHARED_FILES.get(path) != fixture:
+            if fixture in getattr(item, "fixturenames", ()) and path not in SHARED_PATHS[fixture]:
                 raise pytest.UsageError(f"{path} uses {fixture}: add the file to SHARED_FIXTURES in tests/conftest.py")
 
 

@@ -103,6 +103,47 @@ def run_cli(*args, cache, timeout: float = 300.0):
     )
 
 
+def cli_here(*args, cache):
+    """``lidarloc ARGS`` run by its entry point in this process, for the quick commands and the
+    refusals whose output is what a test checks: what ``run_cli`` returns (status, stdout, stderr)
+    without a child's second or two of imports. The environment holds none of the caller's
+    LIDARLOC_ variables but its LIDARLOC_CACHE, and the signal handlers the command installs are
+    put back after it. At least one test a command keeps on ``run_cli``: the command as started."""
+    import contextlib
+    import io
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from lidarloc.app.cli import main
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    env = {k: v for k, v in os.environ.items() if k.startswith("LIDARLOC_")}
+    argv = sys.argv
+    out, err = io.StringIO(), io.StringIO()
+    code: int | str | None = 0
+    for k in env:
+        del os.environ[k]
+    os.environ["LIDARLOC_CACHE"] = str(cache)
+    sys.argv = ["lidarloc", *map(str, args)]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            main()
+    except SystemExit as exc:
+        code = exc.code
+    finally:
+        sys.argv = argv
+        del os.environ["LIDARLOC_CACHE"]
+        os.environ.update(env)
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    if isinstance(code, str):  # sys.exit("…"): Python prints it and exits with 1
+        err.write(code + "\n")
+    status = code if isinstance(code, int) else (0 if code is None else 1)
+    return subprocess.CompletedProcess(["lidarloc", *map(str, args)], status, out.getvalue(), err.getvalue())
+
+
 # ---------------------------------------------------------------------------------- waiting
 def wait_for(cond, timeout=60.0, what="condition"):
     """Poll until cond() holds. The timeout only bounds a failure: generous, because the CI

@@ -22,14 +22,25 @@ def small_cfg():
     return cfg
 
 
-@pytest.mark.slow
-def test_smoke_bench_two_runs_two_workers(tmp_path, town_map_entry):
+@pytest.fixture(scope="module")
+def pool_bench(tmp_path_factory, town_map_entry):
+    """The smoke bench on the process pool, run once: (its folder, its cache, its aggregate). The
+    smoke test checks it, the Ray test compares Ray's with it."""
     from helpers import cache_with
     from lidarloc.app.bench.localize import run_bench
 
-    out = tmp_path / "bench"
-    cache = cache_with(town_map_entry, tmp_path / "cache")  # the town's map, and nothing of a run
+    root = tmp_path_factory.mktemp("pool")
+    out = root / "bench"
+    cache = cache_with(town_map_entry, root / "cache")  # the town's map, and nothing of a run
     agg = run_bench(SourceSpec(scans=SCANS), small_cfg(), runs=RUNS, workers=2, out_dir=out, cache_root=cache)
+    return out, cache, agg
+
+
+@pytest.mark.slow
+def test_smoke_bench_two_runs_two_workers(pool_bench):
+    from lidarloc.app.bench.localize import run_bench
+
+    out, cache, agg = pool_bench
     for name in ("summary.json", "runs.csv", "metrics_boxplot.png", "latency_hist.png", "report.md"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     summary = json.loads((out / "summary.json").read_text())
@@ -79,14 +90,16 @@ def test_smoke_bench_two_runs_two_workers(tmp_path, town_map_entry):
 
 
 @pytest.mark.slow
-def test_ray_matches_process_pool(tmp_path, ray_local, town_cache):
+def test_ray_matches_process_pool(tmp_path, ray_local, pool_bench, town_cache):
     from lidarloc.app.bench.localize import run_bench
 
-    spec = SourceSpec(scans=12)
-    a = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "pool", cache_root=town_cache)
-    b = run_bench(spec, small_cfg(), runs=2, workers=2, out_dir=tmp_path / "ray", executor="ray", cache_root=town_cache)
+    pool, _, a = pool_bench  # the same bench on the process pool
+    spec = SourceSpec(scans=SCANS)
+    b = run_bench(
+        spec, small_cfg(), runs=RUNS, workers=2, out_dir=tmp_path / "ray", executor="ray", cache_root=town_cache
+    )
     for key in "ABCDE":
         assert a[key] == b[key]
-    ta = np.loadtxt(tmp_path / "pool" / "runs" / "seed_001" / "trajectory_kitti.txt")
+    ta = np.loadtxt(pool / "runs" / "seed_001" / "trajectory_kitti.txt")
     tb = np.loadtxt(tmp_path / "ray" / "runs" / "seed_001" / "trajectory_kitti.txt")
     assert np.array_equal(ta, tb)

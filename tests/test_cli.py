@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import make_odometry, run_cli
+from helpers import cli_here, make_odometry, run_cli
 
 # Ctrl-C must stop a command within 2 s (the user's requirement; ``lidarloc bench stop`` measures
 # it, ~0.35 s in the first scans of ``run``). These tests only catch a hang or a lost signal: a
@@ -23,7 +23,10 @@ STOP_BOUND_S = 10.0
 
 
 def cli(*args, env_cache):
-    return run_cli(*args, cache=env_cache)
+    """A refusal, checked by the command's entry point in this process: the output is the
+    command's, without a child's start-up. One refusal below and the commands that succeed or are
+    stopped run as users start them (run_cli)."""
+    return cli_here(*args, cache=env_cache)
 
 
 def assert_one_line_error(result, *needles):
@@ -72,7 +75,7 @@ def test_pose_count_mismatch(tmp_path, n_poses, word):
 
 
 def test_missing_directory_and_unknown_sequence(tmp_path):
-    r = cli("map", "build", "--kitti-odometry", str(tmp_path / "nope"), "--sequence", "00", env_cache=tmp_path / "c")
+    r = run_cli("map", "build", "--kitti-odometry", str(tmp_path / "nope"), "--sequence", "00", cache=tmp_path / "c")
     assert_one_line_error(r, str(tmp_path / "nope"), "not found")
     root = make_odometry(tmp_path / "kitti")
     r = cli("map", "build", "--kitti-odometry", str(root), "--sequence", "42", env_cache=tmp_path / "c")
@@ -104,12 +107,12 @@ def test_unreadable_config_via_cli(tmp_path):
 def test_map_build_json_and_cache(tmp_path):
     root = make_odometry(tmp_path / "kitti", n_scans=3, n_points=3000)
     args = ("map", "build", "--kitti-odometry", str(root), "--sequence", "00", "--json")
-    first = cli(*args, env_cache=tmp_path / "c")
+    first = run_cli(*args, cache=tmp_path / "c")
     assert first.returncode == 0, first.stderr
     a = json.loads(first.stdout)
     assert a["points"] > 0 and 0 < a["points_road_removed"] <= a["points"] and a["cached"] is False
     assert a["peak_rss_mb"] > 0 and a["seconds"] >= 0
-    b = json.loads(cli(*args, env_cache=tmp_path / "c").stdout)
+    b = json.loads(run_cli(*args, cache=tmp_path / "c").stdout)
     assert b["cached"] is True and b["points"] == a["points"]
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import run_cli
+from helpers import cli_here, run_cli
 from lidarloc.app.export_bag import (
     DIAGNOSTICS,
     MAP,
@@ -171,9 +171,13 @@ def cli(*args, env_cache):
 def test_bad_names_and_missing_runs_are_one_line(recorded_town_run, tmp_path, cache_root):
     run, _ = recorded_town_run
     assert_one_line_error(
-        cli("export", str(tmp_path / "nothing"), "--bag", str(tmp_path / "x.mcap"), env_cache=cache_root),
+        run_cli("export", str(tmp_path / "nothing"), "--bag", str(tmp_path / "x.mcap"), cache=cache_root),
         "no such run folder",
     )
+
+    def cli(*args, env_cache):  # the other refusals by the entry point in this process
+        return cli_here(*args, cache=env_cache)
+
     assert_one_line_error(cli("export", str(run), "--bag", str(tmp_path / "x.db3"), env_cache=cache_root), ".mcap")
     (tmp_path / "there.mcap").write_bytes(b"")
     assert_one_line_error(

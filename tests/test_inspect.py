@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import run_cli
+from helpers import cli_here, run_cli
 from lidarloc.app.inspect import FILES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -85,14 +85,16 @@ def test_inspect_writes_every_file_on_the_real_drive(tmp_path, cache_root, kitti
     assert saved["localized"] and saved["surface_argmax_error_m"] <= 1.0
 
 
+# the refusals by the entry point in this process: their output, without a child's start-up (the
+# command runs as users start it above)
 def test_inspect_refuses_a_scan_beyond_the_sequence(tmp_path, cache_root):
-    r = lidarloc("inspect", *TOWN, "--scan", 20, "--out", tmp_path / "o", cache=cache_root)
+    r = cli_here("inspect", *TOWN, "--scan", 20, "--out", tmp_path / "o", cache=cache_root)
     assert_one_line_error(r, "--scan 20 is beyond")
     assert not (tmp_path / "o").exists()
 
 
 def test_inspect_refuses_a_missing_path(tmp_path, cache_root):
-    r = lidarloc(
+    r = cli_here(
         "inspect", "--kitti-raw", tmp_path / "nowhere", *REAL, "--scan", 3, "--out", tmp_path / "o", cache=cache_root
     )
     assert_one_line_error(r, "nowhere")

@@ -36,14 +36,20 @@ def test_coarse_levels_are_the_pyramids(town, tmp_path, tile_m):
     assert np.array_equal(whole.levels[0], world.pyramid.levels[0])
 
 
+@pytest.fixture(scope="module")
+def whole_map_answers(town):
+    """The whole-map branch and bound's answer for each scan, searched once for every tile size."""
+    world, scans = town
+    return [match_global(world.pyramid, scan, STEP) for scan in scans]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("tile_m", [16.0, 64.0])
-def test_tiled_search_finds_the_whole_map_optimum(town, tmp_path, tile_m):
+def test_tiled_search_finds_the_whole_map_optimum(town, whole_map_answers, tmp_path, tile_m):
     world, scans = town
     bev = TiledBEV.load_or_build(world.prior_map.points_bev, tmp_path, "town-3", 1.0, tile_m)
     assert bev.ntx * bev.nty > 1
-    for scan in scans:
-        whole = match_global(world.pyramid, scan, STEP)
+    for scan, whole in zip(scans, whole_map_answers):
         for workers in (1, 3):  # one tile at a time, or three at once on threads: the same answer
             tiled = match_global_tiled(bev, scan, STEP, workers=workers)
             assert tiled.score == whole.score

@@ -3,8 +3,9 @@ folders written here as ``corpus run`` writes them (corpus.json with each drive'
 :func:`~lidarloc.app.corpus.health.drive_health`, scans.csv, events.json, drive.json), identical
 runs give nothing; a planted poor fit is ranked first with its stretch, figure and viewer
 command; a change within the seed-to-seed spread is not reported (and the same change without
-seeds is); the first diverging scan; the HTML stands alone and opens from disk in a browser;
-the JSON's keys; one-line errors; and a recorded run opened at a scan shows that scan."""
+seeds is); the first diverging scan; the HTML stands alone (a browser opens it in
+test_corpus_report_browser.py); the JSON's keys; one-line errors; and a recorded run opened at a
+scan shows that scan."""
 
 from __future__ import annotations
 
@@ -311,27 +312,3 @@ def test_example_seeds_are_one_log_under_several_seeds(tmp_path):
     keys = [g.seed_group for g in groups]
     assert keys[0] == keys[1] == keys[2] != keys[3] == keys[4] == keys[5]
     assert [g.seed for g in groups] == [0, 1, 2] * 2
-
-
-@pytest.mark.browser
-def test_the_html_report_opens_from_disk_in_a_browser(base, tmp_path, browser):
-    """The report opened from file:// in headless Chromium, no server: its plots decode, nothing
-    is fetched from anywhere but the page itself, and the regressions come first."""
-    from lidarloc.app.corpus.compare_report import write_reports
-    from lidarloc.app.corpus.figures import read_output
-
-    new = planted(tmp_path)
-    b, n = read_output(base, "BASE"), read_output(new, "NEW")
-    result = compare(base, new)
-    _, page_file = write_reports(result, b, n, tmp_path / "report")
-    page = browser.new_page()
-    requests: list[str] = []
-    page.on("request", lambda r: requests.append(r.url))
-    page.goto(page_file.resolve().as_uri())
-    page.wait_for_load_state("load")
-    images = page.evaluate("Array.from(document.images).map(i => [i.complete, i.naturalWidth, i.naturalHeight])")
-    assert len(images) >= 1 and all(done and w > 100 and h > 50 for done, w, h in images), images
-    assert all(u.startswith(("file:", "data:")) for u in requests), requests
-    text = page.inner_text("body")
-    assert text.index("Regressions") < text.index("Improvements") < text.index("Unchanged drives")
-    assert result["regressions"][0]["drive"] in text and result["regressions"][0]["view"] in text

@@ -4,14 +4,9 @@ built once and then read from its cache."""
 import numpy as np
 from lidarloc.core.config import MapConfig
 from lidarloc.core.geometry import pose_matrix
-from lidarloc.core.maps import mapping
-from lidarloc.core.maps.mapping import (
-    VoxelAccumulator,
-    flat_surface_mask,
-    load_or_build_map,
-    range_filter,
-    voxel_centroids,
-)
+from lidarloc.core.maps import voxel_grid
+from lidarloc.core.maps.mapping import flat_surface_mask, load_or_build_map, range_filter
+from lidarloc.core.maps.voxel_grid import VoxelAccumulator, voxel_centroids
 from lidarloc.core.sequences.base import Limited
 
 
@@ -42,7 +37,7 @@ def test_voxel_centroids_streamed_in_chunks_equal_one_pass(monkeypatch):
     whole = VoxelAccumulator(2.0)
     whole.add(pts)
     expected = whole.points()
-    monkeypatch.setattr(mapping, "CENTROID_CHUNK", 333)  # 16 chunks, voxels split across them
+    monkeypatch.setattr(voxel_grid, "CENTROID_CHUNK", 333)  # 16 chunks, voxels split across them
     read_only = pts.copy()
     read_only.flags.writeable = False
     got = voxel_centroids(read_only, 2.0)

@@ -15,6 +15,7 @@ from lidarloc.core.errors import DataError
 from lidarloc.core.maps import mapping
 from lidarloc.core.maps.mapping import load_or_build_map, range_filter
 from lidarloc.core.maps.point_tiles import PointTiles
+from lidarloc.core.maps.voxel_grid import voxel_centroids
 from lidarloc.core.matching.gicp import GICPRefiner, LocalGICPRefiner
 from lidarloc.core.matching.ground import GroundGrid, TiledGround
 
@@ -160,7 +161,7 @@ def test_thinned_tiles_hold_the_whole_maps_voxel_centroids_and_are_cached(cloud,
     tiles = PointTiles.load_or_build(cloud, tmp_path / "tiles", "cloud", tile_m=50.0)
     thin = tiles.thinned(0.5)
     assert thin.voxel == 0.5 and tiles.thinned(0.5) is thin
-    whole = mapping.voxel_centroids(cloud, 0.5)
+    whole = voxel_centroids(cloud, 0.5)
     assert whole is not None and thin.index["points"] == len(whole) < len(cloud)
     rect = (-20.0, 30.0, 75.0, 120.0)
     assert np.allclose(rows(thin.points_in(*rect)), rows(brute(whole, *rect)), atol=1e-5)

@@ -125,7 +125,8 @@ def _child(path: str, cache: str, queue) -> None:
 def _measure(path: str, cache: str) -> dict:
     from ...core.maps.lookup import LookupTable, load_or_build_lookup
     from ...core.maps.map_source import MapFileSource
-    from ...core.maps.mapping import VoxelAccumulator, load_or_build_map, remove_road
+    from ...core.maps.mapping import load_or_build_map, remove_road
+    from ...core.maps.voxel_grid import VoxelAccumulator
 
     cfg = Config()
     # compile the numba kernels first (cached on disk after a first run): the figures are the work's

@@ -14,7 +14,8 @@ import numpy as np
 from ...core.cache import atomic_write_dir, cache_rebuilt, log
 from ...core.config import Config
 from ...core.maps.bev import load_or_build_pyramid
-from ...core.maps.mapping import load_or_build_map, range_filter, voxel_centroids
+from ...core.maps.mapping import load_or_build_map, range_filter
+from ...core.maps.voxel_grid import voxel_centroids
 from ...core.sequences.factory import SourceSpec
 from .common import median, open_source, pose_error
 

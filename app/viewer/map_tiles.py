@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from ...core.maps.mapping import voxel_centroids
 from ...core.maps.point_tiles import private_mapping
+from ...core.maps.voxel_grid import voxel_centroids
 from .ground import GroundHeight
 from .style import (
     COARSE_MAX_POINTS,

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from ...core.maps.mapping import voxel_centroids
+from ...core.maps.voxel_grid import voxel_centroids
 from .ground import GroundHeight
 from .map_tiles import NearTiles, TiledMap, TileSettings, thin
 from .minimap import Footprint

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import viser
 
-from ...core.maps.mapping import VoxelAccumulator
+from ...core.maps.voxel_grid import VoxelAccumulator
 from ...core.snapshot import Snapshot
 from .style import DISPLAY_MAX_POINTS, DISPLAY_VOXEL, TRAJ_CHUNK, VEHICLE_LENGTH, VEHICLE_WIDTH
 

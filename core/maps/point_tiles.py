@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .mapping import voxel_centroids
 from .tile_cache import INDEX, open_or_rebuild, read_index, remember, tile_name, write_index, write_tile
+from .voxel_grid import voxel_centroids
 
 POINT_TILE_M = 100.0  # ~0.26 M points (3 MB) of a survey city; a match's 142 m disc reads 9–16 of them
 _CHUNK = 1 << 24  # points read at a time while building (192 MB of float32 coordinates)

@@ -299,7 +299,7 @@ def _block(town, voxel, road_normal_z, x0, y0, x1, y1) -> tuple[np.ndarray, np.n
 
 class _Voxels:
     """Voxel centroids of samples and the share of them on flat surfaces: an open-addressing
-    table in numba (as :class:`~lidarloc.core.maps.mapping.VoxelAccumulator`, plus a flat count),
+    table in numba (as :class:`~lidarloc.core.maps.voxel_grid.VoxelAccumulator`, plus a flat count),
     grown with the voxels, a million samples at a time."""
 
     def __init__(self, voxel: float, capacity: int = 1 << 22):

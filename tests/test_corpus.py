@@ -273,7 +273,7 @@ def test_bench_corpus_removes_one_building_from_the_drives_map(town_cache, tmp_p
 
     row = {"town_seed": 0, "set": ["town.n_scans=150"]}
     out = tmp_path / "removed.ply"
-    info = building_removed_map(row, 40, Config(), town_cache, out)
+    info = building_removed_map(row, 40, town_cache, out)
     seq = open_sequence(SourceSpec(town_seed=0, scans=40), load_config(None, row["set"], world="lived-in"))
     whole = load_or_build_map(seq.map_source, Config().map, town_cache, road_removal=False).value.points
     left = MapFileSource(out).read().points

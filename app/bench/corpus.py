@@ -69,7 +69,7 @@ def corpus_of(drive_rows: list[dict], scans: int, where: Path, overrides=()):
     return parse_corpus(data, where / "corpus.yaml", overrides)
 
 
-def building_removed_map(row: dict, scans: int, cfg: Config, cache_root: Path | None, out: Path) -> dict:
+def building_removed_map(row: dict, scans: int, cache_root: Path | None, out: Path) -> dict:
     """Write the map of the drive ``row`` with the largest building near its middle scan removed
     (every map point inside the building's footprint, 0.5 m wider), as ``out`` (.ply); returns
     what was removed."""
@@ -158,7 +158,7 @@ def corpus_bench(
 
     planted = base_rows[PLANTED_DRIVE * seeds]["name"].rsplit("-r", 1)[0]
     map_file = out / f"{planted}-building-removed.ply"
-    removed_info = building_removed_map(base_rows[PLANTED_DRIVE * seeds], scans, Config(), cache_root, map_file)
+    removed_info = building_removed_map(base_rows[PLANTED_DRIVE * seeds], scans, cache_root, map_file)
     shutil.copytree(out / "base", out / "removed", ignore=shutil.ignore_patterns("ray"))
     removed_rows = []
     for row in base_rows:

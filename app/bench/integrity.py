@@ -45,8 +45,8 @@ from ..console import progress_bar
 from .common import real_drive, require_town
 from .integrity_figures import case_figures, figures_from_run_dir
 from .localize import (
-    _bench_sequence,
     _numba_threads,
+    bench_sequence,
     numba_threads_for,
     prepare_cache,
     run_tasks,
@@ -95,7 +95,7 @@ def run_case(
 
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
-    seq = _bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
+    seq = bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
     c = Case(case)
     n = len(seq)
     at = c.disturbance(n)
@@ -129,7 +129,7 @@ def lookalike_init(spec: SourceSpec, cfg: Config, cache_root: Path | None) -> tu
     from ...core.matching import m3rsm
     from ...core.matching.s2m import ScanToMapMatcher
 
-    seq = _bench_sequence(spec, cfg, cache_root)
+    seq = bench_sequence(spec, cfg, cache_root)
     world = open_world(seq.map_source, cfg, cache_root, lookup=False)
     prior, pyramid = world.prior_map, world.pyramid
     matcher = ScanToMapMatcher(prior, pyramid, cfg.s2m, cfg.map)

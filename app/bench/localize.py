@@ -65,7 +65,7 @@ def code_fingerprint(parts: tuple[str, ...] = ("core", "app"), exclude: tuple[st
     return digest.hexdigest()
 
 
-def _bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
+def bench_sequence(spec: SourceSpec, cfg: Config, cache_root: Path | None):
     """The source; a generated town's scans are simulated once and then loaded from the cache
     (the same arrays, ~1 ms to load instead of ~20 ms to simulate; ~2 MB per scan on disk)."""
     from ...core.maps.mapping import map_cache_dir
@@ -97,7 +97,7 @@ def run_one(
     cfg = update_from_dict(Config(), cfg_d)
     cfg.seed = seed
     cfg.localize.clock = "replay"
-    seq = _bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
+    seq = bench_sequence(SourceSpec.from_dict(spec_d), cfg, Path(cache_root) if cache_root else None)
     out = Path(run_dir)
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
         t0 = time.perf_counter()
@@ -132,7 +132,7 @@ def prepare_one(spec_d: dict, cfg_d: dict, cache_root: str | None, numba_threads
 
     cfg = update_from_dict(Config(), cfg_d)
     root = Path(cache_root) if cache_root else None
-    Localizer(_bench_sequence(SourceSpec.from_dict(spec_d), cfg, root), cfg, root).close()
+    Localizer(bench_sequence(SourceSpec.from_dict(spec_d), cfg, root), cfg, root).close()
 
 
 def _numba_threads(n: int) -> None:
@@ -147,7 +147,7 @@ def prepare_cache(spec: SourceSpec, cfg: Config, cache_root: Path | None, label:
     load them."""
     from ...core.localizer import Localizer
 
-    seq = _bench_sequence(spec, cfg, cache_root)
+    seq = bench_sequence(spec, cfg, cache_root)
     prefix = f"{label}: " if label else ""
     with progress_bar() as bar:
         task = bar.add_task(f"{prefix}preparing map", total=100)

@@ -8,7 +8,8 @@ and at least ``min_drives`` drives observed a cell of its footprint (one behind 
 no drive's sight; one seen by a single drive cannot recur), and *found* when a stale cell lies
 within its footprint (half its length, at least 1 m; a tree's crown: 4.5 m) plus one cell. ``recall`` = found / in range; ``precision`` = stale places within one
 cell of any changed object's footprint / all stale places. A stale place that is no change but lies
-within 3 m of where traffic was during an analysed scan counts as ``traffic_flagged``.
+within :data:`TRAFFIC_NEAR_M` of where traffic was during an analysed scan counts as
+``traffic_flagged``.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bench.localize import _bench_sequence
+from ..bench.localize import bench_sequence
 from .staleness import MapGrid, MapPoints, Settings, corpus_drives, judge_drive, localized_scans, stale_places
 
 TREE_RADIUS_M = 4.5  # a grown crown reaches ~5 m
@@ -36,7 +37,7 @@ def corpus_staleness(
     drives = corpus_drives(folder)
     maps: dict[str, dict] = {}
     for drive in drives:
-        seq = _bench_sequence(drive.spec, drive.cfg, cache_root)
+        seq = bench_sequence(drive.spec, drive.cfg, cache_root)
         world = open_world(seq.map_source, drive.cfg, cache_root, pyramid=False, road_removal=False)
         entry = maps.get(world.map_dir.name)
         if entry is None:

@@ -65,6 +65,10 @@ def test_smoke_bench_two_runs_two_workers(pool_bench):
     cons = [r["consistency_2sigma"] for r in runs if r["consistency_2sigma"] is not None]
     assert summary["consistency_2sigma"] == (float(np.median(cons)) if cons else None)
     assert summary["false_fire_rate"] == sum(r["false_fire"] for r in runs) / RUNS
+    # the first fix's wait: a run that never localized counts as the longest
+    waits = sorted(np.inf if r["localized_at_s"] is None else r["localized_at_s"] for r in runs)
+    mid = float(np.median(waits))
+    assert summary["localized_at_s_median"] == (mid if np.isfinite(mid) else None)
     assert [r["false_fire"] for r in rows] == [str(int(r["false_fire"])) for r in runs]
     assert "2σ ellipse" in (out / "report.md").read_text()
     # the world of the town's drive is in the summary and the report

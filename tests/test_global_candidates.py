@@ -16,7 +16,8 @@ from lidarloc.core.geometry import inv_pose, pose_matrix, pose_to_xyz_ypr, trans
 from lidarloc.core.maps.bev import BEVPyramid
 from lidarloc.core.maps.mapping import PriorMap
 from lidarloc.core.maps.places import PlaceIndex, PlaceSettings, index_of_pyramid, places_for_pyramid, uses_places
-from lidarloc.core.matching.candidates import look_up
+from lidarloc.core.matching.candidates import Place, look_up, rerank
+from lidarloc.core.matching.m3rsm import scan_cells, score_pose
 from lidarloc.core.matching.s2m import ScanToMapMatcher
 
 SENSOR_HEIGHT = 1.7
@@ -143,6 +144,30 @@ def test_the_candidates_find_the_true_place_from_any_yaw(twins, single_matcher):
         ox, oy, _, oyaw, _, _ = pose_to_xyz_ypr(out.pose)
         assert math.hypot(ox - x, oy - y) < 0.5
         assert abs((oyaw - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(1.0)
+
+
+def test_the_rerank_moves_a_place_metres_off_and_named_the_wrong_way_to_the_truth(twins, single_matcher):
+    """A place standing for the truth 2.5 m off and named the wrong way round (a straight street
+    looks much the same both ways) is moved to the truth by the BEV re-ranking and ranked first
+    among places elsewhere; with only its own yaw and cell scored it would not be."""
+    _, single = twins
+    m = single_matcher
+    truth = pose_matrix(70.3, 64.6, SENSOR_HEIGHT, 0.9, 0.0, 0.0)
+    prep = m.prepare(_scan(single, truth, radius=65.0))
+    x, y, _, yaw, _, _ = pose_to_xyz_ypr(truth)
+    rng = np.random.default_rng(5)
+    elsewhere = [Place(float(px), float(py), float(a), 1.0) for px, py, a in
+                 zip(rng.uniform(20, 120, 40), rng.uniform(20, 120, 40), rng.uniform(-math.pi, math.pi, 40))]  # fmt: skip
+    off = Place(x + 2.5, y - 1.5, yaw + math.pi, 1.0)
+    grid = m._finest()
+    ranked = rerank([*elsewhere, off], grid, prep.road_removed[:, :2], 8, m.cfg.angle_step)
+    first = ranked[0]
+    assert math.hypot(first.x - x, first.y - y) < 1.5
+    assert abs((first.yaw - yaw + math.pi) % (2 * math.pi) - math.pi) < math.radians(5.0)
+    # the place's own pose scores below the truth's: the move is what found it
+    B = scan_cells(prep.road_removed[:, :2], grid[2])
+    own = score_pose(m.pyramid, prep.road_removed[:, :2], off.x, off.y, off.yaw)
+    assert own < score_pose(m.pyramid, prep.road_removed[:, :2], first.x, first.y, first.yaw) and len(B) > 50
 
 
 def test_the_exact_search_stays_as_setting_and_fallback(twins, single_matcher):

@@ -49,6 +49,11 @@ def test_run_writes_parseable_files(recorded_town_run):
     ):
         assert key in s
     assert s["n_particles_median"] == 300
+    # the first fix in the drive's own seconds: the town's scans are 0.1 s apart
+    if s["localized_at_scan"] is None:
+        assert s["localized_at_s"] is None
+    else:
+        assert s["localized_at_s"] == pytest.approx(0.1 * s["localized_at_scan"])
     assert s["world"]["sensor"] == "hdl64e"  # the generated town says what world it drove in
     # what each block's process cost: the PF here, KISS-ICP and S2M in their children
     cpu = s["cpu_ms_per_scan"]

@@ -4,6 +4,7 @@ directory's runs, with the metrics' box plot and the latency histogram."""
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,12 @@ def write_report(
         values = [s.get(key) for s in summaries]
         agg[key] = None if not values or any(v is None for v in values) else int(sum(values))
     agg["localized_at_scan_median"] = median(s["localized_at_scan"] for s in summaries)
+    # a run that never localized waits for ever: it counts, as the longest wait (None when it is the median)
+    waits = [
+        math.inf if s["localized_at_s"] is None else s["localized_at_s"] for s in summaries if "localized_at_s" in s
+    ]
+    mid = float(np.median(waits)) if waits else math.inf
+    agg["localized_at_s_median"] = mid if math.isfinite(mid) else None
     pf_ms = np.concatenate([np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "pf_ms.npy") for s in summaries])
     s2m_parts = [np.load(out_dir / "runs" / f"seed_{s['seed']:03d}" / "s2m_ms.npy") for s in summaries]
     s2m_ms = np.concatenate(s2m_parts) if s2m_parts else np.array([])

@@ -221,6 +221,11 @@ def summarize_run(
         "particles": loc.cfg.pf.n_particles,
         "n_particles_median": float(np.median(n_particles)) if n_particles.size else None,
         "localized_at_scan": first_loc,
+        # the drive's own seconds from the first scan to that one: on the real-time clock the time
+        # a user waits for the first fix (on the replay clock, scans are never dropped meanwhile)
+        "localized_at_s": None
+        if first_loc is None
+        else float(loc.seq.timestamp(first_loc) - loc.seq.timestamp(recs[0].scan)),
         "within_5m_for_50_at_scan": None if metrics["D"] is None else metrics["D"] - 1,
         "rmse_after_localized_m": float(np.sqrt(np.mean(after**2))) if after.size else None,
         # evo's APE / RPE of the written TUM files (write_run fills them in; None without truth)

@@ -246,7 +246,7 @@ def default_town():
     """The default town and its drive (``--town-seed 0``, the default configuration), made once:
     a few seconds of generation that every test file of the town's own shares."""
     from lidarloc.core.config import TownConfig
-    from lidarloc.core.sequences.town import TownSequence
+    from lidarloc.core.sim.town import TownSequence
 
     return TownSequence.from_config(TownConfig(), seed=0)
 

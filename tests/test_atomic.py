@@ -158,7 +158,7 @@ def test_a_damaged_map_cache_is_rebuilt_and_the_user_told(tmp_path, caplog, dama
     found, built again from the drive, reported, and the same map as before."""
     from lidarloc.core.config import load_config
     from lidarloc.core.maps.world import open_world
-    from lidarloc.core.sequences.town import TownSequence
+    from lidarloc.core.sim.town import TownSequence
 
     seq = TownSequence(seed=3, extent_m=150.0, n_scans=8)  # a few scans: the map is built three times
     cfg = load_config()

@@ -1,4 +1,4 @@
-"""The generated city (core/sequences/town/ from town.extent_m = 1000 m): districts of their own
+"""The generated city (core/sim/town/ from town.extent_m = 1000 m): districts of their own
 style, streets of several classes, drives across districts that stay on the road, scans that
 lie on the survey map, every world option, one world per (seed, extent) cached, and one-line
 errors for impossible extents."""
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from lidarloc.core.config import TownConfig, load_config
 from lidarloc.core.errors import DataError, LidarlocError
-from lidarloc.core.sequences.town import SENSOR_HEIGHT, TownSequence
-from lidarloc.core.sequences.town.city_layout import ARTERIAL, CLASS_SPEED_KMH, RING
-from lidarloc.core.sequences.town.districts import DOWNTOWN, INDUSTRIAL, PARK, STYLE_NAMES, SUBURB
-from lidarloc.core.sequences.town.survey import survey_points
+from lidarloc.core.sim.town import SENSOR_HEIGHT, TownSequence
+from lidarloc.core.sim.town.city_layout import ARTERIAL, CLASS_SPEED_KMH, RING
+from lidarloc.core.sim.town.districts import DOWNTOWN, INDUSTRIAL, PARK, STYLE_NAMES, SUBURB
+from lidarloc.core.sim.town.survey import survey_points
 from scipy.spatial import cKDTree
 
 EXTENT = 1200.0  # the smallest city worth testing: all five district styles already

@@ -12,10 +12,10 @@ from lidarloc.core.errors import LidarlocError
 from lidarloc.core.geometry import inv_pose
 from lidarloc.core.o3d import open3d
 from lidarloc.core.odometry.deskew import deskew, sweep_offsets, twist_from_relative_pose
-from lidarloc.core.sequences.lidar_models import LidarModel
-from lidarloc.core.sequences.lidar_sim import Sweep, raycasting_scene
-from lidarloc.core.sequences.town import TownSequence
-from lidarloc.core.sequences.town.drive import interpolate_poses
+from lidarloc.core.sim.lidar_models import LidarModel
+from lidarloc.core.sim.lidar_sim import Sweep, raycasting_scene
+from lidarloc.core.sim.town import TownSequence
+from lidarloc.core.sim.town.drive import interpolate_poses
 from scipy.spatial.transform import Rotation
 
 

@@ -27,7 +27,7 @@ START = 1_700_000_000.0
 def drive(tmp_path_factory):
     """The town's first TURNS scans from a VLP-16, written as a pcap; its truth as a TUM file."""
     from lidarloc.core.config import TownConfig
-    from lidarloc.core.sequences.town import TownSequence
+    from lidarloc.core.sim.town import TownSequence
 
     town = TownSequence.from_config(TownConfig(sensor="vlp16", n_scans=TURNS), seed=0)
     scans = [town.scan(i) for i in range(TURNS)]

@@ -7,7 +7,7 @@ from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import Limited
 from lidarloc.core.sequences.export import export_kitti_odometry
 from lidarloc.core.sequences.kitti_odometry import KittiOdometry
-from lidarloc.core.sequences.town import TownSequence
+from lidarloc.core.sim.town import TownSequence
 
 
 @pytest.fixture(scope="module")

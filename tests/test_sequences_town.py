@@ -1,4 +1,4 @@
-"""The built-in town (core/sequences/town/): deterministic simulated HDL-64E scans, a realistic
+"""The built-in town (core/sim/town/): deterministic simulated HDL-64E scans, a realistic
 drive with a loop, poses consistent with the scans, and the town laid along real KITTI
 trajectories."""
 
@@ -12,9 +12,9 @@ from lidarloc.core.config import TownConfig
 from lidarloc.core.errors import DataError
 from lidarloc.core.geometry import inv_pose, pose_to_xyz_ypr
 from lidarloc.core.sequences.kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
-from lidarloc.core.sequences.lidar_models import HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG, LidarModel
-from lidarloc.core.sequences.town import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION, TownSequence
-from lidarloc.core.sequences.town.drive import body_sway
+from lidarloc.core.sim.lidar_models import HDL64E_MAX_ELEVATION_DEG, HDL64E_MIN_ELEVATION_DEG, LidarModel
+from lidarloc.core.sim.town import SENSOR_HEIGHT, SWAY_STD, TOWN_VERSION, TownSequence
+from lidarloc.core.sim.town.drive import body_sway
 from scipy.spatial import cKDTree
 
 

@@ -12,7 +12,7 @@ from lidarloc.core.maps.world import open_world
 from lidarloc.core.matching.m3rsm import match_global
 from lidarloc.core.matching.shards import ShardedTiles, in_process, split_sweep
 from lidarloc.core.matching.tiled_search import match_global_tiled
-from lidarloc.core.sequences.town import TownSequence
+from lidarloc.core.sim.town import TownSequence
 from ray_local import ray_local  # noqa: F401  (a fixture: the Ray tests share one local instance)
 
 STEP = 15.0 * math.pi / 180.0

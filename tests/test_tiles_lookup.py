@@ -10,7 +10,7 @@ from lidarloc.core.maps.lookup import LookupTable
 from lidarloc.core.maps.tile_cache import INDEX
 from lidarloc.core.maps.tiled_lookup import TiledLookup, build_tiles, tile_cells_for
 from lidarloc.core.maps.world import open_world
-from lidarloc.core.sequences.town import TownSequence
+from lidarloc.core.sim.town import TownSequence
 
 RES, D_MAX = 0.25, 5.0
 

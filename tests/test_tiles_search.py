@@ -12,7 +12,7 @@ from lidarloc.core.maps.tiled_bev import TiledBEV
 from lidarloc.core.maps.world import open_world
 from lidarloc.core.matching.m3rsm import match_global
 from lidarloc.core.matching.tiled_search import match_global_tiled
-from lidarloc.core.sequences.town import TownSequence
+from lidarloc.core.sim.town import TownSequence
 
 STEP = 5.0 * math.pi / 180.0
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from lidarloc.core.config import Config, TownConfig
-from lidarloc.core.sequences.town import TownSequence
+from lidarloc.core.sim.town import TownSequence
 
 
 def _digest(array) -> str:

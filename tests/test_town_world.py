@@ -1,4 +1,4 @@
-"""The generated town's world options (core/sequences/town/): the prior map comes from the
+"""The generated town's world options (core/sim/town/): the prior map comes from the
 mapping drive whatever is being localized; changes since mapping, traffic, other sensors and
 mounting heights, and a second route change only the drive being localized."""
 
@@ -12,10 +12,10 @@ from lidarloc.core.config import Config
 from lidarloc.core.errors import DataError
 from lidarloc.core.sequences.base import DiskCachedScans, Limited
 from lidarloc.core.sequences.factory import SourceSpec, open_sequence
-from lidarloc.core.sequences.lidar_models import SENSORS, LidarModel
-from lidarloc.core.sequences.town import SENSOR_HEIGHT, TownSequence
-from lidarloc.core.sequences.town.objects import MOVABLE_KINDS
-from lidarloc.core.sequences.town.traffic import CAR, LEADER, LEADER_GAP, PEDESTRIAN
+from lidarloc.core.sim.lidar_models import SENSORS, LidarModel
+from lidarloc.core.sim.town import SENSOR_HEIGHT, TownSequence
+from lidarloc.core.sim.town.objects import MOVABLE_KINDS
+from lidarloc.core.sim.town.traffic import CAR, LEADER, LEADER_GAP, PEDESTRIAN
 from scipy.spatial import cKDTree
 
 
@@ -196,7 +196,7 @@ def test_changes_change_a_share_of_the_movable_objects(town, changed):
     # there is a car roof in the mapped world and none in the changed one; the other way round
     # for each added car.
     from lidarloc.core.o3d import open3d
-    from lidarloc.core.sequences.lidar_sim import raycasting_scene
+    from lidarloc.core.sim.lidar_sim import raycasting_scene
 
     def roof_height(parts, items):
         scene = raycasting_scene([p for p in parts if p.name != "crown"], commit=False)  # (crowns overhang cars)

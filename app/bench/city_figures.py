@@ -57,6 +57,6 @@ def district_namer(seq):
     districts = getattr(getattr(seq, "town", None), "districts", None)
     if districts is None:
         return None
-    from ...core.sequences.town.districts import STYLE_NAMES
+    from ...core.sim.town.districts import STYLE_NAMES
 
     return lambda x, y: STYLE_NAMES[int(districts.style_at(x, y))]

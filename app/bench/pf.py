@@ -263,7 +263,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 20, big_map: bool = 
             lookup_source="synthetic KITTI-05-sized map",
         )
     if town:
-        from ...core.sequences.town import TownSequence
+        from ...core.sim.town import TownSequence
 
         town_map = load_or_build_map(TownSequence.from_config(cfg.town).map_source, cfg.map).value  # the default town
         res = measure_lookup(town_map.points)

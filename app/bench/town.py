@@ -23,7 +23,7 @@ def run(spec: SourceSpec, cfg: Config, n_scans_timed: int = 30) -> dict:
     """Build the town of ``spec`` (``cfg.town``) and time ``n_scans_timed`` scans spread over its
     drive (over its first ``spec.scans`` scans if given); medians over the scans."""
     from ...core.o3d import open3d
-    from ...core.sequences.town import TownSequence  # noqa: F401  (imported off the clock)
+    from ...core.sim.town import TownSequence  # noqa: F401  (imported off the clock)
 
     require_town(spec, "town", "the built-in town's generation")
     open3d()  # the import itself is not town building

@@ -9,7 +9,7 @@ A prior map can also come from a point-cloud file (:class:`~lidarloc.core.maps.m
 passed where a sequence is): its points are voxelized with the same accumulator, in the file's
 local frame, and ``PriorMap.origin`` keeps that frame's float64 origin. A source may also deliver
 its map itself (``delivers_map``: the generated city's survey, sampled from its surfaces, see
-:mod:`lidarloc.core.sequences.town.survey`); it is cached like any other.
+:mod:`lidarloc.core.sim.town.survey`); it is cached like any other.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ from ..registry import Option, Source, as_path
 def _open(spec, cfg, progress=None):
     if (spec.trajectory is None) != (spec.calib is None):
         raise DataError("--trajectory and --calib go together (the calib's Tr converts cam0 poses to LiDAR)")
-    from ..town import TownSequence
+    from ...sim.town import TownSequence
 
     return TownSequence.from_config(
         cfg.town, seed=spec.town_seed, trajectory=as_path(spec.trajectory), calib=as_path(spec.calib)

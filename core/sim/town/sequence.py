@@ -11,7 +11,7 @@ import numpy as np
 
 from ...config import TOWN_SENSORS, TownConfig
 from ...errors import DataError
-from ..base import Sequence, rebase_poses
+from ...sequences.base import Sequence, rebase_poses
 from ..lidar_models import SENSORS, LidarModel
 from ..lidar_sim import Sweep
 from .constants import SENSOR_HEIGHT

@@ -144,6 +144,22 @@ def city_cache_dir(seed: int, extent: float, cache_root: Path | None = None) -> 
     return Path(cache_root or default_cache_root()) / f"city-{key}"
 
 
+#: Where the simulator's modules lived before it became ``core/sim/``: a city cached then (minutes
+#: to build on a 16 km² city) still loads.
+_FORMER_PACKAGES = {
+    "lidarloc.core.sequences.town": "lidarloc.core.sim.town",
+    "lidarloc.core.sequences.lidar_sim": "lidarloc.core.sim.lidar_sim",
+}
+
+
+class _CityUnpickler(pickle.Unpickler):
+    def find_class(self, module, name):
+        for old, new in _FORMER_PACKAGES.items():
+            if module == old or module.startswith(old + "."):
+                module = new + module[len(old) :]
+        return super().find_class(module, name)
+
+
 def load_or_build_city(seed: int, extent: float, cache_root: Path | None = None) -> tuple[CityWorld, bool]:
     """The city's world from the cache, or built and cached; and whether it came from the cache.
     A cache that cannot be written costs only the next build's time: the world is returned."""
@@ -152,10 +168,10 @@ def load_or_build_city(seed: int, extent: float, cache_root: Path | None = None)
     if path.is_file():
         try:
             with open(path, "rb") as f:
-                stored = pickle.load(f)
+                stored = _CityUnpickler(f).load()
             if stored.get("identity") == city_identity(seed, extent):
                 return _restored(stored["world"]), True
-        except (OSError, EOFError, pickle.UnpicklingError, AttributeError, KeyError, ValueError):
+        except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError, KeyError, ValueError):
             pass  # unreadable or from another version of the code: build it again
     world = build_city(seed, extent)
 

@@ -12,8 +12,8 @@ from scipy import ndimage
 
 from ...errors import DataError
 from ...geometry import inv_pose, rotation_zyx
-from ..base import check_poses, rebase_poses
-from ..kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
+from ...sequences.base import check_poses, rebase_poses
+from ...sequences.kitti_io import cam0_to_lidar_poses, read_pose_lines, read_tr
 from ..lidar_models import LidarModel
 from ..lidar_sim import RaycastLidar
 from .constants import (

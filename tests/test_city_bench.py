@@ -210,16 +210,22 @@ def test_fpfh_ransac_takes_its_scans_in_the_seeded_order_so_a_stopped_run_kept_a
 @pytest.mark.timeout(600)
 def test_localize_runs_give_localize_success(cache_root, tmp_path):
     """``--localize-runs``: seeded runs of full localization on the city's drive, summed up as
-    bench localize sums them (the share of runs localized and within 5 m to the end)."""
+    bench localize sums them (the share of runs localized and within 5 m to the end), on the
+    real-time clock when asked: the first fix's wait in the drive's seconds."""
     import json
 
-    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40"])
+    cfg = load_config(overrides=["town.extent_m=150", "town.n_scans=40", "localize.clock=realtime"])
     out = tmp_path / "localize"
     got = localize_figures(SourceSpec(scans=30), cfg, runs=1, workers=1, out_dir=out, cache_root=cache_root)
     summary = json.loads((out / "summary.json").read_text())
+    run = json.loads((out / "runs" / "seed_000" / "summary.json").read_text())
     assert got["localize_runs"] == 1 and got["localize_success"] in (0.0, 1.0)
     assert got["localize_success"] == summary["within_5m_to_end_ratio"]
     assert got["localize_false_fire_rate"] == summary["false_fire_rate"]
+    assert run["clock"] == "realtime" and got["localize_clock"] == "realtime"
+    assert got["first_fix_s_median"] == run["localized_at_s"]
+    if run["localized_at_s"] is not None:  # the drive's own seconds: scans 0.1 s apart
+        assert run["localized_at_s"] == pytest.approx(0.1 * run["localized_at_scan"])
 
 
 class _Drive:

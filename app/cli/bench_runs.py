@@ -334,7 +334,8 @@ def bench_city(
             "--localize-runs",
             min=0,
             help="Also this many seeded runs of full localization on the city's drive (bench localize; "
-            "each a whole drive, minutes on a city) for localize_success.",
+            "each a whole drive, minutes on a city) for localize_success; with --set localize.clock=realtime "
+            "on the real-time clock, for first_fix_s_median (the drive's seconds to the first fix; --workers 1).",
         ),
     ] = 0,
     workers: Annotated[

@@ -84,6 +84,7 @@ def test_example_is_a_corpus_run_accepts(tmp_path):
     assert [c.town.sensor for c in configs] == ["hdl64e", "vlp16", "vlp32c", "os1-128", "hdl64e", "vlp16"]
     assert [d.spec.town_seed for d in corpus.drives] == [0, 0, 0, 0, 1, 1]
     assert all(c.town.traffic and c.town.changes == 0.3 and c.town.skew for c in configs)  # lived-in
+    assert [c.town.traffic_seed for c in configs] == list(range(6))  # each drive its own day's traffic
     assert all(d.spec.scans == 20 and d.missing_path() is None for d in corpus.drives)
 
 

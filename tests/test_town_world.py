@@ -84,7 +84,7 @@ def _behind_boxes(boxes: np.ndarray, origin: np.ndarray, pts: np.ndarray, margin
 def test_mapping_drive_is_its_own_map_source(town):
     assert town.map_source is town
     assert town.world_options() == dict(
-        changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1
+        changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1, traffic_seed=0
     )
     assert "world=" not in town.identity()
 
@@ -158,6 +158,7 @@ def test_bad_world_options_are_reported():
         (dict(sensor="hdl32"), "sensor"),
         (dict(mount_height=9.0), "mount_height"),
         (dict(route=3), "route"),
+        (dict(traffic=True, traffic_seed=-1), "traffic_seed"),
     ):
         with pytest.raises(DataError, match=message):
             TownSequence(seed=3, extent_m=150.0, n_scans=10, **options)
@@ -290,6 +291,22 @@ def test_traffic_is_in_the_scans_and_nowhere_else(town, busy):
     assert seen > 1000
     # the map source's scans are the plain ones (no traffic in the map)
     np.testing.assert_array_equal(busy.map_source.scan(400), town.scan(400))
+
+
+def test_another_days_traffic_is_other_cars_on_the_same_streets(town, busy):
+    """``town.traffic_seed``: another number draws other traffic (the drives of a corpus meet
+    other cars), the same number the same; 0 is the town's own, named as it always was (the
+    caches of its scans stay); a traffic seed without traffic is the drive without."""
+    other = town.with_world(traffic=True, traffic_seed=2)
+    again = town.with_world(traffic=True, traffic_seed=2)
+    mine, theirs = busy.traffic.agents_at(20.0)["xy"], other.traffic.agents_at(20.0)["xy"]
+    assert len(mine) and len(theirs)
+    assert len(mine) != len(theirs) or not np.allclose(mine, theirs)
+    np.testing.assert_array_equal(theirs, again.traffic.agents_at(20.0)["xy"])
+    assert other.identity() != busy.identity() and "traffic_seed" not in busy.identity()
+    np.testing.assert_array_equal(other.poses, busy.poses)  # the same drive, other traffic
+    quiet = town.with_world(traffic_seed=2)
+    assert quiet.is_mapping_drive and quiet.world_options()["traffic_seed"] == 0
 
 
 def test_traffic_moves_on_plausible_paths(busy):

@@ -3,7 +3,8 @@
 Drive i is town seed i // 4 scanned by the i-th of the town's sensors in turn (HDL-64E, VLP-16,
 VLP-32C, OS1-128), all in the lived-in world (objects changed since mapping, traffic, scans swept
 while moving): the drives differ in what makes localization hard — the town, the sensor's
-resolution — and every four drives share one town, so its map is built once for them.
+resolution — and every four drives share one town, so its map is built once for them. Each drive
+meets its own day's traffic (``town.traffic_seed`` = its number) on the same changed streets.
 
 With ``seeds`` > 1 each drive is repeated under seeds 0 … seeds − 1 (``NAME-sK``): one log under
 several seeds, from which ``lidarloc corpus compare`` measures the seed-to-seed noise.
@@ -22,7 +23,12 @@ def example_drives(drives: int, seeds: int = 1) -> list[dict]:
     for i in range(drives):
         town, sensor = divmod(i, len(TOWN_SENSORS))
         name = TOWN_SENSORS[sensor]
-        drive = {"name": f"town{town}-{name}", "town_seed": town, "set": [f"town.sensor={name}"]}
+        # each drive its own day: other traffic on the same changed streets (town.traffic_seed)
+        drive = {
+            "name": f"town{town}-{name}",
+            "town_seed": town,
+            "set": [f"town.sensor={name}", f"town.traffic_seed={i}"],
+        }
         if seeds == 1:
             out.append(drive)
             continue

@@ -267,6 +267,9 @@ class TownConfig:
     mount_height: float = 1.73  # m, sensor above the road
     skew: bool = False  # each scan swept over 1/rate_hz while moving (not de-skewed)
     route: int = 1  # 1 = the mapping drive's route; 2 = another drive, same streets
+    # which traffic (with traffic): 0 = the town's own, the same cars at the same moments in every
+    # drive of the town; another number = another day's traffic on the same streets
+    traffic_seed: int = 0
 
 
 TOWN_SENSORS = ("hdl64e", "vlp16", "vlp32c", "os1-128")

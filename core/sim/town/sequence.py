@@ -19,7 +19,9 @@ from .drive import interpolate_poses
 from .world import Town
 
 #: The world options of the mapping drive (the town as it was mapped), in TownConfig's names.
-MAPPING_OPTIONS = dict(changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1)
+MAPPING_OPTIONS = dict(
+    changes=0.0, traffic=False, sensor="hdl64e", mount_height=SENSOR_HEIGHT, skew=False, route=1, traffic_seed=0
+)
 
 
 class TownSequence(Sequence):
@@ -59,10 +61,19 @@ class TownSequence(Sequence):
         mount_height: float = SENSOR_HEIGHT,
         skew: bool = False,
         route: int = 1,
+        traffic_seed: int = 0,
     ):
         t_start = time.perf_counter()
         options = _check_options(
-            dict(changes=changes, traffic=traffic, sensor=sensor, mount_height=mount_height, skew=skew, route=route)
+            dict(
+                changes=changes,
+                traffic=traffic,
+                sensor=sensor,
+                mount_height=mount_height,
+                skew=skew,
+                route=route,
+                traffic_seed=traffic_seed,
+            )
         )
         self._setup(Town(seed, extent_m, n_scans, rate_hz, trajectory, calib, lidar), options)
         self.lidar.build()
@@ -76,7 +87,7 @@ class TownSequence(Sequence):
 
     def with_world(self, **options) -> TownSequence:
         """Another drive through this same town (no new layout): this drive's world options
-        with ``options`` (changes, traffic, sensor, mount_height, skew, route) replaced."""
+        with ``options`` (changes, traffic, sensor, mount_height, skew, route, traffic_seed) replaced."""
         unknown = set(options) - set(MAPPING_OPTIONS)
         if unknown:
             raise DataError(f"town: unknown world option(s) {', '.join(sorted(unknown))}")
@@ -132,7 +143,7 @@ class TownSequence(Sequence):
         if options["traffic"]:
             from .traffic import Traffic
 
-            self._traffic = Traffic(town, poses_town, times)
+            self._traffic = Traffic(town, poses_town, times, options["traffic_seed"])
 
     @classmethod
     def from_config(
@@ -153,10 +164,12 @@ class TownSequence(Sequence):
             mount_height=cfg.mount_height,
             skew=cfg.skew,
             route=cfg.route,
+            traffic_seed=cfg.traffic_seed,
         )
 
     def world_options(self) -> dict:
-        """The world options of this drive (changes, traffic, sensor, mount_height, skew, route)."""
+        """The world options of this drive (changes, traffic, sensor, mount_height, skew, route,
+        traffic_seed)."""
         return dict(self.options)
 
     @functools.cached_property
@@ -207,7 +220,9 @@ class TownSequence(Sequence):
         ident = self.town.identity()
         if self.is_mapping_drive:
             return ident
-        return ident + "|world=" + ",".join(f"{k}={v}" for k, v in self.options.items())
+        # (the town's own traffic, seed 0, is named as before there were others: its scans' caches stay)
+        named = {k: v for k, v in self.options.items() if not (k == "traffic_seed" and v == 0)}
+        return ident + "|world=" + ",".join(f"{k}={v}" for k, v in named.items())
 
     # -------------------------------------------------------------- extras for display and tests
     @property
@@ -263,6 +278,9 @@ def _check_options(options: dict) -> dict:
         raise DataError(f"town: mount_height must be in 0.3..5 m, got {mount:g}")
     if options["route"] not in (1, 2):
         raise DataError(f"town: route must be 1 or 2, got {options['route']!r}")
+    traffic_seed = int(options.get("traffic_seed", 0))
+    if traffic_seed < 0:
+        raise DataError(f"town: traffic_seed must be ≥ 0, got {traffic_seed}")
     return dict(
         changes=changes,
         traffic=bool(options["traffic"]),
@@ -270,4 +288,6 @@ def _check_options(options: dict) -> dict:
         mount_height=mount,
         skew=bool(options["skew"]),
         route=int(options["route"]),
+        # another day's traffic means nothing without traffic: such a drive is the one without
+        traffic_seed=traffic_seed if options["traffic"] else 0,
     )

@@ -80,10 +80,12 @@ class _Paths:
 
 class Traffic:
     """The movers of one drive through ``town`` (the drive's town-frame ``poses`` at ``times``
-    decide which lanes are its own and where the leading car goes)."""
+    decide which lanes are its own and where the leading car goes); ``seed`` draws which traffic
+    (0: the town's own, the same for every drive of the town at the same moments)."""
 
-    def __init__(self, town: Town, poses: np.ndarray, times: np.ndarray):
-        rng = np.random.default_rng([town.seed, *TRAFFIC_STREAM])
+    def __init__(self, town: Town, poses: np.ndarray, times: np.ndarray, seed: int = 0):
+        # seed 0: the town's own traffic; another: another day's on the same streets
+        rng = np.random.default_rng([town.seed, *TRAFFIC_STREAM, *([seed] if seed else [])])
         self.ground = town.ground
         self.raster, self.road = town.raster, town.road
         ego_xy = poses[:, :2, 3]

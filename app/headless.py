@@ -21,7 +21,7 @@ from rich.markup import escape
 from ..core.config import Config
 from ..core.errors import LidarlocError
 from ..core.localizer import Interrupted, Localizer
-from ..core.localizer.deadline import RecentPeak
+from ..core.localizer.deadline import RecentPeak, ScanClock
 from ..core.runs.recording import RecordingWriter
 from ..core.runs.results import make_out_dir, summarize_run, write_run
 from ..core.sequences.factory import SourceSpec
@@ -107,8 +107,8 @@ def localize(
     cpu_start = loc.cpu_seconds()
     warned = _warn_frames(console, loc.events, 0)
     n_before = len(loc.records)  # a branch starts with the recorded run's
-    clock_origin = seq.timestamp(loc.k) if loc.k > 0 and not loc.done else 0.0
-    t_start = time.perf_counter()
+    clock = ScanClock(seq, loc.k if not loc.done else 0)
+    t_start = clock.start
     failure: str | None = None  # a block's failure that stopped the run (written into the summary)
     writing = RecentPeak()  # real time: what recording a scan takes after its step (s)
     deadline = None
@@ -122,20 +122,12 @@ def localize(
                 if realtime:
                     # Scans arrive at the sequence's own rate; a step that starts after its scan's
                     # arrival time is late (we never drop scans, we count the lag).
-                    due = t_start + seq.timestamp(loc.k) - clock_origin
-                    now = time.perf_counter()
-                    if now < due:
-                        # sleep, not stop.wait(): the Ctrl-C handler sets ``stop`` on this same
-                        # thread, and would deadlock on the Event's lock if it interrupted wait()
-                        time.sleep(min(due - now, 0.05))
-                        continue
-                    lags.append(max(0.0, (now - due) * 1000.0))
+                    lag = clock.wait_due(loc.k, stop.is_set)
+                    if lag is None:
+                        break
+                    lags.append(lag)
                     # the step's waits end in time for the next scan, after the writing below
-                    deadline = (
-                        t_start + seq.timestamp(loc.k + 1) - clock_origin - writing.value
-                        if loc.k + 1 < len(seq)
-                        else None
-                    )
+                    deadline = clock.deadline(loc.k, writing.value)
                 try:
                     snap = loc.step(deadline)
                 except Interrupted:

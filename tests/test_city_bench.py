@@ -223,6 +223,8 @@ def test_localize_runs_give_localize_success(cache_root, tmp_path):
     assert got["localize_success"] == summary["within_5m_to_end_ratio"]
     assert got["localize_false_fire_rate"] == summary["false_fire_rate"]
     assert run["clock"] == "realtime" and got["localize_clock"] == "realtime"
+    # paced as `lidarloc run` paces it: the scans arrive at 10 Hz, each step's lag counted
+    assert run["late_scans"] is not None and run["scans_per_second"] <= 10.5
     assert got["first_fix_s_median"] == run["localized_at_s"]
     if run["localized_at_s"] is not None:  # the drive's own seconds: scans 0.1 s apart
         assert run["localized_at_s"] == pytest.approx(0.1 * run["localized_at_scan"])

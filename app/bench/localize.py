@@ -102,18 +102,23 @@ def run_one(
     out = Path(run_dir)
     with Localizer(seq, cfg, Path(cache_root) if cache_root else None) as loc:
         t0 = time.perf_counter()
+        writer = None
         if record:
             from ...core.runs.recording import RecordingWriter
 
             if (out / "recording").exists():  # a run cut short before: its recording is redone
                 shutil.rmtree(out / "recording")
             writer = RecordingWriter(out, SourceSpec.from_dict(spec_d), cfg, seq, preset=preset)
+        lags = None
+        if cfg.localize.clock == "realtime":
+            lags = _play_in_real_time(loc, None if writer is None else writer.on_scan)
+        elif writer is not None:
             while not loc.done:
                 writer.on_scan(loc, loc.step())
         else:
             loc.run()
-        summary = summarize_run(loc, time.perf_counter() - t0, preset=preset)
-        if record:
+        summary = summarize_run(loc, time.perf_counter() - t0, lags, preset=preset)
+        if writer is not None:
             writer.close(summary)
         out.mkdir(parents=True, exist_ok=True)
         # latencies first: summary.json (written last) marks the run as complete for a resume
@@ -121,6 +126,26 @@ def run_one(
         np.save(out / "s2m_ms.npy", np.array([r.s2m_ms for r in loc.records if r.s2m_ms is not None]))
         write_run(loc, out, summary)
     return summary
+
+
+def _play_in_real_time(loc, on_step=None) -> list[float]:
+    """Step ``loc`` with its scans arriving at the sequence's own rate, as ``lidarloc run`` does
+    on the real-time clock (:class:`~lidarloc.core.localizer.deadline.ScanClock`): the clock starts
+    once every block is up; ``on_step(loc, snapshot)`` after each step (a recording's writer);
+    returns each step's lag (ms)."""
+    from ...core.localizer.deadline import RecentPeak, ScanClock
+
+    loc.wait_ready()
+    clock = ScanClock(loc.seq, loc.k)
+    lags, tail = [], RecentPeak()
+    while not loc.done:
+        lags.append(clock.wait_due(loc.k))
+        snap = loc.step(clock.deadline(loc.k, tail.value))
+        if on_step is not None:
+            t = time.perf_counter()
+            on_step(loc, snap)
+            tail.add(time.perf_counter() - t)
+    return lags
 
 
 def prepare_one(spec_d: dict, cfg_d: dict, cache_root: str | None, numba_threads: int = 0) -> None:

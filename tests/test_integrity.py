@@ -15,6 +15,7 @@ from lidarloc.core.localizer import Localizer
 from lidarloc.core.rules.integrity import (
     CLEARED_DOUBT_HOLDS_SCANS,
     DISAGREEMENTS_FOR_CHECK,
+    FIRST_FIX_WORD_AGE_SCANS,
     FIT_MIN_SAMPLES,
     WITHDRAW_AFTER_POOR_FIT_SCANS,
     Integrity,
@@ -250,6 +251,31 @@ def test_s2ms_word_goes_stale_after_confirm_within_scans():
     paper = Integrity(load_config(preset="paper"))
     paper.confirmed_at = 0
     assert paper.stale_word(10_000) is None
+
+
+def test_a_first_fix_needs_a_word_on_a_recent_estimate():
+    """In real time a match may agree before the odometry lets it land: its word is about the
+    estimate it started from. It lets the rule fire for the first time only if that estimate is at
+    most FIRST_FIX_WORD_AGE_SCANS old (the filter may have slid along a street since); a landed
+    agreement is about the estimate of the scan it lands in. Either keeps the word fresh."""
+    from dataclasses import replace
+
+    cfg = Config()
+    integ = Integrity(cfg)
+    agrees = judge("local", True, False, _pose(0.5, 0.0), _pose(0.0, 0.0), 200, 100, cfg)
+    assert agrees.kind == "agrees" and agrees.judged_at is None
+    integ.note_verdict(73, replace(agrees, judged_at=43))  # started at 43, agreed at 73
+    assert integ.confirmed_at == 73 and integ.confirmed_about == 43
+    assert integ.confirmed_since(20, 73) and not integ.confirms_first_fix(20, 73)
+    assert integ.stale_word(73 + cfg.localize.confirm_within) is None  # still a fresh word
+    integ.note_verdict(80, replace(agrees, judged_at=80 - FIRST_FIX_WORD_AGE_SCANS))
+    assert integ.confirms_first_fix(20, 80) and not integ.confirms_first_fix(20, 81)
+    integ.note_verdict(100, agrees)  # landed: about scan 100's estimate
+    assert integ.confirmed_about == 100 and integ.confirms_first_fix(20, 100)
+    # a checkpoint without it: the landing's own scan
+    restored = Integrity(cfg)
+    restored.load({k: v for k, v in integ.state().items() if k != "confirmed_about"})
+    assert restored.confirmed_about == restored.confirmed_at == 100
 
 
 def test_far_poses_must_fit_clearly_better_in_3d():

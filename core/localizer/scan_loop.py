@@ -379,7 +379,7 @@ class Localizer(BlocksMixin, ControlsMixin, OutputsMixin, StateMixin, TablesMixi
         step_dist, yaw_odom = self.odometry.motion(k)
         for j, words in self.odometry.take_notices():  # KISS-ICP's child restarted (feed.py)
             self._event(j, "restarted", f"RPE: {words}")
-        confirmed = (lambda k0: self.integrity.confirmed_since(k0, k)) if self.integrity.required else None
+        confirmed = (lambda k0: self.integrity.confirms_first_fix(k0, k)) if self.integrity.required else None
         outcome = self.rules.update(k, est.std_xyz, step_dist, yaw_odom, confirmed)
         reinit = relocalized
         if outcome.event is not None:

@@ -474,5 +474,5 @@ class S2MScheduler(MatcherMixin):
         if verdict.kind != "agrees":
             return
         job.agreed_early = True
-        self.verdict = verdict
+        self.verdict = replace(verdict, judged_at=job.started_at)
         self._event(k, "s2m_agrees", early_agreement_detail(job.started_at, odometry.newest_registered()))

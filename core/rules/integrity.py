@@ -106,6 +106,13 @@ RELOCALIZE_RESIDUAL_RATIO = 0.6
 #: After a check asked for by low confidence, the next one waits at least this many scans (a
 #: scan that fits poorly for many scans must not keep S2M on whole-map searches back to back).
 CHECK_COOLDOWN_SCANS = 10
+#: A first "localized" rests on S2M's word about the estimate of at most this many scans ago
+#: (1 s at 10 Hz). In real time a match that agreed before the odometry let it land judged the
+#: estimate it started from; a filter whose odometry lags can slide along a straight street
+#: meanwhile with a small spread: on the 16 km² city from a city-wide start, 12.5 m in the 30
+#: scans between such a match's start and its word, its std under 2 m, and the rule fired there.
+#: Such a word still keeps an estimate already confirmed from going stale.
+FIRST_FIX_WORD_AGE_SCANS = 10
 
 
 @dataclass(frozen=True)
@@ -122,6 +129,9 @@ class Verdict:
     pose: np.ndarray | None  # the match pose at the landing scan (4×4, world ← LiDAR)
     score: float  # the match's BEV score
     estimate_score: float  # the BEV score of the pose it started from (the best particle)
+    # the scan whose estimate it judged, where that is not the scan it is taken at: a real-time
+    # match that agreed before the odometry let it land judged the estimate it started from
+    judged_at: int | None = None
 
     def describe(self) -> str:
         if self.pose is None:
@@ -187,6 +197,7 @@ class Integrity:
     def reset(self) -> None:
         """A new start (restart, re-initialisation, kidnap): nothing confirmed yet."""
         self.confirmed_at: int | None = None
+        self.confirmed_about: int | None = None  # the scan whose estimate that agreement judged
         self.rejections_in_row = 0
         self.poor_fit_scans = 0
         self.check_reason: str | None = None  # why the next match should search the whole map
@@ -201,6 +212,7 @@ class Integrity:
 
     _STATE = (
         "confirmed_at",
+        "confirmed_about",
         "rejections_in_row",
         "poor_fit_scans",
         "check_reason",
@@ -223,6 +235,8 @@ class Integrity:
         for name in self._STATE:
             if name in state:
                 setattr(self, name, state[name])
+        if "confirmed_about" not in state:  # a checkpoint from before it was kept: the landing's own scan
+            self.confirmed_about = self.confirmed_at
 
     # ------------------------------------------------------------------ confirmation
     def confirmed_since(self, k0: int | None, k: int | None = None) -> bool:
@@ -231,6 +245,14 @@ class Integrity:
         if self.confirmed_at is None or k0 is None or self.confirmed_at < k0:
             return False
         return k is None or not self._stale(k)
+
+    def confirms_first_fix(self, k0: int | None, k: int) -> bool:
+        """Whether S2M's word lets the rule say "localized" for the first time at scan k, for a
+        streak of small spread since scan ``k0``: a match agreed at or after ``k0`` and judged an
+        estimate at most :data:`FIRST_FIX_WORD_AGE_SCANS` scans old."""
+        if not self.confirmed_since(k0, k) or self.confirmed_about is None:
+            return False
+        return k - self.confirmed_about <= FIRST_FIX_WORD_AGE_SCANS
 
     def _stale(self, k: int) -> bool:
         """Whether the last agreement is more than ``localize.confirm_within`` scans old at scan k
@@ -254,6 +276,7 @@ class Integrity:
         a whole-map check asked for by a poor fit did not agree), or None."""
         if verdict.kind == "agrees":
             self.confirmed_at = k
+            self.confirmed_about = k if verdict.judged_at is None else verdict.judged_at
             if verdict.mode in ("global", "check"):
                 if self.poor_fit_scans > 0 or self.doubt is not None:
                     self.doubt_cleared_at = k

@@ -2,13 +2,14 @@
 
 Runs use the replay clock (deterministic per seed) unless the configuration asks for the real-time
 clock (``--set localize.clock=realtime``: each run then keeps the drive's pace, its figures depend
-on the machine's load, and a worker per two cores is what keeps the pace honest). Each run writes ``runs/seed_NNN/`` with its
-summary and per-scan CSV; a run whose summary exists is kept, so an interrupted benchmark
-resumes where it stopped (only with the same source, configuration and code, else it refuses).
-The map, lookup table, BEV pyramid and (unless ``--live-odometry``) the KISS-ICP odometry of the
-sequence are built once, in the parent, into the cache that every worker then loads (process
-pool or Ray tasks alike). The odometry does not depend on the seed, so replaying it changes no
-number (tested) and saves each run ~45–60 ms of CPU per scan (KISS-ICP, ``lidarloc bench rpe``).
+on the machine's load, and a worker per two cores is what keeps the pace honest). Each run writes
+``runs/seed_NNN/`` with its summary and per-scan CSV; a run whose summary exists is kept, so an
+interrupted benchmark resumes where it stopped (only with the same source, configuration and code,
+else it refuses). The map, lookup table, BEV pyramid and (unless ``--live-odometry``) the KISS-ICP
+odometry of the sequence are built once, in the parent, into the cache that every worker then loads
+(process pool or Ray tasks alike). The odometry does not depend on the seed, so replaying it
+changes no number (tested) and saves each run ~45–60 ms of CPU per scan (KISS-ICP, ``lidarloc bench
+rpe``).
 
 Beside A–E the summary gives whether the filter's own uncertainty can be trusted: the median over
 runs of ``consistency_2sigma`` and ``false_fire_rate``, the share of runs whose rule fired more

@@ -19,7 +19,8 @@ What the survey keeps is what a mapping van driving every street sees (constants
   between that one and the way the wall faces (a passing scanner sees side walls at an
   angle), or straight out of the wall to another street — so back yards, back walls and what
   stands behind a building are missing as they are from a real survey; roofs and other tops
-  above the scanner are missing too (seen from below, a surface facing up is not seen).
+  above the scanner are missing too (seen from below, a surface facing up is not seen), and so
+  is what lies below the ground surface (a wall's foot on a slope).
 
 The reaches trade completeness against size: a scan from the road finds 97–99 % of its points
 within 40 m on the map (the rest mostly open ground beyond the reach), and the 4 km city's map
@@ -55,7 +56,12 @@ OPEN_GROUND_REACH = 30.0  # m beyond the road's edge across open ground (the hig
 OBJECT_REACH = 40.0  # m beyond the road's edge
 SURVEY_TOP = 15.0  # m above the ground
 SURVEY_HEIGHT = 2.5  # m, the survey scanner above the road
-SURVEY_VERSION = 1
+#: m: a surface point this far below the ground at its place is buried (a building's walls go
+#: down to its lowest corner's ground: on a slope their foot is under the terrain on the high
+#: side). Kept, such points made the street beside a building on a slope look walled in to the
+#: place index (a "ground" 0.9 m lower within 3 m), where a scan sees open ground.
+BURIED = 0.1
+SURVEY_VERSION = 2
 BLOCK = 256.0  # m: two blocks in the making take a few hundred MB
 COVER_STEP = 0.25  # m per unit of the city's cover raster
 _GROUND_PARTS = ("road", "sidewalk_lot")
@@ -428,7 +434,8 @@ def _surface_samples(
                     continue
                 zz = az + u * e1z + w * e2z
                 above = zz - height(x, y, z, hx0, hy0, spacing)
-                if above > top or (up[t] and above > scanner):
+                # below the ground surface (a wall's foot on a slope): no scanner sees it
+                if above > top or above < -BURIED or (up[t] and above > scanner):
                     continue
                 i = int(math.floor((x - rx0) / cell))
                 j = int(math.floor((y - ry0) / cell))

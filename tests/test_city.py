@@ -12,7 +12,8 @@ from lidarloc.core.errors import DataError, LidarlocError
 from lidarloc.core.sim.town import SENSOR_HEIGHT, TownSequence
 from lidarloc.core.sim.town.city_layout import ARTERIAL, CLASS_SPEED_KMH, RING
 from lidarloc.core.sim.town.districts import DOWNTOWN, INDUSTRIAL, PARK, STYLE_NAMES, SUBURB
-from lidarloc.core.sim.town.survey import survey_points
+from lidarloc.core.sim.town.survey import BURIED, survey_points
+from lidarloc.core.sim.town.survey_sight import height
 from scipy.spatial import cKDTree
 
 EXTENT = 1200.0  # the smallest city worth testing: all five district styles already
@@ -101,6 +102,10 @@ def test_city_scan_lies_on_the_survey_map(city):
         upright = pts[near, 2] > -1.0  # walls, trees, cars … (the road removal keeps them)
         d_bev, _ = cKDTree(bev).query(_to_world(T, pts[near][upright]), distance_upper_bound=2.0)
         assert np.mean(d_bev > 0.5) < 0.05, (i, np.mean(d_bev > 0.5))
+        # nothing below the ground surface, where no scanner sees (a wall's foot on a slope)
+        g = city.town.plan.ground
+        above = points[:, 2] - np.array([height(px, py, g.z, g.x0, g.y0, g.spacing) for px, py in points[:, :2]])
+        assert above.min() >= -BURIED - 0.05, (i, above.min())
 
 
 # ------------------------------------------------------------------------------ world options

@@ -24,7 +24,7 @@ What the survey keeps is what a mapping van driving every street sees (constants
 
 The reaches trade completeness against size: a scan from the road finds 97–99 % of its points
 within 40 m on the map (the rest mostly open ground beyond the reach), and the 4 km city's map
-is already 421 M points, 60 % of them ground along the streets (docs/city.md).
+is already 412 M points, 60 % of them ground along the streets (docs/city.md).
 
 Each voxel's point is the centroid of the samples in it, as a fused map's is of its returns.
 The road-removed copy (the bird's-eye-view map) drops the voxels whose samples lie mostly on

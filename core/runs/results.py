@@ -222,7 +222,7 @@ def summarize_run(
         "n_particles_median": float(np.median(n_particles)) if n_particles.size else None,
         "localized_at_scan": first_loc,
         # the drive's own seconds from the first scan to that one: on the real-time clock the time
-        # a user waits for the first fix (on the replay clock, scans are never dropped meanwhile)
+        # a user waits for the first fix; on the replay clock the drive's time, not a wait
         "localized_at_s": None
         if first_loc is None
         else float(loc.seq.timestamp(first_loc) - loc.seq.timestamp(recs[0].scan)),
